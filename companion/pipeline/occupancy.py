@@ -1,0 +1,92 @@
+"""Step 2 of the pipeline: density map -> free/occupied map in image pixels.
+
+The paper's rule: a pixel is occupied where ``D - min(D) > threshold`` (threshold 0 by default),
+the map is brought to the image size without shrinking occupied areas, dilated twice with a 5x5
+kernel of ones (over-estimating people on purpose), and inverted so that free = 255.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+FREE = 255
+OCCUPIED = 0
+
+
+@dataclass(frozen=True)
+class OccupancyParams:
+    """Parameters of the occupancy step.
+
+    threshold: density above ``min(D)`` (people per density pixel) that marks a pixel occupied.
+    kernel: side of the square dilation kernel in image pixels (odd, >= 1).
+    iterations: how many times the dilation is applied (>= 0).
+    """
+
+    threshold: float = 0.0
+    kernel: int = 5
+    iterations: int = 2
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.threshold) or self.threshold < 0:
+            raise ValueError(f"occupancy threshold must be a finite number >= 0, got {self.threshold!r}")
+        if int(self.kernel) != self.kernel or self.kernel < 1 or self.kernel % 2 == 0:
+            raise ValueError(f"occupancy kernel must be an odd integer >= 1, got {self.kernel!r}")
+        if int(self.iterations) != self.iterations or self.iterations < 0:
+            raise ValueError(f"occupancy iterations must be an integer >= 0, got {self.iterations!r}")
+
+
+def occupied_mask(density: np.ndarray, threshold: float = 0.0) -> np.ndarray:
+    """Boolean mask, at the density map's own resolution, of where ``D - min(D) > threshold``.
+
+    NaN or infinite density values count as occupied: a broken output must never open space.
+    """
+    d = np.asarray(density, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"density map must be 2-D, got shape {d.shape}")
+    finite = np.isfinite(d)
+    if not finite.any():
+        return np.ones(d.shape, dtype=bool)
+    dmin = float(d[finite].min())
+    occ = ~finite
+    occ |= np.where(finite, d - dmin > threshold, True)
+    return occ
+
+
+def resize_keep_occupied(mask: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
+    """Resize a boolean occupied mask to ``size_hw`` so that no occupied area shrinks.
+
+    Upscaling uses nearest neighbour (every source pixel covers at least one target pixel);
+    downscaling in either axis keeps a target pixel occupied if any source pixel under it is.
+    """
+    h, w = size_hw
+    src = mask.astype(np.uint8)
+    sh, sw = src.shape
+    if (sh, sw) == (h, w):
+        return mask.copy()
+    if sh > h or sw > w:
+        # INTER_AREA averages the covered source pixels: any occupied one gives a value > 0.
+        small = cv2.resize(src * 255, (min(w, sw), min(h, sh)), interpolation=cv2.INTER_AREA)
+        src = (small > 0).astype(np.uint8)
+    out = cv2.resize(src, (w, h), interpolation=cv2.INTER_NEAREST)
+    return out.astype(bool)
+
+
+def occupancy_map(
+    density: np.ndarray,
+    image_hw: tuple[int, int],
+    params: OccupancyParams = OccupancyParams(),
+) -> np.ndarray:
+    """The paper's occupancy map at image size: uint8, ``FREE`` (255) or ``OCCUPIED`` (0).
+
+    density: 2-D density map (any stride) of one frame.
+    image_hw: (height, width) of the camera frame in pixels.
+    """
+    occ = occupied_mask(density, params.threshold)
+    occ_img = resize_keep_occupied(occ, image_hw).astype(np.uint8) * 255
+    if params.iterations > 0 and params.kernel > 1:
+        kernel = np.ones((params.kernel, params.kernel), np.uint8)
+        occ_img = cv2.dilate(occ_img, kernel, iterations=params.iterations)
+    return cv2.bitwise_not(occ_img)

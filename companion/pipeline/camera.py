@@ -1,0 +1,289 @@
+"""Step 3 of the pipeline, geometry: the camera model and the head-plane homography.
+
+Frames (DESIGN.md): world = local NED in metres, origin at home, ground at ``z = 0``, head plane at
+``z = -h_h``; body = FRD; camera = OpenCV (x right, y down, z forward along the optical axis).
+
+The camera is mounted on the body with a rotation given as roll/pitch/yaw of a "camera FRD" frame
+relative to the body (zero = looking forward, image top up; pitch -90 deg = looking straight down
+with the image top toward the nose) and an offset in body FRD metres. A gimbal attitude, when known,
+replaces the mount rotation.
+
+The mapping between head-plane points ``(x_north, y_east)`` in metres and image pixels is the
+homography ``H_img_from_plane = K [c1 c2 (-h_h c3 + t)]`` where ``c_i`` are the columns of the
+world-to-camera rotation and ``t`` its translation. Lens distortion is not a homography: the
+pipeline undistorts the occupancy map first (``Intrinsics.undistort_maps``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+# Columns are the OpenCV camera axes expressed in the camera FRD frame:
+# cv x (right) = FRD y, cv y (down) = FRD z, cv z (forward) = FRD x.
+R_FRD_FROM_CV = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+class GeometryError(ValueError):
+    """A pose, calibration or homography that cannot give a valid projection."""
+
+
+def rotation_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rotation matrix ``R_parent_from_child`` for aerospace Z-Y-X Euler angles in radians.
+
+    The same convention as MAVLink ATTITUDE: yaw about down, then pitch about the new right axis
+    (positive nose up), then roll about the new forward axis (positive right wing down).
+    """
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [
+            [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
+            [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
+            [-sp, sr * cp, cr * cp],
+        ]
+    )
+
+
+def rotation_from_quaternion(q: tuple[float, float, float, float]) -> np.ndarray:
+    """Rotation matrix from a unit quaternion ``(w, x, y, z)`` (MAVLink order, Hamilton)."""
+    w, x, y, z = (float(v) for v in q)
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not math.isfinite(n) or n < 1e-9:
+        raise GeometryError(f"quaternion {q!r} is not a rotation")
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _require_finite(name: str, *values: float) -> None:
+    if not all(math.isfinite(float(v)) for v in values):
+        raise GeometryError(f"{name} has a NaN or infinite value: {values!r}")
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels plus OpenCV distortion coefficients (k1, k2, p1, p2[, k3...])."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    dist: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        _require_finite("intrinsics", self.fx, self.fy, self.cx, self.cy, *self.dist)
+        if self.fx <= 0 or self.fy <= 0:
+            raise GeometryError(f"focal lengths must be > 0, got fx={self.fx}, fy={self.fy}")
+        if self.width <= 0 or self.height <= 0:
+            raise GeometryError(f"image size must be > 0, got {self.width}x{self.height}")
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov_deg: float) -> "Intrinsics":
+        """Square pixels, centred principal point, horizontal field of view in degrees."""
+        f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0 for d in self.dist)
+
+    def scaled_to(self, width: int, height: int) -> "Intrinsics":
+        """The same camera at another resolution (frames resized before processing)."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
+                          self.dist)
+
+    def undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """``cv2.remap`` maps that turn a distorted image into the ideal pinhole image of ``K``."""
+        return cv2.initUndistortRectifyMap(
+            self.K, np.asarray(self.dist, dtype=np.float64), None, self.K,
+            (self.width, self.height), cv2.CV_16SC2,
+        )
+
+
+@dataclass(frozen=True)
+class Mount:
+    """Camera mounting on the body: rotation (radians) of the camera FRD frame and offset (m, FRD).
+
+    The default looks straight down (pitch -90 deg) from the body origin.
+    """
+
+    roll: float = 0.0
+    pitch: float = -math.pi / 2
+    yaw: float = 0.0
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def from_degrees(cls, roll_deg: float = 0.0, pitch_deg: float = -90.0, yaw_deg: float = 0.0,
+                     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> "Mount":
+        return cls(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg),
+                   tuple(float(v) for v in offset))  # type: ignore[arg-type]
+
+    def rotation(self) -> np.ndarray:
+        """``R_body_from_camfrd``."""
+        _require_finite("camera mount", self.roll, self.pitch, self.yaw, *self.offset)
+        return rotation_from_euler(self.roll, self.pitch, self.yaw)
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Vehicle pose at one instant.
+
+    t: seconds (monotonic clock of the receiver). north, east, down: body origin in world NED
+    metres (down is negative above home). roll, pitch, yaw: radians, MAVLink ATTITUDE convention.
+    gimbal: optional ``R_body_from_camfrd`` (3x3) of a gimbal, replacing the fixed mount rotation.
+    """
+
+    t: float
+    north: float
+    east: float
+    down: float
+    roll: float
+    pitch: float
+    yaw: float
+    gimbal: np.ndarray | None = field(default=None, compare=False)
+
+    def validate(self) -> None:
+        _require_finite("vehicle pose", self.t, self.north, self.east, self.down,
+                        self.roll, self.pitch, self.yaw)
+        if self.gimbal is not None:
+            g = np.asarray(self.gimbal, dtype=float)
+            if g.shape != (3, 3) or not np.isfinite(g).all():
+                raise GeometryError("gimbal rotation must be a finite 3x3 matrix")
+
+
+@dataclass(frozen=True)
+class CameraExtrinsics:
+    """World-to-camera transform: ``x_cv = R_cv_from_world @ (p_world - position)``."""
+
+    R_cv_from_world: np.ndarray
+    position: np.ndarray  # camera centre in world NED metres
+
+
+def camera_extrinsics(pose: Pose, mount: Mount) -> CameraExtrinsics:
+    """Where the camera is and how it is turned, from the vehicle pose and the mount/gimbal."""
+    pose.validate()
+    R_world_from_body = rotation_from_euler(pose.roll, pose.pitch, pose.yaw)
+    R_body_from_camfrd = mount.rotation() if pose.gimbal is None else np.asarray(pose.gimbal, float)
+    R_world_from_cv = R_world_from_body @ R_body_from_camfrd @ R_FRD_FROM_CV
+    position = np.array([pose.north, pose.east, pose.down]) + R_world_from_body @ np.asarray(
+        mount.offset, dtype=float
+    )
+    return CameraExtrinsics(R_world_from_cv.T, position)
+
+
+def _check_homography(H: np.ndarray, what: str) -> np.ndarray:
+    H = np.asarray(H, dtype=np.float64)
+    if H.shape != (3, 3):
+        raise GeometryError(f"{what} must be a 3x3 matrix, got shape {H.shape}")
+    if not np.isfinite(H).all():
+        raise GeometryError(f"{what} has NaN or infinite entries")
+    # Relative conditioning, so a homography in metres and one in pixels are judged alike.
+    s = np.linalg.svd(H, compute_uv=False)
+    if s[-1] <= 1e-9 * s[0]:
+        raise GeometryError(f"{what} is not invertible (singular values {s.tolist()})")
+    return H
+
+
+@dataclass(frozen=True)
+class PlaneProjection:
+    """The mapping between head-plane metres ``(x, y)`` and image pixels ``(u, v)``.
+
+    ``H`` maps plane -> image (homogeneous); ``H_inv`` image -> plane. For poses, the plane
+    coordinates are world north/east; for pose-free modes they are whatever the given homography
+    or ground sample distance defines. ``camera_xy`` is the point of the plane under the camera
+    (used to centre the metric grid), or None when unknown.
+    """
+
+    H: np.ndarray
+    H_inv: np.ndarray
+    camera_xy: tuple[float, float] | None = None
+    # Sign of the homogeneous w of points in front of the camera (a homography is defined up to
+    # scale, and a negative scale flips it).
+    w_sign: float = 1.0
+
+    @classmethod
+    def from_plane_to_image(cls, H: np.ndarray, camera_xy: tuple[float, float] | None = None
+                            ) -> "PlaneProjection":
+        """``H = K [c1 c2 c3']`` exactly (positive scale), as built by ``from_pose``."""
+        H = _check_homography(H, "plane-to-image homography")
+        return cls(H, np.linalg.inv(H), camera_xy, 1.0)
+
+    @classmethod
+    def from_image_to_plane(cls, H_plane_from_img: np.ndarray,
+                            ref_uv: tuple[float, float] = (0.0, 0.0)) -> "PlaneProjection":
+        """A fixed 3x3 image-to-head-plane matrix (pixels -> metres), as given by a user.
+
+        ``ref_uv`` is a pixel known to see the plane (any pixel of the image, for a camera whose
+        whole view is below the horizon); it fixes the sign of the unknown scale.
+        """
+        Hi = _check_homography(H_plane_from_img, "image-to-plane homography")
+        w = Hi[2, 0] * ref_uv[0] + Hi[2, 1] * ref_uv[1] + Hi[2, 2]
+        if abs(w) < 1e-12:
+            raise GeometryError("image-to-plane homography maps the reference pixel to infinity")
+        return cls(np.linalg.inv(Hi), Hi, None, float(np.sign(w)))
+
+    @classmethod
+    def nadir(cls, gsd: float) -> "PlaneProjection":
+        """Camera straight down, ``gsd`` metres per pixel on the head plane.
+
+        Plane axes follow the image: x = u * gsd (right), y = v * gsd (down), origin at the
+        top-left pixel, so radii in pixels along the image x axis are exactly ``r / gsd``.
+        """
+        if not (math.isfinite(gsd) and gsd > 0):
+            raise GeometryError(f"ground sample distance must be a number > 0 m/px, got {gsd!r}")
+        return cls.from_image_to_plane(np.diag([gsd, gsd, 1.0]))
+
+    @classmethod
+    def from_pose(cls, intrinsics: Intrinsics, mount: Mount, pose: Pose,
+                  head_height: float = 1.7) -> "PlaneProjection":
+        """The homography of the head plane ``z = -head_height`` seen from ``pose``."""
+        _require_finite("head height", head_height)
+        ext = camera_extrinsics(pose, mount)
+        R = ext.R_cv_from_world
+        t = -R @ ext.position
+        if ext.position[2] >= -head_height:
+            raise GeometryError(
+                f"camera at down={ext.position[2]:.2f} m is not above the head plane "
+                f"(z = {-head_height:.2f} m)"
+            )
+        M = np.column_stack([R[:, 0], R[:, 1], -head_height * R[:, 2] + t])
+        return cls.from_plane_to_image(intrinsics.K @ M,
+                                       (float(ext.position[0]), float(ext.position[1])))
+
+    def plane_to_image(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) plane metres -> (N, 2) pixels. Points behind the camera come out as NaN."""
+        return _apply(self.H, xy, self.w_sign)
+
+    def image_to_plane(self, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels -> (N, 2) plane metres. Pixels above the horizon come out as NaN."""
+        return _apply(self.H_inv, uv, self.w_sign)
+
+
+def _apply(H: np.ndarray, pts: np.ndarray, w_sign: float) -> np.ndarray:
+    p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    w = H[2, 0] * p[:, 0] + H[2, 1] * p[:, 1] + H[2, 2]
+    out = np.empty_like(p)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out[:, 0] = (H[0, 0] * p[:, 0] + H[0, 1] * p[:, 1] + H[0, 2]) / w
+        out[:, 1] = (H[1, 0] * p[:, 0] + H[1, 1] * p[:, 1] + H[1, 2]) / w
+    # Sign of w tells which side of the camera the point is: a negative w maps a point behind
+    # the camera to a plausible-looking pixel, which must never be taken for a real one.
+    out[(w * w_sign) <= 0] = np.nan
+    return out

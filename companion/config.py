@@ -1,0 +1,386 @@
+"""The service configuration: a TOML file, validated at start-up, with command-line overrides.
+
+Every key has a built-in default, so ``companion run`` with no file flies against the simulator's
+defaults. A file only needs the keys it changes. Validation happens once, before anything opens a
+socket or a camera, and every problem is reported as a :class:`ConfigError` whose message names
+the key (``camera.fps``) and what is allowed, so an integrator reading ``journalctl`` knows what
+to fix. ``companion.example.toml`` at the repository root documents every key.
+
+Units are in the key names where they matter (``_s`` seconds, ``_m`` metres, ``_deg`` degrees,
+``_mb`` mebibytes); angles are converted to radians only when handed to the pipeline.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+#: Where the shipped model lives in a source checkout or an editable install.
+REPO_MODEL = Path(__file__).resolve().parents[1] / "models" / "slz-density.onnx"
+
+FLAVOURS = ("auto", "ardupilot", "px4")
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message names the key and what is allowed."""
+
+
+def _f(default: Any, doc: str = "", *, min: float | None = None, max: float | None = None,
+       choices: tuple[Any, ...] | None = None, min_exclusive: bool = False, length: int | None = None,
+       path: bool = False) -> Any:
+    """A config field: default plus the checks the validator runs (kept next to the key)."""
+    meta = {"doc": doc, "min": min, "max": max, "choices": choices, "min_exclusive": min_exclusive,
+            "length": length, "path": path}
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda d=default: type(d)(d), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """MAVLink connection to the flight controller."""
+
+    url: str = _f("udpin:127.0.0.1:14550", "udpin:HOST:PORT, udpout:, tcp:, tcpin:, serial:/dev/ttyX:BAUD")
+    system_id: int = _f(1, "our MAVLink system id (normally the vehicle's)", min=1, max=255)
+    component_id: int = _f(191, "our component id (191 = onboard computer)", min=1, max=255)
+    target_system: int = _f(0, "autopilot system id; 0 = first autopilot heard", min=0, max=255)
+    target_component: int = _f(1, "autopilot component id", min=0, max=255)
+    flavour: str = _f("auto", "autopilot dialect", choices=FLAVOURS)
+    signing_key: str = _f("", "MAVLink 2 signing secret as 64 hex characters; empty = unsigned")
+    signing_key_file: str = _f("", "file holding the 64-hex signing secret (wins over signing_key)", path=True)
+    heartbeat_timeout_s: float = _f(3.0, "link declared lost after this long without a heartbeat",
+                                    min=0.5, max=60.0)
+    telemetry_rate_hz: float = _f(20.0, "rate asked for ATTITUDE / GLOBAL_POSITION_INT", min=1.0, max=100.0)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Camera source, calibration and mount."""
+
+    source: str = _f("http://127.0.0.1:8080/stream.mjpg",
+                     "/dev/video0, a device index, a video file, a folder of frames, rtsp:// or "
+                     "http:// (MJPEG) URL, or a GStreamer pipeline (gst: ... ! appsink)")
+    width: int = _f(640, "frame width the calibration is for (px); frames of another size are rescaled",
+                    min=16, max=8192)
+    height: int = _f(480, "frame height the calibration is for (px)", min=16, max=8192)
+    fps: float = _f(10.0, "frame rate asked of the device; pace of files and folders", min=0.1, max=240.0)
+    hfov_deg: float = _f(90.0, "horizontal field of view used when fx/fy are 0", min=1.0, max=179.0)
+    fx: float = _f(0.0, "focal length x (px); 0 = from hfov_deg", min=0.0)
+    fy: float = _f(0.0, "focal length y (px); 0 = same as fx", min=0.0)
+    cx: float = _f(-1.0, "principal point x (px); -1 = image centre", min=-1.0)
+    cy: float = _f(-1.0, "principal point y (px); -1 = image centre", min=-1.0)
+    distortion: list[float] = _f([], "OpenCV distortion k1, k2, p1, p2[, k3...]; empty = none")
+    mount_roll_deg: float = _f(0.0, "camera mount roll relative to the body (deg)", min=-180.0, max=180.0)
+    mount_pitch_deg: float = _f(-90.0, "camera mount pitch (deg); -90 = straight down", min=-180.0, max=180.0)
+    mount_yaw_deg: float = _f(0.0, "camera mount yaw (deg)", min=-180.0, max=180.0)
+    mount_offset_m: list[float] = _f([0.0, 0.0, 0.0], "camera position in body FRD (m)", length=3)
+    stall_timeout_s: float = _f(2.0, "no frame for this long = camera stalled, reopen", min=0.1, max=60.0)
+    reopen_max_backoff_s: float = _f(10.0, "longest wait between reopen attempts", min=0.1, max=300.0)
+    loop: bool = _f(False, "restart a video file or folder at its end (bench tests)")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The ONNX density model."""
+
+    path: str = _f(str(REPO_MODEL), "ONNX density model file", path=True)
+    threads: int = _f(2, "onnxruntime intra-op threads", min=1, max=64)
+    overrides: dict[str, Any] = _f({}, "settings that win over the model's metadata (color, scale, ...)")
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Kalman tracker of landing zones (pipeline step 5)."""
+
+    sigma_a: float = _f(0.5, "process noise: acceleration std of zone centre/radius (m/s^2)", min=0.0,
+                        min_exclusive=True)
+    r_std: list[float] = _f([0.5, 0.5, 0.5], "measurement std of x, y, r (m)", length=3)
+    min_iou: float = _f(0.1, "least circle IoU for a proposal to match a track", min=0.0, max=1.0)
+    mu_1: int = _f(5, "a track missed more than this many frames is deleted", min=0, max=1000)
+    mu_2: int = _f(3, "an unmatched proposal seen this many frames starts a track", min=1, max=1000)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Safe-landing-zone pipeline (occupancy, head plane, proposals)."""
+
+    occupancy_threshold: float = _f(-1.0, "density above min(D) marking a pixel occupied; "
+                                          "-1 = the model's validated value, else 0", min=-1.0)
+    dilate_kernel: int = _f(5, "side of the square dilation kernel (px, odd)", min=1, max=99)
+    dilate_iterations: int = _f(2, "dilations applied to the occupied map", min=0, max=20)
+    head_height_m: float = _f(1.7, "height of the head plane above the ground (m)", min=0.0, max=3.0)
+    cell_size_m: float = _f(0.1, "metric grid cell on the head plane (m)", min=0.01, max=2.0)
+    max_extent_m: float = _f(60.0, "half-width of the metric grid around the camera (m)", min=1.0, max=1000.0)
+    n_proposals: int = _f(5, "landing-zone proposals per frame (N_p)", min=1, max=50)
+    r0_m: float = _f(2.0, "smallest useful landing-zone radius (m)", min=0.1, max=100.0)
+    max_pose_age_s: float = _f(0.25, "a frame whose pose is further than this from its capture time "
+                                     "is not used for decisions (s)", min=0.0, max=5.0, min_exclusive=True)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+
+
+@dataclass(frozen=True)
+class FailsafeConfig:
+    """Which telemetry events trigger a safe landing."""
+
+    battery: bool = _f(True, "battery charge state LOW/CRITICAL/EMERGENCY")
+    battery_level: str = _f("critical", "lowest battery state that triggers", choices=("low", "critical", "emergency"))
+    system_status: bool = _f(True, "heartbeat system_status CRITICAL/EMERGENCY")
+    autopilot_land: bool = _f(True, "the autopilot switches itself to LAND or RTL")
+    gcs_command: bool = _f(True, "an explicit command from the ground station")
+    local_trigger: bool = _f(True, "SIGUSR1 to the service triggers (bench tests)")
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Landing controller timeouts and margins."""
+
+    min_track_age_s: float = _f(1.0, "a zone must have been tracked this long to be a target (s)", min=0.0)
+    min_track_hits: int = _f(3, "a zone must have been matched this many times", min=1)
+    zone_max_age_s: float = _f(1.0, "a zone not confirmed for this long is stale (s)", min=0.05, max=30.0)
+    radius_margin_m: float = _f(1.0, "zone radius must exceed r0 plus this margin (m)", min=0.0)
+    select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: hand back (s)", min=0.5)
+    hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: hand back (s)", min=0.5)
+    arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",
+                                min=0.1, max=20.0)
+    descend_alt_m: float = _f(10.0, "altitude above home at which LAND is commanded (m)", min=1.0, max=200.0)
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """Flight recorder."""
+
+    enabled: bool = _f(False, "record frames, poses, telemetry and decisions")
+    dir: str = _f("/var/lib/companion/recordings", "where recordings go (one folder per run)", path=True)
+    segment_s: float = _f(60.0, "length of one video segment (s)", min=1.0, max=3600.0)
+    max_mb: float = _f(2048.0, "disk budget for all segments in dir; oldest deleted first (MiB)", min=1.0)
+    codec: str = _f("MJPG", "video codec: MJPG (.avi) or mp4v (.mp4)", choices=("MJPG", "mp4v"))
+
+
+@dataclass(frozen=True)
+class LogConfig:
+    """Logging (stderr; journald under systemd)."""
+
+    level: str = _f("INFO", "log level", choices=LOG_LEVELS)
+    health_interval_s: float = _f(10.0, "how often timings and health are logged (s)", min=0.5, max=3600.0)
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole service configuration (one section per TOML table)."""
+
+    link: LinkConfig = field(default_factory=LinkConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+    #: The file it came from (None for built-in defaults); relative paths resolve beside it.
+    source: Path | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (for the recorder's meta.json and debugging)."""
+        return {k: v for k, v in _to_dict(self).items() if k != "source"}
+
+
+def _to_dict(obj: Any) -> Any:
+    if hasattr(obj, "__dataclass_fields__"):
+        return {f.name: _to_dict(getattr(obj, f.name)) for f in fields(obj)}
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, list):
+        return [_to_dict(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: _to_dict(v) for k, v in obj.items()}
+    return obj
+
+
+def _is_section(tp: Any) -> bool:
+    return isinstance(tp, type) and hasattr(tp, "__dataclass_fields__")
+
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is list:
+        return "a list of numbers"
+    if origin is dict:
+        return "a table"
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(tp, str(tp))
+
+
+def _check_value(key: str, tp: Any, meta: Mapping[str, Any], value: Any) -> Any:
+    """The value converted to the field's type, or a ConfigError naming ``key``."""
+    origin = typing.get_origin(tp)
+    bad = ConfigError(f"{key} must be {_type_name(tp)}, got {value!r}")
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise bad
+    elif tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad
+    elif tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{key} must be a finite number, got {value!r}")
+    elif tp is str:
+        if not isinstance(value, str):
+            raise bad
+    elif origin is list:
+        if not isinstance(value, list) or any(isinstance(v, bool) or not isinstance(v, (int, float))
+                                               for v in value):
+            raise bad
+        value = [float(v) for v in value]
+        if not all(math.isfinite(v) for v in value):
+            raise ConfigError(f"{key} must hold finite numbers, got {value!r}")
+        if meta.get("length") is not None and len(value) != meta["length"]:
+            raise ConfigError(f"{key} must hold exactly {meta['length']} numbers, got {len(value)}")
+    elif origin is dict:
+        if not isinstance(value, dict):
+            raise bad
+        value = dict(value)
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        raise ConfigError(f"{key} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+    lo, hi = meta.get("min"), meta.get("max")
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if lo is not None and (value < lo or (meta.get("min_exclusive") and value <= lo)):
+            op = ">" if meta.get("min_exclusive") else ">="
+            rng = f"{op} {lo}" + (f" and <= {hi}" if hi is not None else "")
+            raise ConfigError(f"{key} must be {rng}, got {value!r}")
+        if hi is not None and value > hi:
+            rng = f">= {lo} and <= {hi}" if lo is not None else f"<= {hi}"
+            raise ConfigError(f"{key} must be {rng}, got {value!r}")
+    return value
+
+
+def _build(cls: type, raw: Mapping[str, Any], prefix: str, base_dir: Path | None) -> Any:
+    hints = typing.get_type_hints(cls)
+    by_name = {f.name: f for f in fields(cls) if not (cls is Config and f.name == "source")}
+    unknown = sorted(set(raw) - set(by_name))
+    if unknown:
+        allowed = ", ".join(f"{prefix}{n}" for n in by_name)
+        raise ConfigError(f"unknown key '{prefix}{unknown[0]}' (allowed: {allowed})")
+    kwargs: dict[str, Any] = {}
+    for name, value in raw.items():
+        f, tp = by_name[name], hints[name]
+        key = f"{prefix}{name}"
+        if _is_section(tp):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{key} must be a table ([{key}]), got {value!r}")
+            kwargs[name] = _build(tp, value, key + ".", base_dir)
+            continue
+        if isinstance(value, dict) and typing.get_origin(tp) is not dict:
+            raise ConfigError(f"{key} must be {_type_name(tp)}, got a table")
+        value = _check_value(key, tp, f.metadata, value)
+        if f.metadata.get("path") and value and base_dir is not None and not Path(value).is_absolute():
+            value = str((base_dir / value).resolve())
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def _cross_checks(cfg: Config) -> None:
+    """Rules that involve more than one key."""
+    if cfg.pipeline.dilate_kernel % 2 == 0:
+        raise ConfigError(f"pipeline.dilate_kernel must be odd, got {cfg.pipeline.dilate_kernel}")
+    key = cfg.link.signing_key
+    if key and (len(key) != 64 or any(c not in "0123456789abcdefABCDEF" for c in key)):
+        raise ConfigError("link.signing_key must be 64 hexadecimal characters (a 32-byte secret)")
+    for name in ("r_std",):
+        if any(v <= 0 for v in getattr(cfg.pipeline.tracker, name)):
+            raise ConfigError(f"pipeline.tracker.{name} values must be > 0")
+    if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
+        raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
+                          f"(OpenCV), got {len(cfg.camera.distortion)}")
+    if not cfg.link.url.split(":", 1)[0] in ("udpin", "udpout", "udp", "tcp", "tcpin", "serial"):
+        raise ConfigError(f"link.url must start with udpin:, udpout:, tcp:, tcpin: or serial:, got "
+                          f"{cfg.link.url!r}")
+
+
+def from_dict(raw: Mapping[str, Any], source: Path | None = None) -> Config:
+    """A validated :class:`Config` from nested TOML-like data (missing keys take defaults)."""
+    base_dir = source.parent if source is not None else None
+    cfg = _build(Config, raw, "", base_dir)
+    cfg = replace(cfg, source=source)
+    _cross_checks(cfg)
+    return cfg
+
+
+def load(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Read and validate a TOML file (or the defaults when ``path`` is None), then apply
+    ``overrides`` (dotted keys such as ``camera.fps``) and validate again.
+
+    Raises ConfigError for a missing or unparsable file and for any bad key or value.
+    """
+    raw: dict[str, Any] = {}
+    source = None
+    if path is not None:
+        source = Path(path).resolve()
+        try:
+            with open(source, "rb") as fh:
+                raw = tomllib.load(fh)
+        except FileNotFoundError:
+            raise ConfigError(f"config file {path} does not exist") from None
+        except OSError as exc:
+            raise ConfigError(f"config file {path} cannot be read: {exc.strerror}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    for dotted, value in (overrides or {}).items():
+        _set_dotted(raw, dotted, value)
+    return from_dict(raw, source)
+
+
+def _set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:
+    parts = dotted.split(".")
+    node = raw
+    for i, part in enumerate(parts[:-1]):
+        nxt = node.setdefault(part, {})
+        if not isinstance(nxt, dict):
+            raise ConfigError(f"{'.'.join(parts[: i + 1])} is not a table, cannot set {dotted}")
+        node = nxt
+    node[parts[-1]] = value
+
+
+def parse_assignment(text: str) -> tuple[str, Any]:
+    """``key=value`` from ``--set``: the value is read as a TOML value (``10``, ``true``,
+    ``[0, 0, 0]``, ``"x"``) and, failing that, taken as a bare string (``camera.source=/dev/video1``).
+    """
+    key, sep, value = text.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise ConfigError(f"--set expects key=value, got {text!r}")
+    value = value.strip()
+    try:
+        parsed = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value
+    return key, parsed
+
+
+def all_keys(cls: type = Config, prefix: str = "") -> list[tuple[str, Any, str]]:
+    """Every leaf key as (dotted name, default, doc), in declaration order (docs and tests)."""
+    out: list[tuple[str, Any, str]] = []
+    hints = typing.get_type_hints(cls)
+    inst = cls()
+    for f in fields(cls):
+        if cls is Config and f.name == "source":
+            continue
+        if _is_section(hints[f.name]):
+            out += all_keys(hints[f.name], f"{prefix}{f.name}.")
+        else:
+            out.append((f"{prefix}{f.name}", getattr(inst, f.name), f.metadata.get("doc", "")))
+    return out
+
+
+__all__ = [
+    "Config", "ConfigError", "LinkConfig", "CameraConfig", "ModelConfig", "PipelineConfig",
+    "TrackerConfig", "FailsafeConfig", "ControllerConfig", "RecorderConfig", "LogConfig",
+    "load", "from_dict", "parse_assignment", "all_keys",
+]

@@ -1,0 +1,118 @@
+"""Configuration: defaults, the documented example, and errors that name the key."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from companion import config
+from companion.config import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE = REPO / "companion.example.toml"
+
+
+def test_defaults_point_at_the_simulator() -> None:
+    cfg = config.load()
+    assert cfg.link.url == "udpin:127.0.0.1:14550"
+    assert cfg.camera.source.startswith("http://127.0.0.1:")
+    assert cfg.camera.mount_pitch_deg == -90.0
+    assert cfg.source is None
+
+
+def test_example_documents_every_key_with_its_default() -> None:
+    text = EXAMPLE.read_text()
+    raw = tomllib.loads(text)
+    cfg = config.load(EXAMPLE)  # validates
+    defaults = config.Config()
+    for key, default, _doc in config.all_keys():
+        node = raw
+        for part in key.split("."):
+            assert part in node, f"{key} missing from companion.example.toml"
+            node = node[part]
+        if key != "model.path":  # the example shows the relative path; the default is absolute
+            assert node == default, f"{key}: example says {node!r}, default is {default!r}"
+    assert Path(cfg.model.path) == (REPO / "models" / "slz-density.onnx")
+    assert cfg.camera == defaults.camera
+    # Every key line is preceded by a comment (the example is the reference documentation).
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        if re.match(r"^[a-z_0-9]+ = ", line):
+            j = i - 1
+            while j >= 0 and re.match(r"^[a-z_0-9]+ = ", lines[j]):
+                j -= 1  # keys grouped under one comment
+            assert lines[j].startswith("#"), f"key line {i + 1} ({line}) has no comment above it"
+
+
+def test_unknown_key_names_key_and_allowed(tmp_path: Path) -> None:
+    f = tmp_path / "c.toml"
+    f.write_text("[camera]\nfsp = 10\n")
+    with pytest.raises(ConfigError) as e:
+        config.load(f)
+    msg = str(e.value)
+    assert "unknown key 'camera.fsp'" in msg
+    assert "camera.fps" in msg and "allowed" in msg
+
+
+def test_unknown_section(tmp_path: Path) -> None:
+    f = tmp_path / "c.toml"
+    f.write_text("[camra]\nfps = 10\n")
+    with pytest.raises(ConfigError, match=r"unknown key 'camra' \(allowed: link, camera"):
+        config.load(f)
+
+
+@pytest.mark.parametrize(
+    "text, pattern",
+    [
+        ("[camera]\nfps = 'fast'\n", r"camera\.fps must be a number, got 'fast'"),
+        ("[camera]\nfps = 0.0\n", r"camera\.fps must be >= 0\.1 and <= 240\.0, got 0\.0"),
+        ("[link]\nsystem_id = 300\n", r"link\.system_id must be >= 1 and <= 255, got 300"),
+        ("[link]\nsystem_id = 1.5\n", r"link\.system_id must be an integer"),
+        ("[link]\nflavour = 'inav'\n", r"link\.flavour must be one of 'auto', 'ardupilot', 'px4'"),
+        ("[recorder]\nenabled = 'yes'\n", r"recorder\.enabled must be true or false"),
+        ("[camera]\nmount_offset_m = [0, 0]\n", r"camera\.mount_offset_m must hold exactly 3 numbers"),
+        ("[pipeline.tracker]\nsigma_a = 0\n", r"pipeline\.tracker\.sigma_a must be > 0"),
+        ("[pipeline]\ndilate_kernel = 4\n", r"pipeline\.dilate_kernel must be odd"),
+        ("[link]\nsigning_key = 'abc'\n", r"link\.signing_key must be 64 hexadecimal"),
+        ("[link]\nurl = 'http://x'\n", r"link\.url must start with udpin:"),
+        ("camera = 3\n", r"camera must be a table"),
+        ("[camera]\nfps = nan\n", r"camera\.fps must be a finite number"),
+    ],
+)
+def test_bad_values_name_the_key(tmp_path: Path, text: str, pattern: str) -> None:
+    f = tmp_path / "c.toml"
+    f.write_text(text)
+    with pytest.raises(ConfigError, match=pattern):
+        config.load(f)
+
+
+def test_missing_and_malformed_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="does not exist"):
+        config.load(tmp_path / "nope.toml")
+    f = tmp_path / "bad.toml"
+    f.write_text("[camera\nfps = 3\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        config.load(f)
+
+
+def test_overrides_and_relative_paths(tmp_path: Path) -> None:
+    f = tmp_path / "c.toml"
+    f.write_text('[model]\npath = "m/x.onnx"\n[camera]\nfps = 5\n')
+    cfg = config.load(f, {"camera.fps": 12, "recorder.dir": "rec"})
+    assert cfg.camera.fps == 12.0
+    assert cfg.model.path == str(tmp_path / "m" / "x.onnx")
+    assert cfg.recorder.dir == str(tmp_path / "rec")
+    with pytest.raises(ConfigError, match="unknown key 'camera.fsp'"):
+        config.load(f, {"camera.fsp": 12})
+
+
+def test_parse_assignment() -> None:
+    assert config.parse_assignment("camera.fps=15") == ("camera.fps", 15)
+    assert config.parse_assignment("camera.source=/dev/video1") == ("camera.source", "/dev/video1")
+    assert config.parse_assignment("camera.mount_offset_m=[0.1, 0, 0]") == ("camera.mount_offset_m", [0.1, 0, 0])
+    assert config.parse_assignment("recorder.enabled=true") == ("recorder.enabled", True)
+    with pytest.raises(ConfigError, match="key=value"):
+        config.parse_assignment("camera.fps")

@@ -1,0 +1,301 @@
+"""Byte transports for the MAVLink link: UDP (listen or connect), TCP client and serial.
+
+Each transport moves raw bytes and knows nothing of MAVLink. The link gives it a ``on_data(bytes)``
+callback and calls ``send(bytes)``; ``datagram`` tells the link whether one read is one whole set
+of packets (UDP) so a truncated frame can be dropped at the end of the read instead of swallowing
+the start of the next datagram.
+
+URLs (the same spelling as MAVProxy / mavlink-router / MAVSDK):
+
+- ``udpin:HOST:PORT``   listen; replies go to the address the last packet came from.
+- ``udpout:HOST:PORT``  send to HOST:PORT (the flight controller or a router listens there).
+- ``tcp:HOST:PORT``     TCP client; reconnects every ``reconnect_s`` seconds after a loss.
+- ``serial:/dev/ttyX:BAUD``  a serial port (UART, USB CDC), raw 8N1 through termios; no pyserial.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import termios
+import tty
+from collections.abc import Callable
+from dataclasses import dataclass
+
+log = logging.getLogger(__name__)
+
+DataCallback = Callable[[bytes], None]
+
+
+class TransportError(ValueError):
+    """A connection URL that cannot be parsed or opened."""
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A parsed connection URL. ``kind`` is udpin, udpout, tcp or serial; ``port`` is baud for serial."""
+
+    kind: str
+    host: str
+    port: int
+
+    def __str__(self) -> str:
+        return f"{self.kind}:{self.host}:{self.port}"
+
+
+def parse_url(url: str) -> Endpoint:
+    """Parse ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT`` or ``serial:DEV:BAUD``."""
+    kind, sep, rest = url.partition(":")
+    host, sep2, port_s = rest.rpartition(":")
+    if not sep or not sep2 or kind not in ("udpin", "udpout", "tcp", "serial") or not host:
+        raise TransportError(
+            f"connection URL {url!r} is not one of udpin:HOST:PORT, udpout:HOST:PORT, "
+            "tcp:HOST:PORT, serial:/dev/DEVICE:BAUD"
+        )
+    try:
+        port = int(port_s)
+    except ValueError:
+        raise TransportError(f"connection URL {url!r}: {port_s!r} is not a number") from None
+    if kind == "serial":
+        if port not in _BAUDS:
+            raise TransportError(f"connection URL {url!r}: unsupported baud {port} (use one of {sorted(_BAUDS)})")
+    elif not 0 <= port <= 65535:
+        raise TransportError(f"connection URL {url!r}: port {port} out of range")
+    return Endpoint(kind, host, port)
+
+
+class Transport:
+    """Base class: ``start()``, ``send(data)``, ``close()``; incoming bytes go to ``on_data``."""
+
+    datagram = False
+
+    def __init__(self, endpoint: Endpoint, on_data: DataCallback) -> None:
+        self.endpoint = endpoint
+        self._on_data = on_data
+        self.bytes_sent = 0
+        self.send_errors = 0
+
+    async def start(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def send(self, data: bytes) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    async def close(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    @property
+    def can_send(self) -> bool:
+        """False while there is nowhere to send (UDP listen before the first packet, TCP down)."""
+        return True
+
+
+class _UdpProtocol(asyncio.DatagramProtocol):
+    def __init__(self, owner: UdpTransport) -> None:
+        self._owner = owner
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        self._owner._received(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable when the peer is not up yet: normal on UDP, not fatal.
+        log.debug("udp error: %s", exc)
+
+
+class UdpTransport(Transport):
+    """UDP in either direction: ``udpin`` binds and answers the last sender, ``udpout`` sends to HOST:PORT."""
+
+    datagram = True
+
+    def __init__(self, endpoint: Endpoint, on_data: DataCallback) -> None:
+        super().__init__(endpoint, on_data)
+        self._transport: asyncio.DatagramTransport | None = None
+        self._peer: tuple[str, int] | None = (
+            (endpoint.host, endpoint.port) if endpoint.kind == "udpout" else None
+        )
+
+    async def start(self) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            if self.endpoint.kind == "udpin":
+                self._transport, _ = await loop.create_datagram_endpoint(
+                    lambda: _UdpProtocol(self), local_addr=(self.endpoint.host, self.endpoint.port)
+                )
+            else:
+                self._transport, _ = await loop.create_datagram_endpoint(
+                    lambda: _UdpProtocol(self), local_addr=("0.0.0.0", 0)
+                )
+        except OSError as exc:
+            raise TransportError(f"cannot open {self.endpoint}: {exc}") from exc
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        """The bound (host, port); useful with ``udpin:127.0.0.1:0`` in tests."""
+        assert self._transport is not None
+        return self._transport.get_extra_info("sockname")[:2]
+
+    def _received(self, data: bytes, addr: tuple[str, int]) -> None:
+        if self.endpoint.kind == "udpin":
+            self._peer = addr
+        self._on_data(data)
+
+    @property
+    def can_send(self) -> bool:
+        return self._transport is not None and self._peer is not None
+
+    def send(self, data: bytes) -> None:
+        if self._transport is None or self._peer is None:
+            return
+        try:
+            self._transport.sendto(data, self._peer)
+            self.bytes_sent += len(data)
+        except OSError as exc:
+            self.send_errors += 1
+            log.debug("udp send failed: %s", exc)
+
+    async def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+
+
+class TcpTransport(Transport):
+    """TCP client that keeps reconnecting: a router or SITL restarting must not end the service."""
+
+    def __init__(self, endpoint: Endpoint, on_data: DataCallback, reconnect_s: float = 1.0) -> None:
+        super().__init__(endpoint, on_data)
+        self._reconnect_s = reconnect_s
+        self._writer: asyncio.StreamWriter | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._connected = asyncio.Event()
+
+    async def start(self) -> None:
+        self._task = asyncio.create_task(self._run(), name=f"tcp {self.endpoint}")
+
+    async def wait_connected(self, timeout: float) -> None:
+        await asyncio.wait_for(self._connected.wait(), timeout)
+
+    async def _run(self) -> None:
+        while True:
+            try:
+                reader, writer = await asyncio.open_connection(self.endpoint.host, self.endpoint.port)
+            except OSError as exc:
+                log.debug("tcp connect %s failed: %s", self.endpoint, exc)
+                await asyncio.sleep(self._reconnect_s)
+                continue
+            self._writer = writer
+            self._connected.set()
+            log.info("tcp connected to %s:%d", self.endpoint.host, self.endpoint.port)
+            try:
+                while data := await reader.read(4096):
+                    self._on_data(data)
+            except OSError as exc:
+                log.warning("tcp %s lost: %s", self.endpoint, exc)
+            finally:
+                self._writer = None
+                self._connected.clear()
+                writer.close()
+            await asyncio.sleep(self._reconnect_s)
+
+    @property
+    def can_send(self) -> bool:
+        return self._writer is not None
+
+    def send(self, data: bytes) -> None:
+        if self._writer is None:
+            return
+        try:
+            self._writer.write(data)
+            self.bytes_sent += len(data)
+        except (OSError, RuntimeError) as exc:
+            self.send_errors += 1
+            log.debug("tcp send failed: %s", exc)
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+            self._task = None
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+
+_BAUDS = {
+    b: getattr(termios, f"B{b}")
+    for b in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600, 1000000, 1500000, 2000000, 3000000)
+    if hasattr(termios, f"B{b}")
+}
+
+
+class SerialTransport(Transport):
+    """A serial port in raw 8N1 mode read through the event loop (``add_reader``), no thread."""
+
+    def __init__(self, endpoint: Endpoint, on_data: DataCallback) -> None:
+        super().__init__(endpoint, on_data)
+        self._fd: int | None = None
+
+    async def start(self) -> None:
+        try:
+            fd = os.open(self.endpoint.host, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError as exc:
+            raise TransportError(f"cannot open serial port {self.endpoint.host}: {exc}") from exc
+        try:
+            tty.setraw(fd)
+            attrs = termios.tcgetattr(fd)
+            speed = _BAUDS[self.endpoint.port]
+            attrs[4] = attrs[5] = speed  # ispeed, ospeed
+            attrs[2] = (attrs[2] & ~termios.CRTSCTS) | termios.CLOCAL | termios.CREAD
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        except termios.error as exc:
+            os.close(fd)
+            raise TransportError(f"{self.endpoint.host} is not a serial port: {exc}") from exc
+        self._fd = fd
+        asyncio.get_running_loop().add_reader(fd, self._readable)
+
+    def _readable(self) -> None:
+        assert self._fd is not None
+        try:
+            data = os.read(self._fd, 4096)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            # A USB adapter unplugged: stop reading; the link notices the silent autopilot.
+            log.error("serial %s read failed: %s", self.endpoint.host, exc)
+            asyncio.get_running_loop().remove_reader(self._fd)
+            return
+        if data:
+            self._on_data(data)
+
+    def send(self, data: bytes) -> None:
+        if self._fd is None:
+            return
+        try:
+            n = os.write(self._fd, data)
+            self.bytes_sent += n
+            if n < len(data):
+                # The UART buffer is full: MAVLink tolerates loss better than latency from queueing.
+                self.send_errors += 1
+        except OSError as exc:
+            self.send_errors += 1
+            log.debug("serial write failed: %s", exc)
+
+    async def close(self) -> None:
+        if self._fd is not None:
+            asyncio.get_running_loop().remove_reader(self._fd)
+            os.close(self._fd)
+            self._fd = None
+
+
+def make_transport(url: str, on_data: DataCallback) -> Transport:
+    """The transport for a connection URL (not started yet)."""
+    ep = parse_url(url)
+    if ep.kind in ("udpin", "udpout"):
+        return UdpTransport(ep, on_data)
+    if ep.kind == "tcp":
+        return TcpTransport(ep, on_data)
+    return SerialTransport(ep, on_data)

@@ -84,6 +84,12 @@ def occupancy_map(
     density: 2-D density map (any stride) of one frame.
     image_hw: (height, width) of the camera frame in pixels.
     """
+    h, w = image_hw
+    if h <= 0 or w <= 0:
+        raise ValueError(f"image size must be positive, got {image_hw!r}")
+    if np.asarray(density).size == 0:
+        # No density at all is no evidence of free ground.
+        return np.full((h, w), OCCUPIED, np.uint8)
     occ = occupied_mask(density, params.threshold)
     occ_img = resize_keep_occupied(occ, image_hw).astype(np.uint8) * 255
     if params.iterations > 0 and params.kernel > 1:

@@ -1,0 +1,66 @@
+"""Circles on the head plane and their closed-form intersection over union.
+
+The tracker associates landing-zone proposals to tracks by circle IoU (DESIGN.md step 5).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Circle:
+    """A landing circle: centre (x, y) and radius r, all in head-plane metres."""
+
+    x: float
+    y: float
+    r: float
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.r], dtype=float)
+
+
+def intersection_area(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Area of the intersection of circles ``a`` (n, 3) and ``b`` (m, 3) as (n, m), in m^2.
+
+    Closed form of the lens area: the sum of the two circular segments cut by the chord.
+    """
+    a = np.asarray(a, dtype=float).reshape(-1, 3)
+    b = np.asarray(b, dtype=float).reshape(-1, 3)
+    x1, y1, r1 = (a[:, i, None] for i in range(3))
+    x2, y2, r2 = (b[None, :, i] for i in range(3))
+    r1 = np.maximum(r1, 0.0)
+    r2 = np.maximum(r2, 0.0)
+    d = np.hypot(x1 - x2, y1 - y2)
+    rmin = np.minimum(r1, r2)
+    area = np.zeros(np.broadcast(d, r1, r2).shape)
+    nested = d <= np.abs(r1 - r2)
+    area = np.where(nested, np.pi * rmin**2, area)
+    partial = (d < r1 + r2) & ~nested
+    if partial.any():
+        dd = np.where(partial, d, 1.0)
+        c1 = np.clip((dd**2 + r1**2 - r2**2) / (2 * dd * np.where(r1 > 0, r1, 1.0)), -1, 1)
+        c2 = np.clip((dd**2 + r2**2 - r1**2) / (2 * dd * np.where(r2 > 0, r2, 1.0)), -1, 1)
+        k = (-dd + r1 + r2) * (dd + r1 - r2) * (dd - r1 + r2) * (dd + r1 + r2)
+        lens = r1**2 * np.arccos(c1) + r2**2 * np.arccos(c2) - 0.5 * np.sqrt(np.maximum(k, 0))
+        area = np.where(partial, lens, area)
+    return area
+
+
+def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Intersection over union of circles ``a`` (n, 3) and ``b`` (m, 3) as an (n, m) array."""
+    a = np.asarray(a, dtype=float).reshape(-1, 3)
+    b = np.asarray(b, dtype=float).reshape(-1, 3)
+    inter = intersection_area(a, b)
+    area_a = np.pi * np.maximum(a[:, 2], 0)[:, None] ** 2
+    area_b = np.pi * np.maximum(b[:, 2], 0)[None, :] ** 2
+    union = area_a + area_b - inter
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(union > 0, inter / union, 0.0)
+    return np.clip(iou, 0.0, 1.0)
+
+
+def circle_iou(a: Circle, b: Circle) -> float:
+    return float(iou_matrix(a.as_array(), b.as_array())[0, 0])

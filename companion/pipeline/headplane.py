@@ -1,0 +1,145 @@
+"""Step 3 of the pipeline, sampling: the image occupancy map onto a metric grid on the head plane.
+
+The grid is axis-aligned in plane coordinates: cell ``[i, j]`` has its centre at
+``(x0 + j * cell, y0 + i * cell)`` metres (columns follow plane x, rows plane y). With poses, plane
+x is north and y is east; under ``--nadir`` plane x/y follow the image's u/v.
+
+Cells the camera does not see are *unknown* and never free (value 0), so later stages treat them
+as occupied and landing circles stay inside the view.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from companion.pipeline.camera import GeometryError, PlaneProjection
+
+
+@dataclass(frozen=True)
+class GridParams:
+    """cell: side of a grid cell in metres. max_extent: half-width in metres of the largest grid
+    around the point under the camera (bounds the work when the view reaches the horizon)."""
+
+    cell: float = 0.1
+    max_extent: float = 40.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.cell) and self.cell > 0):
+            raise ValueError(f"grid cell size must be > 0 m, got {self.cell!r}")
+        if not (math.isfinite(self.max_extent) and self.max_extent >= self.cell):
+            raise ValueError(f"grid max_extent must be >= the cell size, got {self.max_extent!r}")
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """Where a grid lies on the head plane: centre of cell [0, 0] at (x0, y0), ``cell`` metres."""
+
+    x0: float
+    y0: float
+    cell: float
+    rows: int
+    cols: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.rows, self.cols)
+
+    def cell_to_plane(self) -> np.ndarray:
+        """3x3 affine matrix taking (col, row, 1) to plane metres (x, y, 1)."""
+        return np.array([[self.cell, 0.0, self.x0], [0.0, self.cell, self.y0], [0.0, 0.0, 1.0]])
+
+    def to_plane(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.x0 + np.asarray(cols) * self.cell, self.y0 + np.asarray(rows) * self.cell
+
+
+def _footprint_bounds(proj: PlaneProjection, image_hw: tuple[int, int], params: GridParams
+                      ) -> tuple[float, float, float, float]:
+    h, w = image_hw
+    corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=float)
+    pts = proj.image_to_plane(corners)
+    ok = np.isfinite(pts).all(axis=1)
+    if proj.camera_xy is not None:
+        cx, cy = proj.camera_xy
+        box = (cx - params.max_extent, cy - params.max_extent,
+               cx + params.max_extent, cy + params.max_extent)
+    else:
+        box = (-math.inf, -math.inf, math.inf, math.inf)
+    if ok.all():
+        xmin, ymin = pts.min(axis=0)
+        xmax, ymax = pts.max(axis=0)
+        xmin, ymin = max(xmin, box[0]), max(ymin, box[1])
+        xmax, ymax = min(xmax, box[2]), min(ymax, box[3])
+    elif proj.camera_xy is not None:
+        # Part of the view is above the horizon: the footprint is unbounded, keep the box.
+        xmin, ymin, xmax, ymax = box
+    else:
+        raise GeometryError("the projection maps part of the image above the horizon and no "
+                            "camera position bounds the grid")
+    if not all(math.isfinite(v) for v in (xmin, ymin, xmax, ymax)):
+        raise GeometryError("head-plane footprint is not finite")
+    # Keep grids no larger than 2 * max_extent on a side even without a camera position.
+    span = 2 * params.max_extent
+    xmax, ymax = min(xmax, xmin + span), min(ymax, ymin + span)
+    return xmin, ymin, xmax, ymax
+
+
+def grid_for_view(proj: PlaneProjection, image_hw: tuple[int, int], params: GridParams) -> GridSpec:
+    """The grid covering what the camera sees, snapped to whole cells so that grids of
+    consecutive frames line up (less jitter in the proposals)."""
+    xmin, ymin, xmax, ymax = _footprint_bounds(proj, image_hw, params)
+    c = params.cell
+    x0 = math.floor(xmin / c) * c
+    y0 = math.floor(ymin / c) * c
+    cols = max(1, int(math.ceil((xmax - x0) / c)) + 1)
+    rows = max(1, int(math.ceil((ymax - y0) / c)) + 1)
+    return GridSpec(x0, y0, c, rows, cols)
+
+
+def pixels_per_cell(proj: PlaneProjection, grid: GridSpec) -> float:
+    """Largest image distance in pixels spanned by one grid cell over the grid (sampled at its
+    corners and centre). Sampling a map whose cells span several pixels by nearest neighbour could
+    skip an occupied pixel; this tells how much to erode the free map first."""
+    xs = [grid.x0, grid.x0 + (grid.cols - 1) * grid.cell]
+    ys = [grid.y0, grid.y0 + (grid.rows - 1) * grid.cell]
+    pts = [(x, y) for x in xs for y in ys] + [(sum(xs) / 2, sum(ys) / 2)]
+    if proj.camera_xy is not None:
+        pts.append(proj.camera_xy)
+    base = np.array(pts, dtype=float)
+    c = grid.cell
+    p0 = proj.plane_to_image(base)
+    px = proj.plane_to_image(base + [c, 0.0])
+    py = proj.plane_to_image(base + [0.0, c])
+    d = np.concatenate([np.hypot(*(px - p0).T), np.hypot(*(py - p0).T)])
+    d = d[np.isfinite(d)]
+    return float(d.max()) if d.size else 1.0
+
+
+def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec) -> np.ndarray:
+    """Sample the image free map (255 free, 0 occupied) onto ``grid``: uint8, 255 free, 0 occupied
+    or unknown. Conservative: a cell is free only if every image pixel it spans is free."""
+    ppc = pixels_per_cell(proj, grid)
+    src = free_img
+    if ppc > 1.0:
+        k = int(math.ceil(ppc)) | 1
+        src = cv2.erode(free_img, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                        borderValue=0)
+    M = proj.H @ grid.cell_to_plane()
+    out = cv2.warpPerspective(
+        src, M, (grid.cols, grid.rows),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+    )
+    # OpenCV divides by w without looking at its sign: cells behind the camera would pick up
+    # mirrored pixels. w is affine over the grid, so only check corners before paying for a mask.
+    wrow = M[2]
+    corners = np.array([[0, 0, 1], [grid.cols - 1, 0, 1], [0, grid.rows - 1, 1],
+                        [grid.cols - 1, grid.rows - 1, 1]], dtype=float)
+    if (corners @ wrow * proj.w_sign <= 0).any():
+        jj, ii = np.meshgrid(np.arange(grid.cols), np.arange(grid.rows))
+        behind = (wrow[0] * jj + wrow[1] * ii + wrow[2]) * proj.w_sign <= 0
+        out[behind] = 0
+    return out

@@ -1,0 +1,70 @@
+"""Step 4 of the pipeline: landing-zone proposals, the largest free circles on the head plane.
+
+The distance transform of the free grid gives, at each free cell, the distance to the nearest
+occupied or unknown cell; its maximum is the centre and radius of the largest free circle. That
+circle is then marked occupied and the next one sought, until ``n_max`` circles or a radius below
+``r_min`` metres. Marking a disk occupied only lowers distances near it, so the distances are
+updated in a window around the disk instead of recomputing the transform.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from companion.pipeline.circles import Circle
+from companion.pipeline.headplane import GridSpec
+
+# A cell is a square: a circle centred at a cell centre that keeps this far (in cells) short of
+# the nearest occupied cell *centre* cannot touch that cell's square anywhere.
+_HALF_DIAGONAL = math.sqrt(2.0) / 2.0 + 1e-3  # + float32 rounding of the transform
+
+
+def distance_cells(free_grid: np.ndarray) -> np.ndarray:
+    """Euclidean distance (in cells) from each cell centre to the nearest non-free cell centre.
+
+    Everything outside the grid counts as non-free, so circles stay inside the grid.
+    """
+    if free_grid.ndim != 2:
+        raise ValueError(f"free grid must be 2-D, got shape {free_grid.shape}")
+    padded = cv2.copyMakeBorder((free_grid > 0).astype(np.uint8), 1, 1, 1, 1,
+                                cv2.BORDER_CONSTANT, value=0)
+    dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return dist[1:-1, 1:-1]
+
+
+def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float) -> list[Circle]:
+    """Up to ``n_max`` disjoint free circles, largest first, each with radius >= ``r_min`` metres.
+
+    free_grid: uint8 grid, > 0 where free (see ``headplane.sample_to_grid``).
+    Each circle touches no non-free cell (not even a corner of one).
+    """
+    if free_grid.shape != grid.shape:
+        raise ValueError(f"free grid shape {free_grid.shape} does not match grid {grid.shape}")
+    out: list[Circle] = []
+    if n_max <= 0 or free_grid.size == 0:
+        return out
+    dist = distance_cells(free_grid)
+    rows, cols = dist.shape
+    for _ in range(n_max):
+        flat = int(np.argmax(dist))
+        i, j = divmod(flat, cols)
+        d = float(dist[i, j])
+        r_cells = d - _HALF_DIAGONAL
+        if r_cells <= 0 or r_cells * grid.cell < r_min:
+            break
+        x, y = grid.to_plane(i, j)
+        out.append(Circle(float(x), float(y), r_cells * grid.cell))
+        # Only cells closer to the disk than their present distance change: within d + r of it.
+        reach = int(math.ceil(r_cells + d)) + 1
+        i0, i1 = max(0, i - reach), min(rows, i + reach + 1)
+        j0, j1 = max(0, j - reach), min(cols, j + reach + 1)
+        ii = np.arange(i0, i1, dtype=np.float32)[:, None] - i
+        jj = np.arange(j0, j1, dtype=np.float32)[None, :] - j
+        to_disk = np.sqrt(ii * ii + jj * jj) - np.float32(r_cells)
+        np.maximum(to_disk, 0.0, out=to_disk)
+        window = dist[i0:i1, j0:j1]
+        np.minimum(window, to_disk, out=window)
+    return out

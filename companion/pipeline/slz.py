@@ -1,0 +1,134 @@
+"""The per-frame safe-landing-zone pipeline: frame (+ pose or fixed projection) in, zones out.
+
+density -> occupancy -> head-plane grid -> proposals -> tracks (DESIGN.md steps 1-5). The density
+model is injected (any callable returning a 2-D map), so the pipeline runs with the shipped ONNX
+model, another model, or a synthetic stand-in.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from companion.pipeline.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
+from companion.pipeline.circles import Circle
+from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
+from companion.pipeline.occupancy import OccupancyParams, occupancy_map
+from companion.pipeline.proposals import propose
+from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
+
+DensityFn = Callable[[np.ndarray], np.ndarray]
+
+STAGES = ("density", "occupancy", "projection", "proposals", "tracking")
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """head_height: h_h, metres of the head plane above the ground. r_0: smallest landing radius
+    in metres (proposals below it are not made; targets below it are not picked)."""
+
+    occupancy: OccupancyParams = field(default_factory=OccupancyParams)
+    grid: GridParams = field(default_factory=GridParams)
+    tracker: TrackerParams = field(default_factory=TrackerParams)
+    head_height: float = 1.7
+    r_0: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.head_height) and 0 <= self.head_height < 5):
+            raise ValueError(f"head_height must be in [0, 5) m, got {self.head_height!r}")
+        if not (math.isfinite(self.r_0) and self.r_0 > 0):
+            raise ValueError(f"r_0 must be > 0 m, got {self.r_0!r}")
+
+    @property
+    def n_proposals(self) -> int:
+        return self.tracker.max_tracks
+
+
+@dataclass
+class FrameResult:
+    """What one frame produced. Circles and tracks are in head-plane metres; ``occupancy`` is the
+    image-sized free map (255 free, 0 occupied); ``free_grid`` the head-plane grid described by
+    ``grid``; ``timings_ms`` per stage plus ``post_density`` and ``total``."""
+
+    t: float
+    proposals: list[Circle]
+    tracks: list[Track]
+    target: Track | None
+    timings_ms: dict[str, float]
+    projection: PlaneProjection
+    occupancy: np.ndarray
+    grid: GridSpec
+    free_grid: np.ndarray
+    density: np.ndarray
+
+
+class SLZPipeline:
+    """Runs steps 1-5 on each frame and keeps the tracker's state between frames.
+
+    With ``intrinsics`` and ``mount``, frames are projected with the vehicle ``pose`` given to
+    ``process``; a fixed ``projection`` (nadir or homography) may be given instead. The
+    intrinsics describe the frames as passed in (use ``Intrinsics.scaled_to`` after a resize).
+    """
+
+    def __init__(self, density: DensityFn, config: PipelineConfig = PipelineConfig(),
+                 intrinsics: Intrinsics | None = None, mount: Mount | None = None,
+                 projection: PlaneProjection | None = None):
+        self.density = density
+        self.config = config
+        self.intrinsics = intrinsics
+        self.mount = mount or Mount()
+        self.fixed_projection = projection
+        self.tracker = ZoneTracker(config.tracker)
+        self._undistort = (intrinsics.undistort_maps()
+                           if intrinsics is not None and intrinsics.has_distortion else None)
+
+    def projection_for(self, pose: Pose | None) -> PlaneProjection:
+        if pose is not None:
+            if self.intrinsics is None:
+                raise GeometryError("a pose was given but the pipeline has no camera intrinsics")
+            return PlaneProjection.from_pose(self.intrinsics, self.mount, pose,
+                                             self.config.head_height)
+        if self.fixed_projection is None:
+            raise GeometryError("no pose and no fixed projection: cannot place the frame on the "
+                                "head plane")
+        return self.fixed_projection
+
+    def process(self, frame: np.ndarray, t: float, pose: Pose | None = None) -> FrameResult:
+        """One frame: BGR uint8 (H, W, 3) captured at ``t`` seconds, seen from ``pose``."""
+        if not isinstance(frame, np.ndarray) or frame.ndim not in (2, 3) or frame.size == 0:
+            raise ValueError(f"frame must be a non-empty image array, got {getattr(frame, 'shape', frame)!r}")
+        h, w = frame.shape[:2]
+        if self.intrinsics is not None and pose is not None and \
+                (self.intrinsics.width, self.intrinsics.height) != (w, h):
+            raise GeometryError(f"frame is {w}x{h} but the intrinsics are for "
+                                f"{self.intrinsics.width}x{self.intrinsics.height}")
+        # Geometry first: a bad pose is rejected before paying for the network.
+        proj = self.projection_for(pose)
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        density = np.asarray(self.density(frame))
+        t1 = time.perf_counter()
+        free = occupancy_map(density, (h, w), self.config.occupancy)
+        t2 = time.perf_counter()
+        if self._undistort is not None and pose is not None:
+            free = cv2.remap(free, *self._undistort, cv2.INTER_NEAREST,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        grid = grid_for_view(proj, (h, w), self.config.grid)
+        free_grid = sample_to_grid(free, proj, grid)
+        t3 = time.perf_counter()
+        proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r_0)
+        t4 = time.perf_counter()
+        tracks = self.tracker.update(proposals, t)
+        target = self.tracker.oldest_stable(self.config.r_0)
+        t5 = time.perf_counter()
+        for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4), (t1, t2, t3, t4, t5)):
+            timings[name] = (b - a) * 1e3
+        timings["post_density"] = (t5 - t1) * 1e3
+        timings["total"] = (t5 - t0) * 1e3
+        return FrameResult(t, proposals, tracks, target, timings, proj, free, grid, free_grid,
+                           density)

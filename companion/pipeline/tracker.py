@@ -1,0 +1,237 @@
+"""Step 5 of the pipeline: tracking landing zones over time (DESIGN.md, the paper's section IV).
+
+One constant-velocity Kalman filter per zone, state ``(x, y, r, dx, dy, dr)`` in head-plane metres
+and metres per second, measurement ``(x, y, r)``. Proposals are assigned to tracks by the
+Hungarian algorithm on circle IoU with a minimum-IoU gate. A track missed more than ``mu_1``
+consecutive frames is deleted; a proposal seen (matched frame to frame) for ``mu_2`` consecutive
+frames starts a track while fewer than ``max_tracks`` exist. The oldest stable track is the landing
+target.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+from scipy.optimize import linear_sum_assignment
+
+from companion.pipeline.circles import Circle, iou_matrix
+
+# Frames further apart than this are not extrapolated: a stalled camera must not let the filter
+# coast zones a long way on an old velocity.
+MAX_DT = 2.0
+MIN_DT = 1e-3
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    """sigma_a: process noise scale of the constant-velocity model (m^2/s^4, as ``Q = sigma_a *
+    [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]``). r_std: measurement standard deviation of x, y
+    and r in metres (R = diag(r_std^2)). min_iou: assignments below this IoU are refused.
+    mu_1: a track missed more than this many consecutive frames is deleted. mu_2: consecutive
+    frames a proposal must be seen before it becomes a track. max_tracks: N_p."""
+
+    sigma_a: float = 0.5
+    r_std: tuple[float, float, float] = (0.3, 0.3, 0.3)
+    min_iou: float = 0.3
+    mu_1: int = 3
+    mu_2: int = 3
+    max_tracks: int = 5
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.sigma_a) and self.sigma_a > 0):
+            raise ValueError(f"tracker sigma_a must be > 0, got {self.sigma_a!r}")
+        if len(self.r_std) != 3 or not all(math.isfinite(s) and s > 0 for s in self.r_std):
+            raise ValueError(f"tracker r_std must be three numbers > 0, got {self.r_std!r}")
+        if not 0.0 <= self.min_iou < 1.0:
+            raise ValueError(f"tracker min_iou must be in [0, 1), got {self.min_iou!r}")
+        for name in ("mu_1", "mu_2", "max_tracks"):
+            v = getattr(self, name)
+            if int(v) != v or v < (1 if name != "mu_1" else 0):
+                raise ValueError(f"tracker {name} must be a positive integer, got {v!r}")
+
+
+@dataclass(frozen=True)
+class Track:
+    """A snapshot of one tracked landing zone.
+
+    x, y: filtered centre in head-plane metres (world north/east when poses are known).
+    r: radius in metres of the largest circle about (x, y) that lies inside the proposal that last
+       confirmed the track (never larger than the filtered radius): smoothing must not widen a
+       zone into ground the camera saw occupied.
+    r_filtered: the filter's own radius estimate.
+    age: frames since the track was born; hits: frames it was matched; misses: consecutive
+    frames without a match (0 = confirmed by the latest frame).
+    born_t, last_t: capture times (s) of the birth and of the last confirming frame.
+    """
+
+    id: int
+    x: float
+    y: float
+    r: float
+    r_filtered: float
+    age: int
+    hits: int
+    misses: int
+    born_t: float
+    last_t: float
+
+    @property
+    def confirmed(self) -> bool:
+        return self.misses == 0
+
+    def circle(self) -> Circle:
+        return Circle(self.x, self.y, self.r)
+
+
+def _cv_matrices(dt: float, sigma_a: float) -> tuple[np.ndarray, np.ndarray]:
+    F = np.eye(6)
+    F[0:3, 3:6] = dt * np.eye(3)
+    I3 = np.eye(3)
+    Q = sigma_a * np.block([[dt**4 / 4 * I3, dt**3 / 2 * I3], [dt**3 / 2 * I3, dt**2 * I3]])
+    return F, Q
+
+
+class _ZoneFilter:
+    """One zone's Kalman filter and bookkeeping."""
+
+    def __init__(self, track_id: int, z: Circle, t: float, params: TrackerParams, hits: int):
+        kf = KalmanFilter(dim_x=6, dim_z=3)
+        kf.x = np.array([z.x, z.y, z.r, 0.0, 0.0, 0.0])
+        kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
+        kf.R = np.diag(np.square(params.r_std))
+        # Position known to the measurement's accuracy; velocity unknown (a zone drifts at most
+        # at walking pace, ~2 m/s).
+        kf.P = np.diag([*np.square(params.r_std), 4.0, 4.0, 4.0])
+        self.kf = kf
+        self.id = track_id
+        self.age = 0
+        self.hits = hits
+        self.misses = 0
+        self.born_t = t
+        self.last_t = t
+        self.last_z = z
+
+    def predict(self, dt: float, sigma_a: float) -> None:
+        F, Q = _cv_matrices(dt, sigma_a)
+        self.kf.predict(F=F, Q=Q)
+        self._guard_radius()
+
+    def update(self, z: Circle, t: float) -> None:
+        self.kf.update(np.array([z.x, z.y, z.r]))
+        self._guard_radius()
+        self.hits += 1
+        self.misses = 0
+        self.last_t = t
+        self.last_z = z
+
+    def _guard_radius(self) -> None:
+        if self.kf.x[2] < 0:
+            self.kf.x[2] = 0.0
+            self.kf.x[5] = max(self.kf.x[5], 0.0)
+
+    def circle(self) -> np.ndarray:
+        return self.kf.x[:3].copy()
+
+    def snapshot(self) -> Track:
+        x, y, r = (float(v) for v in self.kf.x[:3])
+        z = self.last_z
+        safe = max(0.0, min(r, z.r - math.hypot(x - z.x, y - z.y)))
+        return Track(self.id, x, y, safe, r, self.age, self.hits, self.misses,
+                     self.born_t, self.last_t)
+
+
+@dataclass
+class _Candidate:
+    circle: Circle
+    count: int
+
+
+def _assign(a: np.ndarray, b: np.ndarray, min_iou: float) -> tuple[list[tuple[int, int]],
+                                                                     list[int], list[int]]:
+    """Hungarian assignment on IoU; pairs under ``min_iou`` are left unmatched."""
+    if len(a) == 0 or len(b) == 0:
+        return [], list(range(len(a))), list(range(len(b)))
+    iou = iou_matrix(a, b)
+    rows, cols = linear_sum_assignment(-iou)
+    pairs = [(int(r), int(c)) for r, c in zip(rows, cols) if iou[r, c] >= max(min_iou, 1e-9)]
+    ma = {p[0] for p in pairs}
+    mb = {p[1] for p in pairs}
+    return pairs, [i for i in range(len(a)) if i not in ma], [j for j in range(len(b)) if j not in mb]
+
+
+class ZoneTracker:
+    """Tracks landing zones from per-frame proposals. Call ``update`` once per processed frame."""
+
+    def __init__(self, params: TrackerParams = TrackerParams()):
+        self.params = params
+        self._filters: list[_ZoneFilter] = []
+        self._candidates: list[_Candidate] = []
+        self._ids = itertools.count(1)
+        self._t: float | None = None
+        self.born = 0
+        self.ended = 0
+
+    def reset(self) -> None:
+        """Forget every zone (for example after the plane frame changed)."""
+        self.ended += len(self._filters)
+        self._filters.clear()
+        self._candidates.clear()
+        self._t = None
+
+    def update(self, proposals: list[Circle], t: float) -> list[Track]:
+        """Advance to capture time ``t`` (s) with this frame's proposals; returns the tracks."""
+        if not math.isfinite(t):
+            raise ValueError(f"frame time must be finite, got {t!r}")
+        p = self.params
+        dt = MIN_DT if self._t is None else min(max(t - self._t, MIN_DT), MAX_DT)
+        self._t = t
+        for f in self._filters:
+            f.predict(dt, p.sigma_a)
+            f.age += 1
+
+        props = np.array([c.as_array() for c in proposals], dtype=float).reshape(-1, 3)
+        preds = np.array([f.circle() for f in self._filters], dtype=float).reshape(-1, 3)
+        pairs, missed, unmatched = _assign(preds, props, p.min_iou)
+        for fi, pi in pairs:
+            self._filters[fi].update(proposals[pi], t)
+        for fi in missed:
+            self._filters[fi].misses += 1
+        alive = [f for f in self._filters if f.misses <= p.mu_1]
+        self.ended += len(self._filters) - len(alive)
+        self._filters = alive
+
+        self._births([proposals[i] for i in unmatched], t)
+        return self.tracks()
+
+    def _births(self, unmatched: list[Circle], t: float) -> None:
+        p = self.params
+        cand = np.array([c.circle.as_array() for c in self._candidates]).reshape(-1, 3)
+        new = np.array([c.as_array() for c in unmatched]).reshape(-1, 3)
+        pairs, _, fresh = _assign(cand, new, p.min_iou)
+        kept: list[_Candidate] = [
+            _Candidate(unmatched[ni], self._candidates[ci].count + 1) for ci, ni in pairs
+        ]
+        kept += [_Candidate(unmatched[ni], 1) for ni in fresh]
+        # Larger zones first, so that when the track budget is short the biggest is born.
+        kept.sort(key=lambda c: (-c.count, -c.circle.r))
+        self._candidates = []
+        for c in kept:
+            if c.count >= p.mu_2 and len(self._filters) < p.max_tracks:
+                self._filters.append(_ZoneFilter(next(self._ids), c.circle, t, p, hits=c.count))
+                self.born += 1
+            else:
+                self._candidates.append(c)
+
+    def tracks(self) -> list[Track]:
+        return [f.snapshot() for f in self._filters]
+
+    def oldest_stable(self, r_min: float) -> Track | None:
+        """The oldest track confirmed by the latest frame whose radius is at least ``r_min`` m."""
+        stable = [t for t in self.tracks() if t.misses == 0 and t.r >= r_min]
+        if not stable:
+            return None
+        return min(stable, key=lambda t: (t.born_t, t.id))

@@ -1,0 +1,97 @@
+"""The whole per-frame pipeline on synthetic frames with known free circles."""
+
+import math
+
+import numpy as np
+import pytest
+
+from companion import synthetic
+from companion.pipeline.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
+from companion.pipeline.occupancy import OCCUPIED
+from companion.pipeline.slz import PipelineConfig, SLZPipeline
+
+
+def _pipeline_for(scene, **kw):
+    density = synthetic.point_density(scene)
+    return SLZPipeline(lambda frame: density, **kw)
+
+
+def test_nadir_pipeline_finds_the_known_free_circle():
+    scene = synthetic.crowd_scene(free=((250.0, 240.0, 100.0),), n_people=400)
+    gsd = 0.05
+    pipe = _pipeline_for(scene, config=PipelineConfig(r_0=1.0),
+                         projection=PlaneProjection.nadir(gsd))
+    frame = synthetic.render(scene)
+    for k in range(4):
+        res = pipe.process(frame, 0.1 * k)
+    best = res.proposals[0]
+    # The free disc shrinks by the occupancy dilation (4 px) and the density stride (< 4 px).
+    assert math.hypot(best.x / gsd - 250.0, best.y / gsd - 240.0) < 12
+    assert 100 - 12 <= best.r / gsd <= 100
+    assert res.target is not None and res.target.r >= 1.0
+    assert math.hypot(res.target.x / gsd - 250, res.target.y / gsd - 240) < 12
+    assert set(res.timings_ms) >= {"density", "occupancy", "projection", "proposals", "tracking",
+                                   "post_density", "total"}
+    # No proposal covers a person.
+    for c in res.proposals:
+        d = np.hypot(scene.people[:, 0] * gsd - c.x, scene.people[:, 1] * gsd - c.y)
+        assert d.min() > c.r
+
+
+def test_posed_pipeline_places_zones_in_world_metres():
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    alt = 25.0
+    pose = Pose(0.0, 100.0, -50.0, -alt, 0.0, 0.0, 0.0)
+    scene = synthetic.crowd_scene(free=((420.0, 150.0, 80.0),), n_people=300, seed=3)
+    pipe = _pipeline_for(scene, config=PipelineConfig(r_0=1.0), intrinsics=K, mount=Mount())
+    res = pipe.process(synthetic.render(scene), 0.0, pose)
+    # Where the free circle's centre pixel lands on the head plane, in world NED.
+    expect = res.projection.image_to_plane(np.array([[420.0, 150.0]]))[0]
+    best = res.proposals[0]
+    gsd = (alt - 1.7) / K.fx
+    assert math.hypot(best.x - expect[0], best.y - expect[1]) < 12 * gsd
+    assert best.x > pose.north and best.y > pose.east  # up-right of centre = north-east
+
+
+def test_cells_outside_the_view_are_never_free():
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    pipe = SLZPipeline(lambda f: np.zeros((120, 160), np.float32), intrinsics=K, mount=Mount())
+    # Oblique camera that sees the horizon: the grid is bounded and what lies outside the view
+    # (above the horizon, behind the camera, beyond the corners) is unknown.
+    pose = Pose(0.0, 0.0, 0.0, -15.0, 0.0, 0.0, 0.0)
+    pipe.mount = Mount.from_degrees(0, -30, 0)
+    res = pipe.process(np.zeros((480, 640, 3), np.uint8), 0.0, pose)
+    assert res.free_grid.shape[0] <= 2 * 40 / 0.1 + 2
+    rows, cols = np.nonzero(res.free_grid)
+    xs, ys = res.grid.to_plane(rows, cols)
+    uv = res.projection.plane_to_image(np.column_stack([xs, ys]))
+    assert np.isfinite(uv).all()
+    assert (uv[:, 0] >= -1).all() and (uv[:, 0] <= 640).all()
+    assert (uv[:, 1] >= -1).all() and (uv[:, 1] <= 480).all()
+    for c in res.proposals:
+        uvc = res.projection.plane_to_image(np.array([[c.x, c.y]]))
+        assert np.isfinite(uvc).all()
+
+
+def test_all_occupied_frame_gives_no_proposals_not_an_error():
+    pipe = SLZPipeline(lambda f: np.random.default_rng(0).random((120, 160)).astype(np.float32),
+                       projection=PlaneProjection.nadir(0.05))
+    res = pipe.process(np.zeros((480, 640, 3), np.uint8), 0.0)
+    assert (res.occupancy == OCCUPIED).mean() > 0.99
+    assert res.proposals == [] and res.tracks == [] and res.target is None
+
+
+def test_bad_inputs_are_clear_errors():
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    pipe = SLZPipeline(lambda f: np.zeros((120, 160), np.float32), intrinsics=K)
+    frame = np.zeros((480, 640, 3), np.uint8)
+    with pytest.raises(GeometryError, match="NaN"):
+        pipe.process(frame, 0.0, Pose(0.0, 0.0, 0.0, float("nan"), 0.0, 0.0, 0.0))
+    with pytest.raises(GeometryError, match="no pose and no fixed projection"):
+        pipe.process(frame, 0.0, None)
+    with pytest.raises(GeometryError, match="640x480"):
+        pipe.process(np.zeros((240, 320, 3), np.uint8), 0.0, Pose(0.0, 0, 0, -20, 0, 0, 0))
+    with pytest.raises(ValueError, match="image"):
+        pipe.process(np.zeros((0, 0, 3), np.uint8), 0.0, Pose(0.0, 0, 0, -20, 0, 0, 0))
+    with pytest.raises(GeometryError, match="not invertible"):
+        SLZPipeline(lambda f: f, projection=PlaneProjection.from_image_to_plane(np.ones((3, 3))))

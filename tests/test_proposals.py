@@ -1,0 +1,82 @@
+"""Largest-free-circle proposals (pipeline step 4) against a brute-force oracle."""
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.pipeline.headplane import GridSpec
+from companion.pipeline.proposals import propose
+
+
+def _random_map(seed, shape=(60, 80), n_blobs=25):
+    rng = np.random.default_rng(seed)
+    free = np.full(shape, 255, np.uint8)
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    for _ in range(n_blobs):
+        cy, cx, r = rng.uniform(0, shape[0]), rng.uniform(0, shape[1]), rng.uniform(0.5, 4)
+        free[(yy - cy) ** 2 + (xx - cx) ** 2 <= r * r] = 0
+    # Unknown margin, as outside a camera footprint.
+    free[:, : rng.integers(0, 6)] = 0
+    return free
+
+
+def _oracle_radius_cells(free):
+    """Largest distance from a free cell centre to the nearest non-free cell centre (or the
+    outside of the grid), brute force."""
+    rows, cols = free.shape
+    occ = np.argwhere(free == 0).astype(float)
+    border = [(i, -1) for i in range(-1, rows + 1)] + [(i, cols) for i in range(-1, rows + 1)]
+    border += [(-1, j) for j in range(cols)] + [(rows, j) for j in range(cols)]
+    occ = np.vstack([occ, np.array(border, float)])
+    best = 0.0
+    for i, j in np.argwhere(free > 0):
+        best = max(best, float(np.min(np.hypot(occ[:, 0] - i, occ[:, 1] - j))))
+    return best
+
+
+def _touches(circle, free, grid):
+    """True if the circle overlaps any non-free cell square or leaves the grid."""
+    ci = (circle.y - grid.y0) / grid.cell
+    cj = (circle.x - grid.x0) / grid.cell
+    r = circle.r / grid.cell
+    rows, cols = free.shape
+    if ci - r < -0.5 or cj - r < -0.5 or ci + r > rows - 0.5 or cj + r > cols - 0.5:
+        return True
+    occ = np.argwhere(free == 0)
+    dy = np.maximum(np.abs(occ[:, 0] - ci) - 0.5, 0)
+    dx = np.maximum(np.abs(occ[:, 1] - cj) - 0.5, 0)
+    return bool((np.hypot(dx, dy) < r - 1e-9).any())
+
+
+@pytest.mark.parametrize("seed", range(15))
+def test_against_brute_force_oracle(seed):
+    free = _random_map(seed)
+    grid = GridSpec(x0=3.0, y0=-2.0, cell=0.25, rows=free.shape[0], cols=free.shape[1])
+    circles = propose(free, grid, n_max=6, r_min=0.3)
+    assert circles, "a map with free space must give a proposal"
+    oracle = _oracle_radius_cells(free) * grid.cell
+    assert abs(circles[0].r - oracle) <= grid.cell
+    for c in circles:
+        assert not _touches(c, free, grid)
+        assert c.r >= 0.3
+    radii = [c.r for c in circles]
+    assert radii == sorted(radii, reverse=True)
+    for a in range(len(circles)):
+        for b in range(a + 1, len(circles)):
+            ca, cb = circles[a], circles[b]
+            assert math.hypot(ca.x - cb.x, ca.y - cb.y) >= ca.r + cb.r - 1e-9
+
+
+def test_stops_at_r_min_and_n_max():
+    free = np.full((100, 100), 255, np.uint8)
+    grid = GridSpec(0.0, 0.0, 0.1, 100, 100)
+    assert len(propose(free, grid, n_max=2, r_min=0.1)) == 2
+    big = propose(free, grid, n_max=10, r_min=4.0)
+    assert len(big) == 1 and big[0].r == pytest.approx(5.0 - math.sqrt(2) / 2 * 0.1, abs=1e-3)
+    assert propose(free, grid, n_max=10, r_min=6.0) == []
+
+
+def test_empty_and_all_occupied_maps_give_no_proposals():
+    assert propose(np.zeros((40, 50), np.uint8), GridSpec(0, 0, 0.1, 40, 50), 5, 0.1) == []
+    assert propose(np.zeros((0, 0), np.uint8), GridSpec(0, 0, 0.1, 0, 0), 5, 0.1) == []

@@ -1,0 +1,136 @@
+"""Landing-zone tracker (pipeline step 5)."""
+
+import math
+
+import pytest
+
+from companion.pipeline.circles import Circle
+from companion.pipeline.tracker import TrackerParams, ZoneTracker
+
+DT = 0.1
+
+
+def _run(tracker, frames, t0=0.0):
+    out = []
+    for k, circles in enumerate(frames):
+        out.append(tracker.update(circles, t0 + k * DT))
+    return out
+
+
+def test_moving_circles_keep_their_ids():
+    tr = ZoneTracker(TrackerParams(mu_2=3, max_tracks=5))
+    starts = [(0.0, 0.0, 3.0), (12.0, 0.0, 2.5), (0.0, 12.0, 4.0)]
+    vel = [(1.0, 0.0), (0.0, -1.2), (-0.8, 0.8)]
+    ids_seen = None
+    for k in range(60):
+        t = k * DT
+        circles = [Circle(x + vx * t, y + vy * t, r) for (x, y, r), (vx, vy) in zip(starts, vel)]
+        tracks = tr.update(circles, t)
+        if k >= 2:
+            by_pos = {round(tk.r, 0): tk.id for tk in tracks}
+            assert len(tracks) == 3
+            if ids_seen is None:
+                ids_seen = by_pos
+            assert by_pos == ids_seen
+    # The filter has learned the velocities: the prediction follows the zone.
+    t1 = next(t for t in tr.tracks() if abs(t.r - 3.0) < 0.1)
+    assert abs(t1.x - 1.0 * 59 * DT) < 0.3 and abs(t1.y) < 0.3
+
+
+def test_missing_for_fewer_than_mu1_frames_keeps_the_track():
+    p = TrackerParams(mu_1=3, mu_2=2)
+    tr = ZoneTracker(p)
+    z = Circle(5.0, 5.0, 3.0)
+    _run(tr, [[z]] * 4)
+    (track,) = tr.tracks()
+    for k in range(p.mu_1):
+        tracks = tr.update([], 1.0 + k * DT)
+        assert [t.id for t in tracks] == [track.id]
+        assert tracks[0].misses == k + 1
+    # Back in view: same track, confirmed again.
+    tracks = tr.update([z], 2.0)
+    assert [t.id for t in tracks] == [track.id] and tracks[0].misses == 0
+    # Missing more than mu_1 consecutive frames: deleted.
+    for k in range(p.mu_1 + 1):
+        tracks = tr.update([], 3.0 + k * DT)
+    assert tracks == []
+    assert tr.ended == 1
+
+
+def test_a_new_zone_starts_a_track_only_after_mu2_frames():
+    tr = ZoneTracker(TrackerParams(mu_2=4))
+    z = Circle(0.0, 0.0, 2.0)
+    for k in range(3):
+        assert tr.update([z], k * DT) == []
+    assert len(tr.update([z], 3 * DT)) == 1
+    # A proposal that flickers (not consecutive) never becomes a track.
+    tr2 = ZoneTracker(TrackerParams(mu_2=2))
+    for k in range(10):
+        assert tr2.update([z] if k % 2 == 0 else [], k * DT) == []
+
+
+def test_at_most_max_tracks():
+    tr = ZoneTracker(TrackerParams(mu_2=1, max_tracks=2))
+    circles = [Circle(10.0 * i, 0.0, 2.0 + i) for i in range(4)]
+    tracks = tr.update(circles, 0.0)
+    assert len(tracks) == 2
+    assert sorted(t.r for t in tracks) == [4.0, 5.0]  # the largest are born first
+
+
+def test_ages_increase_and_hits_count():
+    tr = ZoneTracker(TrackerParams(mu_2=1))
+    z = Circle(0.0, 0.0, 2.0)
+    ages = [tr.update([z], k * DT)[0].age for k in range(5)]
+    assert ages == [0, 1, 2, 3, 4]
+    assert tr.tracks()[0].hits == 5
+
+
+def test_oldest_stable_is_the_one_the_paper_picks():
+    tr = ZoneTracker(TrackerParams(mu_2=1, mu_1=5))
+    a, b, c = Circle(0.0, 0.0, 3.0), Circle(20.0, 0.0, 6.0), Circle(40.0, 0.0, 1.0)
+    tr.update([a], 0.0)
+    tr.update([a, b], 0.1)
+    tr.update([a, b, c], 0.2)
+    ida, idb = (t.id for t in tr.tracks()[:2])
+    # The oldest wins even though b is larger.
+    assert tr.oldest_stable(r_min=2.0).id == ida
+    # a not confirmed by the latest frame: b, the next oldest, is the target.
+    tr.update([b, c], 0.3)
+    assert tr.oldest_stable(r_min=2.0).id == idb
+    # c is too small ever to be picked.
+    tr.update([c], 0.4)
+    assert tr.oldest_stable(r_min=2.0) is None
+    assert tr.oldest_stable(r_min=0.5).r == pytest.approx(1.0, abs=0.05)
+
+
+def test_safe_radius_stays_inside_the_last_proposal():
+    tr = ZoneTracker(TrackerParams(mu_2=1))
+    for k in range(5):
+        tr.update([Circle(0.0, 0.0, 5.0)], k * DT)
+    # The zone suddenly shrinks: the filter lags, the reported radius does not.
+    (t,) = tr.update([Circle(0.5, 0.0, 3.0)], 0.5)
+    assert t.r_filtered > 3.0
+    assert t.r + math.hypot(t.x - 0.5, t.y) <= 3.0 + 1e-9
+
+
+def test_radius_never_negative():
+    tr = ZoneTracker(TrackerParams(mu_2=1, mu_1=50, min_iou=0.0))
+    r = 4.0
+    for k in range(10):
+        tr.update([Circle(0.0, 0.0, r)], k * DT)
+        r = max(r - 0.4, 0.05)
+    for k in range(40):
+        (t,) = tr.update([], 1.0 + k * DT)
+        assert t.r_filtered >= 0 and t.r >= 0
+
+
+@pytest.mark.parametrize("kw", [dict(sigma_a=0), dict(r_std=(1, 1)), dict(min_iou=1.5),
+                                dict(mu_2=0), dict(max_tracks=0)])
+def test_bad_parameters_are_clear_errors(kw):
+    with pytest.raises(ValueError, match="tracker"):
+        TrackerParams(**kw)
+
+
+def test_nan_time_is_a_clear_error():
+    with pytest.raises(ValueError, match="finite"):
+        ZoneTracker().update([], float("nan"))

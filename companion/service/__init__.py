@@ -1,0 +1,1 @@
+"""The companion daemon: configuration, camera, asyncio wiring, systemd notify, flight recorder."""

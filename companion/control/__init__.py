@@ -1,0 +1,1 @@
+"""Landing control: the zone planner, the landing state machine and its async runner; geodesy."""

@@ -1,0 +1,379 @@
+"""Vehicle state from MAVLink telemetry, each part with its receive time, and the pose at any instant.
+
+``VehicleState.update(msg, t)`` takes one message and its receive time (``time.monotonic()``
+seconds); ``attach(link)`` subscribes it to a ``MavLink``. Frames: local NED metres from home
+(HOME_POSITION, through geographiclib), ground at ``z = 0``; angles in radians as in ATTITUDE
+(aerospace Z-Y-X, yaw from north). Messages with NaN or out-of-range values are counted in
+``rejected`` and dropped so they never reach the pose.
+
+``pose_at(t)`` interpolates between the two ATTITUDE samples and the two GLOBAL_POSITION_INT
+samples around ``t`` (attitude by quaternion slerp, so yaw wraps correctly across +-pi). It returns
+None when ``t`` is outside the buffered samples (beyond a small extrapolation allowance), when home
+or position is unknown, or when the samples around ``t`` are too far apart to trust.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as m
+from scipy.spatial.transform import Rotation, Slerp
+
+from companion.control.geodesy import GeodesyError, GeoPoint, ned_from_geo
+from companion.pipeline.camera import Pose, rotation_from_euler, rotation_from_quaternion
+
+log = logging.getLogger(__name__)
+
+
+class StateError(ValueError):
+    """A telemetry value that cannot be used (NaN, out of range)."""
+
+
+@dataclass(frozen=True)
+class Attitude:
+    """ATTITUDE: radians, yaw from north (-pi..pi); ``t`` receive time (s); ``time_boot_ms`` as sent."""
+
+    t: float
+    time_boot_ms: int
+    roll: float
+    pitch: float
+    yaw: float
+
+
+@dataclass(frozen=True)
+class GlobalPosition:
+    """GLOBAL_POSITION_INT: WGS84 degrees, AMSL and above-home metres, NED velocity m/s, heading rad."""
+
+    t: float
+    time_boot_ms: int
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    relative_alt_m: float
+    vn: float
+    ve: float
+    vd: float
+    heading: float | None  # None when the autopilot does not know it (UINT16_MAX)
+
+
+@dataclass(frozen=True)
+class Home:
+    """HOME_POSITION: WGS84 degrees and AMSL metres; the origin of the local NED world frame."""
+
+    t: float
+    point: GeoPoint
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    """HEARTBEAT of the autopilot: mode (base and custom), armed, MAV_STATE system status."""
+
+    t: float
+    autopilot: int
+    vehicle_type: int
+    base_mode: int
+    custom_mode: int
+    system_status: int
+
+    @property
+    def armed(self) -> bool:
+        return bool(self.base_mode & m.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+@dataclass(frozen=True)
+class Battery:
+    """Battery: ``remaining_pct`` 0..100 or None if unknown; ``charge_state`` MAV_BATTERY_CHARGE_STATE
+    (None from SYS_STATUS, which has none); ``voltage_v`` None if unknown."""
+
+    t: float
+    source: str  # "SYS_STATUS" or "BATTERY_STATUS"
+    battery_id: int
+    remaining_pct: float | None
+    voltage_v: float | None
+    charge_state: int | None
+
+
+@dataclass(frozen=True)
+class Rangefinder:
+    """DISTANCE_SENSOR facing down: metres above ground, when within the sensor's valid range."""
+
+    t: float
+    distance_m: float
+
+
+@dataclass(frozen=True)
+class GimbalAttitude:
+    """GIMBAL_DEVICE_ATTITUDE_STATUS: quaternion (w, x, y, z) and flags as sent; see ``R_body_from_cam``."""
+
+    t: float
+    q: tuple[float, float, float, float]
+    flags: int
+
+    @property
+    def yaw_in_earth_frame(self) -> bool:
+        if self.flags & m.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME:
+            return True
+        if self.flags & m.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME:
+            return False
+        return bool(self.flags & m.GIMBAL_DEVICE_FLAGS_YAW_LOCK)
+
+
+@dataclass(frozen=True)
+class LandedState:
+    """EXTENDED_SYS_STATE.landed_state (MAV_LANDED_STATE)."""
+
+    t: float
+    landed_state: int
+
+    @property
+    def on_ground(self) -> bool:
+        return self.landed_state == m.MAV_LANDED_STATE_ON_GROUND
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+def R_body_from_gimbal(gimbal: GimbalAttitude, roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """The camera FRD frame in the body frame, from a gimbal attitude and the body attitude (rad).
+
+    MAVLink gimbal quaternions have roll and pitch relative to the horizon; yaw is either absolute
+    (earth frame) or relative to the vehicle's heading (vehicle frame), as the flags say.
+    """
+    R_q = rotation_from_quaternion(gimbal.q)
+    R_world_from_body = rotation_from_euler(roll, pitch, yaw)
+    R_world_from_cam = R_q if gimbal.yaw_in_earth_frame else rotation_from_euler(0.0, 0.0, yaw) @ R_q
+    return R_world_from_body.T @ R_world_from_cam
+
+
+class VehicleState:
+    """The latest telemetry of one vehicle and a short history of its pose for interpolation.
+
+    ``history_s`` of ATTITUDE and position samples are kept; ``max_gap_s`` is the widest gap
+    between two samples that ``pose_at`` interpolates across; ``max_extrapolation_s`` is how far
+    past the newest sample ``pose_at`` may still answer (with the newest sample).
+    """
+
+    def __init__(
+        self,
+        *,
+        history_s: float = 5.0,
+        max_gap_s: float = 0.5,
+        max_extrapolation_s: float = 0.1,
+        autopilot_component: int = m.MAV_COMP_ID_AUTOPILOT1,
+    ) -> None:
+        self.history_s = history_s
+        self.max_gap_s = max_gap_s
+        self.max_extrapolation_s = max_extrapolation_s
+        self.autopilot_component = autopilot_component
+        self.attitude: Attitude | None = None
+        self.position: GlobalPosition | None = None
+        self.home: Home | None = None
+        self.heartbeat: Heartbeat | None = None
+        self.battery: Battery | None = None  # the newest of SYS_STATUS / BATTERY_STATUS
+        self.battery_status: Battery | None = None  # BATTERY_STATUS only (has the charge state)
+        self.sys_status_battery: Battery | None = None
+        self.rangefinder: Rangefinder | None = None
+        self.gimbal: GimbalAttitude | None = None
+        self.landed: LandedState | None = None
+        self.rejected = 0  # messages dropped for NaN / out-of-range values
+        self._att: deque[Attitude] = deque()
+        self._pos: deque[GlobalPosition] = deque()
+
+    # -- input -------------------------------------------------------------------------------
+
+    def attach(self, link: Any) -> None:
+        """Subscribe to the vehicle's messages on a ``MavLink``."""
+        for name in self.HANDLED:
+            link.subscribe(name, self.update)
+
+    HANDLED = (
+        "HEARTBEAT",
+        "ATTITUDE",
+        "GLOBAL_POSITION_INT",
+        "HOME_POSITION",
+        "EXTENDED_SYS_STATE",
+        "SYS_STATUS",
+        "BATTERY_STATUS",
+        "DISTANCE_SENSOR",
+        "GIMBAL_DEVICE_ATTITUDE_STATUS",
+    )
+
+    def update(self, msg: Any, t: float) -> None:
+        """Take one message received at monotonic time ``t`` (s). Bad values are counted and dropped."""
+        handler = getattr(self, "_on_" + msg.get_type().lower(), None)
+        if handler is None:
+            return
+        try:
+            handler(msg, t)
+        except (StateError, GeodesyError) as exc:
+            self.rejected += 1
+            log.warning("dropped %s: %s", msg.get_type(), exc)
+
+    def _on_heartbeat(self, msg: Any, t: float) -> None:
+        if msg.get_srcComponent() != self.autopilot_component or msg.autopilot == m.MAV_AUTOPILOT_INVALID:
+            return  # a camera, gimbal or companion on the same system, not the autopilot
+        self.heartbeat = Heartbeat(t, msg.autopilot, msg.type, msg.base_mode, msg.custom_mode, msg.system_status)
+
+    def _on_attitude(self, msg: Any, t: float) -> None:
+        if not _finite(msg.roll, msg.pitch, msg.yaw):
+            raise StateError(f"ATTITUDE has NaN: roll={msg.roll} pitch={msg.pitch} yaw={msg.yaw}")
+        att = Attitude(t, msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw)
+        self.attitude = att
+        self._append(self._att, att)
+
+    def _on_global_position_int(self, msg: Any, t: float) -> None:
+        if msg.lat == 0 and msg.lon == 0:
+            raise StateError("GLOBAL_POSITION_INT without a fix (0, 0)")
+        point = GeoPoint(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)  # validates the range
+        hdg = None if msg.hdg == 65535 else math.radians(msg.hdg / 100.0)
+        pos = GlobalPosition(
+            t, msg.time_boot_ms, point.lat_deg, point.lon_deg, point.alt_m, msg.relative_alt * 1e-3,
+            msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0, hdg,
+        )
+        self.position = pos
+        self._append(self._pos, pos)
+
+    def _on_home_position(self, msg: Any, t: float) -> None:
+        if msg.latitude == 0 and msg.longitude == 0:
+            raise StateError("HOME_POSITION at (0, 0): home not set")
+        self.home = Home(t, GeoPoint(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3))
+
+    def _on_extended_sys_state(self, msg: Any, t: float) -> None:
+        self.landed = LandedState(t, msg.landed_state)
+
+    def _on_sys_status(self, msg: Any, t: float) -> None:
+        remaining = None if msg.battery_remaining < 0 else float(msg.battery_remaining)
+        voltage = None if msg.voltage_battery == 65535 else msg.voltage_battery / 1000.0
+        self.sys_status_battery = Battery(t, "SYS_STATUS", 0, remaining, voltage, None)
+        self.battery = self.sys_status_battery
+
+    def _on_battery_status(self, msg: Any, t: float) -> None:
+        remaining = None if msg.battery_remaining < 0 else float(msg.battery_remaining)
+        cells = [v for v in msg.voltages if v != 65535]
+        voltage = sum(cells) / 1000.0 if cells else None
+        self.battery_status = Battery(t, "BATTERY_STATUS", msg.id, remaining, voltage, msg.charge_state)
+        self.battery = self.battery_status
+
+    def _on_distance_sensor(self, msg: Any, t: float) -> None:
+        if msg.orientation != m.MAV_SENSOR_ROTATION_PITCH_270:
+            return  # only a downward rangefinder measures height above ground
+        d_cm = msg.current_distance
+        if msg.min_distance <= d_cm <= msg.max_distance:
+            self.rangefinder = Rangefinder(t, d_cm / 100.0)
+        else:
+            self.rangefinder = None  # out of range: no height above ground rather than a wrong one
+
+    def _on_gimbal_device_attitude_status(self, msg: Any, t: float) -> None:
+        q = tuple(float(v) for v in msg.q)
+        if not _finite(*q) or abs(math.sqrt(sum(v * v for v in q)) - 1.0) > 0.1:
+            raise StateError(f"gimbal quaternion {q} is not a unit quaternion")
+        self.gimbal = GimbalAttitude(t, q, msg.flags)  # type: ignore[arg-type]
+
+    def _append(self, buf: deque[Any], sample: Any) -> None:
+        if buf and sample.t < buf[-1].t:
+            buf.clear()  # receive times never go back; if they do, the old history is unusable
+        buf.append(sample)
+        while buf and sample.t - buf[0].t > self.history_s:
+            buf.popleft()
+
+    # -- derived -----------------------------------------------------------------------------
+
+    @property
+    def mode(self) -> tuple[int, int] | None:
+        """(base_mode, custom_mode) of the last autopilot heartbeat, or None."""
+        return None if self.heartbeat is None else (self.heartbeat.base_mode, self.heartbeat.custom_mode)
+
+    @property
+    def armed(self) -> bool | None:
+        return None if self.heartbeat is None else self.heartbeat.armed
+
+    def altitude_above_home(self) -> float | None:
+        """Metres above home from the latest position (GLOBAL_POSITION_INT.relative_alt)."""
+        return None if self.position is None else self.position.relative_alt_m
+
+    def altitude_above_ground(self, now: float, max_age_s: float = 0.5) -> float | None:
+        """Metres above ground from a fresh downward rangefinder, else None (not measured)."""
+        rf = self.rangefinder
+        if rf is None or now - rf.t > max_age_s:
+            return None
+        return rf.distance_m
+
+    def local_ned(self, position: GlobalPosition | None = None) -> tuple[float, float, float] | None:
+        """(north, east, down) metres of a position (default the latest) from home, or None."""
+        position = position or self.position
+        if position is None or self.home is None:
+            return None
+        n, e, _ = ned_from_geo(self.home.point, GeoPoint(position.lat_deg, position.lon_deg, position.alt_m))
+        # relative_alt is the autopilot's own height above home: consistent with the alt it flies.
+        return n, e, -position.relative_alt_m
+
+    def is_fresh(self, now: float, max_age_s: float) -> bool:
+        """True when attitude, position and home are known and attitude/position are younger than ``max_age_s``."""
+        return (
+            self.attitude is not None
+            and self.position is not None
+            and self.home is not None
+            and now - self.attitude.t <= max_age_s
+            and now - self.position.t <= max_age_s
+        )
+
+    def pose_at(self, t: float) -> Pose | None:
+        """The pose at monotonic time ``t`` (s) by interpolation, or None if it cannot be trusted."""
+        if self.home is None or not math.isfinite(t):
+            return None
+        att = self._bracket(self._att, t)
+        pos = self._bracket(self._pos, t)
+        if att is None or pos is None:
+            return None
+        roll, pitch, yaw = self._interp_attitude(att, t)
+        n0, e0, d0 = self.local_ned(pos[0])  # type: ignore[misc]
+        n1, e1, d1 = self.local_ned(pos[1])  # type: ignore[misc]
+        f = self._fraction(pos[0].t, pos[1].t, t)
+        gimbal = None
+        if self.gimbal is not None and abs(self.gimbal.t - t) <= self.max_gap_s:
+            gimbal = R_body_from_gimbal(self.gimbal, roll, pitch, yaw)
+        pose = Pose(
+            t,
+            n0 + f * (n1 - n0),
+            e0 + f * (e1 - e0),
+            d0 + f * (d1 - d0),
+            roll,
+            pitch,
+            yaw,
+            gimbal,
+        )
+        return pose
+
+    def _bracket(self, buf: Iterable[Any], t: float) -> tuple[Any, Any] | None:
+        samples = list(buf)
+        if not samples or t < samples[0].t:
+            return None
+        times = [s.t for s in samples]
+        i = bisect.bisect_right(times, t)
+        if i == len(samples):
+            last = samples[-1]
+            return (last, last) if t - last.t <= self.max_extrapolation_s else None
+        a, b = samples[i - 1], samples[i]
+        if b.t - a.t > self.max_gap_s:
+            return None  # a telemetry gap: do not invent what happened in between
+        return a, b
+
+    @staticmethod
+    def _fraction(t0: float, t1: float, t: float) -> float:
+        return 0.0 if t1 <= t0 else min(1.0, max(0.0, (t - t0) / (t1 - t0)))
+
+    def _interp_attitude(self, pair: tuple[Attitude, Attitude], t: float) -> tuple[float, float, float]:
+        a, b = pair
+        if a is b or b.t <= a.t:
+            return a.roll, a.pitch, a.yaw
+        rots = Rotation.from_euler("ZYX", [[a.yaw, a.pitch, a.roll], [b.yaw, b.pitch, b.roll]])
+        yaw, pitch, roll = Slerp([a.t, b.t], rots)([t]).as_euler("ZYX")[0]
+        return float(roll), float(pitch), float(yaw)

@@ -1,0 +1,1 @@
+"""Measuring density models on the crowd data sets (``companion eval``)."""

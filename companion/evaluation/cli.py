@@ -1,0 +1,185 @@
+"""``companion eval``: measure a density model (and optionally a peer) on the crowd data sets.
+
+    companion eval                                   # the shipped model, every figure
+    companion eval --peer ../shared/peers/mcnn-shb.onnx --mall-step 1 --json
+    companion eval --model other.onnx --color gray --scale 1 --stride 4
+    companion eval --model ../shared/peers/mcnn-shb.onnx --preset mcnn
+
+Figures (definitions in :mod:`companion.evaluation.metrics`): ShanghaiTech B test MAE / RMSE;
+Mall 801-2000 MAE; occupancy head recall and free-area share at the model's default threshold
+(its ``companion.occupancy_threshold``, else the paper's 0) on the six DroneCrowd frames, the
+held-out DroneCrowd frame ``img017012``, Mall 801-2000 and the held-out fifth of the semantic drone
+photos; the recall/free curve over thresholds; density latency at 640x480 and 1280x720.
+With ``--peer`` the second model is measured in the same run, its recall is also read off its
+curve at our free share, and the latency ratio is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from companion.evaluation import datasets as D
+from companion.evaluation.metrics import SetResult, bench_frame, evaluate_set, latency_ms
+from companion.pipeline.density import DensityModel, DensityModelError
+
+REPO = Path(__file__).resolve().parents[2]
+PRESETS: dict[str, dict[str, object]] = {
+    "none": {},
+    # The MCNN peer: greyscale 0-255, no normalisation, stride 4 (shared/README.md).
+    "mcnn": {"color": "gray", "scale": 1.0, "mean": 0.0, "std": 1.0, "stride": 4},
+}
+SETS = ("shb", "mall", "dronecrowd", "semantic")
+LATENCY_SIZES = {"640x480": (480, 640), "1280x720": (720, 1280)}
+
+
+def _default_shared() -> Path:
+    for cand in (Path.cwd() / "../shared", REPO.parent / "shared"):
+        if (cand / "data").is_dir():
+            return cand.resolve()
+    return (Path.cwd() / "../shared").resolve()
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", type=Path, default=REPO / "models" / "slz-density.onnx", help="ONNX density model")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="none", help="settings of a known model family")
+    g = parser.add_argument_group("overrides of the model's metadata")
+    g.add_argument("--color", choices=["bgr", "rgb", "gray"])
+    g.add_argument("--scale", type=float, help="multiplier on 0-255 pixel values")
+    g.add_argument("--mean", help="comma-separated per-channel mean (after scale)")
+    g.add_argument("--std", help="comma-separated per-channel std")
+    g.add_argument("--stride", type=int, help="output stride")
+    g.add_argument("--input-multiple", type=int, help="pad input to a multiple of N pixels")
+    g.add_argument("--threshold", type=float, help="occupancy threshold (default: the model's, else 0)")
+    g.add_argument("--count-scale", type=float, help="people per unit of map sum")
+    parser.add_argument("--peer", type=Path, help="a second model measured in the same run")
+    parser.add_argument("--peer-preset", choices=sorted(PRESETS), help="default: mcnn if the file name says mcnn")
+    parser.add_argument("--peer-threshold", type=float, help="occupancy threshold of the peer (default its own, else 0)")
+    parser.add_argument("--shared", type=Path, default=None, help="shared data directory (default ../shared)")
+    parser.add_argument("--sets", default=",".join(SETS), help=f"comma-separated subset of {','.join(SETS)}")
+    parser.add_argument("--mall-step", type=int, default=1, help="use every N-th Mall frame (default 1: all 1,200)")
+    parser.add_argument("--limit", type=int, default=0, help="at most N images per set (0: all; for quick checks)")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    parser.add_argument("--latency-runs", type=int, default=20, help="timed runs per size (0: skip latency)")
+    parser.add_argument("--curve", action="store_true", help="print the recall/free curves as well")
+    parser.add_argument("--json", action="store_true", help="print one JSON document instead of text")
+
+
+def _overrides(args: argparse.Namespace) -> dict[str, object]:
+    ov = dict(PRESETS[args.preset])
+    for key in ("color", "scale", "mean", "std", "stride", "input_multiple", "count_scale"):
+        if getattr(args, key) is not None:
+            ov[key] = getattr(args, key)
+    if args.threshold is not None:
+        ov["occupancy_threshold"] = args.threshold
+    return ov
+
+
+def _datasets(shared: Path, sets: list[str], mall_step: int, limit: int) -> dict[str, list[D.Sample]]:
+    out: dict[str, list[D.Sample]] = {}
+    if "shb" in sets:
+        out["shanghaitech_b_test"] = D.shanghaitech_b(shared, "test")
+    if "dronecrowd" in sets:
+        out["dronecrowd6"] = D.dronecrowd_frames(shared)
+        out["dronecrowd_img017012"] = D.dronecrowd_frames(shared, ["img017012"])
+    if "mall" in sets:
+        out["mall"] = D.mall(shared, mall_step)
+    if "semantic" in sets:
+        out["semantic_drone_val"] = D.semantic_drone(shared, "val")
+    if limit:
+        out = {k: v[:limit] for k, v in out.items()}
+    return out
+
+
+def measure(model: DensityModel, data: dict[str, list[D.Sample]], latency_runs: int) -> dict[str, Any]:
+    """All figures of one model as a JSON-able dict."""
+    thr = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
+    sets: dict[str, SetResult] = {}
+    for name, samples in data.items():
+        counting = name in ("shanghaitech_b_test", "mall")
+        sets[name] = evaluate_set(name, samples, model, thr, model.count if counting else None)
+    out: dict[str, Any] = {
+        "model": str(model.path),
+        "spec": {k: getattr(model.spec, k) for k in model.spec.__dataclass_fields__},
+        "threshold": thr,
+        "sets": {k: vars(v) for k, v in sets.items()},
+    }
+    if latency_runs > 0:
+        src = next(iter(data.values()))[0].image()
+        out["latency_ms"] = {k: latency_ms(model, bench_frame(src, hw), latency_runs) for k, hw in LATENCY_SIZES.items()}
+    out["_results"] = sets
+    return out
+
+
+def _fmt(v: float | None, pct: bool = False) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return f"{100 * v:.1f} %" if pct else f"{v:.2f}"
+
+
+def _print(res: dict[str, Any], curve: bool, file=sys.stdout) -> None:
+    print(f"model {res['model']}  threshold {res['threshold']:.4g}  (count_scale {res['spec']['count_scale']:.4g})", file=file)
+    for name, s in res["sets"].items():
+        line = f"  {name:22s} images {s['images']:5d} heads {s['heads']:6d}  recall {_fmt(s['recall'], True):>8s}  free {_fmt(s['free'], True):>8s}"
+        if s["mae"] is not None:
+            line += f"  MAE {_fmt(s['mae'])}  RMSE {_fmt(s['rmse'])}"
+        if "peer_recall_at_our_free" in s:
+            line += f"  | peer recall at this free: {_fmt(s['peer_recall_at_our_free'], True)}"
+        print(line, file=file)
+        if curve:
+            for c in s["curve"]:
+                print(f"      t={c['threshold']:<10.4g} recall {_fmt(c['recall'], True):>8s} free {_fmt(c['free'], True):>8s}", file=file)
+    for k, v in res.get("latency_ms", {}).items():
+        print(f"  latency {k:9s} median {v['median']:.1f} ms (p10 {v['p10']:.1f}, p90 {v['p90']:.1f}, {v['runs']} runs)", file=file)
+
+
+def run(args: argparse.Namespace) -> int:
+    shared = args.shared or _default_shared()
+    sets = [s.strip() for s in args.sets.split(",") if s.strip()]
+    bad = sorted(set(sets) - set(SETS))
+    if bad:
+        print(f"companion eval: unknown set(s) {', '.join(bad)}; known: {', '.join(SETS)}", file=sys.stderr)
+        return 2
+    try:
+        model = DensityModel(args.model, threads=args.threads, overrides=_overrides(args))
+        peer = None
+        if args.peer:
+            preset = args.peer_preset or ("mcnn" if "mcnn" in args.peer.name.lower() else "none")
+            pov = dict(PRESETS[preset])
+            if args.peer_threshold is not None:
+                pov["occupancy_threshold"] = args.peer_threshold
+            peer = DensityModel(args.peer, threads=args.threads, overrides=pov)
+        data = _datasets(Path(shared), sets, args.mall_step, args.limit)
+    except (DensityModelError, D.DatasetError, ValueError) as exc:
+        print(f"companion eval: {exc}", file=sys.stderr)
+        return 2
+    res = measure(model, data, args.latency_runs)
+    doc: dict[str, Any] = {"shared": str(shared), "mall_step": args.mall_step, "limit": args.limit, "model": res}
+    if peer is not None:
+        pres = measure(peer, data, args.latency_runs)
+        doc["peer"] = pres
+        for name, ours in res["_results"].items():
+            theirs = pres["_results"][name]
+            res["sets"][name]["peer_recall_at_our_free"] = theirs.at_free(ours.free)
+        if "latency_ms" in res:
+            doc["latency_ratio_ours_over_peer"] = {
+                k: res["latency_ms"][k]["median"] / pres["latency_ms"][k]["median"] for k in LATENCY_SIZES
+            }
+        pres.pop("_results")
+    res.pop("_results")
+    if args.json:
+        json.dump(doc, sys.stdout, indent=1)
+        print()
+    else:
+        print(f"shared {shared}  mall step {args.mall_step}" + (f"  limit {args.limit}" if args.limit else ""))
+        _print(res, args.curve)
+        if peer is not None:
+            print("peer:")
+            _print(doc["peer"], args.curve)
+            for k, v in doc.get("latency_ratio_ours_over_peer", {}).items():
+                print(f"  latency ratio ours/peer at {k}: {v:.2f}")
+    return 0

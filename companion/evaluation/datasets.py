@@ -1,0 +1,131 @@
+"""Loaders for the crowd data sets in ``../shared/data`` (formats: ``../shared/README.md``).
+
+numpy / scipy / OpenCV only, so evaluation runs without torch; training reuses them.
+Every loader returns :class:`Sample` records whose annotations are in the image's own pixels
+(x right, y down, origin at the top-left pixel corner as the data sets give them).
+
+The semantic-drone validation split is fixed: the images whose index in the sorted list of names
+is a multiple of 5 are held out (``semantic_drone_split(..., "val")``), the rest train.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import scipy.io
+
+Split = Literal["train", "val", "all"]
+
+# The six real DroneCrowd frames kept in shared/: file stem -> (gt sequence file, 0-based frame).
+DRONECROWD_FRAMES: dict[str, tuple[str, int]] = {
+    **{f"img112{k:03d}": ("00112.mat", k - 1) for k in range(8, 13)},
+    "img017012": ("00017.mat", 11),
+}
+MALL_FIRST, MALL_LAST = 801, 2000
+
+
+class DatasetError(FileNotFoundError):
+    """A data set is missing or not in the documented layout."""
+
+
+@dataclass
+class Sample:
+    """One annotated image.
+
+    points: (N, 2) float32 head points (x, y) in pixels; for box data sets, the box centres.
+    boxes: (N, 4) float32 person boxes (x1, y1, x2, y2) in pixels, or None for point data sets.
+    """
+
+    name: str
+    path: Path
+    points: np.ndarray
+    boxes: np.ndarray | None = None
+    meta: dict[str, object] = field(default_factory=dict)
+
+    def image(self) -> np.ndarray:
+        """The image as HxWx3 BGR uint8."""
+        return read_image(self.path)
+
+
+def read_image(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DatasetError(f"cannot read image {path}")
+    return img
+
+
+def _need(path: Path) -> Path:
+    if not path.exists():
+        raise DatasetError(f"missing {path} (see shared/README.md for the layout)")
+    return path
+
+
+def _points(a: np.ndarray) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float32).reshape(-1, 2) if np.size(a) else np.zeros((0, 2), np.float32)
+    return a[:, :2].astype(np.float32)
+
+
+def shanghaitech_b(shared: Path, split: Literal["train", "test"]) -> list[Sample]:
+    """ShanghaiTech Part B, ``train`` (400) or ``test`` (the 100 kept in shared), head points."""
+    root = _need(Path(shared) / "data" / "shanghaitech_b" / f"{split}_data")
+    out = []
+    for img in sorted((root / "images").glob("IMG_*.jpg"), key=lambda p: int(p.stem.split("_")[1])):
+        gt = _need(root / "ground-truth" / f"GT_{img.stem}.mat")
+        pts = scipy.io.loadmat(gt)["image_info"][0, 0][0, 0][0]
+        out.append(Sample(img.stem, img, _points(pts)))
+    if not out:
+        raise DatasetError(f"no images in {root / 'images'}")
+    return out
+
+
+def mall(shared: Path, step: int = 1) -> list[Sample]:
+    """Mall frames 801-2000 (every ``step``-th), head points, 640x480."""
+    if step < 1:
+        raise ValueError(f"mall step must be >= 1, got {step}")
+    root = _need(Path(shared) / "data" / "mall")
+    frames = scipy.io.loadmat(_need(root / "mall_gt.mat"))["frame"][0]
+    out = []
+    for n in range(MALL_FIRST, MALL_LAST + 1, step):
+        img = _need(root / "frames" / f"seq_{n:06d}.jpg")
+        out.append(Sample(img.stem, img, _points(frames[n - 1]["loc"][0, 0])))
+    return out
+
+
+def dronecrowd_frames(shared: Path, names: list[str] | None = None) -> list[Sample]:
+    """The real DroneCrowd frames kept in shared (1920x1080), head points (centres of head boxes)."""
+    root = _need(Path(shared) / "data" / "dronecrowd")
+    cache: dict[str, np.ndarray] = {}
+    out = []
+    for stem in names or sorted(DRONECROWD_FRAMES):
+        gt_name, frame = DRONECROWD_FRAMES[stem]
+        if gt_name not in cache:
+            cache[gt_name] = scipy.io.loadmat(_need(root / "gt" / gt_name))["anno"]
+        anno = cache[gt_name]
+        rows = anno[anno[:, 0] == frame]
+        pts = np.stack([(rows[:, 2] + rows[:, 4]) / 2.0, (rows[:, 3] + rows[:, 5]) / 2.0], axis=1)
+        img = _need(root / "frames" / stem[:6] / f"{stem}.jpg")
+        out.append(Sample(stem, img, pts.astype(np.float32), meta={"sequence": gt_name, "frame": frame}))
+    return out
+
+
+def semantic_drone(shared: Path, split: Split = "all") -> list[Sample]:
+    """ICG Semantic Drone photos (750x500) with person boxes; ``val`` = sorted index % 5 == 0."""
+    root = _need(Path(shared) / "data" / "semantic_drone")
+    boxes = json.loads(_need(root / "person_boxes.json").read_text())
+    names = sorted(p.name for p in (root / "images").glob("*.jpg"))
+    if not names:
+        raise DatasetError(f"no images in {root / 'images'}")
+    out = []
+    for i, name in enumerate(names):
+        held_out = i % 5 == 0
+        if (split == "val" and not held_out) or (split == "train" and held_out):
+            continue
+        b = np.asarray(boxes.get(name, []), dtype=np.float32).reshape(-1, 4)
+        centres = np.stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2], axis=1)
+        out.append(Sample(Path(name).stem, root / "images" / name, centres.astype(np.float32), b))
+    return out

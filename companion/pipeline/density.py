@@ -1,0 +1,307 @@
+"""Step 1 of the pipeline: camera frame -> density map, with any ONNX density model on the CPU.
+
+The model decides how it wants its pixels through ONNX ``metadata_props``; a config mapping
+(``overrides``, keys without the ``companion.`` prefix) wins over the metadata, so models that
+carry no metadata (e.g. the MCNN peer) run with a few settings:
+
+=================================  ==========================================================
+key                                meaning
+=================================  ==========================================================
+``companion.color``                channel order the model expects: ``bgr``, ``rgb`` or
+                                   ``gray`` (default ``bgr``; ``gray`` for 1-channel inputs)
+``companion.scale``                multiplier on 0-255 pixel values (default 1)
+``companion.mean``                 comma-separated per-channel mean, subtracted after the scale
+                                   (one value applies to all channels; default 0)
+``companion.std``                  comma-separated per-channel std, divides after the mean
+                                   (default 1)
+``companion.stride``               input pixels per output pixel; if absent, inferred from
+                                   the input/output shapes of a probe run at load time
+``companion.input_multiple``       the frame is padded (bottom/right, edge pixels repeated) to
+                                   a multiple of N; default: the stride. A model with a fixed
+                                   input size gets the frame resized to that size instead
+``companion.occupancy_threshold``  threshold for the occupancy step chosen on validation data;
+                                   the pipeline's default when its config sets none
+``companion.count_scale``          multiplier turning the map's sum into a people count
+                                   (default 1: a true density map)
+=================================  ==========================================================
+
+The returned map is float32, 2-D, in output pixels: output pixel (i, j) covers input pixels
+``[i*stride, (i+1)*stride) x [j*stride, (j+1)*stride)``; padding is cropped off again, so the map
+covers exactly the frame (``ceil(H/stride) x ceil(W/stride)``).
+
+Every problem with the model, its settings or a frame raises :class:`DensityModelError` (a
+``ValueError``) naming the file and the problem; bad frames raise its subclass
+:class:`FrameError` so a caller can count and drop them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import cv2
+import numpy as np
+
+PREFIX = "companion."
+COLORS = ("bgr", "rgb", "gray")
+KEYS = ("color", "scale", "mean", "std", "stride", "input_multiple", "occupancy_threshold", "count_scale")
+
+
+class DensityModelError(ValueError):
+    """The density model, its settings or its input cannot be used (message names file and problem)."""
+
+
+class FrameError(DensityModelError):
+    """A frame that the model cannot take (wrong shape, dtype, size): count it and drop it."""
+
+
+@dataclass(frozen=True)
+class DensitySpec:
+    """How a model wants its input and what its output means.
+
+    color: ``bgr``, ``rgb`` or ``gray``.
+    scale: multiplier on 0-255 pixel values.
+    mean, std: per-channel, applied after ``scale`` as ``(x * scale - mean) / std``.
+    stride: input pixels per output pixel.
+    input_multiple: frames are padded to a multiple of this many pixels.
+    occupancy_threshold: the model's validated occupancy threshold, or None.
+    count_scale: multiplier turning the sum of the map into a count of people.
+    """
+
+    color: str
+    scale: float
+    mean: tuple[float, ...]
+    std: tuple[float, ...]
+    stride: int
+    input_multiple: int
+    occupancy_threshold: float | None
+    count_scale: float = 1.0
+
+
+def _floats(value: object, key: str) -> tuple[float, ...]:
+    if isinstance(value, str):
+        parts = [p for p in value.replace(" ", "").split(",") if p]
+    elif isinstance(value, (int, float)):
+        parts = [value]
+    else:
+        parts = list(value)  # type: ignore[call-overload]
+    try:
+        out = tuple(float(p) for p in parts)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key} must be numbers, got {value!r}") from None
+    if not out or not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{key} must be finite numbers, got {value!r}")
+    return out
+
+
+def _positive_int(value: object, key: str) -> int:
+    try:
+        f = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{key} must be a positive integer, got {value!r}") from None
+    if not f.is_integer() or f < 1:
+        raise ValueError(f"{key} must be a positive integer, got {value!r}")
+    return int(f)
+
+
+def _parse(settings: Mapping[str, object], channels: int) -> dict[str, object]:
+    """Validated settings (strings from metadata or CLI, or typed values from a config)."""
+    out: dict[str, object] = {}
+    color = str(settings.get("color", "gray" if channels == 1 else "bgr")).lower()
+    if color not in COLORS:
+        raise ValueError(f"color must be one of {', '.join(COLORS)}, got {color!r}")
+    if (color == "gray") != (channels == 1):
+        raise ValueError(f"color {color!r} does not fit a model input with {channels} channel(s)")
+    out["color"] = color
+    scale = _floats(settings.get("scale", 1.0), "scale")
+    if len(scale) != 1 or scale[0] <= 0:
+        raise ValueError(f"scale must be one number > 0, got {settings.get('scale')!r}")
+    out["scale"] = scale[0]
+    for key, default in (("mean", 0.0), ("std", 1.0)):
+        vals = _floats(settings.get(key, default), key)
+        if len(vals) == 1:
+            vals = vals * channels
+        if len(vals) != channels:
+            raise ValueError(f"{key} needs 1 or {channels} values, got {len(vals)}")
+        if key == "std" and min(vals) <= 0:
+            raise ValueError(f"std values must be > 0, got {vals}")
+        out[key] = vals
+    out["stride"] = _positive_int(settings["stride"], "stride") if settings.get("stride") not in (None, "") else None
+    if settings.get("input_multiple") not in (None, ""):
+        out["input_multiple"] = _positive_int(settings["input_multiple"], "input_multiple")
+    thr = settings.get("occupancy_threshold")
+    if thr not in (None, "", "none", "None"):
+        t = _floats(thr, "occupancy_threshold")
+        if len(t) != 1 or t[0] < 0:
+            raise ValueError(f"occupancy_threshold must be one number >= 0, got {thr!r}")
+        out["occupancy_threshold"] = t[0]
+    else:
+        out["occupancy_threshold"] = None
+    cs = _floats(settings.get("count_scale", 1.0), "count_scale")
+    if len(cs) != 1 or cs[0] <= 0:
+        raise ValueError(f"count_scale must be one number > 0, got {settings.get('count_scale')!r}")
+    out["count_scale"] = cs[0]
+    return out
+
+
+def _dim(d: object) -> int | None:
+    return d if isinstance(d, int) and d > 0 else None
+
+
+class DensityModel:
+    """An ONNX density model ready to run on camera frames (onnxruntime, CPU).
+
+    path: the ``.onnx`` file.
+    threads: onnxruntime intra-op threads (the companion board's cores to spend on it).
+    overrides: settings that win over the model's metadata, keys as in the module docstring
+        without the ``companion.`` prefix (the prefixed form is accepted too).
+    """
+
+    def __init__(self, path: str | Path, threads: int = 2, overrides: Mapping[str, object] | None = None) -> None:
+        self.path = Path(path)
+        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+            raise DensityModelError(f"{self.path}: threads must be an integer >= 1, got {threads!r}")
+        given = {str(k).removeprefix(PREFIX): v for k, v in (overrides or {}).items()}
+        unknown = sorted(set(given) - set(KEYS))
+        if unknown:
+            raise DensityModelError(
+                f"{self.path}: unknown density model setting(s) {', '.join(unknown)}; known: {', '.join(KEYS)}"
+            )
+        if not self.path.is_file():
+            raise DensityModelError(f"density model file {self.path} does not exist")
+
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        opts.log_severity_level = 3
+        try:
+            self._session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types for every parse failure
+            raise DensityModelError(f"{self.path} is not a loadable ONNX model: {exc}") from exc
+
+        inputs, outputs = self._session.get_inputs(), self._session.get_outputs()
+        if len(inputs) != 1:
+            raise DensityModelError(f"{self.path}: expected one image input, the model has {len(inputs)}")
+        inp = inputs[0]
+        self.input_name: str = inp.name
+        if inp.type != "tensor(float)":
+            raise DensityModelError(f"{self.path}: input {inp.name!r} is {inp.type}, expected tensor(float)")
+        if len(inp.shape) != 4 or _dim(inp.shape[1]) not in (1, 3):
+            raise DensityModelError(
+                f"{self.path}: input {inp.name!r} has shape {inp.shape}; expected an image tensor "
+                "(N, C, H, W) with C = 1 or 3"
+            )
+        channels = int(inp.shape[1])
+        out = outputs[0]
+        if len(out.shape) not in (2, 4) or (len(out.shape) == 4 and _dim(out.shape[1]) not in (1, None)):
+            raise DensityModelError(
+                f"{self.path}: output {out.name!r} has shape {out.shape}; expected a 2-D map (N, 1, h, w) or (h, w)"
+            )
+        if len(out.shape) == 4 and out.shape[1] != 1:
+            raise DensityModelError(f"{self.path}: output {out.name!r} must have one channel, has shape {out.shape}")
+        self._output_name = out.name
+        self._fixed_hw = (_dim(inp.shape[2]), _dim(inp.shape[3]))
+
+        meta = self._session.get_modelmeta().custom_metadata_map
+        settings: dict[str, object] = {k.removeprefix(PREFIX): v for k, v in meta.items() if k.startswith(PREFIX)}
+        settings.update(given)
+        try:
+            parsed = _parse(settings, channels)
+        except ValueError as exc:
+            raise DensityModelError(f"{self.path}: {exc}") from None
+        self._channels = channels
+        stride = parsed["stride"]
+        multiple = parsed.get("input_multiple")
+        # A probe run finds the stride when it is not declared and proves the model runs at all.
+        probe_hw = self._probe_size(int(stride or 1) * int(multiple or 1))
+        out_hw = self._infer(np.zeros((1, channels, *probe_hw), np.float32)).shape
+        if stride is None:
+            ratios = {probe_hw[0] / out_hw[0], probe_hw[1] / out_hw[1]}
+            if len(ratios) != 1 or not float(next(iter(ratios))).is_integer():
+                raise DensityModelError(
+                    f"{self.path}: cannot infer the output stride from input {probe_hw} -> output {out_hw}; "
+                    "set companion.stride"
+                )
+            stride = int(next(iter(ratios)))
+        self.spec = DensitySpec(
+            color=str(parsed["color"]),
+            scale=float(parsed["scale"]),  # type: ignore[arg-type]
+            mean=parsed["mean"],  # type: ignore[arg-type]
+            std=parsed["std"],  # type: ignore[arg-type]
+            stride=int(stride),
+            input_multiple=int(multiple or stride),
+            occupancy_threshold=parsed["occupancy_threshold"],  # type: ignore[arg-type]
+            count_scale=float(parsed["count_scale"]),  # type: ignore[arg-type]
+        )
+        self._mean = np.asarray(self.spec.mean, np.float32).reshape(-1, 1, 1)
+        self._inv_std = (1.0 / np.asarray(self.spec.std, np.float32)).reshape(-1, 1, 1)
+
+    def _probe_size(self, multiple: int) -> tuple[int, int]:
+        side = multiple * max(1, math.ceil(64 / multiple))
+        h, w = self._fixed_hw
+        return (h or side, w or side)
+
+    def _infer(self, x: np.ndarray) -> np.ndarray:
+        try:
+            y = self._session.run([self._output_name], {self.input_name: x})[0]
+        except Exception as exc:
+            raise DensityModelError(f"{self.path}: inference failed on input {x.shape}: {exc}") from exc
+        y = np.asarray(y)
+        if y.ndim == 4 and y.shape[:2] == (1, 1):
+            y = y[0, 0]
+        if y.ndim != 2:
+            raise DensityModelError(f"{self.path}: output has shape {y.shape}, expected a 2-D map")
+        return y.astype(np.float32, copy=False)
+
+    def _check_frame(self, frame: object) -> np.ndarray:
+        if not isinstance(frame, np.ndarray):
+            raise FrameError(f"{self.path}: frame must be a numpy array, got {type(frame).__name__}")
+        if frame.dtype != np.uint8:
+            raise FrameError(f"{self.path}: frame must be uint8, got {frame.dtype}")
+        if frame.ndim == 3 and frame.shape[2] == 1:
+            frame = frame[:, :, 0]
+        if not (frame.ndim == 2 or (frame.ndim == 3 and frame.shape[2] == 3)):
+            raise FrameError(f"{self.path}: frame must be HxWx3 BGR or HxW grey, got shape {frame.shape}")
+        if frame.shape[0] < self.spec.stride or frame.shape[1] < self.spec.stride:
+            raise FrameError(f"{self.path}: frame {frame.shape[:2]} is smaller than the stride {self.spec.stride}")
+        return frame
+
+    def preprocess(self, frame: np.ndarray) -> np.ndarray:
+        """The (1, C, H', W') float32 tensor the model gets for ``frame`` (checked, converted, padded)."""
+        frame = self._check_frame(frame)
+        color = self.spec.color
+        if color == "gray":
+            img = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+        elif frame.ndim == 2:
+            img = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+        else:
+            img = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB) if color == "rgb" else frame
+        fh, fw = self._fixed_hw
+        if fh or fw:
+            img = cv2.resize(img, (fw or img.shape[1], fh or img.shape[0]), interpolation=cv2.INTER_AREA)
+        else:
+            m = self.spec.input_multiple
+            ph, pw = -img.shape[0] % m, -img.shape[1] % m
+            if ph or pw:
+                img = cv2.copyMakeBorder(img, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+        x = img.astype(np.float32)
+        x = x[None] if x.ndim == 2 else x.transpose(2, 0, 1)
+        x = (x * np.float32(self.spec.scale) - self._mean) * self._inv_std
+        return np.ascontiguousarray(x[None], dtype=np.float32)
+
+    def __call__(self, frame: np.ndarray) -> np.ndarray:
+        """Density map of ``frame`` (HxWx3 BGR or HxW grey uint8) as float32 (h', w')."""
+        x = self.preprocess(frame)
+        y = self._infer(x)
+        if not any(self._fixed_hw):
+            s = self.spec.stride
+            y = y[: math.ceil(frame.shape[0] / s), : math.ceil(frame.shape[1] / s)]
+        return np.ascontiguousarray(y)
+
+    def count(self, density: np.ndarray) -> float:
+        """People count estimated from a density map of this model (sum x ``count_scale``)."""
+        return float(np.sum(density, dtype=np.float64) * self.spec.count_scale)

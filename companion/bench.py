@@ -1,0 +1,102 @@
+"""``companion bench``: per-stage latency of the pipeline at 640x480 and 1280x720.
+
+Frames are synthetic crowds seen from a posed camera (20 m up, 70 deg horizontal field of view,
+straight down, slowly drifting) so the geometry stages do real work. The post-density stages run
+on the scene's ideal density map unless a model is given, in which case the model runs on the
+rendered frame and its own output feeds the rest. Figures are printed, never asserted: this
+machine is shared and timings are noisy, so compare figures measured in one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from companion import synthetic
+from companion.pipeline.camera import Intrinsics, Mount, Pose
+from companion.pipeline.slz import STAGES, PipelineConfig, SLZPipeline
+
+RESOLUTIONS = ((640, 480), (1280, 720))
+
+
+def default_model_path() -> Path:
+    """The shipped model, found beside the package in a source checkout."""
+    return Path(__file__).resolve().parent.parent / "models" / "slz-density.onnx"
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    a = np.asarray(values, dtype=float)
+    return {"median_ms": round(float(np.median(a)), 3),
+            "p99_ms": round(float(np.percentile(a, 99)), 3)}
+
+
+def bench_resolution(width: int, height: int, frames: int, model=None, warmup: int = 5,
+                     seed: int = 0) -> dict[str, dict[str, float]]:
+    """Per-stage median and p99 milliseconds over ``frames`` frames at one resolution."""
+    scale = width / 640.0
+    scene = synthetic.crowd_scene(width, height, n_people=int(150 * scale * scale),
+                                  free=((0.3 * width, 0.5 * height, 0.15 * width),
+                                        (0.75 * width, 0.3 * height, 0.1 * width)), seed=seed)
+    frame = synthetic.render(scene, seed=seed)
+    ideal = synthetic.point_density(scene)
+    density = model if model is not None else (lambda f: ideal)
+    K = Intrinsics.from_fov(width, height, 70.0)
+    pipe = SLZPipeline(density, PipelineConfig(), intrinsics=K, mount=Mount())
+    samples: dict[str, list[float]] = {}
+    for k in range(frames + warmup):
+        t = k / 15.0
+        # Drift and small attitude changes so the grid and warps change from frame to frame.
+        pose = Pose(t, 0.3 * t, 0.1 * t, -20.0, 0.03 * math.sin(t), 0.02 * math.cos(t), 0.1 * t)
+        res = pipe.process(frame, t, pose)
+        if k < warmup:
+            continue
+        for name, ms in res.timings_ms.items():
+            samples.setdefault(name, []).append(ms)
+    wanted = list(STAGES if model is not None else STAGES[1:]) + ["post_density"]
+    if model is not None:
+        wanted.append("total")
+    return {name: _stats(samples[name]) for name in wanted}
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--frames", type=int, default=200, help="frames per resolution (default 200)")
+    parser.add_argument("--model", type=Path, default=None,
+                        help="ONNX density model (default: the shipped model, when present)")
+    parser.add_argument("--no-model", action="store_true",
+                        help="time only the post-density stages on ideal density maps")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.frames < 1:
+        print("companion bench: --frames must be >= 1", file=sys.stderr)
+        return 2
+    model = None
+    if not args.no_model:
+        path = args.model or default_model_path()
+        if args.model is not None or path.is_file():
+            from companion.pipeline.density import DensityModel, DensityModelError
+
+            try:
+                model = DensityModel(path, threads=args.threads)
+            except DensityModelError as exc:
+                print(f"companion bench: {exc}", file=sys.stderr)
+                return 2
+    result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model) for w, h in RESOLUTIONS}
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    print(f"companion bench: {args.frames} frames per resolution, model: "
+          f"{model.path if model is not None else 'none (ideal density maps)'}")
+    for res_name, stages in result.items():
+        print(f"\n{res_name}")
+        print(f"  {'stage':<14}{'median ms':>11}{'p99 ms':>10}")
+        for stage, s in stages.items():
+            print(f"  {stage:<14}{s['median_ms']:>11.2f}{s['p99_ms']:>10.2f}")
+    return 0

@@ -1,0 +1,177 @@
+"""The simulated world: people on the ground that the simulated camera sees.
+
+World frame: local NED metres, origin at home, ground at ``z = 0``; people are points
+``(north, east)`` on the ground with a heading (radians from north toward east). The world has its
+own clock ``t`` (seconds), advanced only by :meth:`World.step` (the simulator steps it with its
+clock), so every run with the same seed and steps is identical.
+
+Scenario builders for the SITL tests:
+
+- :func:`default_world`: a park-like mix of walkers, groups and standing people.
+- :func:`crowd_with_free_area`: the same, with a circle that nobody ever enters
+  (``world.free_areas``).
+- :func:`dense_crowd`: people everywhere in a square around a point, no landing circle anywhere.
+- :meth:`World.add_intrusion`: people that walk into a circle at a given time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from sim.walkers import (Bounds, Circle, CrowdParams, GeneratedCrowd, Intrusion, MillingCrowd,
+                         MotionSource, ScriptedWalkers)
+
+__all__ = ["World", "Bounds", "Circle", "Intrusion", "default_world", "crowd_with_free_area",
+           "dense_crowd", "largest_free_circle"]
+
+
+@dataclass
+class World:
+    """People from one or more motion sources, with a clock.
+
+    sources: motion sources (see :mod:`sim.walkers`); their people are listed in order.
+    free_areas: circles the scenario guarantees nobody enters (scripted intruders excepted).
+    seed: the seed the scenario was built from (people's looks are drawn from it too).
+    """
+
+    sources: list[MotionSource] = field(default_factory=list)
+    free_areas: list[Circle] = field(default_factory=list)
+    seed: int = 0
+    t: float = 0.0
+
+    def step(self, dt: float) -> None:
+        """Advance every source by ``dt`` seconds (negative or zero does nothing)."""
+        if not math.isfinite(dt) or dt <= 0:
+            return
+        for s in self.sources:
+            s.step(dt)
+        self.t += dt
+
+    def positions(self) -> np.ndarray:
+        """(N, 2) float array of people's ground positions (north, east), metres."""
+        parts = [np.asarray(s.positions(), float).reshape(-1, 2) for s in self.sources]
+        return np.vstack(parts) if parts else np.empty((0, 2))
+
+    def headings(self) -> np.ndarray:
+        """(N,) facing directions, radians from north toward east."""
+        parts = [np.asarray(s.headings(), float).ravel() for s in self.sources]
+        return np.concatenate(parts) if parts else np.empty(0)
+
+    def moving(self) -> np.ndarray:
+        """(N,) bool, True for people walking at this instant (drawn with their legs apart)."""
+        parts = [np.asarray(s.moving(), bool).ravel() for s in self.sources]
+        return np.concatenate(parts) if parts else np.empty(0, bool)
+
+    def __len__(self) -> int:
+        return len(self.positions())
+
+    def nearest_person_distance(self, point: tuple[float, float] | np.ndarray) -> float:
+        """Horizontal distance (m) from ``point`` (north, east) to the nearest person; inf if none."""
+        p = self.positions()
+        if len(p) == 0:
+            return math.inf
+        q = np.asarray(point, float).ravel()[:2]
+        return float(np.min(np.hypot(p[:, 0] - q[0], p[:, 1] - q[1])))
+
+    def people_within(self, circle: Circle) -> int:
+        """How many people stand inside ``circle`` now."""
+        p = self.positions()
+        return int(np.count_nonzero(circle.distance(p) < circle.radius)) if len(p) else 0
+
+    def add_source(self, source: MotionSource) -> None:
+        """Add people (the source's own clock is taken as already at ``self.t``)."""
+        self.sources.append(source)
+
+    def add_intrusion(self, circle: Circle | tuple[float, float, float], t_enter: float,
+                      count: int = 1, speed: float = 1.3, bearing: float = 0.0,
+                      approach_m: float = 8.0) -> Intrusion:
+        """People that walk into ``circle`` (north, east, radius m): the first crosses its edge at
+        world time ``t_enter`` (s), all stop near its centre. Returns the script."""
+        c = circle if isinstance(circle, Circle) else Circle(*map(float, circle))
+        it = Intrusion(c, float(t_enter), int(count), float(speed), float(approach_m), float(bearing))
+        scripted = next((s for s in self.sources if isinstance(s, ScriptedWalkers)), None)
+        if scripted is None:
+            scripted = ScriptedWalkers()
+            scripted.t = self.t
+            self.sources.append(scripted)
+        scripted.add(it)
+        return it
+
+    def largest_free_circle(self, centre: tuple[float, float], half_size: float,
+                            cell: float = 0.1, body_radius: float = 0.0
+                            ) -> tuple[float, float, float]:
+        """Ground truth: the largest people-free circle in a square, see :func:`largest_free_circle`."""
+        return largest_free_circle(self.positions(), centre, half_size, cell, body_radius)
+
+
+def largest_free_circle(positions: np.ndarray, centre: tuple[float, float], half_size: float,
+                        cell: float = 0.1, body_radius: float = 0.0) -> tuple[float, float, float]:
+    """Centre (north, east) and radius (m) of the largest circle inside the square of side
+    ``2 * half_size`` around ``centre`` that holds no person (people are discs of ``body_radius``).
+
+    Computed on a ``cell``-metre grid with a distance transform, so exact to about one cell. The
+    square's own edge does not bound the circle (people beyond it count, the unknown does not).
+    """
+    n = int(math.ceil(2 * half_size / cell))
+    occ = np.full((n, n), 255, np.uint8)
+    p = np.asarray(positions, float).reshape(-1, 2)
+    i = np.floor((p[:, 0] - (centre[0] - half_size)) / cell).astype(int)
+    j = np.floor((p[:, 1] - (centre[1] - half_size)) / cell).astype(int)
+    inside = (i >= 0) & (i < n) & (j >= 0) & (j < n)
+    occ[i[inside], j[inside]] = 0
+    # People outside the square still limit circles near its edge: pad the grid so they count.
+    pad = int(math.ceil(half_size / cell))
+    big = np.full((n + 2 * pad, n + 2 * pad), 255, np.uint8)
+    ib, jb = i + pad, j + pad
+    ok = (ib >= 0) & (ib < n + 2 * pad) & (jb >= 0) & (jb < n + 2 * pad)
+    big[ib[ok], jb[ok]] = 0
+    if not (big == 0).any():
+        return (float(centre[0]), float(centre[1]), math.inf)
+    dist = cv2.distanceTransform(big, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[pad:pad + n, pad:pad + n]
+    k = int(np.argmax(dist))
+    a, b = divmod(k, n)
+    r = float(dist[a, b]) * cell - body_radius
+    return (centre[0] - half_size + (a + 0.5) * cell, centre[1] - half_size + (b + 0.5) * cell,
+            max(r, 0.0))
+
+
+def default_world(seed: int = 0, half_size: float = 60.0, centre: tuple[float, float] = (0.0, 0.0),
+                  params: CrowdParams | None = None) -> World:
+    """A park-like crowd in a square of side ``2 * half_size`` m around ``centre``: 40 walkers,
+    8 groups of 2-4, 12 standing people by default."""
+    bounds = Bounds.around(centre, half_size)
+    return World([GeneratedCrowd(bounds, params or CrowdParams(), seed)], seed=seed)
+
+
+def crowd_with_free_area(seed: int = 0, free: Circle | None = None, half_size: float = 40.0,
+                         centre: tuple[float, float] = (0.0, 0.0), n_walkers: int = 60,
+                         n_groups: int = 10, n_standing: int = 20) -> World:
+    """A crowd around ``centre`` that never enters the circle ``free`` (``world.free_areas[0]``).
+
+    The default free circle is 5 m in radius, 12 m north-east of ``centre`` so that it is not
+    directly under a vehicle hovering above ``centre``.
+    """
+    if free is None:
+        free = Circle(centre[0] + 8.5, centre[1] + 8.5, 5.0)
+    params = CrowdParams(n_walkers=n_walkers, n_groups=n_groups, n_standing=n_standing,
+                         keep_out=[free])
+    w = World([GeneratedCrowd(Bounds.around(centre, half_size), params, seed)], [free], seed)
+    return w
+
+
+def dense_crowd(seed: int = 0, centre: tuple[float, float] = (0.0, 0.0), half_size: float = 40.0,
+                spacing: float = 2.0, n_walkers: int = 20) -> World:
+    """People everywhere in a square of side ``2 * half_size`` m around ``centre``: a milling
+    crowd on a ``spacing``-metre jittered grid plus some walkers crossing it. No circle of radius
+    above about ``spacing`` metres is free anywhere inside (check with
+    :meth:`World.largest_free_circle`)."""
+    bounds = Bounds.around(centre, half_size)
+    sources: list[MotionSource] = [MillingCrowd(bounds, spacing=spacing, seed=seed)]
+    if n_walkers:
+        sources.append(GeneratedCrowd(bounds, CrowdParams(n_walkers=n_walkers, n_groups=0,
+                                                          n_standing=0), seed + 1))
+    return World(sources, seed=seed)

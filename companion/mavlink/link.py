@@ -213,6 +213,7 @@ class MavLink:
         self.vehicle_autopilot: int | None = None  # MAV_AUTOPILOT of the vehicle's heartbeat
         self.vehicle_type: int | None = None
         self.last_heartbeat_t: float | None = None
+        self.last_heartbeat: Message | None = None  # the autopilot's latest HEARTBEAT
         self.connected = False
         self.intervals_acked: dict[str, int] = {}  # message name -> MAV_RESULT of the last request
 
@@ -476,6 +477,7 @@ class MavLink:
         self.vehicle_autopilot = msg.autopilot
         self.vehicle_type = msg.type
         self.last_heartbeat_t = t
+        self.last_heartbeat = msg
         if not self.connected:
             self.connected = True
             log.info("autopilot heartbeat: link up (system %d)", self.vehicle_system)

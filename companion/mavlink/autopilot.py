@@ -1,0 +1,167 @@
+"""What the landing controller needs from an autopilot, whatever its dialect.
+
+An ``Autopilot`` flavour knows its flight modes and how to: fly to a point and hold there
+(``goto``), land where it is (``land``), loiter (``hold_position``) and hand control back to its own
+failsafe (``handback``: LAND or RTL). Every mode change is a ``MAV_CMD_DO_SET_MODE`` with
+``MAV_MODE_FLAG_CUSTOM_MODE_ENABLED`` that waits for its COMMAND_ACK (``MavLink.command_long``:
+retries, timeout); a refusal raises ``CommandRefused`` and a silence ``CommandTimeout``, both
+``CommandError``, which the controller's runner counts.
+
+``select_flavour`` picks ArduPilot or PX4 from the heartbeat's ``autopilot`` field unless the
+configuration says which.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as m
+
+from companion.mavlink.link import MavLink
+
+log = logging.getLogger(__name__)
+
+# SET_POSITION_TARGET_* type_mask: use x/y/z only; ignore velocity, acceleration, yaw, yaw rate.
+TYPE_MASK_POSITION_ONLY = (
+    m.POSITION_TARGET_TYPEMASK_VX_IGNORE
+    | m.POSITION_TARGET_TYPEMASK_VY_IGNORE
+    | m.POSITION_TARGET_TYPEMASK_VZ_IGNORE
+    | m.POSITION_TARGET_TYPEMASK_AX_IGNORE
+    | m.POSITION_TARGET_TYPEMASK_AY_IGNORE
+    | m.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+    | m.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+    | m.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+)  # = 0x0DF8 = 3576
+
+
+class FlavourError(ValueError):
+    """An unknown flavour name or a mode the flavour does not have."""
+
+
+@dataclass(frozen=True)
+class PositionTarget:
+    """Where to fly: WGS84 degrees and metres above home (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)."""
+
+    lat_deg: float
+    lon_deg: float
+    rel_alt_m: float
+
+    def __post_init__(self) -> None:
+        if not all(math.isfinite(v) for v in (self.lat_deg, self.lon_deg, self.rel_alt_m)):
+            raise ValueError(f"position target has a NaN or infinite value: {self!r}")
+        if not (-90 <= self.lat_deg <= 90 and -180 <= self.lon_deg <= 180):
+            raise ValueError(f"position target out of range: {self!r}")
+
+
+class Autopilot(ABC):
+    """One flavour of autopilot behind a ``MavLink``. ``mode`` follows the autopilot's heartbeat."""
+
+    name = "autopilot"
+    #: mode names that mean the autopilot's own failsafe is landing or returning
+    FAILSAFE_MODES = frozenset({"LAND", "RTL"})
+
+    def __init__(self, link: MavLink) -> None:
+        self.link = link
+        self.mode: str | None = None  # current mode name from the last autopilot heartbeat
+        self.commanded_mode: str | None = None  # last mode we switched to (acked)
+        self.commanded_t: float | None = None
+        link.subscribe("HEARTBEAT", self._on_heartbeat)
+        if link.last_heartbeat is not None:
+            self._on_heartbeat(link.last_heartbeat, 0.0)
+
+    def _on_heartbeat(self, msg: Any, _t: float) -> None:
+        if self.link.is_autopilot_heartbeat(msg):
+            self.mode = self.mode_name(msg.base_mode, msg.custom_mode)
+
+    # -- modes -------------------------------------------------------------------------------
+
+    @abstractmethod
+    def mode_name(self, base_mode: int, custom_mode: int) -> str:
+        """The name of a heartbeat's mode (``"GUIDED"``, ``"LAND"``, ...) or ``"MODE(n)"``."""
+
+    @abstractmethod
+    def mode_params(self, name: str) -> tuple[float, ...]:
+        """DO_SET_MODE params (base mode, custom main mode, custom sub mode) for a mode name."""
+
+    async def set_mode(self, name: str) -> None:
+        """Switch mode and wait for the ack; raises ``CommandError`` (``FlavourError`` for a bad name)."""
+        params = self.mode_params(name)
+        await self.link.command_long(m.MAV_CMD_DO_SET_MODE, params)
+        self.mode = name  # the next heartbeat confirms; meanwhile do not command it twice
+        self.commanded_mode = name
+        self.commanded_t = time.monotonic()
+        log.info("%s: mode %s", self.name, name)
+
+    # -- actions -----------------------------------------------------------------------------
+
+    @abstractmethod
+    async def goto(self, target: PositionTarget) -> None:
+        """Enter the external-control mode if needed and fly to ``target``, holding there."""
+
+    async def land(self) -> None:
+        """Land where the vehicle is (the autopilot descends vertically)."""
+        await self.stop()
+        await self.set_mode("LAND")
+
+    async def rtl(self) -> None:
+        await self.stop()
+        await self.set_mode("RTL")
+
+    async def loiter(self) -> None:
+        await self.stop()
+        await self.set_mode("LOITER")
+
+    async def handback(self, action: str) -> None:
+        """Give control back to the autopilot's own failsafe: ``action`` is "LAND" or "RTL"."""
+        if action not in self.FAILSAFE_MODES:
+            raise FlavourError(f"handback action must be LAND or RTL, not {action!r}")
+        await (self.land() if action == "LAND" else self.rtl())
+
+    async def stop(self) -> None:
+        """Stop any background stream (PX4's setpoints). Idempotent."""
+
+    def position_target_message(self, target: PositionTarget) -> Any:
+        """SET_POSITION_TARGET_GLOBAL_INT, position only, altitude above home."""
+        return self.link.mav.set_position_target_global_int_encode(
+            int(time.monotonic() * 1000) & 0xFFFFFFFF,
+            self.link.target_system,
+            self.link.config.target_component,
+            m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            TYPE_MASK_POSITION_ONLY,
+            round(target.lat_deg * 1e7),
+            round(target.lon_deg * 1e7),
+            target.rel_alt_m,
+            0, 0, 0, 0, 0, 0, 0, 0,
+        )
+
+
+FLAVOURS = ("ardupilot", "px4")
+
+
+def select_flavour(link: MavLink, override: str = "auto") -> Autopilot:
+    """The flavour named by ``override`` ("ardupilot", "px4"), or from the heartbeat with "auto".
+
+    With "auto" the link must have heard the autopilot (``link.vehicle_autopilot``).
+    """
+    from companion.mavlink.ardupilot import ArduPilotCopter
+    from companion.mavlink.px4 import PX4
+
+    if override == "ardupilot":
+        return ArduPilotCopter(link)
+    if override == "px4":
+        return PX4(link)
+    if override != "auto":
+        raise FlavourError(f"autopilot flavour must be auto, ardupilot or px4, not {override!r}")
+    if link.vehicle_autopilot == m.MAV_AUTOPILOT_ARDUPILOTMEGA:
+        return ArduPilotCopter(link)
+    if link.vehicle_autopilot == m.MAV_AUTOPILOT_PX4:
+        return PX4(link)
+    raise FlavourError(
+        f"cannot choose the autopilot flavour from heartbeat autopilot={link.vehicle_autopilot!r}; "
+        "set link.flavour to ardupilot or px4"
+    )

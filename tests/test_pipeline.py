@@ -95,3 +95,20 @@ def test_bad_inputs_are_clear_errors():
         pipe.process(np.zeros((0, 0, 3), np.uint8), 0.0, Pose(0.0, 0, 0, -20, 0, 0, 0))
     with pytest.raises(GeometryError, match="not invertible"):
         SLZPipeline(lambda f: f, projection=PlaneProjection.from_image_to_plane(np.ones((3, 3))))
+
+
+def test_threshold_defaults_to_the_models_own_and_an_explicit_one_wins():
+    from companion.pipeline.occupancy import OccupancyParams
+
+    class Model:
+        class spec:
+            occupancy_threshold = 0.25
+
+        def __call__(self, frame):
+            return np.zeros((120, 160), np.float32)
+
+    nadir = PlaneProjection.nadir(0.05)
+    assert SLZPipeline(Model(), projection=nadir).config.occupancy.threshold == 0.25
+    explicit = PipelineConfig(occupancy=OccupancyParams(threshold=0.0))
+    assert SLZPipeline(Model(), explicit, projection=nadir).config.occupancy.threshold == 0.0
+    assert SLZPipeline(lambda f: f, projection=nadir).config.occupancy.threshold == 0.0

@@ -20,17 +20,19 @@ OCCUPIED = 0
 class OccupancyParams:
     """Parameters of the occupancy step.
 
-    threshold: density above ``min(D)`` (people per density pixel) that marks a pixel occupied.
+    threshold: density above ``min(D)`` (people per density pixel) that marks a pixel occupied;
+        None means "the model's validated threshold" where the caller knows the model
+        (``SLZPipeline``), else the paper's 0.
     kernel: side of the square dilation kernel in image pixels (odd, >= 1).
     iterations: how many times the dilation is applied (>= 0).
     """
 
-    threshold: float = 0.0
+    threshold: float | None = None
     kernel: int = 5
     iterations: int = 2
 
     def __post_init__(self) -> None:
-        if not np.isfinite(self.threshold) or self.threshold < 0:
+        if self.threshold is not None and (not np.isfinite(self.threshold) or self.threshold < 0):
             raise ValueError(f"occupancy threshold must be a finite number >= 0, got {self.threshold!r}")
         if int(self.kernel) != self.kernel or self.kernel < 1 or self.kernel % 2 == 0:
             raise ValueError(f"occupancy kernel must be an odd integer >= 1, got {self.kernel!r}")
@@ -90,7 +92,7 @@ def occupancy_map(
     if np.asarray(density).size == 0:
         # No density at all is no evidence of free ground.
         return np.full((h, w), OCCUPIED, np.uint8)
-    occ = occupied_mask(density, params.threshold)
+    occ = occupied_mask(density, 0.0 if params.threshold is None else params.threshold)
     occ_img = resize_keep_occupied(occ, image_hw).astype(np.uint8) * 255
     if params.iterations > 0 and params.kernel > 1:
         kernel = np.ones((params.kernel, params.kernel), np.uint8)

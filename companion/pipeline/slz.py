@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -79,6 +79,13 @@ class SLZPipeline:
                  intrinsics: Intrinsics | None = None, mount: Mount | None = None,
                  projection: PlaneProjection | None = None):
         self.density = density
+        if config.occupancy.threshold is None:
+            # A model that carries a threshold validated on held-out data knows its own output
+            # scale better than the paper's 0 does; a user's explicit threshold always wins.
+            spec = getattr(density, "spec", None)
+            model_thr = getattr(spec, "occupancy_threshold", None)
+            config = replace(config, occupancy=replace(
+                config.occupancy, threshold=float(model_thr) if model_thr is not None else 0.0))
         self.config = config
         self.intrinsics = intrinsics
         self.mount = mount or Mount()

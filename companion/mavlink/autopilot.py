@@ -68,7 +68,7 @@ class Autopilot(ABC):
     def __init__(self, link: MavLink) -> None:
         self.link = link
         self.mode: str | None = None  # current mode name from the last autopilot heartbeat
-        self.commanded_mode: str | None = None  # last mode we switched to (acked)
+        self.commanded_mode: str | None = None  # last mode we asked for (acked or not)
         self.commanded_t: float | None = None
         link.subscribe("HEARTBEAT", self._on_heartbeat)
         if link.last_heartbeat is not None:
@@ -91,10 +91,12 @@ class Autopilot(ABC):
     async def set_mode(self, name: str) -> None:
         """Switch mode and wait for the ack; raises ``CommandError`` (``FlavourError`` for a bad name)."""
         params = self.mode_params(name)
-        await self.link.command_long(m.MAV_CMD_DO_SET_MODE, params)
-        self.mode = name  # the next heartbeat confirms; meanwhile do not command it twice
+        # Recorded before sending: the heartbeat showing the new mode may overtake the ack, and
+        # the failsafe monitor must know this switch was ours, not the autopilot's own failsafe.
         self.commanded_mode = name
         self.commanded_t = time.monotonic()
+        await self.link.command_long(m.MAV_CMD_DO_SET_MODE, params)
+        self.mode = name  # the next heartbeat confirms; meanwhile do not command it twice
         log.info("%s: mode %s", self.name, name)
 
     # -- actions -----------------------------------------------------------------------------

@@ -1,0 +1,212 @@
+"""``companion replay``: the pipeline offline over a recording, a video or a folder of frames.
+
+Exit status: 0 when frames were processed, 1 when none could be, 2 for an unusable input, model,
+projection or output (the message names the file and the problem). See docs/replay.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from companion.pipeline.camera import GeometryError, PlaneProjection
+from companion.pipeline.density import DensityModel, DensityModelError
+from companion.pipeline.occupancy import OccupancyParams
+from companion.pipeline.slz import PipelineConfig, SLZPipeline
+from companion.replay.homography import HomographyFileError, projection_from_file
+from companion.replay.runner import ReplayOutputError, ReplayOutputs, VideoOut, replay
+from companion.replay.sources import KINDS, ReplayInputError, open_input
+from companion.replay.summary import format_summary
+
+MODEL_NAME = "slz-density.onnx"
+
+
+def shipped_model() -> Path:
+    """The shipped density model: ``models/`` of the repository, or the package's data folder."""
+    pkg = Path(__file__).resolve().parents[1]
+    candidates = [pkg.parent / "models" / MODEL_NAME, pkg / "data" / MODEL_NAME]
+    return next((p for p in candidates if p.is_file()), candidates[0])
+
+
+def _key_value(text: str) -> tuple[str, str]:
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    return key.strip(), value.strip()
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", type=Path,
+                        help="a flight recording, a video file, or a folder of image frames")
+    parser.add_argument("--input-kind", choices=KINDS, default="auto",
+                        help="what INPUT is (default: guessed: folder of images = frames, video "
+                             "suffix = video, else a recording)")
+    parser.add_argument("--fps", type=float, default=None,
+                        help="frame rate in Hz: frame times are index / fps (frames default 10; "
+                             "videos default to their own rate)")
+    parser.add_argument("--max-frames", type=int, default=None, help="stop after N input frames")
+    geo = parser.add_argument_group("projection (default: the recorded poses)")
+    geo.add_argument("--nadir", action="store_true",
+                     help="camera straight down; plane x = u * gsd, y = v * gsd (needs --gsd)")
+    geo.add_argument("--gsd", type=float, default=None, help="metres per pixel on the head plane")
+    geo.add_argument("--homography", type=Path, default=None,
+                     help="3x3 image-to-head-plane matrix in metres (.npy, .txt/.csv, .json)")
+    mdl = parser.add_argument_group("model and pipeline")
+    mdl.add_argument("--model", type=Path, default=None,
+                     help=f"ONNX density model (default: the shipped {MODEL_NAME})")
+    mdl.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    mdl.add_argument("--threshold", type=float, default=None,
+                     help="occupancy threshold on D - min(D) (default: the model's recommended "
+                          "value, else 0)")
+    mdl.add_argument("--r0", type=float, default=None,
+                     help="smallest landing radius in metres (default: pipeline default)")
+    mdl.add_argument("--head-height", type=float, default=None,
+                     help="head-plane height above ground in metres (default 1.7)")
+    mdl.add_argument("--model-color", choices=("bgr", "rgb", "gray"), default=None,
+                     help="override the model's input channel order")
+    mdl.add_argument("--model-scale", default=None, help="override the multiplier on 0-255 pixels")
+    mdl.add_argument("--model-stride", default=None, help="override the model's output stride")
+    mdl.add_argument("--model-set", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
+                     help="any density-model setting (color, scale, mean, std, stride, ...); repeatable")
+    out = parser.add_argument_group("outputs")
+    out.add_argument("--jsonl", type=Path, default=None, help="write one JSON object per frame")
+    out.add_argument("--masks", type=Path, default=None,
+                     help="folder for per-frame occupancy PNGs (255 = occupied, 0 = free)")
+    out.add_argument("--video-out", type=Path, default=None, help="annotated video (.mp4 or .avi)")
+    out.add_argument("--video-fps", type=float, default=None,
+                     help="frame rate of --video-out (default: the input's)")
+    out.add_argument("--summary-json", type=Path, default=None, help="also write the summary as JSON")
+    out.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                     help="progress bar on stderr (default: only when stderr is a terminal)")
+
+
+class _Fail(Exception):
+    """A user-facing error: message for stderr, exit status 2."""
+
+
+def _projection(args: argparse.Namespace) -> PlaneProjection | None:
+    if args.nadir and args.homography is not None:
+        raise _Fail("--nadir and --homography are alternatives; give one")
+    if args.gsd is not None and not args.nadir:
+        raise _Fail("--gsd is only used with --nadir")
+    if args.nadir:
+        if args.gsd is None:
+            raise _Fail("--nadir needs --gsd M (metres per pixel on the head plane)")
+        try:
+            return PlaneProjection.nadir(args.gsd)
+        except GeometryError as exc:
+            raise _Fail(f"--gsd: {exc}") from None
+    if args.homography is not None:
+        try:
+            return projection_from_file(args.homography)
+        except HomographyFileError as exc:
+            raise _Fail(f"--homography: {exc}") from None
+    return None
+
+
+def _model_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    given: dict[str, Any] = dict(args.model_set)
+    for key in ("color", "scale", "stride"):
+        value = getattr(args, f"model_{key}")
+        if value is not None:
+            given[key] = value
+    return given
+
+
+def _load_model(args: argparse.Namespace) -> DensityModel:
+    path = args.model if args.model is not None else shipped_model()
+    if args.model is None and not path.is_file():
+        raise _Fail(f"the shipped density model {path} is missing; pass --model FILE")
+    try:
+        return DensityModel(path, threads=args.threads, overrides=_model_overrides(args))
+    except DensityModelError as exc:
+        raise _Fail(f"--model: {exc}") from None
+
+
+def _config(args: argparse.Namespace, model: DensityModel) -> PipelineConfig:
+    threshold = args.threshold
+    if threshold is None:
+        threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
+    kw: dict[str, Any] = {}
+    if args.r0 is not None:
+        kw["r_0"] = args.r0
+    if args.head_height is not None:
+        kw["head_height"] = args.head_height
+    try:
+        return PipelineConfig(occupancy=OccupancyParams(threshold=float(threshold)), **kw)
+    except ValueError as exc:
+        raise _Fail(str(exc)) from None
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.max_frames is not None and args.max_frames < 1:
+        raise _Fail(f"--max-frames must be >= 1, got {args.max_frames}")
+    projection = _projection(args)
+    try:
+        source = open_input(args.input, args.input_kind, args.fps)
+    except ReplayInputError as exc:
+        raise _Fail(str(exc)) from None
+    use_pose = projection is None
+    if use_pose and source.kind != "recording":
+        raise _Fail(f"{args.input} has no poses ({source.kind}): give --nadir --gsd M or "
+                    "--homography FILE")
+    if use_pose and source.intrinsics is None:
+        raise _Fail(f"recording {args.input} has no camera intrinsics: give --nadir --gsd M or "
+                    "--homography FILE")
+    model = _load_model(args)
+    config = _config(args, model)
+    pipe = SLZPipeline(model, config, intrinsics=source.intrinsics if use_pose else None,
+                       mount=source.mount if use_pose else None, projection=projection)
+
+    video = None
+    if args.video_out is not None:
+        rate = args.video_fps or source.fps or 10.0
+        if not (math.isfinite(rate) and rate > 0):
+            raise _Fail(f"--video-fps must be > 0, got {rate!r}")
+        video = VideoOut(args.video_out, rate)
+    jsonl = None
+    try:
+        if args.jsonl is not None:
+            try:
+                args.jsonl.parent.mkdir(parents=True, exist_ok=True)
+                jsonl = open(args.jsonl, "w", encoding="utf-8")
+            except OSError as exc:
+                raise _Fail(f"--jsonl: cannot write {args.jsonl}: {exc}") from None
+        if args.masks is not None and args.masks.exists() and not args.masks.is_dir():
+            raise _Fail(f"--masks: {args.masks} exists and is not a folder")
+        try:
+            summary = replay(source, pipe, ReplayOutputs(jsonl, args.masks, video), use_pose,
+                             max_frames=args.max_frames, progress=args.progress)
+        except ReplayOutputError as exc:
+            raise _Fail(str(exc)) from None
+    finally:
+        if jsonl is not None:
+            jsonl.close()
+    summary["input"] = {"path": str(args.input), "kind": source.kind}
+    summary["model"] = str(model.path)
+    summary["occupancy_threshold"] = config.occupancy.threshold
+    summary["r_0"] = config.r_0
+    print(format_summary(summary))
+    if args.summary_json is not None:
+        try:
+            args.summary_json.parent.mkdir(parents=True, exist_ok=True)
+            args.summary_json.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+        except OSError as exc:
+            raise _Fail(f"--summary-json: cannot write {args.summary_json}: {exc}") from None
+    if summary["frames"] == 0:
+        print(f"companion replay: error: no frame of {args.input} could be processed "
+              f"({summary['frames_skipped']} skipped)", file=sys.stderr)
+        return 1
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except _Fail as exc:
+        print(f"companion replay: error: {exc}", file=sys.stderr)
+        return 2

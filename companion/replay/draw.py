@@ -1,0 +1,165 @@
+"""The paper's figure: a frame with people in red, proposals in green, numbered tracks in blue and
+the landing target in yellow, plus, when the pose is known, a north-up view of the head plane.
+
+Pure functions: arrays in, new arrays out (inputs are never modified). Colours are BGR.
+Circles live on the head plane, so in the image they are drawn as the projection of a polygon of
+points around each circle (ellipses under an oblique camera).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from companion.pipeline.camera import PlaneProjection
+from companion.pipeline.circles import Circle
+from companion.pipeline.headplane import GridSpec
+from companion.pipeline.occupancy import OCCUPIED
+from companion.pipeline.tracker import Track
+
+RED = (0, 0, 255)
+GREEN = (0, 200, 0)
+BLUE = (255, 80, 0)
+YELLOW = (0, 230, 255)
+WHITE = (255, 255, 255)
+BLACK = (0, 0, 0)
+POLYGON_POINTS = 72
+
+
+def circle_polygon(x: float, y: float, r: float, n: int = POLYGON_POINTS) -> np.ndarray:
+    """(n, 2) plane points (metres) evenly around the circle."""
+    a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    return np.column_stack([x + r * np.cos(a), y + r * np.sin(a)])
+
+
+def circle_in_image_polygon(proj: PlaneProjection, x: float, y: float, r: float) -> np.ndarray | None:
+    """Integer (n, 1, 2) image polygon of a plane circle, or None if any point is not visible
+    (behind the camera)."""
+    uv = proj.plane_to_image(circle_polygon(x, y, r))
+    if not np.isfinite(uv).all():
+        return None
+    # Fixed-point with 4 fractional bits keeps small ellipses smooth.
+    return np.round(uv * 16).astype(np.int32).reshape(-1, 1, 2)
+
+
+def overlay_people(frame: np.ndarray, occupancy_free: np.ndarray, alpha: float = 0.45) -> np.ndarray:
+    """``frame`` with the occupied pixels (``occupancy_free == 0``) tinted red by ``alpha``."""
+    out = frame.copy()
+    occ = occupancy_free == OCCUPIED
+    if occ.any():
+        red = np.array(RED, np.float32)
+        out[occ] = (out[occ].astype(np.float32) * (1 - alpha) + red * alpha).astype(np.uint8)
+    return out
+
+
+def _label(img: np.ndarray, text: str, org: tuple[int, int], color: tuple[int, int, int],
+           scale: float = 0.5) -> None:
+    # Dark outline so the label stays readable on any background.
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, BLACK, 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
+
+
+def _track_text(tr: Track) -> str:
+    return f"#{tr.id} age {tr.age}"
+
+
+def draw_image_view(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,
+                    proposals: Sequence[Circle], tracks: Sequence[Track],
+                    target_id: int | None) -> np.ndarray:
+    """The annotated camera frame (same size as ``frame``)."""
+    img = overlay_people(frame, occupancy_free)
+    for c in proposals:
+        poly = circle_in_image_polygon(proj, c.x, c.y, c.r)
+        if poly is not None:
+            cv2.polylines(img, [poly], True, GREEN, 1, cv2.LINE_AA, shift=4)
+    for tr in tracks:
+        target = tr.id == target_id
+        poly = circle_in_image_polygon(proj, tr.x, tr.y, tr.r)
+        if poly is None:
+            continue
+        color, thick = (YELLOW, 3) if target else (BLUE, 2)
+        cv2.polylines(img, [poly], True, color, thick, cv2.LINE_AA, shift=4)
+        centre = proj.plane_to_image(np.array([[tr.x, tr.y]]))[0]
+        if np.isfinite(centre).all():
+            u, v = int(round(centre[0])), int(round(centre[1]))
+            cv2.drawMarker(img, (u, v), color, cv2.MARKER_CROSS, 10, thick)
+            _label(img, _track_text(tr) + (" TARGET" if target else ""), (u + 6, v - 6), color)
+    return img
+
+
+def grid_north_up(free_grid: np.ndarray) -> np.ndarray:
+    """The head-plane grid (rows = plane y = east, columns = plane x = north) turned so that
+    north is up and east is right: display row a = last x column - a, display column b = row b."""
+    return np.ascontiguousarray(np.flipud(free_grid.T))
+
+
+def plane_to_north_up_px(grid: GridSpec, x: np.ndarray, y: np.ndarray, scale: float,
+                         offset: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """Display pixel (col, row) of plane points in the north-up view drawn at ``scale`` px/cell
+    with the grid's top-left corner at ``offset`` (col, row) pixels."""
+    col = (np.asarray(y) - grid.y0) / grid.cell
+    row = (grid.cols - 1) - (np.asarray(x) - grid.x0) / grid.cell
+    return (col + 0.5) * scale - 0.5 + offset[0], (row + 0.5) * scale - 0.5 + offset[1]
+
+
+def draw_plane_view(free_grid: np.ndarray, grid: GridSpec, proposals: Sequence[Circle],
+                    tracks: Sequence[Track], target_id: int | None, size: int) -> np.ndarray:
+    """A ``size`` x ``size`` north-up BGR view of the head-plane free grid (white free, dark red
+    occupied or unseen), fitted and centred, with the same circles as the image view, a north
+    arrow and a scale bar. Square and fixed-size so a video keeps one frame size while the grid's
+    shape changes with the pose."""
+    g = grid_north_up(free_grid)
+    scale = min(size / g.shape[0], size / g.shape[1])
+    gh, gw = max(1, int(round(g.shape[0] * scale))), max(1, int(round(g.shape[1] * scale)))
+    off = ((size - gw) // 2, (size - gh) // 2)
+    small = np.where(g[..., None] > 0, np.array(WHITE, np.uint8), np.array((40, 40, 120), np.uint8))
+    img = np.full((size, size, 3), 90, np.uint8)
+    img[off[1]:off[1] + gh, off[0]:off[0] + gw] = cv2.resize(
+        small.astype(np.uint8), (gw, gh), interpolation=cv2.INTER_NEAREST)
+
+    def poly_of(x: float, y: float, r: float) -> np.ndarray:
+        pts = circle_polygon(x, y, r)
+        c, rr = plane_to_north_up_px(grid, pts[:, 0], pts[:, 1], scale, off)
+        return np.round(np.column_stack([c, rr]) * 16).astype(np.int32).reshape(-1, 1, 2)
+
+    for c in proposals:
+        cv2.polylines(img, [poly_of(c.x, c.y, c.r)], True, GREEN, 1, cv2.LINE_AA, shift=4)
+    for tr in tracks:
+        target = tr.id == target_id
+        color, thick = (YELLOW, 3) if target else (BLUE, 2)
+        cv2.polylines(img, [poly_of(tr.x, tr.y, tr.r)], True, color, thick, cv2.LINE_AA, shift=4)
+        c, rr = plane_to_north_up_px(grid, tr.x, tr.y, scale, off)
+        _label(img, f"#{tr.id}", (int(c) + 4, int(rr) - 4), color)
+    cv2.arrowedLine(img, (20, 50), (20, 15), WHITE, 2, cv2.LINE_AA, tipLength=0.3)
+    _label(img, "N", (28, 30), WHITE)
+    # Scale bar of a round number of metres, about a fifth of the panel.
+    metres_per_px = grid.cell / scale
+    bar_m = float(10 ** np.floor(np.log10(max(size / 5 * metres_per_px, 1e-6))))
+    bar_px = int(round(bar_m / metres_per_px))
+    cv2.line(img, (15, size - 15), (15 + bar_px, size - 15), WHITE, 2)
+    _label(img, f"{bar_m:g} m", (15, size - 22), WHITE)
+    return img
+
+
+def compose(image_view: np.ndarray, plane_view: np.ndarray | None) -> np.ndarray:
+    """The image view with the plane view (same height) on its right, or alone."""
+    if plane_view is None:
+        return image_view
+    if plane_view.shape[0] != image_view.shape[0]:
+        raise ValueError("plane view and image view must have the same height")
+    sep = np.full((image_view.shape[0], 4, 3), 128, np.uint8)
+    return np.hstack([image_view, sep, plane_view])
+
+
+def figure(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,
+           proposals: Sequence[Circle], tracks: Sequence[Track], target_id: int | None,
+           free_grid: np.ndarray | None = None, grid: GridSpec | None = None) -> np.ndarray:
+    """The full figure of one frame; the plane view is added when ``free_grid`` and ``grid`` are
+    given (the replay passes them when the pose is known, so north is meaningful)."""
+    view = draw_image_view(frame, occupancy_free, proj, proposals, tracks, target_id)
+    plane = None
+    if free_grid is not None and grid is not None and free_grid.size:
+        plane = draw_plane_view(free_grid, grid, proposals, tracks, target_id, frame.shape[0])
+    return compose(view, plane)

@@ -1,0 +1,101 @@
+"""One frame's result as a JSON-ready record (the ``--jsonl`` schema of docs/replay.md).
+
+Circles are given twice: in head-plane metres (``x``, ``y``, ``r``) and in input-image pixels
+(``u``, ``v`` the centre, ``r_px`` the radius along the image x axis). ``r_px`` is half the image
+distance between the projections of ``c - r d`` and ``c + r d``, where ``d`` is the unit plane
+direction whose image at the centre runs along the image x axis (from the Jacobian of the
+plane-to-image homography). Under ``--nadir`` this is exactly ``r / gsd``; for an oblique view it
+is the ellipse's extent along the image row through its centre, to first order.
+
+Values that do not exist (a centre behind the camera, a degenerate projection) are ``None``,
+written as JSON ``null``: NaN never reaches the output.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from companion.pipeline.camera import PlaneProjection
+from companion.pipeline.circles import Circle
+from companion.pipeline.slz import FrameResult
+from companion.pipeline.tracker import Track
+
+TIMING_KEYS = ("density", "occupancy", "projection", "proposals", "tracking", "total")
+
+
+def finite_or_none(value: float) -> float | None:
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def plane_jacobian(proj: PlaneProjection, x: float, y: float) -> np.ndarray:
+    """d(u, v)/d(x, y) of the plane-to-image homography at plane point (x, y): (2, 2), px/m."""
+    H = proj.H
+    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
+    v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+    return np.array([[H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]],
+                     [H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]]]) / w
+
+
+def circle_in_image(proj: PlaneProjection, x: float, y: float, r: float
+                    ) -> tuple[float | None, float | None, float | None]:
+    """(u, v, r_px) of the plane circle (x, y, r) metres; entries are None where undefined."""
+    uv = proj.plane_to_image(np.array([[x, y]]))[0]
+    if not np.isfinite(uv).all():
+        return None, None, None
+    u, v = float(uv[0]), float(uv[1])
+    with np.errstate(all="ignore"):
+        J = plane_jacobian(proj, x, y)
+        try:
+            d = np.linalg.solve(J, [1.0, 0.0])
+        except np.linalg.LinAlgError:
+            return u, v, None
+    n = float(np.hypot(*d))
+    if not (math.isfinite(n) and n > 0):
+        return u, v, None
+    d = d / n
+    ends = proj.plane_to_image(np.array([[x - r * d[0], y - r * d[1]], [x + r * d[0], y + r * d[1]]]))
+    r_px = 0.5 * float(np.hypot(*(ends[1] - ends[0])))
+    return u, v, finite_or_none(r_px)
+
+
+def _circle_fields(proj: PlaneProjection, x: float, y: float, r: float) -> dict[str, Any]:
+    u, v, r_px = circle_in_image(proj, x, y, r)
+    return {"x": finite_or_none(x), "y": finite_or_none(y), "r": finite_or_none(r),
+            "u": u, "v": v, "r_px": r_px}
+
+
+def is_stable(track: Track, r_0: float) -> bool:
+    """Confirmed by this frame and at least ``r_0`` metres wide: what may be landed on."""
+    return track.misses == 0 and track.r >= r_0
+
+
+def proposal_record(proj: PlaneProjection, c: Circle) -> dict[str, Any]:
+    return _circle_fields(proj, c.x, c.y, c.r)
+
+
+def track_record(proj: PlaneProjection, tr: Track, r_0: float) -> dict[str, Any]:
+    rec: dict[str, Any] = {"id": int(tr.id), "age": int(tr.age), "hits": int(tr.hits),
+                           "stable": is_stable(tr, r_0)}
+    rec.update(_circle_fields(proj, tr.x, tr.y, tr.r))
+    rec["misses"] = int(tr.misses)
+    rec["r_filtered"] = finite_or_none(tr.r_filtered)
+    return rec
+
+
+def frame_record(index: int, result: FrameResult, r_0: float) -> dict[str, Any]:
+    """The JSON Lines record of one processed frame (``index`` is its position in the input)."""
+    proj = result.projection
+    timing = {k: finite_or_none(result.timings_ms.get(k, float("nan"))) for k in TIMING_KEYS}
+    return {
+        "frame": int(index),
+        "t": finite_or_none(result.t),
+        "proposals": [proposal_record(proj, c) for c in result.proposals],
+        "tracks": [track_record(proj, tr, r_0) for tr in result.tracks],
+        "target": None if result.target is None else int(result.target.id),
+        "timing_ms": timing,
+    }

@@ -1,0 +1,163 @@
+"""The replay loop: frames from a source through the pipeline into the requested outputs.
+
+Outputs are optional and independent: JSON Lines (one record per processed frame), occupancy masks
+(PNG per frame, 255 = occupied), the annotated video. Frames that cannot be read or processed are
+counted and skipped; the summary says how many and why.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from companion.pipeline.camera import GeometryError
+from companion.pipeline.density import DensityModelError
+from companion.pipeline.slz import FrameResult, SLZPipeline
+from companion.replay import draw
+from companion.replay.records import frame_record
+from companion.replay.sources import ReplayFrame, ReplaySource
+from companion.replay.summary import SummaryBuilder
+
+log = logging.getLogger(__name__)
+
+SKIP_UNREADABLE = "unreadable frame"
+SKIP_MODEL = "the density model rejected the frame"
+SKIP_GEOMETRY = "no valid head-plane projection for the frame"
+
+
+class ReplayOutputError(ValueError):
+    """An output that cannot be written (folder not creatable, video codec missing)."""
+
+
+def mask_name(index: int) -> str:
+    """File name of frame ``index``'s occupancy mask."""
+    return f"{index:06d}.png"
+
+
+def occupied_mask_image(occupancy_free: np.ndarray) -> np.ndarray:
+    """The mask written by ``--masks``: 255 where occupied (people), 0 where free; the inverse of
+    the pipeline's free map."""
+    return cv2.bitwise_not(occupancy_free)
+
+
+def dumps_record(record: dict[str, Any]) -> str:
+    # allow_nan=False turns any NaN that slipped past the record builder into an error here
+    # rather than invalid JSON in the file.
+    return json.dumps(record, allow_nan=False, separators=(",", ":"))
+
+
+class VideoOut:
+    """An annotated video file; the first frame fixes the size, later frames are fitted to it."""
+
+    def __init__(self, path: Path, fps: float):
+        self.path = path
+        self.fps = fps
+        self._writer: cv2.VideoWriter | None = None
+        self._size: tuple[int, int] | None = None
+        self.frames = 0
+
+    def write(self, image: np.ndarray) -> None:
+        h, w = image.shape[:2]
+        if self._writer is None:
+            fourcc = cv2.VideoWriter_fourcc(*("MJPG" if self.path.suffix.lower() == ".avi" else "mp4v"))
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # Codecs want even sizes.
+            self._size = (w + (w & 1), h + (h & 1))
+            self._writer = cv2.VideoWriter(str(self.path), fourcc, self.fps, self._size)
+            if not self._writer.isOpened():
+                raise ReplayOutputError(f"cannot write the video {self.path} (no encoder for "
+                                        f"{self.path.suffix or 'this file type'}; try .mp4 or .avi)")
+        if (w, h) != self._size:
+            image = cv2.resize(image, self._size, interpolation=cv2.INTER_AREA)
+        self._writer.write(image)
+        self.frames += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+
+
+@dataclass
+class ReplayOutputs:
+    """Where results go; each is optional."""
+
+    jsonl: IO[str] | None = None
+    masks: Path | None = None
+    video: VideoOut | None = None
+
+
+def _process(pipe: SLZPipeline, frame: ReplayFrame, use_pose: bool) -> tuple[FrameResult | None, str | None]:
+    assert frame.image is not None
+    try:
+        return pipe.process(frame.image, frame.t, frame.pose if use_pose else None), None
+    except GeometryError as exc:
+        log.warning("frame %d skipped: %s", frame.index, exc)
+        return None, SKIP_GEOMETRY
+    except DensityModelError as exc:
+        log.warning("frame %d skipped: %s", frame.index, exc)
+        return None, SKIP_MODEL
+
+
+def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_pose: bool,
+           max_frames: int | None = None, progress: bool | None = None,
+           on_result: Callable[[ReplayFrame, FrameResult], None] | None = None) -> dict[str, Any]:
+    """Run ``pipe`` over ``source``; returns the summary (see summary.SummaryBuilder.build).
+
+    use_pose: project with each frame's recorded pose (else the pipeline's fixed projection).
+    progress: show a tqdm bar; default only when stderr is a terminal.
+    """
+    if progress is None:
+        progress = sys.stderr.isatty()
+    total = source.total if max_frames is None else min(source.total or max_frames, max_frames)
+    summary = SummaryBuilder()
+    if outputs.masks is not None:
+        outputs.masks.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    bar = tqdm(total=total, unit="frame", disable=not progress, file=sys.stderr,
+               desc=f"replay {source.path.name}")
+    try:
+        for n, frame in enumerate(source.frames):
+            if max_frames is not None and n >= max_frames:
+                break
+            bar.update(1)
+            if frame.image is None:
+                log.warning("frame %d skipped: %s", frame.index, frame.problem)
+                summary.add_skip(SKIP_UNREADABLE)
+                continue
+            result, skip = _process(pipe, frame, use_pose)
+            if result is None:
+                summary.add_skip(skip or "unknown")
+                continue
+            target_id = None if result.target is None else result.target.id
+            summary.add_frame(frame.t, result.timings_ms, target_id)
+            if outputs.jsonl is not None:
+                outputs.jsonl.write(dumps_record(frame_record(frame.index, result, pipe.config.r_0)) + "\n")
+            if outputs.masks is not None:
+                path = outputs.masks / mask_name(frame.index)
+                if not cv2.imwrite(str(path), occupied_mask_image(result.occupancy)):
+                    raise ReplayOutputError(f"cannot write the mask {path}")
+            if outputs.video is not None:
+                posed = use_pose and frame.pose is not None
+                outputs.video.write(draw.figure(
+                    frame.image, result.occupancy, result.projection, result.proposals,
+                    result.tracks, target_id,
+                    result.free_grid if posed else None, result.grid if posed else None))
+            if on_result is not None:
+                on_result(frame, result)
+    finally:
+        bar.close()
+        if outputs.video is not None:
+            outputs.video.close()
+    wall = time.perf_counter() - start
+    return summary.build(wall, pipe.tracker.born, pipe.tracker.ended)

@@ -1,0 +1,201 @@
+"""Where replayed frames come from: a folder of images, a video file, or a flight recording.
+
+Every source yields :class:`ReplayFrame` in order. A frame that cannot be decoded is yielded with
+``image=None`` and a ``problem`` text, so the replay counts and skips it instead of stopping.
+Problems that make the whole input unusable raise :class:`ReplayInputError` naming the path.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.pipeline.camera import Intrinsics, Mount, Pose
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".ts")
+KINDS = ("auto", "frames", "video", "recording")
+
+
+class ReplayInputError(ValueError):
+    """An input that cannot be replayed at all (missing, empty, unreadable container)."""
+
+
+@dataclass(frozen=True)
+class ReplayFrame:
+    """index: position in the input (0-based, counting skipped frames too). t: capture time in
+    seconds (recorded time, or index / fps). image: BGR uint8 (H, W, 3), or None when the frame
+    could not be read (``problem`` says why). pose: the vehicle pose at capture, when recorded."""
+
+    index: int
+    t: float
+    image: np.ndarray | None
+    pose: Pose | None = None
+    problem: str | None = None
+    name: str = ""
+
+
+@dataclass
+class ReplaySource:
+    """An opened input. ``frames`` yields its frames; ``total`` is the frame count and ``fps`` the
+    frame rate in Hz when known;
+    ``intrinsics`` / ``mount`` come with recordings (None otherwise)."""
+
+    kind: str
+    path: Path
+    frames: Iterator[ReplayFrame]
+    total: int | None = None
+    fps: float | None = None
+    intrinsics: Intrinsics | None = None
+    mount: Mount | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def _as_bgr(image: object) -> np.ndarray | None:
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.size == 0:
+        return None
+    if image.ndim == 2:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    if image.ndim == 3 and image.shape[2] == 3:
+        return image
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    return None
+
+
+def _check_fps(fps: float) -> float:
+    if not (math.isfinite(fps) and fps > 0):
+        raise ReplayInputError(f"--fps must be a number > 0, got {fps!r}")
+    return float(fps)
+
+
+def image_files(folder: Path) -> list[Path]:
+    """Image files of ``folder`` sorted by name (the frame order)."""
+    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+                  key=lambda p: p.name)
+
+
+def open_folder(folder: Path, fps: float) -> ReplaySource:
+    """A folder of image frames, sorted by name, frame ``i`` at ``t = i / fps`` seconds."""
+    fps = _check_fps(fps)
+    if not folder.exists():
+        raise ReplayInputError(f"frame folder {folder} does not exist")
+    if not folder.is_dir():
+        raise ReplayInputError(f"{folder} is not a folder of frames")
+    files = image_files(folder)
+    if not files:
+        raise ReplayInputError(
+            f"frame folder {folder} is empty: no image files ({', '.join(IMAGE_SUFFIXES)})")
+
+    def frames() -> Iterator[ReplayFrame]:
+        for i, p in enumerate(files):
+            image = _as_bgr(cv2.imread(str(p), cv2.IMREAD_UNCHANGED))
+            problem = None if image is not None else f"{p}: not a readable image"
+            yield ReplayFrame(i, i / fps, image, None, problem, p.name)
+
+    return ReplaySource("frames", folder, frames(), total=len(files), fps=fps)
+
+
+def open_video(path: Path, fps: float | None) -> ReplaySource:
+    """A video file; frame ``i`` at ``i / fps`` with the container's rate unless ``fps`` is given."""
+    if not path.exists():
+        raise ReplayInputError(f"video file {path} does not exist")
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise ReplayInputError(f"{path} is not a video that OpenCV can open")
+    rate = fps if fps is not None else float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+    if not (math.isfinite(rate) and rate > 0):
+        cap.release()
+        raise ReplayInputError(f"{path}: the video does not give its frame rate; pass --fps")
+    count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+
+    def frames() -> Iterator[ReplayFrame]:
+        try:
+            i = 0
+            while True:
+                ok, image = cap.read()
+                if not ok:
+                    # A decoder failure and the end of the file look alike to OpenCV; past the
+                    # announced length it is the end, before it the rest of the file is lost.
+                    if count and i < count:
+                        yield ReplayFrame(i, i / rate, None, None,
+                                          f"{path}: frame {i} could not be decoded; "
+                                          f"the remaining {count - i - 1} frame(s) are lost")
+                    return
+                img = _as_bgr(image)
+                yield ReplayFrame(i, i / rate, img, None,
+                                  None if img is not None else f"{path}: frame {i} is not an image")
+                i += 1
+        finally:
+            cap.release()
+
+    return ReplaySource("video", path, frames(), total=count or None, fps=rate)
+
+
+def open_recording(path: Path) -> ReplaySource:
+    """A flight recording made by the service (``companion.service.recorder``)."""
+    if not path.exists():
+        raise ReplayInputError(f"recording {path} does not exist")
+    try:
+        from companion.service.recorder import RecordingReader
+    except ImportError as exc:
+        raise ReplayInputError(
+            f"{path}: cannot read flight recordings in this build "
+            f"(companion.service.recorder is not available: {exc})") from None
+    try:
+        reader = RecordingReader(path)
+    except Exception as exc:  # the recorder's own error types; all mean "not a recording"
+        raise ReplayInputError(f"{path} is not a readable flight recording: {exc}") from exc
+
+    def frames() -> Iterator[ReplayFrame]:
+        for rec in reader.frames():
+            img = _as_bgr(getattr(rec, "frame_bgr", None))
+            problem = None if img is not None else f"{path}: recorded frame {rec.index} is not an image"
+            yield ReplayFrame(int(rec.index), float(rec.t), img, rec.pose, problem)
+
+    meta = getattr(reader, "meta", None)
+    total = getattr(reader, "count", None) or getattr(reader, "total", None)
+    return ReplaySource("recording", path, frames(), total=total if isinstance(total, int) else None,
+                        intrinsics=getattr(reader, "intrinsics", None),
+                        mount=getattr(reader, "mount", None),
+                        meta=dict(meta) if isinstance(meta, dict) else {})
+
+
+def guess_kind(path: Path) -> str:
+    """``frames`` for a folder of images, ``video`` for a video file, else ``recording``."""
+    if not path.exists():
+        raise ReplayInputError(f"input {path} does not exist")
+    if path.is_dir():
+        return "frames" if image_files(path) else "recording"
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        return "video"
+    return "recording"
+
+
+def open_input(path: str | Path, kind: str = "auto", fps: float | None = None) -> ReplaySource:
+    """Open ``path`` as ``kind`` (see :data:`KINDS`). Folder frames default to 10 fps."""
+    path = Path(path)
+    if kind not in KINDS:
+        raise ReplayInputError(f"input kind must be one of {', '.join(KINDS)}, got {kind!r}")
+    if kind == "auto":
+        kind = guess_kind(path)
+        # A folder without images is more likely a mistake than a recording when the recorder
+        # cannot read it; say so in the terms of a folder.
+        if kind == "recording" and path.is_dir():
+            try:
+                return open_recording(path)
+            except ReplayInputError:
+                raise ReplayInputError(
+                    f"frame folder {path} is empty: no image files ({', '.join(IMAGE_SUFFIXES)}) "
+                    "and not a flight recording") from None
+    if kind == "frames":
+        return open_folder(path, 10.0 if fps is None else fps)
+    if kind == "video":
+        return open_video(path, fps)
+    return open_recording(path)

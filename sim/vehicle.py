@@ -224,7 +224,8 @@ class Vehicle:
         else:
             return np.zeros(3)
         v[:2] = _limit_norm(v[:2], self.speed_xy)
-        v[2] = min(max(v[2], -p.max_speed_up), p.max_speed_down)
+        if self.demand is not Demand.LAND:  # LAND_SPEED_HIGH is not capped by WPNAV_SPEED_DN
+            v[2] = min(max(v[2], -p.max_speed_up), p.max_speed_down)
         return v
 
     def step(self, dt: float) -> None:

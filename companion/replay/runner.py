@@ -155,6 +155,10 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
                     result.free_grid if posed else None, result.grid if posed else None))
             if on_result is not None:
                 on_result(frame, result)
+        if source.skipped_upstream is not None:
+            for reason, count in source.skipped_upstream().items():
+                for _ in range(count):
+                    summary.add_skip(reason)
     finally:
         bar.close()
         if outputs.video is not None:

@@ -8,7 +8,7 @@ Problems that make the whole input unusable raise :class:`ReplayInputError` nami
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,6 +55,9 @@ class ReplaySource:
     intrinsics: Intrinsics | None = None
     mount: Mount | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    # Frames the input itself dropped without yielding them (a recording's deleted or truncated
+    # segments): reason -> count, read once the frames are exhausted.
+    skipped_upstream: Callable[[], dict[str, int]] | None = None
 
 
 def _as_bgr(image: object) -> np.ndarray | None:
@@ -142,29 +145,31 @@ def open_recording(path: Path) -> ReplaySource:
     """A flight recording made by the service (``companion.service.recorder``)."""
     if not path.exists():
         raise ReplayInputError(f"recording {path} does not exist")
-    try:
-        from companion.service.recorder import RecordingReader
-    except ImportError as exc:
-        raise ReplayInputError(
-            f"{path}: cannot read flight recordings in this build "
-            f"(companion.service.recorder is not available: {exc})") from None
+    from companion.service.recorder import RecordingError, RecordingReader
+
     try:
         reader = RecordingReader(path)
-    except Exception as exc:  # the recorder's own error types; all mean "not a recording"
-        raise ReplayInputError(f"{path} is not a readable flight recording: {exc}") from exc
+    except RecordingError as exc:
+        raise ReplayInputError(str(exc)) from None
 
     def frames() -> Iterator[ReplayFrame]:
         for rec in reader.frames():
-            img = _as_bgr(getattr(rec, "frame_bgr", None))
+            img = _as_bgr(rec.frame_bgr)
             problem = None if img is not None else f"{path}: recorded frame {rec.index} is not an image"
             yield ReplayFrame(int(rec.index), float(rec.t), img, rec.pose, problem)
 
-    meta = getattr(reader, "meta", None)
-    total = getattr(reader, "count", None) or getattr(reader, "total", None)
-    return ReplaySource("recording", path, frames(), total=total if isinstance(total, int) else None,
-                        intrinsics=getattr(reader, "intrinsics", None),
-                        mount=getattr(reader, "mount", None),
-                        meta=dict(meta) if isinstance(meta, dict) else {})
+    def upstream() -> dict[str, int]:
+        st = reader.stats
+        return {"recorded line unreadable": st.bad_lines,
+                "recorded frame missing (segment deleted)": st.missing,
+                "recorded frame lost (segment truncated)": st.truncated,
+                "recorded frame corrupt (thumbnail mismatch)": st.corrupt}
+
+    rate = reader.meta.get("fps")
+    return ReplaySource("recording", path, frames(), total=len(reader),
+                        fps=float(rate) if isinstance(rate, (int, float)) and rate > 0 else None,
+                        intrinsics=reader.intrinsics, mount=reader.mount, meta=dict(reader.meta),
+                        skipped_upstream=upstream)
 
 
 def guess_kind(path: Path) -> str:
@@ -187,7 +192,7 @@ def open_input(path: str | Path, kind: str = "auto", fps: float | None = None) -
         kind = guess_kind(path)
         # A folder without images is more likely a mistake than a recording when the recorder
         # cannot read it; say so in the terms of a folder.
-        if kind == "recording" and path.is_dir():
+        if kind == "recording" and path.is_dir() and not (path / "meta.json").exists():
             try:
                 return open_recording(path)
             except ReplayInputError:

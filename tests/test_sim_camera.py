@@ -1,0 +1,134 @@
+"""The simulated camera served as MJPEG over HTTP on loopback, read by OpenCV and by our reader."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import urllib.error
+import urllib.request
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.pipeline.camera import Intrinsics, Mount, Pose
+from sim.camera_server import CameraServer, LatestFrameReader, read_mjpeg, read_stamp, stamp_index
+from sim.ground import ProceduralGround
+from sim.render import render_world
+from sim.world import default_world
+
+K = Intrinsics.from_fov(640, 480, 70.0)
+POSE = Pose(0.0, 0.0, 0.0, -25.0, 0.0, 0.0, 0.2)
+
+
+def _server(**kw) -> CameraServer:
+    world = default_world(seed=4)
+    return CameraServer(lambda: POSE, world, K, Mount(), ground=ProceduralGround(4), **kw)
+
+
+def test_stamp_roundtrip_survives_jpeg() -> None:
+    img = np.full((480, 640, 3), 128, np.uint8)
+    stamp_index(img, 40961)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+    assert read_stamp(cv2.imdecode(buf, cv2.IMREAD_COLOR)) == 40961
+
+
+async def test_opencv_ffmpeg_reads_the_stream_with_low_latency() -> None:
+    async with _server(fps=15, stamp=True) as srv:
+        assert srv.url.startswith("http://127.0.0.1:") and srv.url.endswith("/stream.mjpg")
+
+        def read() -> list[tuple[int, float, np.ndarray]]:
+            cap = cv2.VideoCapture(srv.url, cv2.CAP_FFMPEG)
+            assert cap.isOpened(), f"OpenCV cannot open {srv.url}"
+            out = []
+            for _ in range(8):
+                ok, img = cap.read()
+                assert ok
+                out.append((read_stamp(img), time.time(), img))
+            cap.release()
+            return out
+
+        frames = await asyncio.to_thread(read)
+    idx = [i for i, _, _ in frames]
+    assert idx == sorted(idx) and len(set(idx)) == len(idx)
+    img = frames[-1][2]
+    assert img.shape == (480, 640, 3)
+    # It is the rendered picture (up to JPEG): compare away from the stamp row.
+    ref = render_world(srv.world, POSE, K, Mount(), srv.ground)
+    diff = np.abs(img[16:].astype(int) - ref[16:].astype(int))
+    assert np.median(diff) <= 4
+    # Render-to-read latency while reading continuously: well under a frame period.
+    lat = [t - srv.render_times[i] for i, t, _ in frames[2:]]
+    assert np.median(lat) < 0.05, f"latencies {lat}"
+
+
+async def test_own_reader_gets_frames_and_headers() -> None:
+    async with _server(fps=20) as srv:
+        def read() -> list:
+            out = []
+            for f in read_mjpeg(srv.url):
+                out.append(f)
+                if len(out) == 5:
+                    break
+            return out
+
+        frames = await asyncio.to_thread(read)
+    assert all(f.image.shape == (480, 640, 3) for f in frames)
+    idx = [int(f.headers["x-frame-index"]) for f in frames]
+    assert idx == sorted(idx)
+    lat = [f.received - float(f.headers["x-render-time"]) for f in frames]
+    assert 0 <= np.median(lat) < 0.05
+
+
+async def test_slow_consumer_gets_fresh_frames_with_latest_frame_reader() -> None:
+    async with _server(fps=20) as srv:
+        def consume() -> list[float]:
+            ages = []
+            with LatestFrameReader(srv.url) as r:
+                for _ in range(6):
+                    f = r.get(timeout=5.0)
+                    assert f is not None, r.error
+                    ages.append(time.time() - float(f.headers["x-render-time"]))
+                    time.sleep(0.2)  # a pipeline 4x slower than the camera
+            return ages
+
+        ages = await asyncio.to_thread(consume)
+    # Never more than about one frame period old: frames are dropped, not queued.
+    assert max(ages[1:]) < 0.15, ages
+
+
+async def test_renders_at_the_set_rate_and_stops_cleanly() -> None:
+    srv = _server(fps=10, advance_world=True)
+    await srv.start()
+    t0 = srv.world.t
+    await asyncio.sleep(1.05)
+    n = srv.frames_rendered
+    assert 8 <= n <= 12
+    assert srv.world.t - t0 == pytest.approx(1.0, abs=0.25)  # stand-alone: the world walks on
+    # Snapshot and unknown paths.
+    data = await asyncio.to_thread(lambda: urllib.request.urlopen(
+        f"http://127.0.0.1:{srv.port}/snapshot.jpg", timeout=5).read())
+    assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR).shape == (480, 640, 3)
+    with pytest.raises(urllib.error.HTTPError):
+        await asyncio.to_thread(lambda: urllib.request.urlopen(
+            f"http://127.0.0.1:{srv.port}/nope", timeout=5).read())
+    await srv.stop()
+    assert srv.frames_rendered <= n + 3
+    with pytest.raises(OSError):
+        await asyncio.to_thread(lambda: urllib.request.urlopen(srv.url, timeout=2).read(10))
+
+
+async def test_bad_pose_is_counted_not_fatal() -> None:
+    poses = iter([Pose(0, 0, 0, float("nan"), 0, 0, 0)] * 3)
+    srv = CameraServer(lambda: next(poses, POSE), default_world(seed=1), K, Mount(), fps=30)
+    async with srv:
+        await asyncio.sleep(0.4)
+    assert srv.errors == 3 and srv.frames_rendered >= 3
+
+
+def test_render_now_is_the_in_process_path() -> None:
+    srv = _server()
+    img = srv.render_now()
+    assert img.shape == (480, 640, 3)
+    other = srv.render_now(Pose(0.0, 5.0, 0.0, -40.0, 0.0, 0.0, 0.0))
+    assert not np.array_equal(img, other)

@@ -136,11 +136,17 @@ def draw_plane_view(free_grid: np.ndarray, grid: GridSpec, proposals: Sequence[C
     _label(img, "N", (28, 30), WHITE)
     # Scale bar of a round number of metres, about a fifth of the panel.
     metres_per_px = grid.cell / scale
-    bar_m = float(10 ** np.floor(np.log10(max(size / 5 * metres_per_px, 1e-6))))
+    bar_m = nice_length(size / 5 * metres_per_px)
     bar_px = int(round(bar_m / metres_per_px))
     cv2.line(img, (15, size - 15), (15 + bar_px, size - 15), WHITE, 2)
     _label(img, f"{bar_m:g} m", (15, size - 22), WHITE)
     return img
+
+
+def nice_length(metres: float) -> float:
+    """The largest 1, 2 or 5 x 10^k metres not above ``metres`` (for a scale bar)."""
+    k = 10.0 ** np.floor(np.log10(max(metres, 1e-6)))
+    return float(max(m * k for m in (1, 2, 5) if m * k <= max(metres, k)))
 
 
 def compose(image_view: np.ndarray, plane_view: np.ndarray | None) -> np.ndarray:

@@ -1,0 +1,374 @@
+"""The landing controller: a state machine driven by explicit inputs, returning commands to execute.
+
+Phases::
+
+    MONITOR --trigger--> SELECT --eligible zone--> APPROACH --over it--> DESCEND --low enough--> LAND
+       LAND --on ground / disarmed--> LANDED
+    APPROACH/DESCEND/LAND --zone lost--> APPROACH (another eligible zone) or HOLD
+    HOLD --eligible zone--> APPROACH
+    SELECT/HOLD timeout, stale pose, repeated refusals --> HANDBACK (the autopilot's LAND or RTL)
+    APPROACH/DESCEND/HOLD/LAND --pilot changes mode--> HANDBACK (without a command)
+
+Inputs (times are monotonic seconds):
+
+- ``on_trigger(trigger)``: a failsafe ``Trigger``; the only way out of MONITOR.
+- ``on_frame(t, tracks, pose)``: the zone tracks after the frame captured at ``t`` and the pose the
+  pipeline used for it. A frame whose pose is missing, not finite or further than
+  ``max_pose_age_s`` from ``t``, or a frame older than ``zone_max_age_s``, is ignored: no decision
+  is ever made on a zone that was not seen with a fresh pose.
+- ``on_state(status)``: where the vehicle is now (``VehicleStatus``), its mode, armed, on ground.
+- ``tick(now)``: timeouts.
+- ``on_command_result(command, error)``: what became of a command the runner executed.
+
+Each returns the list of ``Command``s to execute now; ``pop_events()`` gives the human-readable
+events (the runner sends them as STATUSTEXT).
+
+Flying: the vehicle first flies level (at its altitude when the zone was chosen, at least
+``descend_alt_m``) to the zone centre, then descends toward it with a target never more than
+``descend_step_m`` below itself, re-checking the zone at every frame, so a lost zone stops the
+descent within one step. At ``descend_alt_m`` above home over the zone it commands the autopilot's
+LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
+sequence is used for both autopilots so that the descent down to ``descend_alt_m`` is always
+re-checked. During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends
+the vehicle back to HOLD; below it the landing is committed. HOLD is a position target at the
+vehicle's own position, so the autopilot stays in GUIDED/OFFBOARD and can resume.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from companion.control.geodesy import GeoPoint, geo_from_ned
+from companion.control.planner import PlannerConfig, ZoneCheck, ZonePlanner
+from companion.mavlink.autopilot import PositionTarget
+from companion.mavlink.failsafe import Trigger
+from companion.pipeline.camera import Pose
+from companion.pipeline.tracker import Track
+
+log = logging.getLogger(__name__)
+
+
+class Phase(str, enum.Enum):
+    MONITOR = "MONITOR"
+    SELECT = "SELECT"
+    APPROACH = "APPROACH"
+    DESCEND = "DESCEND"
+    LAND = "LAND"
+    LANDED = "LANDED"
+    HOLD = "HOLD"
+    HANDBACK = "HANDBACK"
+
+
+ACTIVE = frozenset({Phase.SELECT, Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD})
+FLYING = frozenset({Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD})
+
+
+@dataclass(frozen=True)
+class LandingConfig:
+    """Controller settings: metres above home, seconds, counts. See the module docstring."""
+
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    select_timeout_s: float = 10.0
+    hold_timeout_s: float = 15.0
+    arrive_radius_m: float = 1.0
+    descend_alt_m: float = 10.0
+    descend_step_m: float = 3.0
+    alt_tolerance_m: float = 0.5
+    land_abort_above_m: float = 5.0
+    max_pose_age_s: float = 0.25
+    state_timeout_s: float = 1.0
+    pose_timeout_s: float = 2.0
+    max_refusals: int = 3
+    handback_action: str = "LAND"
+    external_modes: tuple[str, ...] = ("GUIDED", "OFFBOARD")
+    retarget_min_move_m: float = 0.3
+    refresh_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.handback_action not in ("LAND", "RTL"):
+            raise ValueError(f"controller handback_action must be LAND or RTL, not {self.handback_action!r}")
+        for name in ("select_timeout_s", "hold_timeout_s", "arrive_radius_m", "descend_alt_m", "descend_step_m",
+                     "max_pose_age_s", "state_timeout_s", "pose_timeout_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"controller {name} must be a positive number, not {value!r}")
+        if self.max_refusals < 1:
+            raise ValueError("controller max_refusals must be >= 1")
+
+
+@dataclass(frozen=True)
+class VehicleStatus:
+    """The vehicle now: ``t`` receive time (s) of its position; NED metres from home; ``home`` WGS84.
+
+    ``mode`` is the flavour's mode name; ``on_ground``/``armed`` None when unknown.
+    """
+
+    t: float
+    north: float
+    east: float
+    down: float
+    home: GeoPoint
+    mode: str | None = None
+    armed: bool | None = None
+    on_ground: bool | None = None
+
+    @property
+    def alt(self) -> float:
+        """Metres above home."""
+        return -self.down
+
+
+@dataclass(frozen=True)
+class Goto:
+    """Fly to ``target`` and hold there (entering GUIDED/OFFBOARD); ``zone_id`` None = hold in place."""
+
+    target: PositionTarget
+    zone_id: int | None
+    north: float
+    east: float
+
+
+@dataclass(frozen=True)
+class Land:
+    """Switch to the autopilot's LAND mode (lands where the vehicle is)."""
+
+
+@dataclass(frozen=True)
+class Handback:
+    """Give control back to the autopilot's own failsafe: its LAND or RTL mode."""
+
+    action: str
+    reason: str
+
+
+Command = Goto | Land | Handback
+
+
+@dataclass(frozen=True)
+class Event:
+    """A human-readable state change (``text`` starts with "SLZ: "); ``t`` monotonic s."""
+
+    t: float
+    phase: Phase
+    text: str
+    warning: bool = False
+
+
+class LandingController:
+    """See the module docstring. Pure: no I/O, no clock; every time comes in through an input."""
+
+    def __init__(self, config: LandingConfig | None = None) -> None:
+        self.config = config or LandingConfig()
+        self.planner = ZonePlanner(self.config.planner)
+        self.phase = Phase.MONITOR
+        self.trigger: Trigger | None = None
+        self.target: Track | None = None
+        self.now = -math.inf
+        self.status: VehicleStatus | None = None
+        self.tracks: list[Track] = []
+        self.last_valid_frame_t: float | None = None
+        self.frames_ignored = 0
+        self.refusals = 0
+        self._phase_t = 0.0
+        self._approach_alt = 0.0
+        self._last_goto: Goto | None = None
+        self._last_goto_t = -math.inf
+        self._mode_confirmed = False
+        self._events: list[Event] = []
+
+    # -- inputs ------------------------------------------------------------------------------
+
+    def on_trigger(self, trigger: Trigger) -> list[Command]:
+        self._advance(trigger.t)
+        if self.phase != Phase.MONITOR:
+            return []
+        self.trigger = trigger
+        self._set_phase(Phase.SELECT, f"trigger: {trigger.reason}; looking for a landing zone", warning=True)
+        return self._select()
+
+    def on_state(self, status: VehicleStatus) -> list[Command]:
+        if not all(math.isfinite(v) for v in (status.t, status.north, status.east, status.down)):
+            return []  # a NaN position is no position
+        self._advance(status.t)
+        self.status = status
+        if self.phase not in ACTIVE:
+            return []
+        if self.phase == Phase.LAND and (status.on_ground or status.armed is False):
+            self._set_phase(Phase.LANDED, f"landed in zone {self._zone_id()}")
+            return []
+        if self.phase in FLYING and status.mode is not None:
+            allowed = (*self.config.external_modes, "LAND")
+            if status.mode in allowed:
+                self._mode_confirmed = True
+            elif self._mode_confirmed:
+                # Someone else (pilot, GCS, the autopilot's own failsafe) took over: stop at once.
+                self._set_phase(Phase.HANDBACK, f"mode changed to {status.mode} by someone else: companion stops",
+                                warning=True)
+        return []
+
+    def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None) -> list[Command]:
+        self._advance(t)
+        if not self._frame_usable(t, pose):
+            self.frames_ignored += 1
+            return []
+        self.last_valid_frame_t = t
+        self.tracks = list(tracks)
+        if self.phase == Phase.SELECT or self.phase == Phase.HOLD:
+            return self._select()
+        if self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.LAND):
+            return self._follow()
+        return []
+
+    def tick(self, now: float) -> list[Command]:
+        self._advance(now)
+        c = self.config
+        if self.phase not in ACTIVE:
+            return []
+        if self.phase == Phase.SELECT and self.now - self._phase_t > c.select_timeout_s:
+            return self._handback(f"no safe zone confirmed within {c.select_timeout_s:g} s")
+        if self.phase == Phase.HOLD and self.now - self._phase_t > c.hold_timeout_s:
+            return self._handback(f"held {c.hold_timeout_s:g} s without a safe zone")
+        if self.phase in FLYING:
+            if self.status is None or self.now - self.status.t > c.pose_timeout_s:
+                return self._handback("vehicle position stale")
+            seen = self.last_valid_frame_t
+            if self.phase != Phase.LAND and (seen is None or self.now - seen > c.pose_timeout_s):
+                return self._handback("no frame with a fresh pose")
+        return []
+
+    def on_command_result(self, command: Command, error: Exception | None) -> list[Command]:
+        if error is None:
+            self.refusals = 0
+            return []
+        self.refusals += 1
+        self._event(f"command {type(command).__name__} failed: {error}", warning=True)
+        if isinstance(command, Handback):
+            return []  # nothing more to try: the autopilot's own failsafe is still armed
+        if self.phase in ACTIVE and self.refusals >= self.config.max_refusals:
+            return self._handback(f"{self.refusals} commands refused in a row")
+        if isinstance(command, Goto):
+            self._last_goto = None  # re-send at the next frame
+        return []
+
+    def pop_events(self) -> list[Event]:
+        events, self._events = self._events, []
+        return events
+
+    # -- decisions ---------------------------------------------------------------------------
+
+    def _frame_usable(self, t: float, pose: Pose | None) -> bool:
+        if pose is None:
+            return False
+        values = (pose.t, pose.north, pose.east, pose.down, pose.roll, pose.pitch, pose.yaw)
+        if not all(math.isfinite(v) for v in values) or abs(pose.t - t) > self.config.max_pose_age_s:
+            return False
+        return self.now - t <= self.config.planner.zone_max_age_s
+
+    def _status_fresh(self) -> bool:
+        return self.status is not None and self.now - self.status.t <= self.config.state_timeout_s
+
+    def _select(self) -> list[Command]:
+        if not self._status_fresh():
+            return []
+        zone = self.planner.choose(self.tracks, self.now)
+        if zone is None:
+            return []
+        return self._approach(zone, "landing at")
+
+    def _approach(self, zone: Track, verb: str) -> list[Command]:
+        assert self.status is not None
+        self.target = zone
+        self._approach_alt = max(self.status.alt, self.config.descend_alt_m)
+        dist = math.hypot(zone.x - self.status.north, zone.y - self.status.east)
+        self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m")
+        self._last_goto = None
+        return self._goto(zone.x, zone.y, self._approach_alt, zone.id)
+
+    def _follow(self) -> list[Command]:
+        assert self.target is not None
+        verdict, track, why = self.planner.check_target(self.target.id, self.tracks, self.now)
+        if verdict == ZoneCheck.LOST:
+            return self._lost(why)
+        if verdict == ZoneCheck.UNCONFIRMED or track is None or not self._status_fresh():
+            return []  # no new command toward a zone this frame did not confirm
+        self.target = track
+        s = self.status
+        assert s is not None
+        c = self.config
+        dist = math.hypot(track.x - s.north, track.y - s.east)
+        if self.phase == Phase.APPROACH:
+            if dist > c.arrive_radius_m:
+                return self._goto(track.x, track.y, self._approach_alt, track.id)
+            self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m")
+        if self.phase == Phase.DESCEND:
+            if dist <= c.arrive_radius_m and s.alt <= c.descend_alt_m + c.alt_tolerance_m:
+                self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.alt:.1f} m, radius {track.r:.1f} m")
+                return [Land()]
+            # The carrot stays within one step below the vehicle, and only moves down while over
+            # the zone: a lost zone never leaves the vehicle committed to a long descent.
+            alt = s.alt if dist > 2 * c.arrive_radius_m else max(c.descend_alt_m, s.alt - c.descend_step_m)
+            return self._goto(track.x, track.y, alt, track.id)
+        return []
+
+    def _lost(self, why: str) -> list[Command]:
+        assert self.target is not None
+        lost = self.target
+        s = self.status
+        if self.phase == Phase.LAND and s is not None and s.alt <= self.config.land_abort_above_m:
+            return []  # committed: too low to fly away safely; the autopilot finishes the landing
+        other = self.planner.choose(self.tracks, self.now, exclude=(lost.id,)) if self._status_fresh() else None
+        if other is not None:
+            return self._approach(other, f"zone {lost.id} lost ({why}); re-targeting")
+        self.target = None
+        self._set_phase(Phase.HOLD, f"zone {lost.id} lost ({why}); holding", warning=True)
+        if s is None or not self._status_fresh():
+            return []
+        self._last_goto = None
+        return self._goto(s.north, s.east, s.alt, None)
+
+    def _goto(self, north: float, east: float, alt: float, zone_id: int | None) -> list[Command]:
+        assert self.status is not None
+        last = self._last_goto
+        if (
+            last is not None
+            and last.zone_id == zone_id
+            and math.hypot(last.north - north, last.east - east) < self.config.retarget_min_move_m
+            and abs(last.target.rel_alt_m - alt) < self.config.retarget_min_move_m
+            and self.now - self._last_goto_t < self.config.refresh_s
+        ):
+            return []  # the vehicle already has this target; do not flood the link
+        point = geo_from_ned(self.status.home, north, east)
+        cmd = Goto(PositionTarget(point.lat_deg, point.lon_deg, alt), zone_id, north, east)
+        self._last_goto, self._last_goto_t = cmd, self.now
+        return [cmd]
+
+    def _handback(self, why: str) -> list[Command]:
+        action = self.config.handback_action
+        self.target = None
+        self._set_phase(Phase.HANDBACK, f"{why}: handing back to the autopilot ({action})", warning=True)
+        return [Handback(action, why)]
+
+    # -- bookkeeping -------------------------------------------------------------------------
+
+    def _advance(self, t: float) -> None:
+        if math.isfinite(t):
+            self.now = max(self.now, t)
+
+    def _zone_id(self) -> str:
+        return "?" if self.target is None else str(self.target.id)
+
+    def _set_phase(self, phase: Phase, text: str, warning: bool = False) -> None:
+        if phase != self.phase:
+            log.info("landing: %s -> %s", self.phase.value, phase.value)
+            self.phase = phase
+            self._phase_t = self.now
+        self._event(text, warning)
+
+    def _event(self, text: str, warning: bool = False) -> None:
+        event = Event(self.now, self.phase, f"SLZ: {text}", warning)
+        (log.warning if warning else log.info)("%s", event.text)
+        self._events.append(event)

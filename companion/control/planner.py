@@ -1,0 +1,99 @@
+"""Which landing zone to fly to: the planner, separate from the state machine that flies there.
+
+Tracks are ``companion.pipeline.tracker.Track`` snapshots: centre ``x`` north / ``y`` east in
+head-plane world NED metres from home, radius ``r`` metres, ``hits`` matched frames, ``misses``
+consecutive unmatched frames, ``born_t``/``last_t`` capture times (monotonic s).
+
+A zone is **eligible** as a new target when it is
+
+- confirmed: matched by the latest frame (``misses == 0``) and ``hits >= min_track_hits``;
+- old enough: tracked for ``min_track_age_s`` (``last_t - born_t``), so one lucky frame is not enough;
+- fresh: ``now - last_t <= zone_max_age_s``;
+- large: ``r >= r0_m + radius_margin_m``.
+
+The target among eligible zones is the oldest (earliest ``born_t``, then lowest id), as in the paper.
+A zone already targeted is **kept** with a looser test (hysteresis, so a radius flickering around
+the threshold does not make the vehicle dither): present, ``r >= r0_m``, and confirmed within
+``zone_max_age_s``. A kept zone with ``misses > 0`` is *unconfirmed*: no new command goes toward it
+until a frame confirms it again, and it is lost once ``zone_max_age_s`` passes.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+from companion.pipeline.tracker import Track
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Zone acceptance thresholds (metres, seconds, frames)."""
+
+    r0_m: float = 2.0
+    radius_margin_m: float = 1.0
+    min_track_age_s: float = 1.0
+    min_track_hits: int = 3
+    zone_max_age_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"controller {name} must be a finite number >= 0, not {value!r}")
+        if self.r0_m <= 0 or self.zone_max_age_s <= 0:
+            raise ValueError("controller r0_m and zone_max_age_s must be > 0")
+        if self.min_track_hits < 1:
+            raise ValueError(f"controller min_track_hits must be >= 1, not {self.min_track_hits}")
+
+
+class ZoneCheck(enum.Enum):
+    OK = "ok"
+    UNCONFIRMED = "unconfirmed"  # missed by the latest frame(s), not yet for too long
+    LOST = "lost"
+
+
+class ZonePlanner:
+    def __init__(self, config: PlannerConfig) -> None:
+        self.config = config
+
+    def why_not_eligible(self, track: Track, now: float) -> str | None:
+        """None when ``track`` may become a target at monotonic time ``now`` (s), else the reason."""
+        c = self.config
+        if not all(math.isfinite(v) for v in (track.x, track.y, track.r, track.last_t, track.born_t)):
+            return "has NaN"
+        if track.misses != 0:
+            return f"not confirmed by the latest frame ({track.misses} misses)"
+        if track.hits < c.min_track_hits:
+            return f"young ({track.hits} hits < {c.min_track_hits})"
+        if track.last_t - track.born_t < c.min_track_age_s:
+            return f"young ({track.last_t - track.born_t:.1f} s < {c.min_track_age_s:g} s)"
+        if now - track.last_t > c.zone_max_age_s:
+            return f"stale ({now - track.last_t:.1f} s old)"
+        if track.r < c.r0_m + c.radius_margin_m:
+            return f"small (r {track.r:.1f} m < {c.r0_m + c.radius_margin_m:.1f} m)"
+        return None
+
+    def choose(self, tracks: Iterable[Track], now: float, exclude: Sequence[int] = ()) -> Track | None:
+        """The oldest eligible zone not in ``exclude``, or None."""
+        eligible = [t for t in tracks if t.id not in exclude and self.why_not_eligible(t, now) is None]
+        if not eligible:
+            return None
+        return min(eligible, key=lambda t: (t.born_t, t.id))
+
+    def check_target(self, target_id: int, tracks: Iterable[Track], now: float) -> tuple[ZoneCheck, Track | None, str]:
+        """Whether the zone being flown to still holds: (verdict, its latest snapshot, reason)."""
+        track = next((t for t in tracks if t.id == target_id), None)
+        if track is None:
+            return ZoneCheck.LOST, None, "no longer tracked"
+        if not all(math.isfinite(v) for v in (track.x, track.y, track.r)):
+            return ZoneCheck.LOST, track, "has NaN"
+        if now - track.last_t > self.config.zone_max_age_s:
+            return ZoneCheck.LOST, track, f"not confirmed for {now - track.last_t:.1f} s"
+        if track.r < self.config.r0_m:
+            return ZoneCheck.LOST, track, f"shrank to r {track.r:.1f} m < r0 {self.config.r0_m:g} m"
+        if track.misses > 0:
+            return ZoneCheck.UNCONFIRMED, track, f"missed by {track.misses} frame(s)"
+        return ZoneCheck.OK, track, ""

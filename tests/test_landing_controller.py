@@ -1,0 +1,315 @@
+"""The landing controller state machine and its planner, driven by explicit inputs."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+from geographiclib.geodesic import Geodesic
+
+from companion.control.geodesy import GeoPoint
+from companion.control.landing import (
+    Goto,
+    Handback,
+    Land,
+    LandingConfig,
+    LandingController,
+    Phase,
+    VehicleStatus,
+)
+from companion.control.planner import PlannerConfig, ZonePlanner
+from companion.mavlink.failsafe import Trigger, TriggerSource
+from companion.mavlink.link import CommandRefused
+from companion.pipeline.camera import Pose
+from companion.pipeline.tracker import Track
+
+HOME = GeoPoint(47.397742, 8.545594, 488.0)
+CFG = LandingConfig(
+    planner=PlannerConfig(r0_m=2.0, radius_margin_m=1.0, min_track_age_s=1.0, min_track_hits=3, zone_max_age_s=1.0),
+    select_timeout_s=5.0,
+    hold_timeout_s=4.0,
+    arrive_radius_m=1.0,
+    descend_alt_m=10.0,
+    descend_step_m=3.0,
+    land_abort_above_m=5.0,
+    max_pose_age_s=0.25,
+    pose_timeout_s=2.0,
+    max_refusals=3,
+)
+
+
+def zone(id: int, x: float, y: float, t: float, *, r: float = 4.1, born: float | None = None, hits: int = 20,
+         misses: int = 0, last: float | None = None) -> Track:
+    born = t - 5.0 if born is None else born
+    return Track(id=id, x=x, y=y, r=r, r_filtered=r, age=hits + misses, hits=hits, misses=misses, born_t=born,
+                 last_t=t if last is None else last)
+
+
+def pose(t: float, north: float = 0.0, east: float = 0.0, alt: float = 30.0) -> Pose:
+    return Pose(t, north, east, -alt, 0.0, 0.0, 0.0)
+
+
+def status(t: float, north: float = 0.0, east: float = 0.0, alt: float = 30.0, mode: str | None = "LOITER",
+           **kw) -> VehicleStatus:
+    return VehicleStatus(t, north, east, -alt, HOME, mode=mode, **kw)
+
+
+def trigger(t: float) -> Trigger:
+    return Trigger("battery 0 charge state CRITICAL", TriggerSource.BATTERY, t)
+
+
+def expected_latlon(north: float, east: float) -> tuple[float, float]:
+    """Independent check through geographiclib's Direct problem."""
+    g = Geodesic.WGS84.Direct(HOME.lat_deg, HOME.lon_deg, math.degrees(math.atan2(east, north)), math.hypot(north, east))
+    return g["lat2"], g["lon2"]
+
+
+def texts(ctl: LandingController) -> list[str]:
+    return [e.text for e in ctl.pop_events()]
+
+
+def test_no_trigger_no_command_even_over_a_perfect_zone():
+    ctl = LandingController(CFG)
+    for i in range(20):
+        t = i * 0.1
+        assert ctl.on_state(status(t)) == []
+        assert ctl.on_frame(t, [zone(3, 10, 5, t)], pose(t)) == []
+        assert ctl.tick(t) == []
+    assert ctl.phase == Phase.MONITOR
+
+
+def test_trigger_and_confirmed_zone_fly_over_it_descend_and_land():
+    ctl = LandingController(CFG)
+    ctl.on_state(status(0.0, mode="RTL"))
+    assert ctl.on_trigger(trigger(0.0)) == []  # no frame yet: nothing to fly to
+    assert ctl.phase == Phase.SELECT
+    cmds = ctl.on_frame(0.1, [zone(7, 40, 40, 0.1, r=3.5), zone(3, 12.0, 0.9, 0.1, born=-9.0)], pose(0.1))
+    assert len(cmds) == 1 and isinstance(cmds[0], Goto)
+    goto = cmds[0]
+    assert goto.zone_id == 3  # the oldest stable zone, not the first listed
+    lat, lon = expected_latlon(12.0, 0.9)
+    assert goto.target.lat_deg == pytest.approx(lat, abs=1e-9) and goto.target.lon_deg == pytest.approx(lon, abs=1e-9)
+    assert goto.target.rel_alt_m == pytest.approx(30.0)  # level approach at the current altitude
+    assert ctl.phase == Phase.APPROACH
+    events = texts(ctl)
+    assert events[0].startswith("SLZ: trigger: battery 0 charge state CRITICAL")
+    assert events[-1] == "SLZ: landing at zone 3, 12.0 m away, radius 4.1 m"
+    # Over the zone now: descend in steps of at most 3 m, re-checking the zone at every frame.
+    t, alt, alts = 0.2, 30.0, []
+    while ctl.phase != Phase.LAND:
+        ctl.on_state(status(t, 12.0, 0.9, alt, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(3, 12.0, 0.9, t, born=-9.0)], pose(t, 12.0, 0.9, alt))
+        for c in cmds:
+            if isinstance(c, Goto):
+                assert c.zone_id == 3 and alt - c.target.rel_alt_m <= 3.0 + 1e-9
+                assert c.target.rel_alt_m >= 10.0
+                alts.append(c.target.rel_alt_m)
+                alt = c.target.rel_alt_m  # the vehicle reaches each step
+        t += 0.1
+        assert t < 5.0
+    assert cmds == [Land()]
+    assert alts == [27.0, 24.0, 21.0, 18.0, 15.0, 12.0, 10.0]
+    ctl.on_state(status(t, 12.0, 0.9, 0.0, mode="LAND", on_ground=True))
+    assert ctl.phase == Phase.LANDED
+    assert "SLZ: landed in zone 3" in texts(ctl)
+
+
+@pytest.mark.parametrize(
+    "bad,why",
+    [
+        (dict(hits=2), "young"),
+        (dict(born=-0.5), "young"),
+        (dict(r=2.9), "small"),
+        (dict(misses=1, last=-0.3), "not confirmed"),
+        (dict(last=-1.5), "stale"),
+    ],
+)
+def test_young_small_unconfirmed_or_stale_zones_are_never_targets(bad, why):
+    now = 0.0
+    track = zone(1, 5, 5, now, **{"born": -5.0, **bad})
+    assert why in ZonePlanner(CFG.planner).why_not_eligible(track, now)
+    ctl = LandingController(CFG)
+    ctl.on_state(status(now))
+    ctl.on_trigger(trigger(now))
+    assert ctl.on_frame(now, [track], pose(now)) == []
+    assert ctl.phase == Phase.SELECT
+
+
+def test_no_zone_within_the_timeout_hands_back_to_the_autopilot():
+    for action in ("LAND", "RTL"):
+        ctl = LandingController(dataclasses.replace(CFG, handback_action=action))
+        ctl.on_state(status(0.0))
+        ctl.on_trigger(trigger(0.0))
+        t, cmds = 0.0, []
+        while not cmds:
+            t += 0.1
+            ctl.on_state(status(t))
+            ctl.on_frame(t, [zone(1, 5, 5, t, r=2.5)], pose(t))  # too small
+            cmds = ctl.tick(t)
+        assert cmds == [Handback(action, "no safe zone confirmed within 5 s")]
+        assert t == pytest.approx(5.1, abs=0.01) and ctl.phase == Phase.HANDBACK
+        assert any("handing back to the autopilot" in x for x in texts(ctl))
+        assert ctl.on_frame(t, [zone(2, 5, 5, t)], pose(t)) == [] and ctl.tick(t + 10) == []  # terminal
+
+
+def start_descent(ctl: LandingController, zones, t: float = 0.0, alt: float = 20.0):
+    ctl.on_state(status(t, 0, 0, alt))
+    ctl.on_trigger(trigger(t))
+    cmds = ctl.on_frame(t, zones, pose(t))
+    ctl.on_state(status(t + 0.1, 10, 0, alt, mode="GUIDED"))
+    ctl.on_frame(t + 0.1, [z if z.id != 1 else zone(1, 10, 0, t + 0.1, born=-8) for z in zones], pose(t + 0.1, 10, 0, alt))
+    assert ctl.phase == Phase.DESCEND
+    return cmds
+
+
+def test_zone_lost_during_descent_retargets_to_another_stable_zone():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8), zone(2, -20, 5, 0.0, born=-4)])
+    t = 0.2
+    ctl.on_state(status(t, 10, 0, 18, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [zone(2, -20, 5, t, born=-4)], pose(t, 10, 0, 18))  # zone 1 gone: people walked in
+    assert len(cmds) == 1 and cmds[0].zone_id == 2 and ctl.phase == Phase.APPROACH
+    lat, lon = expected_latlon(-20, 5)
+    assert (cmds[0].target.lat_deg, cmds[0].target.lon_deg) == pytest.approx((lat, lon), abs=1e-9)
+    assert any("zone 1 lost (no longer tracked); re-targeting zone 2" in x for x in texts(ctl))
+
+
+def test_zone_shrinking_below_r0_with_no_alternative_holds_then_hands_back():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    t = 0.2
+    ctl.on_state(status(t, 10, 0, 17, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, r=1.5, born=-8)], pose(t, 10, 0, 17))
+    assert ctl.phase == Phase.HOLD
+    assert len(cmds) == 1 and cmds[0].zone_id is None  # hold where it is
+    lat, lon = expected_latlon(10, 0)
+    assert (cmds[0].target.lat_deg, cmds[0].target.lon_deg, cmds[0].target.rel_alt_m) == pytest.approx((lat, lon, 17))
+    assert any("shrank to r 1.5 m < r0 2 m" in x for x in texts(ctl))
+    while ctl.phase == Phase.HOLD:
+        t += 0.1
+        ctl.on_state(status(t, 10, 0, 17, mode="GUIDED"))
+        ctl.on_frame(t, [], pose(t, 10, 0, 17))
+        cmds = ctl.tick(t)
+    assert ctl.phase == Phase.HANDBACK and isinstance(cmds[0], Handback)
+    assert t == pytest.approx(0.2 + 4.0, abs=0.11)
+
+
+def test_hold_resumes_when_a_stable_zone_appears():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    ctl.on_state(status(0.2, 10, 0, 17, mode="GUIDED"))
+    ctl.on_frame(0.2, [], pose(0.2, 10, 0, 17))
+    assert ctl.phase == Phase.HOLD
+    cmds = ctl.on_frame(0.3, [zone(4, 0, 30, 0.3)], pose(0.3, 10, 0, 17))
+    assert ctl.phase == Phase.APPROACH and cmds[0].zone_id == 4
+
+
+def test_a_briefly_unconfirmed_zone_pauses_commands_then_is_lost():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    t = 0.2
+    for _ in range(9):  # missed for 0.9 s < zone_max_age_s: no command toward it, not lost yet
+        ctl.on_state(status(t, 10, 0, 17, mode="GUIDED"))
+        assert ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, misses=2, last=0.1)], pose(t, 10, 0, 17)) == []
+        t += 0.1
+    assert ctl.phase == Phase.DESCEND
+    t += 0.2
+    ctl.on_state(status(t, 10, 0, 17, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, misses=12, last=0.1)], pose(t, 10, 0, 17))
+    assert ctl.phase == Phase.HOLD and cmds[0].zone_id is None
+
+
+def test_stale_pose_gives_no_command():
+    ctl = LandingController(CFG)
+    ctl.on_state(status(0.0))
+    ctl.on_trigger(trigger(0.0))
+    t = 1.0
+    ctl.on_state(status(t))
+    good = [zone(1, 10, 0, t)]
+    assert ctl.on_frame(t, good, None) == []  # no pose at all
+    assert ctl.on_frame(t, good, pose(t - 0.5)) == []  # pose far from the frame's capture time
+    assert ctl.on_frame(t, good, Pose(t, float("nan"), 0, -30, 0, 0, 0)) == []
+    ctl.tick(t + 2.0)
+    assert ctl.on_frame(t, good, pose(t)) == []  # a frame captured too long ago
+    assert ctl.frames_ignored == 4 and ctl.phase == Phase.SELECT
+
+
+def test_stale_vehicle_position_gives_no_command_and_then_hands_back():
+    ctl = LandingController(CFG)
+    ctl.on_state(status(0.0))
+    ctl.on_trigger(trigger(0.0))
+    assert ctl.on_frame(1.5, [zone(1, 10, 0, 1.5)], pose(1.5)) == []  # status is 1.5 s old
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    t = 0.2
+    cmds = []
+    while not cmds:  # frames keep coming, telemetry stopped at 0.1 s
+        ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 20))
+        cmds = ctl.tick(t)
+        t += 0.1
+    assert cmds == [Handback("LAND", "vehicle position stale")]
+
+
+def test_repeated_refusals_hand_back():
+    ctl = LandingController(CFG)
+    ctl.on_state(status(0.0))
+    ctl.on_trigger(trigger(0.0))
+    t = 0.1
+    goto = ctl.on_frame(t, [zone(1, 10, 0, t)], pose(t))[0]
+    refused = CommandRefused(176, 2)
+    assert ctl.on_command_result(goto, refused) == []
+    for i in range(2):
+        t += 0.1
+        ctl.on_state(status(t))
+        again = ctl.on_frame(t, [zone(1, 10, 0, t)], pose(t))
+        assert again and isinstance(again[0], Goto)  # re-sent after a refusal
+        result = ctl.on_command_result(again[0], refused)
+    assert result == [Handback("LAND", "3 commands refused in a row")]
+    assert ctl.phase == Phase.HANDBACK
+
+
+def test_a_success_resets_the_refusal_count():
+    ctl = LandingController(CFG)
+    ctl.on_state(status(0.0))
+    ctl.on_trigger(trigger(0.0))
+    goto = ctl.on_frame(0.1, [zone(1, 10, 0, 0.1)], pose(0.1))[0]
+    ctl.on_command_result(goto, CommandRefused(176, 2))
+    ctl.on_command_result(goto, CommandRefused(176, 2))
+    ctl.on_command_result(goto, None)
+    assert ctl.on_command_result(goto, CommandRefused(176, 2)) == [] and ctl.phase == Phase.APPROACH
+
+
+def test_pilot_taking_over_stops_the_companion_without_a_command():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    assert ctl.on_state(status(0.2, 10, 0, 18, mode="POSHOLD")) == []
+    assert ctl.phase == Phase.HANDBACK
+    assert ctl.on_frame(0.3, [zone(1, 10, 0, 0.3, born=-8)], pose(0.3, 10, 0, 18)) == []
+
+
+def test_land_is_aborted_above_the_commit_altitude_only():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=11.0)
+    assert ctl.phase == Phase.DESCEND
+    ctl.on_state(status(0.2, 10, 0, 10.2, mode="GUIDED"))
+    assert ctl.on_frame(0.2, [zone(1, 10, 0, 0.2, born=-8)], pose(0.2, 10, 0, 10.2)) == [Land()]
+    ctl.on_state(status(0.3, 10, 0, 4.0, mode="LAND"))
+    assert ctl.on_frame(0.3, [], pose(0.3, 10, 0, 4.0)) == []  # committed below 5 m
+    assert ctl.phase == Phase.LAND
+    ctl2 = LandingController(CFG)
+    start_descent(ctl2, [zone(1, 10, 0, 0.0, born=-8)], alt=11.0)
+    ctl2.on_state(status(0.2, 10, 0, 10.2, mode="GUIDED"))
+    ctl2.on_frame(0.2, [zone(1, 10, 0, 0.2, born=-8)], pose(0.2, 10, 0, 10.2))
+    ctl2.on_state(status(0.3, 10, 0, 8.0, mode="LAND"))
+    cmds = ctl2.on_frame(0.3, [], pose(0.3, 10, 0, 8.0))
+    assert ctl2.phase == Phase.HOLD and isinstance(cmds[0], Goto) and cmds[0].zone_id is None
+
+
+def test_config_errors_name_the_key():
+    with pytest.raises(ValueError, match="handback_action"):
+        LandingConfig(handback_action="LOITER")
+    with pytest.raises(ValueError, match="descend_step_m"):
+        LandingConfig(descend_step_m=0)
+    with pytest.raises(ValueError, match="min_track_hits"):
+        PlannerConfig(min_track_hits=0)

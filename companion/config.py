@@ -99,9 +99,9 @@ class TrackerConfig:
 
     sigma_a: float = _f(0.5, "process noise: acceleration std of zone centre/radius (m/s^2)", min=0.0,
                         min_exclusive=True)
-    r_std: list[float] = _f([0.5, 0.5, 0.5], "measurement std of x, y, r (m)", length=3)
-    min_iou: float = _f(0.1, "least circle IoU for a proposal to match a track", min=0.0, max=1.0)
-    mu_1: int = _f(5, "a track missed more than this many frames is deleted", min=0, max=1000)
+    r_std: list[float] = _f([0.3, 0.3, 0.3], "measurement std of x, y, r (m)", length=3)
+    min_iou: float = _f(0.3, "least circle IoU for a proposal to match a track", min=0.0, max=0.99)
+    mu_1: int = _f(3, "a track missed more than this many frames is deleted", min=0, max=1000)
     mu_2: int = _f(3, "an unmatched proposal seen this many frames starts a track", min=1, max=1000)
 
 
@@ -115,7 +115,7 @@ class PipelineConfig:
     dilate_iterations: int = _f(2, "dilations applied to the occupied map", min=0, max=20)
     head_height_m: float = _f(1.7, "height of the head plane above the ground (m)", min=0.0, max=3.0)
     cell_size_m: float = _f(0.1, "metric grid cell on the head plane (m)", min=0.01, max=2.0)
-    max_extent_m: float = _f(60.0, "half-width of the metric grid around the camera (m)", min=1.0, max=1000.0)
+    max_extent_m: float = _f(40.0, "half-width of the metric grid around the camera (m)", min=1.0, max=1000.0)
     n_proposals: int = _f(5, "landing-zone proposals per frame (N_p)", min=1, max=50)
     r0_m: float = _f(2.0, "smallest useful landing-zone radius (m)", min=0.1, max=100.0)
     max_pose_age_s: float = _f(0.25, "a frame whose pose is further than this from its capture time "
@@ -148,6 +148,11 @@ class ControllerConfig:
     arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",
                                 min=0.1, max=20.0)
     descend_alt_m: float = _f(10.0, "altitude above home at which LAND is commanded (m)", min=1.0, max=200.0)
+    descend_step_m: float = _f(3.0, "the descent target is never more than this below the vehicle (m)",
+                               min=0.5, max=50.0)
+    land_abort_above_m: float = _f(5.0, "during LAND, a lost zone above this height sends the vehicle "
+                                        "back to HOLD; below it the landing is committed (m)", min=0.0, max=100.0)
+    handback_action: str = _f("LAND", "what the autopilot is asked to do on handback", choices=("LAND", "RTL"))
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import http.client
 import logging
+import socket
 import threading
 import time
 import urllib.parse
@@ -123,6 +124,7 @@ class _Status(Enum):
     CORRUPT = 2
     FAIL = 3
     END = 4
+    LOST = 5  # the connection closed: reopen now rather than wait for the stall timeout
 
 
 def _as_bgr(image: object) -> np.ndarray | None:
@@ -252,9 +254,12 @@ class _MjpegReader(_Reader):
                 data = self.resp.read(length)
                 if len(data) < length:
                     raise EOFError("MJPEG part truncated")
+        except (TimeoutError, socket.timeout) as exc:
+            log.debug("MJPEG read timed out: %s", exc)
+            return _Status.FAIL, None
         except (OSError, EOFError, ValueError, http.client.HTTPException) as exc:
             log.debug("MJPEG read failed: %s", exc)
-            return _Status.FAIL, None
+            return _Status.LOST, None
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
         return (_Status.OK, image) if image is not None else (_Status.CORRUPT, None)
 
@@ -482,6 +487,13 @@ class CameraSource:
                     self._ended = True
                     break
                 opened_once = False  # a loop restart is not a reopen
+                continue
+            elif status is _Status.LOST:
+                log.warning("camera %s: connection lost; reopening", self.source)
+                reader.close()
+                reader = None
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, self.max_backoff_s)
                 continue
             else:
                 self._stop.wait(0.01)  # a failing device returns at once: don't spin

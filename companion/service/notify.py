@@ -26,6 +26,10 @@ class Notifier:
     def __init__(self) -> None:
         self.enabled = bool(os.environ.get("NOTIFY_SOCKET"))
         self._sd = sdnotify.SystemdNotifier() if self.enabled else None
+        if self._sd is not None and self._sd.socket is not None:
+            # A full notify queue must never stall the event loop: a lost status line is
+            # harmless, a blocked main loop is not (sdnotify ignores the send error).
+            self._sd.socket.setblocking(False)
         self.ready_sent = False
         self.last_status = ""
 

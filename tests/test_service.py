@@ -1,0 +1,254 @@
+"""The service as integrators run it: ``companion run`` in a subprocess, against the simulator
+over real MAVLink on loopback, a real MJPEG camera, the real ONNX model and a real NOTIFY_SOCKET.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import AsyncIterator
+
+import pytest
+
+from companion.pipeline.camera import Intrinsics, Mount
+from companion.service.recorder import RecordingReader
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED_MODEL = REPO / "models" / "slz-density.onnx"
+PEER_MODEL = REPO.parent / "shared" / "peers" / "mcnn-shb.onnx"
+
+pytestmark = pytest.mark.sitl
+
+
+def _model() -> Path:
+    """The shipped model (the one integrators run)."""
+    if SHIPPED_MODEL.is_file():
+        return SHIPPED_MODEL
+    if PEER_MODEL.is_file():  # until the trained model is committed
+        return PEER_MODEL
+    pytest.fail(f"the shipped density model {SHIPPED_MODEL} is missing")
+
+
+def _free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+class NotifySocket:
+    """A Unix datagram socket standing in for systemd's notify socket, drained by the event
+    loop as soon as a message arrives (as systemd does), each message stamped on arrival."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.setblocking(False)
+        self.messages: list[tuple[float, str]] = []
+        self._loop = asyncio.get_running_loop()
+        self._loop.add_reader(self.sock.fileno(), self.drain)
+
+    def drain(self) -> list[tuple[float, str]]:
+        while True:
+            try:
+                data = self.sock.recv(4096)
+            except BlockingIOError:
+                return self.messages
+            self.messages.append((time.monotonic(), data.decode()))
+
+    def has(self, prefix: str) -> bool:
+        return any(any(line.startswith(prefix) for line in m.split("\n")) for _, m in self.drain())
+
+    def times(self, prefix: str) -> list[float]:
+        return [t for t, m in self.drain() if any(line.startswith(prefix) for line in m.split("\n"))]
+
+    def close(self) -> None:
+        self._loop.remove_reader(self.sock.fileno())
+        self.sock.close()
+
+
+class Service:
+    """``python -m companion run ...`` as a subprocess with its stderr collected."""
+
+    def __init__(self, args: list[str], env: dict[str, str], log: Path) -> None:
+        self.log_path = log
+        self._log = open(log, "wb")
+        self.proc = subprocess.Popen([sys.executable, "-m", "companion", "--log-level", "DEBUG", "run", *args],
+                                     env=env, stdout=self._log, stderr=subprocess.STDOUT, cwd=str(REPO))
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+        self._log.close()
+
+
+async def _until(pred, timeout: float, what: str, svc: Service | None = None) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if svc is not None and svc.proc.poll() is not None:
+            raise AssertionError(f"service exited with {svc.proc.returncode} while waiting for {what}:\n{svc.log()[-3000:]}")
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}\n"
+                                 + (svc.log()[-3000:] if svc else ""))
+        await asyncio.sleep(0.05)
+
+
+@asynccontextmanager
+async def simulated_vehicle(port: int, *, altitude: float = 25.0, fps: float = 8.0,
+                            flavour: str = "ardupilot", seed: int = 3) -> AsyncIterator[tuple]:
+    """Simulator (MAVLink udpout to ``port``) plus its MJPEG camera, the vehicle hovering."""
+    from sim.camera_server import CameraServer
+    from sim.simulator import SimConfig, Simulator
+    from sim.world import crowd_with_free_area
+
+    world = crowd_with_free_area(seed=seed)
+    sim = Simulator(SimConfig(flavour=flavour, outputs=[f"udpout:127.0.0.1:{port}"],
+                              start_position=(0.0, 0.0, 0.0), seed=seed), world=world)
+    intr = Intrinsics.from_fov(640, 480, 90.0)
+    cam = CameraServer(sim.pose, world, intr, Mount.from_degrees(0, -90, 0), fps=fps)
+    await sim.start()
+    await cam.start()
+    sim.take_off(altitude)
+    try:
+        yield sim, cam, world
+    finally:
+        await cam.stop()
+        await sim.stop()
+
+
+def _env(notify: NotifySocket | None, watchdog_usec: int | None = None) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID")}
+    if notify is not None:
+        env["NOTIFY_SOCKET"] = str(notify.path)
+    if watchdog_usec is not None:
+        env["WATCHDOG_USEC"] = str(watchdog_usec)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _write_config(tmp_path: Path, port: int, cam_url: str, extra: str = "") -> Path:
+    cfg = tmp_path / "companion.toml"
+    cfg.write_text(
+        f'[link]\nurl = "udpin:127.0.0.1:{port}"\n'
+        f'[camera]\nsource = "{cam_url}"\nwidth = 640\nheight = 480\nfps = 8.0\nhfov_deg = 90.0\n'
+        f'stall_timeout_s = 1.0\nreopen_max_backoff_s = 1.0\n'
+        f'[model]\npath = "{_model()}"\nthreads = 1\n'
+        f'[log]\nhealth_interval_s = 2.0\n' + extra)
+    return cfg
+
+
+# ---- start-up errors --------------------------------------------------------------------------
+
+def _run_quick(args: list[str], tmp_path: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "companion", "run", *args], capture_output=True, text=True,
+                          timeout=60, cwd=str(tmp_path), env=_env(None))
+
+
+def test_bad_config_exits_non_zero_and_names_the_key(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[camera]\nfsp = 10\n")
+    r = _run_quick(["--config", str(cfg)], tmp_path)
+    assert r.returncode == 2
+    assert "unknown key 'camera.fsp'" in r.stderr and "camera.fps" in r.stderr
+    r = _run_quick(["--set", "pipeline.r0_m=-3"], tmp_path)
+    assert r.returncode == 2 and "pipeline.r0_m must be >= 0.1" in r.stderr
+    r = _run_quick(["--set", "camera.fps"], tmp_path)
+    assert r.returncode == 2 and "key=value" in r.stderr
+
+
+def test_missing_or_corrupt_model_exits_non_zero_and_names_the_file(tmp_path: Path) -> None:
+    missing = tmp_path / "nowhere" / "model.onnx"
+    r = _run_quick(["--model", str(missing), "--camera", str(tmp_path)], tmp_path)
+    assert r.returncode == 2
+    assert str(missing) in r.stderr and "does not exist" in r.stderr
+    corrupt = tmp_path / "corrupt.onnx"
+    corrupt.write_bytes(b"\x08\x01garbage" * 50)
+    r = _run_quick(["--model", str(corrupt), "--camera", str(tmp_path)], tmp_path)
+    assert r.returncode == 2 and str(corrupt) in r.stderr
+
+
+def test_bad_camera_source_exits_non_zero(tmp_path: Path) -> None:
+    r = _run_quick(["--camera", str(tmp_path / "missing.mp4"), "--model", str(_model())], tmp_path)
+    assert r.returncode == 2 and "missing.mp4" in r.stderr
+
+
+# ---- running against the simulator -------------------------------------------------------------
+
+async def test_ready_watchdog_stall_and_clean_sigterm(tmp_path: Path) -> None:
+    """READY after the first heartbeat, WATCHDOG while healthy, no WATCHDOG while the camera is
+    stalled (and again once it is back), SIGTERM -> STOPPING and exit 0 within 2 s; the
+    recording it made reads back frame by frame with poses."""
+    port = _free_udp_port()
+    notify = NotifySocket(tmp_path / "notify.sock")
+    rec_dir = tmp_path / "rec"
+    async with simulated_vehicle(port) as (sim, cam, _world):
+        cfg = _write_config(tmp_path, port, cam.url)
+        svc = Service(["--config", str(cfg), "--record", str(rec_dir)], _env(notify, 1_000_000), tmp_path / "svc.log")
+        try:
+            await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
+            await _until(lambda: len(notify.times("WATCHDOG=1")) >= 3, 10, "WATCHDOG=1 pings", svc)
+            await sim.wait_for(lambda t: t.position[2] < -20.0, 30)
+            await _until(lambda: "frames camera=" in svc.log() and "processed=0 " not in svc.log().splitlines()[-1]
+                         or svc.log().count("processed=") >= 2, 20, "health log", svc)
+
+            # Camera stalls: the service stops feeding the watchdog.
+            await cam.stop()
+            t_stall = time.monotonic()
+            await _until(lambda: notify.has("STATUS=unhealthy: camera not delivering"), 10,
+                         "unhealthy status", svc)
+            t_unhealthy = time.monotonic()
+            await asyncio.sleep(2.0)
+            late = [t for t in notify.times("WATCHDOG=1") if t > t_unhealthy + 0.3]
+            assert late == [], f"WATCHDOG=1 sent while the camera was stalled ({len(late)} pings)"
+            assert t_unhealthy - t_stall < 5
+
+            # Camera back (same port): the source reopens and the watchdog resumes.
+            await cam.start()
+            t_back = time.monotonic()
+            await _until(lambda: any(t > t_back for t in notify.times("WATCHDOG=1")), 15,
+                         "WATCHDOG=1 after the camera came back", svc)
+            assert "reopened" in svc.log()
+
+            # SIGTERM: STOPPING=1, exit 0, within 2 s.
+            t0 = time.monotonic()
+            svc.proc.send_signal(signal.SIGTERM)
+            rc = await asyncio.to_thread(svc.proc.wait, 5)
+            elapsed = time.monotonic() - t0
+            assert rc == 0, svc.log()[-3000:]
+            assert elapsed < 2.0, f"shutdown took {elapsed:.2f} s"
+            assert notify.has("STOPPING=1")
+        finally:
+            svc.stop()
+            notify.close()
+
+    runs = [p for p in rec_dir.iterdir() if (p / "meta.json").is_file()]
+    assert len(runs) == 1
+    reader = RecordingReader(runs[0])
+    assert reader.intrinsics == Intrinsics.from_fov(640, 480, 90.0)
+    assert reader.meta["model"]["path"] == str(_model())
+    frames = list(reader.frames())
+    assert len(frames) >= 10, svc.log()[-2000:]
+    with_pose = [f for f in frames if f.pose is not None]
+    assert len(with_pose) >= 0.8 * len(frames)
+    ts = [f.t for f in frames]
+    assert ts == sorted(ts) and len({f.index for f in frames}) == len(frames)
+    for f in with_pose:
+        assert f.frame_bgr.shape == (480, 640, 3)
+        assert f.pose.t == pytest.approx(f.t)  # the pose is the one at the frame's capture time
+        assert -40 < f.pose.down < 0  # airborne, above home
+    # The hover altitude the recorded poses show is the simulator's (25 m).
+    assert abs(with_pose[-1].pose.down + 25.0) < 2.0
+    assert list(reader.events("zones")), "no pipeline decisions recorded"

@@ -7,6 +7,7 @@ counted and skipped; the summary says how many and why.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import sys
@@ -127,9 +128,7 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
     bar = tqdm(total=total, unit="frame", disable=not progress, file=sys.stderr,
                desc=f"replay {source.path.name}")
     try:
-        for n, frame in enumerate(source.frames):
-            if max_frames is not None and n >= max_frames:
-                break
+        for frame in itertools.islice(source.frames, max_frames):
             bar.update(1)
             if frame.image is None:
                 log.warning("frame %d skipped: %s", frame.index, frame.problem)
@@ -161,6 +160,9 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
                     summary.add_skip(reason)
     finally:
         bar.close()
+        close = getattr(source.frames, "close", None)
+        if close is not None:
+            close()  # releases a video capture left open by --max-frames or an error
         if outputs.video is not None:
             outputs.video.close()
     wall = time.perf_counter() - start

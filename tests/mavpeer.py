@@ -37,7 +37,7 @@ class MavPeer:
         self.custom_mode = custom_mode
         self.base_mode = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | m.MAV_MODE_FLAG_SAFETY_ARMED
         self.system_status = m.MAV_STATE_ACTIVE
-        self.ack_policy: dict[int, int | None] = {}
+        self.ack_policy: dict[int, int | None | Callable[[Any], int | None]] = {}
         self.default_ack: int | None = m.MAV_RESULT_ACCEPTED
         self.received: list[tuple[Any, float]] = []
         self.commands: list[Any] = []  # every COMMAND_LONG, retries included
@@ -151,6 +151,8 @@ class MavPeer:
     def _on_command(self, msg: Any) -> None:
         self.commands.append(msg)
         result = self.ack_policy.get(msg.command, self.default_ack)
+        if callable(result):  # a policy that looks at the params, e.g. refuse only one mode
+            result = result(msg)
         if result is None:
             return
         if result == m.MAV_RESULT_ACCEPTED and msg.command == m.MAV_CMD_DO_SET_MODE:
@@ -165,6 +167,31 @@ class MavPeer:
 
     def of_type(self, msg_type: str) -> list[Any]:
         return [msg for msg, _ in self.received if msg.get_type() == msg_type]
+
+    def statustexts(self) -> list[tuple[int, str]]:
+        """(severity, text) of every STATUSTEXT, chunks (same non-zero id) joined."""
+        out: list[tuple[int, str]] = []
+        open_ids: dict[int, int] = {}
+        for msg in self.of_type("STATUSTEXT"):
+            if msg.id and msg.id in open_ids:
+                i = open_ids[msg.id]
+                out[i] = (out[i][0], out[i][1] + msg.text)
+                continue
+            if msg.id:
+                open_ids[msg.id] = len(out)
+            out.append((msg.severity, msg.text))
+        return out
+
+    async def wait_for_text(self, needle: str, timeout: float = 2.0) -> tuple[int, str]:
+        """The first (joined) STATUSTEXT containing ``needle``."""
+        deadline = time.monotonic() + timeout
+        while True:
+            for severity, text in self.statustexts():
+                if needle in text:
+                    return severity, text
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"peer: no STATUSTEXT with {needle!r}; got {self.statustexts()!r}")
+            await asyncio.sleep(0.02)
 
     def commands_of(self, command: int) -> list[Any]:
         return [c for c in self.commands if c.command == command]

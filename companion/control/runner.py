@@ -1,0 +1,164 @@
+"""The async side of the landing controller: feeds it the vehicle state and executes its commands.
+
+``LandingRunner`` ticks the ``LandingController`` at ``tick_hz`` with the latest ``VehicleState``,
+forwards triggers and frames to it, executes the commands it returns through an ``Autopilot``
+flavour one at a time (a newer position target replaces one still waiting, so a slow mode change
+never builds a backlog of stale targets), reports each result back to it, and sends its events as
+STATUSTEXT. Wiring in the service::
+
+    runner = LandingRunner(LandingController(cfg), autopilot, state, link)
+    monitor.subscribe(runner.on_trigger)
+    task = asyncio.create_task(runner.run())
+    ...  # after each frame: runner.on_frame(t, tracker.tracks(), pose)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable, Sequence
+
+from pymavlink.dialects.v20 import ardupilotmega as m
+
+from companion.control.landing import (
+    Command,
+    Goto,
+    Handback,
+    Land,
+    LandingController,
+    Phase,
+    VehicleStatus,
+)
+from companion.mavlink.autopilot import Autopilot
+from companion.mavlink.failsafe import Trigger
+from companion.mavlink.link import MavLink
+from companion.mavlink.state import VehicleState
+from companion.mavlink.statustext import send_statustext
+from companion.pipeline.camera import Pose
+from companion.pipeline.tracker import Track
+
+log = logging.getLogger(__name__)
+
+
+def vehicle_status(state: VehicleState, autopilot: Autopilot | None = None) -> VehicleStatus | None:
+    """The controller's view of the vehicle from the latest telemetry, or None without position/home."""
+    if state.position is None or state.home is None:
+        return None
+    ned = state.local_ned()
+    if ned is None:
+        return None
+    return VehicleStatus(
+        state.position.t,
+        *ned,
+        home=state.home.point,
+        mode=autopilot.mode if autopilot is not None else None,
+        armed=state.armed,
+        on_ground=None if state.landed is None else state.landed.on_ground,
+    )
+
+
+class LandingRunner:
+    def __init__(
+        self,
+        controller: LandingController,
+        autopilot: Autopilot,
+        state: VehicleState,
+        link: MavLink | None = None,
+        *,
+        tick_hz: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.controller = controller
+        self.autopilot = autopilot
+        self.state = state
+        self.link = link
+        self.tick_hz = tick_hz
+        self._clock = clock
+        self._pending: list[Command] = []
+        self._wake = asyncio.Event()
+        self.executed: list[tuple[Command, Exception | None]] = []
+        self._stopped_stream = False
+
+    # -- inputs from the service ---------------------------------------------------------------
+
+    def on_trigger(self, trigger: Trigger) -> None:
+        self._submit(self.controller.on_trigger(trigger))
+
+    def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None) -> None:
+        self._submit(self.controller.on_frame(t, tracks, pose))
+
+    # -- loop ----------------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Tick and execute until cancelled (stops the autopilot's setpoint stream on the way out)."""
+        worker = asyncio.create_task(self._execute_loop(), name="landing commands")
+        try:
+            while True:
+                self.step()
+                await asyncio.sleep(1.0 / self.tick_hz)
+        finally:
+            worker.cancel()
+            try:
+                await worker
+            except asyncio.CancelledError:
+                pass
+            await self.autopilot.stop()
+
+    def step(self) -> None:
+        """One tick: the latest vehicle status, then timeouts."""
+        status = vehicle_status(self.state, self.autopilot)
+        if status is not None:
+            self._submit(self.controller.on_state(status))
+        self._submit(self.controller.tick(self._clock()))
+
+    def _submit(self, commands: list[Command]) -> None:
+        for cmd in commands:
+            if isinstance(cmd, Goto):
+                self._pending = [c for c in self._pending if not isinstance(c, Goto)]
+            elif isinstance(cmd, Handback):
+                self._pending.clear()  # nothing queued before a handback may still run
+            self._pending.append(cmd)
+        if commands:
+            self._wake.set()
+        self._flush_events()
+
+    async def _execute_loop(self) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            while self._pending:
+                cmd = self._pending.pop(0)
+                error: Exception | None = None
+                try:
+                    await self._execute(cmd)
+                except Exception as exc:  # CommandError, FlavourError, or a bug: reported, never fatal
+                    error = exc
+                    if not isinstance(exc, (RuntimeError, ValueError)):
+                        log.exception("executing %s failed", cmd)
+                self.executed.append((cmd, error))
+                self._submit(self.controller.on_command_result(cmd, error))
+            if self.controller.phase in (Phase.HANDBACK, Phase.LANDED) and not self._stopped_stream:
+                # Covers the pilot-takeover handback, which sends no command: no stream left behind.
+                self._stopped_stream = True
+                await self.autopilot.stop()
+
+    async def _execute(self, cmd: Command) -> None:
+        if isinstance(cmd, Goto):
+            await self.autopilot.goto(cmd.target)
+        elif isinstance(cmd, Land):
+            await self.autopilot.land()
+        elif isinstance(cmd, Handback):
+            await self.autopilot.handback(cmd.action)
+        else:  # pragma: no cover - exhaustive
+            raise TypeError(f"unknown command {cmd!r}")
+
+    def _flush_events(self) -> None:
+        events = self.controller.pop_events()
+        if self.link is None:
+            return
+        for event in events:
+            severity = m.MAV_SEVERITY_WARNING if event.warning else m.MAV_SEVERITY_NOTICE
+            send_statustext(self.link, event.text, severity)
+        if self.controller.phase in (Phase.HANDBACK, Phase.LANDED) and not self._stopped_stream:
+            self._wake.set()  # let the worker stop a setpoint stream

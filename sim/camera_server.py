@@ -147,9 +147,11 @@ class CameraServer:
 
     def _render_encode(self, pose: Pose, positions: tuple, index: int) -> Frame:
         from sim.render import render
-        pos, hd, mv, t, seed = positions
+        from sim.render import looks_for
+        pos, hd, mv, t, seed, ids = positions
         img = render(pos, pose, self.intrinsics, self.mount, self.ground,  # type: ignore[arg-type]
-                     headings=hd, moving=mv, t=t, seed=seed)
+                     headings=hd, moving=mv, t=t, seed=seed,
+                     looks=looks_for(ids, seed) if ids is not None else None)
         if self.stamp:
             stamp_index(img, index)
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
@@ -172,7 +174,8 @@ class CameraServer:
                 w = self.world
                 # Snapshot the world on the loop thread; render and encode off it (both release
                 # the GIL in OpenCV) so the simulator's MAVLink tasks keep their timing.
-                snap = (w.positions(), w.headings(), w.moving(), w.t, getattr(w, "seed", 0))  # type: ignore[attr-defined]
+                snap = (w.positions(), w.headings(), w.moving(), w.t, getattr(w, "seed", 0),  # type: ignore[attr-defined]
+                        w.ids() if hasattr(w, "ids") else None)
                 frame = await asyncio.to_thread(self._render_encode, pose, snap, self._index)
             except asyncio.CancelledError:
                 raise

@@ -108,6 +108,23 @@ def people_looks(n: int, seed: int = 0) -> Looks:
     return Looks(clothes, trousers, hair, skin, cap)
 
 
+def looks_for(ids: np.ndarray, seed: int = 0) -> Looks:
+    """Deterministic colours for people by id (a person looks the same whatever the others do)."""
+    from sim.ground import _hash01
+
+    ids = np.asarray(ids, np.int64).ravel()
+
+    def pick(table: np.ndarray, salt: int, p: np.ndarray | None = None) -> np.ndarray:
+        u = _hash01(seed * 7919 + salt, ids, np.full_like(ids, salt))
+        if p is None:
+            return table[np.minimum((u * len(table)).astype(int), len(table) - 1)]
+        cdf = np.cumsum(p) / np.sum(p)
+        return table[np.minimum(np.searchsorted(cdf, u), len(table) - 1)]
+
+    return Looks(pick(_CLOTHES, 1, _CLOTHES_P), pick(_TROUSERS, 2), pick(_HAIR, 3, np.array([0.45, 0.25, 0.15, 0.08, 0.07])),
+                 pick(_SKIN, 4), _hash01(seed * 7919 + 5, ids, np.full_like(ids, 5)) < 0.12)
+
+
 def _ellipse(k: int) -> np.ndarray:
     a = np.linspace(0, 2 * math.pi, k, endpoint=False)
     return np.column_stack([np.cos(a), np.sin(a)])
@@ -307,6 +324,8 @@ def render_world(world: "object", pose: Pose, intrinsics: Intrinsics, mount: Mou
                  ground: Ground, **kwargs: object) -> np.ndarray:
     """:func:`render` of a :class:`sim.world.World` at its current time (positions, headings,
     walking state and the world's seed for the people's looks)."""
+    seed = getattr(world, "seed", 0)
+    looks = looks_for(world.ids(), seed) if hasattr(world, "ids") else None
     return render(world.positions(), pose, intrinsics, mount, ground,  # type: ignore[attr-defined]
                   headings=world.headings(), moving=world.moving(),  # type: ignore[attr-defined]
-                  t=world.t, seed=getattr(world, "seed", 0), **kwargs)  # type: ignore[arg-type]
+                  looks=looks, t=world.t, seed=seed, **kwargs)  # type: ignore[arg-type]

@@ -12,6 +12,7 @@ Scenario builders for the SITL tests:
   (``world.free_areas``).
 - :func:`dense_crowd`: people everywhere in a square around a point, no landing circle anywhere.
 - :meth:`World.add_intrusion`: people that walk into a circle at a given time.
+- :func:`dronecrowd_world`: real trajectories from DroneCrowd (needs ``../shared``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from sim.walkers import (Bounds, Circle, CrowdParams, GeneratedCrowd, Intrusion,
                          MotionSource, ScriptedWalkers)
 
 __all__ = ["World", "Bounds", "Circle", "Intrusion", "default_world", "crowd_with_free_area",
-           "dense_crowd", "largest_free_circle"]
+           "dense_crowd", "dronecrowd_world", "largest_free_circle"]
 
 
 @dataclass
@@ -65,6 +66,15 @@ class World:
         """(N,) bool, True for people walking at this instant (drawn with their legs apart)."""
         parts = [np.asarray(s.moving(), bool).ravel() for s in self.sources]
         return np.concatenate(parts) if parts else np.empty(0, bool)
+
+    def ids(self) -> np.ndarray:
+        """(N,) stable person ids (a person keeps its id, and so its looks, while others come and
+        go): ``1_000_000 * source index + the source's own id`` (its list index if it has none)."""
+        parts = []
+        for k, s in enumerate(self.sources):
+            own = s.ids() if hasattr(s, "ids") else np.arange(len(s.positions()))  # type: ignore[attr-defined]
+            parts.append(np.asarray(own, np.int64).ravel() + 1_000_000 * k)
+        return np.concatenate(parts) if parts else np.empty(0, np.int64)
 
     def __len__(self) -> int:
         return len(self.positions())
@@ -175,3 +185,14 @@ def dense_crowd(seed: int = 0, centre: tuple[float, float] = (0.0, 0.0), half_si
         sources.append(GeneratedCrowd(bounds, CrowdParams(n_walkers=n_walkers, n_groups=0,
                                                           n_standing=0), seed + 1))
     return World(sources, seed=seed)
+
+
+def dronecrowd_world(sequence: int = 112, centre: tuple[float, float] = (0.0, 0.0),
+                     metres_per_pixel: float | None = None, seed: int = 0,
+                     gt_dir: str | None = None) -> World:
+    """People moving as in DroneCrowd sequence ``sequence`` (real trajectories, scaled to metres,
+    see :mod:`sim.dronecrowd`), the video's centre at ``centre``. Raises
+    ``sim.dronecrowd.DroneCrowdUnavailable`` when the licensed trajectories are not present."""
+    from sim.dronecrowd import DroneCrowdMotion
+
+    return World([DroneCrowdMotion(sequence, centre, metres_per_pixel, gt_dir=gt_dir)], seed=seed)

@@ -46,6 +46,7 @@ def test_parse_url_accepts_the_four_kinds_and_names_bad_ones():
     assert parse_url("udpin:0.0.0.0:14550").kind == "udpin"
     assert parse_url("udpout:10.0.0.2:14555").port == 14555
     assert parse_url("tcp:localhost:5760").host == "localhost"
+    assert parse_url("tcpin:0.0.0.0:5760").kind == "tcpin"
     assert parse_url("serial:/dev/ttyAMA0:921600").host == "/dev/ttyAMA0"
     for bad in ("udp:1.2.3.4:5", "tcp:host", "serial:/dev/ttyS0:12345", "udpin:h:99999", "tcp:h:port"):
         with pytest.raises(TransportError, match="connection URL"):
@@ -204,6 +205,27 @@ async def test_tcp_transport_and_reconnect():
         assert await link.command_long(m.MAV_CMD_DO_SET_MODE, (1, 4)) == m.MAV_RESULT_ACCEPTED
     finally:
         await peer.close()
+        await link.close()
+
+
+async def test_tcpin_transport():
+    link = MavLink(LinkConfig("tcpin:127.0.0.1:0", message_rates_hz={}, **FAST))
+    await link.start()
+    host, port = link.local_address
+    reader, writer = await asyncio.open_connection(host, port)
+    try:
+        fc = m.MAVLink(writer, srcSystem=1, srcComponent=1)
+        fc.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4)
+        await link.wait_connected(2.0)
+        parser = m.MAVLink(None)
+        for _ in range(20):
+            msgs = parser.parse_buffer(await asyncio.wait_for(reader.read(4096), 1.0)) or []
+            if any(x.get_type() == "HEARTBEAT" and x.get_srcComponent() == 191 for x in msgs):
+                break
+        else:
+            raise AssertionError("no heartbeat from the link over tcpin")
+    finally:
+        writer.close()
         await link.close()
 
 

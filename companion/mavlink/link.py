@@ -35,7 +35,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from companion.mavlink.transports import Transport, UdpTransport, make_transport
+from companion.mavlink.transports import TcpServerTransport, Transport, UdpTransport, make_transport
 
 log = logging.getLogger(__name__)
 
@@ -252,9 +252,9 @@ class MavLink:
 
     @property
     def local_address(self) -> tuple[str, int]:
-        """The bound UDP address (for ``udpin:...:0``)."""
-        if not isinstance(self._transport, UdpTransport):
-            raise TypeError("local_address is only defined for UDP links")
+        """The bound address of a listening link (``udpin:...:0``, ``tcpin:...:0``)."""
+        if not isinstance(self._transport, (UdpTransport, TcpServerTransport)):
+            raise TypeError("local_address is only defined for udpin/tcpin links")
         return self._transport.local_address
 
     # -- subscriptions -----------------------------------------------------------------------

@@ -10,6 +10,7 @@ URLs (the same spelling as MAVProxy / mavlink-router / MAVSDK):
 - ``udpin:HOST:PORT``   listen; replies go to the address the last packet came from.
 - ``udpout:HOST:PORT``  send to HOST:PORT (the flight controller or a router listens there).
 - ``tcp:HOST:PORT``     TCP client; reconnects every ``reconnect_s`` seconds after a loss.
+- ``tcpin:HOST:PORT``   TCP server; talks to the most recent client (a router or SITL connecting in).
 - ``serial:/dev/ttyX:BAUD``  a serial port (UART, USB CDC), raw 8N1 through termios; no pyserial.
 """
 
@@ -34,7 +35,7 @@ class TransportError(ValueError):
 
 @dataclass(frozen=True)
 class Endpoint:
-    """A parsed connection URL. ``kind`` is udpin, udpout, tcp or serial; ``port`` is baud for serial."""
+    """A parsed connection URL. ``kind`` is udpin, udpout, tcp, tcpin or serial; ``port`` is baud for serial."""
 
     kind: str
     host: str
@@ -48,10 +49,10 @@ def parse_url(url: str) -> Endpoint:
     """Parse ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``tcp:HOST:PORT`` or ``serial:DEV:BAUD``."""
     kind, sep, rest = url.partition(":")
     host, sep2, port_s = rest.rpartition(":")
-    if not sep or not sep2 or kind not in ("udpin", "udpout", "tcp", "serial") or not host:
+    if not sep or not sep2 or kind not in ("udpin", "udpout", "tcp", "tcpin", "serial") or not host:
         raise TransportError(
             f"connection URL {url!r} is not one of udpin:HOST:PORT, udpout:HOST:PORT, "
-            "tcp:HOST:PORT, serial:/dev/DEVICE:BAUD"
+            "tcp:HOST:PORT, tcpin:HOST:PORT, serial:/dev/DEVICE:BAUD"
         )
     try:
         port = int(port_s)
@@ -225,6 +226,63 @@ class TcpTransport(Transport):
             self._writer = None
 
 
+class TcpServerTransport(Transport):
+    """TCP server: the newest client is the one we talk to; an older one is closed."""
+
+    def __init__(self, endpoint: Endpoint, on_data: DataCallback) -> None:
+        super().__init__(endpoint, on_data)
+        self._server: asyncio.Server | None = None
+        self._writer: asyncio.StreamWriter | None = None
+
+    async def start(self) -> None:
+        try:
+            self._server = await asyncio.start_server(self._client, self.endpoint.host, self.endpoint.port)
+        except OSError as exc:
+            raise TransportError(f"cannot listen on {self.endpoint}: {exc}") from exc
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        assert self._server is not None
+        return self._server.sockets[0].getsockname()[:2]
+
+    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self._writer is not None:
+            self._writer.close()
+        self._writer = writer
+        log.info("tcp client %s connected", writer.get_extra_info("peername"))
+        try:
+            while data := await reader.read(4096):
+                self._on_data(data)
+        except OSError as exc:
+            log.warning("tcp client lost: %s", exc)
+        finally:
+            if self._writer is writer:
+                self._writer = None
+            writer.close()
+
+    @property
+    def can_send(self) -> bool:
+        return self._writer is not None
+
+    def send(self, data: bytes) -> None:
+        if self._writer is None:
+            return
+        try:
+            self._writer.write(data)
+            self.bytes_sent += len(data)
+        except (OSError, RuntimeError) as exc:
+            self.send_errors += 1
+            log.debug("tcp send failed: %s", exc)
+
+    async def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        if self._server is not None:
+            self._server.close()
+            self._server = None
+
+
 _BAUDS = {
     b: getattr(termios, f"B{b}")
     for b in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600, 1000000, 1500000, 2000000, 3000000)
@@ -298,4 +356,6 @@ def make_transport(url: str, on_data: DataCallback) -> Transport:
         return UdpTransport(ep, on_data)
     if ep.kind == "tcp":
         return TcpTransport(ep, on_data)
+    if ep.kind == "tcpin":
+        return TcpServerTransport(ep, on_data)
     return SerialTransport(ep, on_data)

@@ -4,7 +4,8 @@ PX4's ``custom_mode`` packs the main mode in bits 16-23 and the sub mode in bits
 takes them as param2 and param3. OFFBOARD is refused unless setpoints are already arriving, and
 PX4 leaves OFFBOARD (its COM_OBL_RC_ACT action) if they stop for COM_OF_LOSS_T, so ``goto`` starts a
 SET_POSITION_TARGET_GLOBAL_INT stream at ``setpoint_rate_hz`` (>= 5 Hz, well above PX4's 2 Hz
-minimum) and only then switches; the stream runs until the vehicle is told to land, loiter or
+minimum) and only then switches, after ``warmup_s`` (PX4 >= 1.14 wants the offboard signal for
+more than 1 s before it allows the switch); the stream runs until the vehicle is told to land, loiter or
 return.
 """
 
@@ -49,7 +50,7 @@ class PX4(Autopilot):
     name = "px4"
     OFFBOARD = "OFFBOARD"
 
-    def __init__(self, link: MavLink, *, setpoint_rate_hz: float = 10.0, warmup_s: float = 0.5) -> None:
+    def __init__(self, link: MavLink, *, setpoint_rate_hz: float = 10.0, warmup_s: float = 1.2) -> None:
         super().__init__(link)
         if setpoint_rate_hz < 5.0:
             raise FlavourError(f"PX4 setpoint_rate_hz must be >= 5 Hz, not {setpoint_rate_hz}")

@@ -19,7 +19,6 @@ import numpy as np
 from companion.pipeline.camera import Intrinsics, Mount, Pose
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".ts")
 KINDS = ("auto", "frames", "video", "recording")
 
 
@@ -173,14 +172,13 @@ def open_recording(path: Path) -> ReplaySource:
 
 
 def guess_kind(path: Path) -> str:
-    """``frames`` for a folder of images, ``video`` for a video file, else ``recording``."""
+    """``frames`` for a folder of images, ``recording`` for another folder (recordings are
+    folders), ``video`` for a file (OpenCV decides whether it can play it)."""
     if not path.exists():
         raise ReplayInputError(f"input {path} does not exist")
     if path.is_dir():
         return "frames" if image_files(path) else "recording"
-    if path.suffix.lower() in VIDEO_SUFFIXES:
-        return "video"
-    return "recording"
+    return "video"
 
 
 def open_input(path: str | Path, kind: str = "auto", fps: float | None = None) -> ReplaySource:

@@ -8,7 +8,7 @@ extrinsics and intrinsics, so a head at ``z = -1.7`` lands exactly where
 
 A person seen from above (modelled on how people look in top-down drone photos, not copied from
 any): a soft shadow on the ground; legs (apart when walking) and arms as strokes; shoulders/torso
-as an ellipse ~0.48 m x 0.26 m at ``z = -1.4`` in a clothing colour; the head as an ellipse
+as an ellipse ~0.5 m x 0.3 m at ``z = -1.4`` in a clothing colour; the head as an ellipse
 ~0.2 m wide at ``z = -1.7``, mostly dark hair with a skin face patch toward the heading, or a cap.
 
 World = local NED metres (ground z = 0); people are ground points (north, east) with a heading in
@@ -162,12 +162,15 @@ def _parts(pos: np.ndarray, heading: np.ndarray, moving: np.ndarray, phase: np.n
     feet_r = np.concatenate([pos + 0.1 * r - swing * f, np.zeros((n, 1))], axis=1)
     sho_l = np.concatenate([pos - 0.2 * r, np.full((n, 1), SHOULDER_Z + 0.05)], axis=1)
     sho_r = np.concatenate([pos + 0.2 * r, np.full((n, 1), SHOULDER_Z + 0.05)], axis=1)
-    hand_l = np.concatenate([pos - 0.27 * r - swing * f, np.full((n, 1), -0.8)], axis=1)
-    hand_r = np.concatenate([pos + 0.27 * r + swing * f, np.full((n, 1), -0.8)], axis=1)
+    hand_l = np.concatenate([pos - 0.28 * r - swing * f, np.full((n, 1), -0.8)], axis=1)
+    hand_r = np.concatenate([pos + 0.28 * r + swing * f, np.full((n, 1), -0.8)], axis=1)
+    elbow_l = (sho_l + hand_l) / 2
+    elbow_r = (sho_r + hand_r) / 2
     return {
         "shadow": shadow,
-        "limbs": np.stack([hip, feet_l, hip, feet_r, sho_l, hand_l, sho_r, hand_r], axis=1),
-        "torso": ring(pos, SHOULDER_Z, 0.13, 0.24, _E12),
+        "limbs": np.stack([hip, feet_l, hip, feet_r, sho_l, hand_l, sho_r, hand_r,
+                           sho_l, elbow_l, sho_r, elbow_r], axis=1),
+        "torso": ring(pos, SHOULDER_Z, 0.15, 0.25, _E12),
         "face": ring(pos + 0.045 * f, HEAD_Z + 0.04, 0.085, 0.075, _E8),
         "hair": ring(pos - 0.015 * f, HEAD_Z, 0.095, 0.085, _E8),
         "centre": np.concatenate([pos, np.full((n, 1), HEAD_Z)], axis=1)[:, None, :],
@@ -312,6 +315,8 @@ def _draw_people(img: np.ndarray, pos: np.ndarray, hd: np.ndarray, mv: np.ndarra
         line(img, L[2], L[3], tr, lw, AA, SHIFT)
         line(img, L[4], L[5], sk, aw, AA, SHIFT)
         line(img, L[6], L[7], sk, aw, AA, SHIFT)
+        line(img, L[8], L[9], clothes[k], aw + 1, AA, SHIFT)  # sleeves
+        line(img, L[10], L[11], clothes[k], aw + 1, AA, SHIFT)
         fill(img, [torso[k]], clothes[k], AA, SHIFT)
         if cap[k]:
             fill(img, [hair[k]], clothes[k], AA, SHIFT)

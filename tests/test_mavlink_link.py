@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import tempfile
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
@@ -269,8 +270,19 @@ async def test_serial_transport_over_a_pty():
 
 async def test_serial_open_errors_are_clear():
     link = MavLink(LinkConfig("serial:/nonexistent/ttyX:57600", **FAST))
-    with pytest.raises(TransportError, match="cannot open serial port /nonexistent/ttyX"):
+    with pytest.raises(OSError, match="cannot open serial port /nonexistent/ttyX"):
         await link.start()
+    with tempfile.NamedTemporaryFile() as f:  # a regular file is not a serial port
+        with pytest.raises(TransportError, match="is not a serial port"):
+            await MavLink(LinkConfig(f"serial:{f.name}:57600", **FAST)).start()
+    busy = MavLink(LinkConfig("udpin:127.0.0.1:0", **FAST))
+    await busy.start()
+    try:
+        host, port = busy.local_address
+        with pytest.raises(OSError, match="cannot open udpin"):
+            await MavLink(LinkConfig(f"udpin:{host}:{port}", **FAST)).start()
+    finally:
+        await busy.close()
 
 
 async def test_signing_accepts_only_signed_packets():

@@ -30,7 +30,11 @@ DataCallback = Callable[[bytes], None]
 
 
 class TransportError(ValueError):
-    """A connection URL that cannot be parsed or opened."""
+    """A connection URL that cannot be parsed (a configuration error)."""
+
+
+class TransportOpenError(TransportError, OSError):
+    """A well-formed URL whose socket or device cannot be opened (also an ``OSError``)."""
 
 
 @dataclass(frozen=True)
@@ -128,7 +132,7 @@ class UdpTransport(Transport):
                     lambda: _UdpProtocol(self), local_addr=("0.0.0.0", 0)
                 )
         except OSError as exc:
-            raise TransportError(f"cannot open {self.endpoint}: {exc}") from exc
+            raise TransportOpenError(f"cannot open {self.endpoint}: {exc}") from exc
 
     @property
     def local_address(self) -> tuple[str, int]:
@@ -238,7 +242,7 @@ class TcpServerTransport(Transport):
         try:
             self._server = await asyncio.start_server(self._client, self.endpoint.host, self.endpoint.port)
         except OSError as exc:
-            raise TransportError(f"cannot listen on {self.endpoint}: {exc}") from exc
+            raise TransportOpenError(f"cannot listen on {self.endpoint}: {exc}") from exc
 
     @property
     def local_address(self) -> tuple[str, int]:
@@ -301,7 +305,7 @@ class SerialTransport(Transport):
         try:
             fd = os.open(self.endpoint.host, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         except OSError as exc:
-            raise TransportError(f"cannot open serial port {self.endpoint.host}: {exc}") from exc
+            raise TransportOpenError(f"cannot open serial port {self.endpoint.host}: {exc}") from exc
         try:
             tty.setraw(fd)
             attrs = termios.tcgetattr(fd)
@@ -311,7 +315,7 @@ class SerialTransport(Transport):
             termios.tcsetattr(fd, termios.TCSANOW, attrs)
         except termios.error as exc:
             os.close(fd)
-            raise TransportError(f"{self.endpoint.host} is not a serial port: {exc}") from exc
+            raise TransportOpenError(f"{self.endpoint.host} is not a serial port: {exc}") from exc
         self._fd = fd
         asyncio.get_running_loop().add_reader(fd, self._readable)
 

@@ -302,6 +302,7 @@ def _draw_people(img: np.ndarray, pos: np.ndarray, hd: np.ndarray, mv: np.ndarra
     hair = list(_to_fixed(uv["hair"][0]))
     leg_w = np.maximum(1, np.round(0.13 * px_per_m)).astype(int).tolist()
     arm_w = np.maximum(1, np.round(0.09 * px_per_m)).astype(int).tolist()
+    sleeve_w = np.maximum(1, np.round(0.14 * px_per_m)).astype(int).tolist()
     trousers = lk.trousers[idx].tolist()
     clothes = lk.clothes[idx].tolist()
     skin = lk.skin[idx].tolist()
@@ -315,8 +316,8 @@ def _draw_people(img: np.ndarray, pos: np.ndarray, hd: np.ndarray, mv: np.ndarra
         line(img, L[2], L[3], tr, lw, AA, SHIFT)
         line(img, L[4], L[5], sk, aw, AA, SHIFT)
         line(img, L[6], L[7], sk, aw, AA, SHIFT)
-        line(img, L[8], L[9], clothes[k], aw + 1, AA, SHIFT)  # sleeves
-        line(img, L[10], L[11], clothes[k], aw + 1, AA, SHIFT)
+        line(img, L[8], L[9], clothes[k], sleeve_w[k], AA, SHIFT)
+        line(img, L[10], L[11], clothes[k], sleeve_w[k], AA, SHIFT)
         fill(img, [torso[k]], clothes[k], AA, SHIFT)
         if cap[k]:
             fill(img, [hair[k]], clothes[k], AA, SHIFT)

@@ -265,7 +265,7 @@ def test_repeated_refusals_hand_back():
         again = ctl.on_frame(t, [zone(1, 10, 0, t)], pose(t))
         assert again and isinstance(again[0], Goto)  # re-sent after a refusal
         result = ctl.on_command_result(again[0], refused)
-    assert result == [Handback("LAND", "3 commands refused in a row")]
+    assert result == [Handback("LAND", "3 commands failed in a row")]
     assert ctl.phase == Phase.HANDBACK
 
 
@@ -313,3 +313,23 @@ def test_config_errors_name_the_key():
         LandingConfig(descend_step_m=0)
     with pytest.raises(ValueError, match="min_track_hits"):
         PlannerConfig(min_track_hits=0)
+
+
+def test_a_rangefinder_height_decides_when_to_land_over_raised_ground():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=20.0)
+    # The zone is on a 8 m rise: 20 m above home is only 12 m above the ground there.
+    ctl.on_state(status(0.2, 10, 0, 20.0, mode="GUIDED", agl=12.0))
+    cmds = ctl.on_frame(0.2, [zone(1, 10, 0, 0.2, born=-8)], pose(0.2, 10, 0, 20.0))
+    assert cmds[0].target.rel_alt_m == pytest.approx(18.0)  # a 2 m step, not 3: stop at 10 m AGL
+    ctl.on_state(status(0.3, 10, 0, 18.2, mode="GUIDED", agl=10.2))
+    assert ctl.on_frame(0.3, [zone(1, 10, 0, 0.3, born=-8)], pose(0.3, 10, 0, 18.2)) == [Land()]
+
+
+def test_touching_down_early_during_the_descent_hands_to_land():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=20.0)
+    ctl.on_state(status(0.2, 10, 0, 14.0, mode="GUIDED", on_ground=True))
+    assert ctl.on_frame(0.2, [zone(1, 10, 0, 0.2, born=-8)], pose(0.2, 10, 0, 14.0)) == [Land()]
+    ctl.on_state(status(0.3, 10, 0, 14.0, mode="LAND", on_ground=True))
+    assert ctl.phase == Phase.LANDED

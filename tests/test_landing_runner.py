@@ -22,7 +22,7 @@ from companion.control.planner import PlannerConfig
 from companion.control.runner import LandingRunner
 from companion.mavlink.autopilot import select_flavour
 from companion.mavlink.failsafe import Trigger, TriggerSource
-from companion.mavlink.link import CommandRefused, LinkConfig, MavLink
+from companion.mavlink.link import CommandRefused, CommandTimeout, LinkConfig, MavLink
 from companion.mavlink.px4 import px4_custom_mode
 from companion.mavlink.state import VehicleState
 from companion.pipeline.tracker import Track
@@ -235,3 +235,17 @@ async def test_stale_pose_no_command_at_all():
             await asyncio.sleep(0.05)
         assert runner.controller.phase == Phase.SELECT
         assert peer.of_type("SET_POSITION_TARGET_GLOBAL_INT") == [] and mode_changes(peer) == []
+
+
+async def test_unanswered_guided_times_out_then_hands_back():
+    async with rig() as (runner, vehicle, peer, state):
+        peer.ack_policy[m.MAV_CMD_DO_SET_MODE] = lambda c: None if c.param2 == 4 else m.MAV_RESULT_ACCEPTED
+        runner.on_trigger(Trigger("battery", TriggerSource.BATTERY, time.monotonic()))
+        await feed(runner, state, lambda t: [zone(1, 5, 5, t)], lambda: runner.controller.phase == Phase.HANDBACK)
+        await peer.wait_for("COMMAND_LONG", lambda c: c.command == m.MAV_CMD_DO_SET_MODE and c.param2 == 9)
+        errors = [e for _, e in runner.executed if e is not None]
+        assert len(errors) == 3 and all(isinstance(e, CommandTimeout) for e in errors)
+        # Each attempt was retried with the confirmation field counting up.
+        assert [c.confirmation for c in peer.commands_of(m.MAV_CMD_DO_SET_MODE)[:2]] == [0, 1]
+        _, text = await peer.wait_for_text("handing back")
+        assert "3 commands failed in a row" in text

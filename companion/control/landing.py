@@ -104,7 +104,8 @@ class LandingConfig:
 class VehicleStatus:
     """The vehicle now: ``t`` receive time (s) of its position; NED metres from home; ``home`` WGS84.
 
-    ``mode`` is the flavour's mode name; ``on_ground``/``armed`` None when unknown.
+    ``mode`` is the flavour's mode name; ``on_ground``/``armed`` None when unknown; ``agl`` metres
+    above ground from a fresh rangefinder, None without one (then heights are above home).
     """
 
     t: float
@@ -115,11 +116,17 @@ class VehicleStatus:
     mode: str | None = None
     armed: bool | None = None
     on_ground: bool | None = None
+    agl: float | None = None
 
     @property
     def alt(self) -> float:
         """Metres above home."""
         return -self.down
+
+    @property
+    def height(self) -> float:
+        """Metres above the ground below: a fresh downward rangefinder if any, else above home."""
+        return self.agl if self.agl is not None and math.isfinite(self.agl) else self.alt
 
 
 @dataclass(frozen=True)
@@ -249,7 +256,7 @@ class LandingController:
         if isinstance(command, Handback):
             return []  # nothing more to try: the autopilot's own failsafe is still armed
         if self.phase in ACTIVE and self.refusals >= self.config.max_refusals:
-            return self._handback(f"{self.refusals} commands refused in a row")
+            return self._handback(f"{self.refusals} commands failed in a row")
         if isinstance(command, Goto):
             self._last_goto = None  # re-send at the next frame
         return []
@@ -282,7 +289,8 @@ class LandingController:
     def _approach(self, zone: Track, verb: str) -> list[Command]:
         assert self.status is not None
         self.target = zone
-        self._approach_alt = max(self.status.alt, self.config.descend_alt_m)
+        # Level flight, but never lower than descend_alt_m above the ground below.
+        self._approach_alt = self.status.alt + max(0.0, self.config.descend_alt_m - self.status.height)
         dist = math.hypot(zone.x - self.status.north, zone.y - self.status.east)
         self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m")
         self._last_goto = None
@@ -305,20 +313,22 @@ class LandingController:
                 return self._goto(track.x, track.y, self._approach_alt, track.id)
             self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m")
         if self.phase == Phase.DESCEND:
-            if dist <= c.arrive_radius_m and s.alt <= c.descend_alt_m + c.alt_tolerance_m:
-                self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.alt:.1f} m, radius {track.r:.1f} m")
+            low = s.height <= c.descend_alt_m + c.alt_tolerance_m
+            if (dist <= c.arrive_radius_m and low) or s.on_ground:
+                # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
+                self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m")
                 return [Land()]
             # The carrot stays within one step below the vehicle, and only moves down while over
             # the zone: a lost zone never leaves the vehicle committed to a long descent.
-            alt = s.alt if dist > 2 * c.arrive_radius_m else max(c.descend_alt_m, s.alt - c.descend_step_m)
-            return self._goto(track.x, track.y, alt, track.id)
+            drop = 0.0 if dist > 2 * c.arrive_radius_m else min(c.descend_step_m, max(0.0, s.height - c.descend_alt_m))
+            return self._goto(track.x, track.y, s.alt - drop, track.id)
         return []
 
     def _lost(self, why: str) -> list[Command]:
         assert self.target is not None
         lost = self.target
         s = self.status
-        if self.phase == Phase.LAND and s is not None and s.alt <= self.config.land_abort_above_m:
+        if self.phase == Phase.LAND and s is not None and s.height <= self.config.land_abort_above_m:
             return []  # committed: too low to fly away safely; the autopilot finishes the landing
         other = self.planner.choose(self.tracks, self.now, exclude=(lost.id,)) if self._status_fresh() else None
         if other is not None:

@@ -41,8 +41,13 @@ from companion.pipeline.tracker import Track
 log = logging.getLogger(__name__)
 
 
-def vehicle_status(state: VehicleState, autopilot: Autopilot | None = None) -> VehicleStatus | None:
-    """The controller's view of the vehicle from the latest telemetry, or None without position/home."""
+def vehicle_status(
+    state: VehicleState, autopilot: Autopilot | None = None, now: float | None = None
+) -> VehicleStatus | None:
+    """The controller's view of the vehicle from the latest telemetry, or None without position/home.
+
+    ``now`` (monotonic s) decides whether the rangefinder is fresh enough to give ``agl``.
+    """
     if state.position is None or state.home is None:
         return None
     ned = state.local_ned()
@@ -55,6 +60,7 @@ def vehicle_status(state: VehicleState, autopilot: Autopilot | None = None) -> V
         mode=autopilot.mode if autopilot is not None else None,
         armed=state.armed,
         on_ground=None if state.landed is None else state.landed.on_ground,
+        agl=state.altitude_above_ground(time.monotonic() if now is None else now),
     )
 
 
@@ -107,10 +113,11 @@ class LandingRunner:
 
     def step(self) -> None:
         """One tick: the latest vehicle status, then timeouts."""
-        status = vehicle_status(self.state, self.autopilot)
+        now = self._clock()
+        status = vehicle_status(self.state, self.autopilot, now)
         if status is not None:
             self._submit(self.controller.on_state(status))
-        self._submit(self.controller.tick(self._clock()))
+        self._submit(self.controller.tick(now))
 
     def _submit(self, commands: list[Command]) -> None:
         for cmd in commands:

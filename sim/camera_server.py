@@ -115,7 +115,9 @@ class CameraServer:
         return render_world(self.world, p, self.intrinsics, self.mount, self.ground)  # type: ignore[arg-type]
 
     async def start(self) -> None:
-        """Bind the port and start rendering."""
+        """Render a first frame (generating the ground tiles in view), bind the port, start."""
+        with contextlib.suppress(Exception):  # a bad first pose is the render loop's to count
+            await asyncio.to_thread(self.render_now)
         self._cond = asyncio.Condition()
         self._server = await asyncio.start_server(self._handle, self.host, self.port)
         self.port = self._server.sockets[0].getsockname()[1]
@@ -375,3 +377,27 @@ class LatestFrameReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+async def _serve_forever(seconds: float | None, port: int, altitude: float) -> None:
+    from sim.world import default_world
+
+    world = default_world(seed=0)
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    srv = CameraServer(lambda: Pose(time.monotonic(), 0.0, 0.0, -altitude, 0.0, 0.0, 0.0), world, K,
+                       Mount(), port=port, advance_world=True)
+    async with srv:
+        print(f"simulated camera at {srv.url} ({altitude:g} m, straight down); Ctrl-C stops", flush=True)
+        await asyncio.sleep(seconds if seconds is not None else 1e9)
+
+
+if __name__ == "__main__":  # python -m sim.camera_server [--port 8080] [--altitude 30]
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Serve the default simulated world as an MJPEG camera")
+    ap.add_argument("--port", type=int, default=8080)
+    ap.add_argument("--altitude", type=float, default=30.0, help="metres above the ground")
+    ap.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    a = ap.parse_args()
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(_serve_forever(a.seconds, a.port, a.altitude))

@@ -4,7 +4,8 @@ Everything is generated from a seed (no image files, nothing from the licensed d
 NED metres on the ground plane ``z = 0``. The ground is endless and made lazily: square tiles of
 ``tile_px`` pixels at resolution ``base_res * 2**level`` metres per pixel are drawn on demand and
 cached, so a render at 60 m reads coarse tiles and one at 10 m fine ones, and memory stays at a
-few tens of MB.
+few tens of MB. A tile is generated the first time it is needed (tens of ms each; the first
+frame at a new altitude or place can take a few hundred ms).
 
 Layout: a grid of ``BLOCK`` metre blocks. Every fourth row/column of blocks has a road along its
 edge (asphalt, dashed centre line, parked cars); a block is lawn (mowing stripes, footpaths,
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -115,6 +117,8 @@ class ProceduralGround:
         self._blocks = functools.lru_cache(maxsize=512)(self._make_block)
         self._mosaic_key: tuple | None = None
         self._mosaic: np.ndarray | None = None
+        # The camera server renders in a worker thread while render_now may run on another.
+        self._lock = threading.Lock()
 
     # -- layout -------------------------------------------------------------------------------
     def _make_block(self, bi: int, bj: int) -> tuple[Shape, ...]:
@@ -254,15 +258,17 @@ class ProceduralGround:
                 break
             level += 1
         key = (level, ti0, ti1, tj0, tj1)
-        if key != self._mosaic_key:
-            rows = [np.hstack([self.tile(level, ti, tj) for tj in range(tj0, tj1 + 1)])
-                    for ti in range(ti0, ti1 + 1)]
-            self._mosaic = np.vstack(rows)
-            self._mosaic_key = key
+        with self._lock:
+            if key != self._mosaic_key:
+                rows = [np.hstack([self.tile(level, ti, tj) for tj in range(tj0, tj1 + 1)])
+                        for ti in range(ti0, ti1 + 1)]
+                self._mosaic = np.vstack(rows)
+                self._mosaic_key = key
+            mosaic = self._mosaic
         r = self.res(level)
         A = np.array([[0.0, 1.0 / r, -tj0 * S / r], [1.0 / r, 0.0, -ti0 * S / r], [0.0, 0.0, 1.0]])
-        assert self._mosaic is not None
-        return self._mosaic, A
+        assert mosaic is not None
+        return mosaic, A
 
 
 class FlatGround:

@@ -123,7 +123,8 @@ async def test_bad_pose_is_counted_not_fatal() -> None:
     srv = CameraServer(lambda: next(poses, POSE), default_world(seed=1), K, Mount(), fps=30)
     async with srv:
         await asyncio.sleep(0.4)
-    assert srv.errors == 3 and srv.frames_rendered >= 3
+    # start() spends one pose on its first render; the loop counts the rest and carries on.
+    assert srv.errors == 2 and srv.frames_rendered >= 3
 
 
 def test_render_now_is_the_in_process_path() -> None:

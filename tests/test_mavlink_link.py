@@ -14,6 +14,7 @@ from companion.mavlink.link import (
     CommandTimeout,
     LinkConfig,
     MavLink,
+    message_rates,
     parse_signing_key,
 )
 from companion.mavlink.transports import TransportError, parse_url
@@ -52,6 +53,11 @@ def test_parse_url_accepts_the_four_kinds_and_names_bad_ones():
     for bad in ("udp:1.2.3.4:5", "tcp:host", "serial:/dev/ttyS0:12345", "udpin:h:99999", "tcp:h:port"):
         with pytest.raises(TransportError, match="connection URL"):
             parse_url(bad)
+
+
+def test_message_rates_put_the_pose_at_the_telemetry_rate():
+    rates = message_rates(40.0)
+    assert rates["ATTITUDE"] == rates["GLOBAL_POSITION_INT"] == 40.0 and rates["BATTERY_STATUS"] == 1.0
 
 
 def test_config_errors_name_the_key():

@@ -62,6 +62,13 @@ DEFAULT_MESSAGE_RATES_HZ: Mapping[str, float] = MappingProxyType(
     }
 )
 
+def message_rates(telemetry_rate_hz: float) -> dict[str, float]:
+    """The default rates with the pose messages (ATTITUDE, GLOBAL_POSITION_INT) at ``telemetry_rate_hz``."""
+    rates = dict(DEFAULT_MESSAGE_RATES_HZ)
+    rates["ATTITUDE"] = rates["GLOBAL_POSITION_INT"] = float(telemetry_rate_hz)
+    return rates
+
+
 # MAVLink 2 signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC.
 _SIGNING_EPOCH = 1420070400
 

@@ -53,7 +53,7 @@ class VehicleParams:
     battery_cells: int = 4
     hover_current_a: float = 18.0
     idle_current_a: float = 0.5
-    position_gain: float = 1.0        # 1/s, P gain of the position loop (like PSC_POSXY_P)
+    position_gain: float = 2.0        # 1/s, P gain of the position loop (PSC_POSXY_P-like)
 
     def __post_init__(self) -> None:
         for name in ("max_speed_xy", "max_speed_up", "max_speed_down", "max_accel_xy",

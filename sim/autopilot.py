@@ -214,6 +214,10 @@ class Autopilot(ABC):
     def mode_for(self, behaviour: Behaviour) -> int:
         """The flavour mode number the autopilot itself switches to for a behaviour."""
 
+    def mode_name(self, custom_mode: int | None = None) -> str:
+        """Human name of a mode number (the current one by default)."""
+        return str(self.custom_mode if custom_mode is None else custom_mode)
+
     @abstractmethod
     def base_mode_flags(self) -> int:
         """HEARTBEAT base_mode without SAFETY_ARMED."""
@@ -257,7 +261,7 @@ class Autopilot(ABC):
         self.custom_mode = custom_mode
         self._enter(self.behaviour)
         if old != custom_mode:
-            log.info("%s mode %s -> %s", self.FLAVOUR, old, custom_mode)
+            log.info("%s mode %s -> %s", self.FLAVOUR, self.mode_name(old), self.mode_name(custom_mode))
             for cb in list(self.on_mode_change):
                 cb(old, custom_mode)
 

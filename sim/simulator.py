@@ -185,7 +185,7 @@ class Simulator:
             t=time.monotonic(), position=s.position.copy(), velocity=s.velocity.copy(),
             roll=s.roll, pitch=s.pitch, yaw=s.yaw, armed=s.armed, landed=s.land_complete,
             on_ground=s.on_ground, custom_mode=ap.custom_mode,
-            mode=ap.mode_name(),  # type: ignore[attr-defined]
+            mode=ap.mode_name(),
             battery_remaining=self.vehicle.battery_remaining,
             failsafes=frozenset(ap.failsafes))
 

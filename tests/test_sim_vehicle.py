@@ -205,3 +205,26 @@ def test_geoframe_round_trip_through_geographiclib() -> None:
     assert alt == pytest.approx(518.0)
     n, e = geo.to_local(lat, lon)
     assert (n, e) == pytest.approx((120.0, -45.0), abs=1e-6)
+
+
+def test_cli_builds_the_configuration_and_rejects_bad_links() -> None:
+    import argparse
+
+    from sim import cli
+    from sim.endpoint import parse_url
+
+    parser = argparse.ArgumentParser()
+    cli.configure(parser)
+    args = parser.parse_args(["--flavour", "px4", "--out", "udp:127.0.0.1:14550", "--out",
+                              "udpin:127.0.0.1:14560", "--start-alt", "30", "--home",
+                              "40.0,-3.5,650", "--failsafe-action", "rtl"])
+    cfg = cli.build_config(args)
+    assert cfg.flavour == "px4" and cfg.start_position == (0.0, 0.0, -30.0)
+    assert cfg.outputs == ["udp:127.0.0.1:14550", "udpin:127.0.0.1:14560"]
+    assert (cfg.autopilot.home_lat, cfg.autopilot.home_alt) == (40.0, 650.0)
+    assert set(cfg.autopilot.failsafe_action.values()) == {"rtl"}
+    assert parse_url("udp:127.0.0.1:14550") == ("udpout", ("127.0.0.1", 14550))
+    for bad in (["--out", "tcp:127.0.0.1:5760"], ["--out", "udpout:127.0.0.1:99999"],
+                ["--home", "95,0,0"]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(bad)

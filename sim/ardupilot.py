@@ -18,6 +18,7 @@ import math
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim.autopilot import Autopilot, Behaviour, Setpoint
+from sim.vehicle import Demand
 
 STABILIZE, ALT_HOLD, GUIDED, LOITER, RTL, LAND, POSHOLD, BRAKE = 0, 2, 4, 5, 6, 9, 16, 17
 
@@ -38,6 +39,8 @@ class ArduPilotCopter(Autopilot):
 
     MAV_AUTOPILOT = mav.MAV_AUTOPILOT_ARDUPILOTMEGA
     FLAVOUR = "ardupilot"
+    GUID_TIMEOUT_S = 3.0  # velocity targets older than this stop the vehicle (GUID_TIMEOUT)
+    _last_velocity_target: float | None = None
 
     def initial_mode(self) -> int:
         return LOITER if not self.vehicle.state.land_complete else STABILIZE
@@ -93,7 +96,15 @@ class ArduPilotCopter(Autopilot):
         if self.behaviour is not Behaviour.GUIDED or not self.flying:
             self.counters["setpoints_ignored"] += 1
             return
+        self._last_velocity_target = self.now if sp.position is None else None
         self.apply_setpoint(sp)
+
+    def on_tick(self, now: float) -> None:
+        t = self._last_velocity_target
+        if t is not None and now - t > self.GUID_TIMEOUT_S:
+            self._last_velocity_target = None
+            if self.behaviour is Behaviour.GUIDED and self.vehicle.demand is Demand.VELOCITY:
+                self.vehicle.hold()
 
     def _cmd_takeoff(self, p, channel, msg, is_int) -> int:
         alt = float(p[6])

@@ -116,6 +116,8 @@ class AutopilotConfig:
     rangefinder_max_m: float = 40.0
     rangefinder_min_m: float = 0.2
     gimbal_pitch: float | None = None  # radians, earth-frame stabilised; None = no gimbal
+    gcs_system_id: int = 255           # SYSID_MYGCS: whose heartbeats count for the GCS failsafe
+    gcs_timeout_s: float | None = None  # FS_GCS_TIMEOUT; None = FS_GCS_ENABLE 0 (the default)
     telemetry_rates: dict[int, float] | None = None  # overrides of the flavour's default rates
 
     def __post_init__(self) -> None:
@@ -199,6 +201,7 @@ class Autopilot(ABC):
         self.on_mode_change: list[Callable[[int, int], None]] = []
         self.on_touchdown: list[Callable[[], None]] = []
         self._was_landed = vehicle.state.land_complete
+        self._last_gcs_heartbeat: float | None = None  # the GCS failsafe arms on the first one
         self.status_text: list[tuple[int, str]] = []  # pending STATUSTEXT (severity, text)
 
     # ----- flavour hooks -----
@@ -330,6 +333,10 @@ class Autopilot(ABC):
                     self._say(R.MAV_SEVERITY_INFO, "Disarming: auto disarm while landed")
         if not landed:
             self._armed_on_ground_since = now if s.armed else None
+        timeout = self.config.gcs_timeout_s
+        if (timeout is not None and self._last_gcs_heartbeat is not None and self.flying
+                and now - self._last_gcs_heartbeat > timeout):
+            self.trigger_failsafe(Failsafe.GCS_LOSS)
         self.on_tick(now)
 
     def on_tick(self, now: float) -> None:
@@ -372,6 +379,8 @@ class Autopilot(ABC):
     def clear_failsafe(self, kind: Failsafe) -> None:
         """The condition went away (RC back, GCS back); the mode stays as it is, like the firmwares."""
         self.failsafes.discard(kind)
+        if kind is Failsafe.GCS_LOSS and self._last_gcs_heartbeat is not None:
+            self._last_gcs_heartbeat = self.now
 
     def system_status(self) -> int:
         s = self.vehicle.state
@@ -441,7 +450,9 @@ class Autopilot(ABC):
             self.counters["messages_ignored"] += 1
 
     def on_peer_heartbeat(self, msg: MAVMessage) -> None:
-        """A GCS/companion heartbeat (the firmwares use them for the GCS failsafe)."""
+        """A heartbeat from a peer: the GCS's ones feed the GCS failsafe, others are ignored."""
+        if msg.get_srcSystem() == self.config.gcs_system_id:
+            self._last_gcs_heartbeat = self.now
 
     def _parse_setpoint(self, msg: MAVMessage) -> Setpoint | None:
         mask = int(msg.type_mask)

@@ -186,7 +186,7 @@ class Simulator:
             roll=s.roll, pitch=s.pitch, yaw=s.yaw, armed=s.armed, landed=s.land_complete,
             on_ground=s.on_ground, custom_mode=ap.custom_mode,
             mode=ap.mode_name(),
-            battery_remaining=self.vehicle.battery_remaining,
+            battery_remaining=float(self.vehicle.battery_remaining),
             failsafes=frozenset(ap.failsafes))
 
     def pose(self) -> Pose:

@@ -133,7 +133,16 @@ class Vehicle:
         """Stop and keep the current position (targets the stopping point, not a jerk)."""
         if self.state.armed and not self.state.land_complete:
             self.demand = Demand.HOLD
-            self.target_position = self.state.position.copy()
+            self.target_position = self.stopping_point()
+
+    def stopping_point(self) -> np.ndarray:
+        """Where braking at the acceleration limits from the current velocity ends (world NED m)."""
+        p, s = self.params, self.state
+        v_xy, v_z = s.velocity[:2], float(s.velocity[2])
+        point = s.position.copy()
+        point[:2] += v_xy * float(np.linalg.norm(v_xy)) / (2.0 * p.max_accel_xy)
+        point[2] = min(point[2] + v_z * abs(v_z) / (2.0 * p.max_accel_z), 0.0)
+        return point
 
     def fly_to(self, north: float, east: float, down: float, yaw: float | None = None) -> None:
         """Fly to a world NED point (m); ``down`` is clamped to stay above the ground."""

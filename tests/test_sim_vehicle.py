@@ -228,3 +228,33 @@ def test_cli_builds_the_configuration_and_rejects_bad_links() -> None:
                 ["--home", "95,0,0"]):
         with pytest.raises(SystemExit):
             parser.parse_args(bad)
+
+
+def test_ardupilot_velocity_target_times_out_and_gcs_failsafe_fires_on_silence() -> None:
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    from sim.autopilot import Setpoint
+    v = Vehicle(position=(0.0, 0.0, -10.0))
+    ap = ArduPilotCopter(v, AutopilotConfig(gcs_timeout_s=4.0))
+    ap.set_mode(GUIDED)
+    ap.handle_setpoint(Setpoint(velocity=np.array([2.0, 0.0, 0.0])))
+    t = 0.0
+    while t < 2.5:
+        t += DT
+        v.step(DT)
+        ap.tick(t)
+    assert v.state.velocity[0] == pytest.approx(2.0)
+    hb = mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 0, 3)
+    hb.pack(mavlink.MAVLink(None, 255, 190))  # from the GCS (SYSID_MYGCS 255)
+    ap.handle_message(hb, channel=None)  # at t = 2.5 s: the failsafe is due at 6.5 s
+    while t < 5.0:
+        t += DT
+        v.step(DT)
+        ap.tick(t)
+    assert np.linalg.norm(v.state.velocity) < 0.05  # GUID_TIMEOUT: stopped after 3 s
+    assert Failsafe.GCS_LOSS not in ap.failsafes
+    while t < 7.0:
+        t += DT
+        v.step(DT)
+        ap.tick(t)
+    assert Failsafe.GCS_LOSS in ap.failsafes and ap.custom_mode == LAND

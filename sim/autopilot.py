@@ -556,9 +556,13 @@ class Autopilot(ABC):
         if result is not None:
             self._ack(channel, msg, result)
 
+    def known_messages(self) -> set[int]:
+        """Messages the firmware has a stream for, sent or not (no gimbal: none goes out)."""
+        return self.supported_messages() | {mav.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS}
+
     def _cmd_set_message_interval(self, p, channel, msg, is_int) -> int:
         msg_id, interval_us = int(p[0]), float(p[1])
-        if msg_id not in self.supported_messages():
+        if msg_id not in self.known_messages():
             return R.MAV_RESULT_DENIED
         if interval_us < 0:
             channel.streams.set_interval(msg_id, None, self.now)
@@ -570,7 +574,7 @@ class Autopilot(ABC):
 
     def _cmd_get_message_interval(self, p, channel, msg, is_int) -> int:
         msg_id = int(p[0])
-        if msg_id not in self.supported_messages():
+        if msg_id not in self.known_messages():
             return R.MAV_RESULT_DENIED
         channel.send(mav.MAVLink_message_interval_message(msg_id, channel.streams.interval_us(msg_id)))
         return R.MAV_RESULT_ACCEPTED

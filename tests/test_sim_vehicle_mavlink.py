@@ -185,12 +185,17 @@ async def test_default_rates_and_set_message_interval(ardupilot) -> None:
                            25_000) == mav.MAV_RESULT_ACCEPTED
     assert await c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_DISTANCE_SENSOR,
                            -1) == mav.MAV_RESULT_ACCEPTED
+    # Known to the firmware but nothing to report without a gimbal: accepted, never sent.
+    assert await c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL,
+                           mav.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, 100_000) == \
+        mav.MAV_RESULT_ACCEPTED
     await asyncio.sleep(0.3)
     t0 = loop.time()
     await asyncio.sleep(1.5)
     t1 = loop.time()
     assert 48 <= c.count("ATTITUDE", t0, t1) <= 72             # 40 Hz asked
     assert c.count("DISTANCE_SENSOR", t0, t1) == 0
+    assert c.count("GIMBAL_DEVICE_ATTITUDE_STATUS", t0, t1) == 0
     assert await c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, 65000, 100_000) == \
         mav.MAV_RESULT_DENIED  # no such message
 

@@ -414,3 +414,41 @@ async def test_gimbal_status_only_with_a_gimbal_and_pose_for_the_camera() -> Non
     finally:
         await sim.stop()
         c.close()
+
+
+async def test_udpin_link_answers_whoever_sends_to_it() -> None:
+    import socket as _socket
+    with _socket.socket(_socket.AF_INET, _socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    sim = Simulator(SimConfig(flavour="px4", outputs=[f"udpin:127.0.0.1:{port}"],
+                              start_position=(0.0, 0.0, -3.0)))
+    client = MavClient()
+    await client.open()
+    await sim.start()
+    try:
+        await asyncio.sleep(0.5)
+        assert client.mark() == 0  # nobody has spoken to the port yet: nothing to send to
+        client.peer = ("127.0.0.1", port)
+        client.send(mav.MAVLink_heartbeat_message(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID,
+                                                  0, 0, 0, 3))
+        hb = await client.wait("HEARTBEAT", timeout=2.0)
+        assert hb.autopilot == mav.MAV_AUTOPILOT_PX4
+    finally:
+        await sim.stop()
+        client.close()
+
+
+async def test_ardupilot_reposition_needs_guided_or_the_change_mode_flag(ardupilot) -> None:
+    sim, c = ardupilot
+    from sim.autopilot import GeoFrame
+    lat, lon, _ = GeoFrame(*HOME).to_global(-3.0, 2.0, 0.0)
+    args = (-1, 0, 0, float("nan"), lat * 1e7, lon * 1e7, 5.0)
+    frame = mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+    assert await c.command(mav.MAV_CMD_DO_REPOSITION, *args, use_int=True, frame=frame) == \
+        mav.MAV_RESULT_DENIED  # in LOITER without MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
+    args = (-1, mav.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE) + args[2:]
+    assert await c.command(mav.MAV_CMD_DO_REPOSITION, *args, use_int=True, frame=frame) == \
+        mav.MAV_RESULT_ACCEPTED
+    await c.heartbeat(lambda m: m.custom_mode == GUIDED, timeout=2.0)
+    await sim.wait_for(lambda t: math.dist(t.position, (-3.0, 2.0, -5.0)) < 0.1, 6.0)

@@ -69,7 +69,7 @@ class CameraConfig:
                     min=16, max=8192)
     height: int = _f(480, "frame height the calibration is for (px)", min=16, max=8192)
     fps: float = _f(10.0, "frame rate asked of the device; pace of files and folders", min=0.1, max=240.0)
-    hfov_deg: float = _f(90.0, "horizontal field of view used when fx/fy are 0", min=1.0, max=179.0)
+    hfov_deg: float = _f(70.0, "horizontal field of view used when fx/fy are 0 (the simulator's is 70)", min=1.0, max=179.0)
     fx: float = _f(0.0, "focal length x (px); 0 = from hfov_deg", min=0.0)
     fy: float = _f(0.0, "focal length y (px); 0 = same as fx", min=0.0)
     cx: float = _f(-1.0, "principal point x (px); -1 = image centre", min=-1.0)

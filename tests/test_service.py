@@ -252,6 +252,11 @@ async def test_ready_watchdog_stall_and_clean_sigterm(tmp_path: Path) -> None:
     # The hover altitude the recorded poses show is the simulator's (25 m).
     assert abs(with_pose[-1].pose.down + 25.0) < 2.0
     assert list(reader.events("zones")), "no pipeline decisions recorded"
+    telemetry = list(reader.events("telemetry"))
+    kinds = {e["msg"] for e in telemetry}
+    assert {"HEARTBEAT", "ATTITUDE", "GLOBAL_POSITION_INT"} <= kinds, kinds
+    att = [e for e in telemetry if e["msg"] == "ATTITUDE"]
+    assert all(isinstance(e["roll"], float) and e["t"] > 0 for e in att)
 
 
 async def test_service_lands_the_vehicle_away_from_people(tmp_path: Path) -> None:

@@ -149,7 +149,7 @@ class Service:
 
     async def run(self) -> int:
         self._install_signals()
-        from companion.mavlink.link import LinkConfig, MavLink
+        from companion.mavlink.link import LinkConfig, MavLink, message_rates
         from companion.mavlink.state import VehicleState
 
         c = self.cfg
@@ -157,6 +157,7 @@ class Service:
             url=c.link.url, system_id=c.link.system_id, component_id=c.link.component_id,
             target_system=c.link.target_system or None, target_component=c.link.target_component,
             heartbeat_timeout_s=c.link.heartbeat_timeout_s, signing_key=signing_key(c),
+            message_rates_hz=message_rates(c.link.telemetry_rate_hz),
         ))
         self.state = VehicleState(max_extrapolation_s=c.pipeline.max_pose_age_s)
         self.state.attach(self.link)
@@ -268,6 +269,20 @@ class Service:
         else:
             log.warning("no landing controller: the autopilot's own failsafe stays in charge")
 
+    #: Telemetry written to the recording's events.jsonl (kind "telemetry"), at the rate received.
+    RECORDED_TELEMETRY = ("HEARTBEAT", "ATTITUDE", "GLOBAL_POSITION_INT", "HOME_POSITION", "SYS_STATUS",
+                          "BATTERY_STATUS", "EXTENDED_SYS_STATE", "DISTANCE_SENSOR", "STATUSTEXT",
+                          "GIMBAL_DEVICE_ATTITUDE_STATUS", "COMMAND_ACK")
+
+    def _record_telemetry(self, msg: Any, t: float) -> None:
+        if self.recorder is None:
+            return
+        data = msg.to_dict()
+        data.pop("mavpackettype", None)
+        self.recorder.add_event("telemetry", t, msg=msg.get_type(), **{
+            k: (v.decode("utf-8", "replace").rstrip("\x00") if isinstance(v, (bytes, bytearray)) else v)
+            for k, v in data.items() if k not in ("t", "kind", "msg")})
+
     def _start_recorder(self) -> None:
         c = self.cfg
         self.recorder = FlightRecorder(
@@ -282,6 +297,9 @@ class Service:
             # Recording is a convenience; flying safely is not optional. Keep going without it.
             log.error("recorder disabled: cannot write to %s: %s", c.recorder.dir, exc)
             self.recorder = None
+            return
+        for name in self.RECORDED_TELEMETRY:
+            self.link.subscribe(name, self._record_telemetry)
 
     async def _shutdown(self, tasks: list[asyncio.Task[Any]]) -> None:
         for task in tasks:
@@ -338,7 +356,10 @@ class Service:
                 result = await asyncio.to_thread(self.pipeline.process, image, frame.t, pose)
             except (FrameError, GeometryError) as exc:
                 self.counters.bad += 1
-                log.debug("frame %d dropped: %s", frame.index, exc)
+                # First one visible (e.g. "camera is not above the head plane" on the ground),
+                # then only now and then: a stream of identical warnings helps nobody.
+                level = logging.INFO if self.counters.bad == 1 or self.counters.bad % 500 == 0 else logging.DEBUG
+                log.log(level, "frame %d not usable (%d so far): %s", frame.index, self.counters.bad, exc)
                 continue
             except (DensityModelError, ValueError) as exc:
                 self.counters.errors += 1

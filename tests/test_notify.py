@@ -66,6 +66,7 @@ def test_unit_file_has_what_integrators_expect() -> None:
              if "=" in line and not line.startswith("#")}
     assert lines["Type"] == "notify"
     assert int(lines["WatchdogSec"]) > 0
+    assert lines["WatchdogSignal"] == "SIGTERM"  # graceful: hands the vehicle back first
     assert lines["Restart"] == "on-failure"
     assert lines["User"] == "companion"
     assert lines["ExecStart"].endswith("companion run --config /etc/companion/companion.toml")

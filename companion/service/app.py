@@ -301,7 +301,27 @@ class Service:
         for name in self.RECORDED_TELEMETRY:
             self.link.subscribe(name, self._record_telemetry)
 
+    async def _handback_on_exit(self) -> None:
+        """Stopping while the companion has the vehicle (GUIDED/OFFBOARD toward a zone, or
+        holding) must not leave it hovering with nobody in charge: give it back to the
+        autopilot's own failsafe first. In LAND the autopilot is already landing by itself."""
+        if self.phase not in ("SELECT", "APPROACH", "DESCEND", "HOLD") or self.autopilot is None:
+            return
+        action = self.cfg.controller.handback_action
+        log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)
+        try:
+            from companion.mavlink.statustext import send_statustext
+            from pymavlink.dialects.v20 import ardupilotmega as m
+
+            send_statustext(self.link, f"SLZ: companion stopping; handing back ({action})",
+                            m.MAV_SEVERITY_WARNING)
+            await asyncio.wait_for(self.autopilot.handback(action), 1.0)
+        except Exception as exc:  # timeouts, refusals: nothing more we can do on the way out
+            log.error("handback on exit failed: %r", exc)
+
     async def _shutdown(self, tasks: list[asyncio.Task[Any]]) -> None:
+        if self.controller is not None and self.link is not None:
+            await self._handback_on_exit()
         for task in tasks:
             task.cancel()
         for task in tasks:

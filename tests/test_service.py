@@ -341,12 +341,16 @@ async def test_frames_without_a_fresh_pose_are_not_used(tmp_path: Path) -> None:
             svc.stop()
 
 
-async def test_sigterm_during_a_takeover_hands_back_to_the_autopilot(tmp_path: Path) -> None:
+@pytest.mark.parametrize("flavour, external, land", [("ardupilot", "GUIDED", "LAND"),
+                                                      ("px4", "OFFBOARD", "AUTO.LAND")])
+async def test_sigterm_during_a_takeover_hands_back_to_the_autopilot(
+        tmp_path: Path, flavour: str, external: str, land: str) -> None:
     """Stopping while the companion flies the vehicle gives it back to the autopilot's LAND
-    (never leaves it in GUIDED with nobody in charge), and still exits 0 within 2 s."""
+    (never leaves it in GUIDED/OFFBOARD with nobody in charge), and still exits 0 within 2 s.
+    The flavour is picked from the heartbeat (link.flavour = auto)."""
     port = _free_udp_port()
     notify = NotifySocket(tmp_path / "notify.sock")
-    async with simulated_vehicle(port, altitude=20.0) as (sim, cam, _world):
+    async with simulated_vehicle(port, altitude=20.0, flavour=flavour) as (sim, cam, _world):
         cfg = _write_config(tmp_path, port, cam.url, "[controller]\nselect_timeout_s = 30.0\nhold_timeout_s = 60.0\n")
         svc = Service(["--config", str(cfg)], _env(notify), tmp_path / "svc.log")
         try:
@@ -354,15 +358,16 @@ async def test_sigterm_during_a_takeover_hands_back_to_the_autopilot(tmp_path: P
             await sim.wait_for(lambda t: t.position[2] < -18.0, 40)
             await _until(lambda: notify.has("STATUS=MONITOR: oldest stable zone"), 40, "a stable zone", svc)
             sim.inject_failsafe("battery_critical")
-            await sim.wait_for(lambda t: t.mode == "GUIDED", 20)  # the companion took over
+            await sim.wait_for(lambda t: t.mode == external, 20)  # the companion took over
             await asyncio.sleep(1.0)
-            assert sim.truth.mode == "GUIDED"
+            assert sim.truth.mode == external
+            assert f"autopilot flavour: {flavour}" in svc.log()
             t0 = time.monotonic()
             svc.proc.send_signal(signal.SIGTERM)
             rc = await asyncio.to_thread(svc.proc.wait, 5)
             assert rc == 0 and time.monotonic() - t0 < 2.0, svc.log()[-3000:]
-            truth = await sim.wait_for(lambda t: t.mode == "LAND", 2.0)
-            assert truth.mode == "LAND"
+            truth = await sim.wait_for(lambda t: t.mode == land, 2.0)
+            assert truth.mode == land
             assert "handing back to the autopilot (LAND)" in svc.log()
             assert notify.has("STOPPING=1")
         finally:

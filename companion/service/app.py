@@ -175,7 +175,13 @@ class Service:
             self.notifier.status(f"waiting for the autopilot heartbeat on {c.link.url}")
             if not await self._wait_heartbeat():
                 return 0  # stopped before the autopilot appeared
-            self._wire_vehicle()
+            from companion.mavlink.autopilot import FlavourError
+
+            try:
+                self._wire_vehicle()
+            except FlavourError as exc:
+                log.error("%s", exc)
+                return 2
             if c.recorder.enabled:
                 self._start_recorder()
             log.info("ready: model %s, link %s, camera %s", c.model.path, c.link.url, c.camera.source)
@@ -188,7 +194,8 @@ class Service:
             if runner is not None:
                 tasks.append(asyncio.create_task(runner(), name="controller"))
             stop = asyncio.create_task(self.stop_event.wait())
-            done, _ = await asyncio.wait([stop, *tasks], return_when=asyncio.FIRST_COMPLETED)
+            tasks.append(stop)
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for task in done:
                 if task is not stop and task.exception() is not None:
                     log.error("task %s failed: %r", task.get_name(), task.exception(),

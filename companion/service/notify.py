@@ -31,6 +31,7 @@ class Notifier:
             # harmless, a blocked main loop is not (sdnotify ignores the send error).
             self._sd.socket.setblocking(False)
         self.ready_sent = False
+        self.stopping_sent = False
         self.last_status = ""
 
     @property
@@ -66,4 +67,6 @@ class Notifier:
             self._send(f"STATUS={text}")
 
     def stopping(self, status: str = "stopping") -> None:
-        self._send(f"STOPPING=1\nSTATUS={status}")
+        if not self.stopping_sent:
+            self.stopping_sent = True
+            self._send(f"STOPPING=1\nSTATUS={status}")

@@ -104,11 +104,11 @@ class LandingRunner:
                 self.step()
                 await asyncio.sleep(1.0 / self.tick_hz)
         finally:
-            worker.cancel()
-            try:
-                await worker
-            except asyncio.CancelledError:
-                pass
+            # Cancel until it is done: a cancellation racing with a command's completion must
+            # not leave the worker alive (and this coroutine waiting for it forever).
+            while not worker.done():
+                worker.cancel()
+                await asyncio.wait({worker}, timeout=0.5)
             await self.autopilot.stop()
 
     def step(self) -> None:

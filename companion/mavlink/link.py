@@ -376,7 +376,10 @@ class MavLink:
                     deadline = loop.time() + timeout_s
                     while (remaining := deadline - loop.time()) > 0:
                         try:
-                            result = await asyncio.wait_for(acks.get(), remaining)
+                            # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a
+                            # cancellation that races with the ack, leaving the caller running.
+                            async with asyncio.timeout(remaining):
+                                result = await acks.get()
                         except TimeoutError:
                             break
                         if result == mavlink2.MAV_RESULT_ACCEPTED:

@@ -236,6 +236,20 @@ async def test_tcpin_transport():
         await link.close()
 
 
+async def test_udpin_sends_to_every_recent_peer(pair):
+    link, peer = pair
+    gcs = MavPeer(system_id=255, component_id=190)
+    await gcs.connect_udp(link.local_address)
+    try:
+        gcs.heartbeat()  # a ground station on the same port must not steal the autopilot's replies
+        await gcs.wait_for("HEARTBEAT", lambda h: h.get_srcComponent() == 191)
+        start = len(peer.received)
+        assert await link.command_long(m.MAV_CMD_DO_SET_MODE, (1, 4)) == m.MAV_RESULT_ACCEPTED
+        await peer.wait_for("HEARTBEAT", lambda h: h.get_srcComponent() == 191, start=start)
+    finally:
+        await gcs.close()
+
+
 async def test_udpout_transport():
     peer = MavPeer()
     host, port = await peer.listen_udp()

@@ -7,7 +7,8 @@ the start of the next datagram.
 
 URLs (the same spelling as MAVProxy / mavlink-router / MAVSDK):
 
-- ``udpin:HOST:PORT``   listen; replies go to the address the last packet came from.
+- ``udpin:HOST:PORT``   listen; packets go to every address heard from in the last 10 s (the
+  autopilot, or a router, and possibly a ground station sharing the port).
 - ``udpout:HOST:PORT``  send to HOST:PORT (the flight controller or a router listens there).
 - ``tcp:HOST:PORT``     TCP client; reconnects every ``reconnect_s`` seconds after a loss.
 - ``tcpin:HOST:PORT``   TCP server; talks to the most recent client (a router or SITL connecting in).
@@ -20,6 +21,7 @@ import asyncio
 import logging
 import os
 import termios
+import time
 import tty
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -109,16 +111,18 @@ class _UdpProtocol(asyncio.DatagramProtocol):
 
 
 class UdpTransport(Transport):
-    """UDP in either direction: ``udpin`` binds and answers the last sender, ``udpout`` sends to HOST:PORT."""
+    """UDP in either direction: ``udpin`` binds and sends to its recent peers, ``udpout`` sends to HOST:PORT."""
 
     datagram = True
+
+    PEER_TIMEOUT_S = 10.0
 
     def __init__(self, endpoint: Endpoint, on_data: DataCallback) -> None:
         super().__init__(endpoint, on_data)
         self._transport: asyncio.DatagramTransport | None = None
-        self._peer: tuple[str, int] | None = (
-            (endpoint.host, endpoint.port) if endpoint.kind == "udpout" else None
-        )
+        # udpout: the one fixed destination. udpin: address -> monotonic time last heard from.
+        self._fixed: tuple[str, int] | None = (endpoint.host, endpoint.port) if endpoint.kind == "udpout" else None
+        self._peers: dict[tuple[str, int], float] = {}
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -141,23 +145,32 @@ class UdpTransport(Transport):
         return self._transport.get_extra_info("sockname")[:2]
 
     def _received(self, data: bytes, addr: tuple[str, int]) -> None:
-        if self.endpoint.kind == "udpin":
-            self._peer = addr
+        if self._fixed is None:
+            self._peers[addr] = time.monotonic()
         self._on_data(data)
+
+    def _destinations(self) -> list[tuple[str, int]]:
+        if self._fixed is not None:
+            return [self._fixed]
+        now = time.monotonic()
+        for addr in [a for a, t in self._peers.items() if now - t > self.PEER_TIMEOUT_S]:
+            del self._peers[addr]
+        return list(self._peers)
 
     @property
     def can_send(self) -> bool:
-        return self._transport is not None and self._peer is not None
+        return self._transport is not None and bool(self._destinations())
 
     def send(self, data: bytes) -> None:
-        if self._transport is None or self._peer is None:
+        if self._transport is None:
             return
-        try:
-            self._transport.sendto(data, self._peer)
-            self.bytes_sent += len(data)
-        except OSError as exc:
-            self.send_errors += 1
-            log.debug("udp send failed: %s", exc)
+        for addr in self._destinations():
+            try:
+                self._transport.sendto(data, addr)
+                self.bytes_sent += len(data)
+            except OSError as exc:
+                self.send_errors += 1
+                log.debug("udp send to %s failed: %s", addr, exc)
 
     async def close(self) -> None:
         if self._transport is not None:

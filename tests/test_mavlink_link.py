@@ -61,6 +61,7 @@ def test_message_rates_put_the_pose_at_the_telemetry_rate():
 
 
 def test_config_errors_name_the_key():
+    assert LinkConfig("udpin:127.0.0.1:0", target_system=0).target_system is None  # 0 = first heard
     with pytest.raises(ValueError, match="system_id"):
         LinkConfig("udpin:127.0.0.1:0", system_id=0)
     with pytest.raises(ValueError, match="message_rates_hz: unknown message 'ATTITUDEX'"):

@@ -125,7 +125,7 @@ def parse_signing_key(text: str) -> bytes:
 class LinkConfig:
     """How to reach the flight controller and how to present ourselves.
 
-    ``url``: see ``transports.parse_url``. ``target_system`` None = the first autopilot heard.
+    ``url``: see ``transports.parse_url``. ``target_system`` None (or 0) = the first autopilot heard.
     ``signing_key``: 32 bytes (see ``parse_signing_key``) or None for no signing; with a key,
     outgoing packets are signed and unsigned incoming packets are rejected (counted as bad) unless
     ``accept_unsigned`` is True.
@@ -146,6 +146,8 @@ class LinkConfig:
     accept_unsigned: bool = False
 
     def __post_init__(self) -> None:
+        if self.target_system == 0:
+            object.__setattr__(self, "target_system", None)  # 0 is "any" in the service config
         if not 1 <= self.system_id <= 255:
             raise ValueError(f"mavlink system_id {self.system_id} must be 1..255")
         if not 1 <= self.component_id <= 255:

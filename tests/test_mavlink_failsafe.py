@@ -183,6 +183,14 @@ async def test_gcs_trigger_command_is_acked_and_fires(make_rig):
     assert [t.source for t in rig.fired] == [TriggerSource.GCS_COMMAND]
 
 
+async def test_gcs_trigger_as_command_int(make_rig):
+    rig = await make_rig()
+    gcs = m.MAVLink(rig.peer, srcSystem=255, srcComponent=190)
+    gcs.command_int_send(1, 191, 0, m.MAV_CMD_USER_1, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    ack = await rig.peer.wait_for("COMMAND_ACK", lambda a: a.command == m.MAV_CMD_USER_1, timeout=1.0)
+    assert ack.result == m.MAV_RESULT_ACCEPTED and [t.source for t in rig.fired] == [TriggerSource.GCS_COMMAND]
+
+
 async def test_gcs_trigger_from_an_unconfigured_system_is_denied(make_rig):
     rig = await make_rig()
     ack = await gcs_command(rig, 42)

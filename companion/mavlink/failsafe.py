@@ -8,7 +8,7 @@ Sources, each switchable in ``FailsafeConfig``:
 - ``system_status``: the autopilot's heartbeat ``system_status`` CRITICAL or EMERGENCY.
 - ``autopilot_land``: the autopilot switching itself into LAND or RTL (its own failsafe fired),
   seen as a mode change in its heartbeat, unless the companion asked for that mode.
-- ``gcs_command``: ``COMMAND_LONG`` ``MAV_CMD_USER_1`` (31010) addressed to our system and
+- ``gcs_command``: ``COMMAND_LONG`` (or ``COMMAND_INT``) ``MAV_CMD_USER_1`` (31010) addressed to our system and
   component (191). Accepted (``MAV_RESULT_ACCEPTED``) only from ``gcs_system_ids``; any other
   sender, or this source switched off, gets ``MAV_RESULT_DENIED``. Params are ignored.
 - ``local_trigger``: ``trigger_local(reason)`` (the service wires SIGUSR1 to it) and, when
@@ -111,6 +111,7 @@ class FailsafeMonitor:
         for name in ("HEARTBEAT", "BATTERY_STATUS", "SYS_STATUS"):
             self.link.subscribe(name, self.handle)
         self.link.subscribe("COMMAND_LONG", self._on_command_long, any_source=True)
+        self.link.subscribe("COMMAND_INT", self._on_command_long, any_source=True)  # same fields we use
 
     def subscribe(self, callback: Callable[[Trigger], None]) -> None:
         self._callbacks.append(callback)

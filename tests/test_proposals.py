@@ -80,3 +80,21 @@ def test_stops_at_r_min_and_n_max():
 def test_empty_and_all_occupied_maps_give_no_proposals():
     assert propose(np.zeros((40, 50), np.uint8), GridSpec(0, 0, 0.1, 40, 50), 5, 0.1) == []
     assert propose(np.zeros((0, 0), np.uint8), GridSpec(0, 0, 0.1, 0, 0), 5, 0.1) == []
+
+
+def test_clearance_at_a_point_never_reaches_a_non_free_cell():
+    from companion.pipeline.proposals import clearance_at, distance_cells
+
+    free = _random_map(3)
+    grid = GridSpec(x0=1.0, y0=2.0, cell=0.2, rows=free.shape[0], cols=free.shape[1])
+    dist = distance_cells(free)
+    rng = np.random.default_rng(0)
+    from companion.pipeline.circles import Circle
+
+    for _ in range(200):
+        x = rng.uniform(grid.x0 - 1, grid.x0 + grid.cols * grid.cell + 1)
+        y = rng.uniform(grid.y0 - 1, grid.y0 + grid.rows * grid.cell + 1)
+        r = clearance_at(dist, grid, x, y)
+        if r > 0:
+            assert not _touches(Circle(x, y, r), free, grid)
+    assert clearance_at(dist, grid, -100.0, -100.0) == 0.0

@@ -134,3 +134,16 @@ def test_bad_parameters_are_clear_errors(kw):
 def test_nan_time_is_a_clear_error():
     with pytest.raises(ValueError, match="finite"):
         ZoneTracker().update([], float("nan"))
+
+
+def test_clearance_measures_the_radius_at_the_filtered_centre():
+    tr = ZoneTracker(TrackerParams(mu_2=1))
+    for k in range(5):
+        tr.update([Circle(0.0, 0.0, 5.0)], k * DT)
+    # The proposal's centre jumps (a noisy largest circle) but the ground about the filtered
+    # centre is still free for 4.5 m on this frame: the zone keeps that radius, not a bound from
+    # the jumped proposal.
+    (t,) = tr.update([Circle(1.5, 0.0, 5.0)], 0.5, clearance=lambda x, y: 4.5)
+    assert t.r == pytest.approx(4.5)
+    (t,) = tr.update([Circle(1.5, 0.0, 5.0)], 0.6, clearance=lambda x, y: 9.0)
+    assert t.r == pytest.approx(t.r_filtered)  # never wider than the filter's own radius

@@ -35,10 +35,24 @@ def distance_cells(free_grid: np.ndarray) -> np.ndarray:
     return dist[1:-1, 1:-1]
 
 
-def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float) -> list[Circle]:
+def clearance_at(dist: np.ndarray, grid: GridSpec, x: float, y: float) -> float:
+    """Radius in metres of the largest circle centred at plane point (x, y) that touches no
+    non-free cell, from the distance map of ``distance_cells``; 0 outside the grid."""
+    j = int(round((x - grid.x0) / grid.cell))
+    i = int(round((y - grid.y0) / grid.cell))
+    if not (0 <= i < dist.shape[0] and 0 <= j < dist.shape[1]):
+        return 0.0
+    # (x, y) is not exactly the cell centre the distance was measured from: pay the offset.
+    off = math.hypot(x - (grid.x0 + j * grid.cell), y - (grid.y0 + i * grid.cell))
+    return max(0.0, (float(dist[i, j]) - _HALF_DIAGONAL) * grid.cell - off)
+
+
+def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
+            dist: np.ndarray | None = None) -> list[Circle]:
     """Up to ``n_max`` disjoint free circles, largest first, each with radius >= ``r_min`` metres.
 
     free_grid: uint8 grid, > 0 where free (see ``headplane.sample_to_grid``).
+    dist: its ``distance_cells`` if already computed (it is not modified).
     Each circle touches no non-free cell (not even a corner of one).
     """
     if free_grid.shape != grid.shape:
@@ -46,7 +60,7 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float) -> 
     out: list[Circle] = []
     if n_max <= 0 or free_grid.size == 0:
         return out
-    dist = distance_cells(free_grid)
+    dist = distance_cells(free_grid) if dist is None else dist.copy()
     rows, cols = dist.shape
     for _ in range(n_max):
         flat = int(np.argmax(dist))

@@ -19,7 +19,7 @@ from companion.pipeline.camera import GeometryError, Intrinsics, Mount, PlanePro
 from companion.pipeline.circles import Circle
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
-from companion.pipeline.proposals import propose
+from companion.pipeline.proposals import clearance_at, distance_cells, propose
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
 DensityFn = Callable[[np.ndarray], np.ndarray]
@@ -128,9 +128,10 @@ class SLZPipeline:
         grid = grid_for_view(proj, (h, w), self.config.grid)
         free_grid = sample_to_grid(free, proj, grid)
         t3 = time.perf_counter()
-        proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r_0)
+        dist = distance_cells(free_grid)
+        proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r_0, dist)
         t4 = time.perf_counter()
-        tracks = self.tracker.update(proposals, t)
+        tracks = self.tracker.update(proposals, t, lambda x, y: clearance_at(dist, grid, x, y))
         target = self.tracker.oldest_stable(self.config.r_0)
         t5 = time.perf_counter()
         for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4), (t1, t2, t3, t4, t5)):

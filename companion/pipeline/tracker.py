@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,9 +60,10 @@ class Track:
     """A snapshot of one tracked landing zone.
 
     x, y: filtered centre in head-plane metres (world north/east when poses are known).
-    r: radius in metres of the largest circle about (x, y) that lies inside the proposal that last
-       confirmed the track (never larger than the filtered radius): smoothing must not widen a
-       zone into ground the camera saw occupied.
+    r: radius in metres that is free about (x, y) on the frame that last confirmed the track,
+       never larger than the filtered radius: smoothing must not widen a zone into ground the
+       camera saw occupied. Measured on that frame's free grid when the tracker is given a
+       clearance function, else bounded by the confirming proposal.
     r_filtered: the filter's own radius estimate.
     age: frames since the track was born; hits: frames it was matched; misses: consecutive
     frames without a match (0 = confirmed by the latest frame).
@@ -114,6 +116,7 @@ class _ZoneFilter:
         self.born_t = t
         self.last_t = t
         self.last_z = z
+        self.clear: float | None = None
 
     def predict(self, dt: float, sigma_a: float) -> None:
         F, Q = _cv_matrices(dt, sigma_a)
@@ -127,6 +130,7 @@ class _ZoneFilter:
         self.misses = 0
         self.last_t = t
         self.last_z = z
+        self.clear = None
 
     def _guard_radius(self) -> None:
         if self.kf.x[2] < 0:
@@ -139,7 +143,8 @@ class _ZoneFilter:
     def snapshot(self) -> Track:
         x, y, r = (float(v) for v in self.kf.x[:3])
         z = self.last_z
-        safe = max(0.0, min(r, z.r - math.hypot(x - z.x, y - z.y)))
+        bound = self.clear if self.clear is not None else z.r - math.hypot(x - z.x, y - z.y)
+        safe = max(0.0, min(r, bound))
         return Track(self.id, x, y, safe, r, self.age, self.hits, self.misses,
                      self.born_t, self.last_t)
 
@@ -182,8 +187,13 @@ class ZoneTracker:
         self._candidates.clear()
         self._t = None
 
-    def update(self, proposals: list[Circle], t: float) -> list[Track]:
-        """Advance to capture time ``t`` (s) with this frame's proposals; returns the tracks."""
+    def update(self, proposals: list[Circle], t: float,
+               clearance: Callable[[float, float], float] | None = None) -> list[Track]:
+        """Advance to capture time ``t`` (s) with this frame's proposals; returns the tracks.
+
+        clearance: the free radius (m) about a plane point on this frame; when given, each
+        confirmed track's reported radius is measured at its filtered centre with it.
+        """
         if not math.isfinite(t):
             raise ValueError(f"frame time must be finite, got {t!r}")
         p = self.params
@@ -197,7 +207,10 @@ class ZoneTracker:
         preds = np.array([f.circle() for f in self._filters], dtype=float).reshape(-1, 3)
         pairs, missed, unmatched = _assign(preds, props, p.min_iou)
         for fi, pi in pairs:
-            self._filters[fi].update(proposals[pi], t)
+            f = self._filters[fi]
+            f.update(proposals[pi], t)
+            if clearance is not None:
+                f.clear = clearance(float(f.kf.x[0]), float(f.kf.x[1]))
         for fi in missed:
             self._filters[fi].misses += 1
         alive = [f for f in self._filters if f.misses <= p.mu_1]

@@ -121,14 +121,42 @@ class ProceduralGround:
         self._lock = threading.Lock()
 
     # -- layout -------------------------------------------------------------------------------
+    def _block_rng(self, bi: int, bj: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed & 0xFFFFFFFF, bi + (1 << 20), bj + (1 << 20)])
+
+    @staticmethod
+    def _draw_kind(rng: np.random.Generator) -> str:
+        return str(rng.choice(["grass", "paving", "gravel", "building"], p=[0.55, 0.22, 0.1, 0.13]))
+
+    def block_kind(self, bi: int, bj: int) -> str:
+        """What block (bi, bj) is: grass, paving, gravel or building."""
+        return self._draw_kind(self._block_rng(bi, bj))
+
+    def lawn_near(self, north: float, east: float, reach: int = 6) -> tuple[float, float]:
+        """Centre (north, east) in metres of the grass block without a road along it that is
+        nearest to the given point: a park lawn for scenarios that need a landable open area."""
+        bi0, bj0 = int(math.floor(north / BLOCK)), int(math.floor(east / BLOCK))
+        best: tuple[float, float, float] | None = None
+        for bi in range(bi0 - reach, bi0 + reach + 1):
+            for bj in range(bj0 - reach, bj0 + reach + 1):
+                if bi % 4 == 0 or bj % 4 == 0 or self.block_kind(bi, bj) != "grass":
+                    continue
+                cn, ce = (bi + 0.5) * BLOCK, (bj + 0.5) * BLOCK
+                d = math.hypot(cn - north, ce - east)
+                if best is None or d < best[0]:
+                    best = (d, cn, ce)
+        if best is None:
+            raise ValueError(f"no lawn within {reach} blocks of ({north:.0f}, {east:.0f})")
+        return best[1], best[2]
+
     def _make_block(self, bi: int, bj: int) -> tuple[Shape, ...]:
         """The shapes of block (bi, bj), in drawing order, all inside the block."""
-        rng = np.random.default_rng([self.seed & 0xFFFFFFFF, bi + (1 << 20), bj + (1 << 20)])
+        rng = self._block_rng(bi, bj)
         n0, e0 = bi * BLOCK, bj * BLOCK
         shapes: list[Shape] = []
         road_n = bi % 4 == 0  # a road along the block's south edge (runs east-west)
         road_e = bj % 4 == 0  # a road along the block's west edge (runs north-south)
-        kind = rng.choice(["grass", "paving", "gravel", "building"], p=[0.55, 0.22, 0.1, 0.13])
+        kind = self._draw_kind(rng)
         base = {"grass": GRASS, "paving": PAVING, "gravel": GRAVEL, "building": PAVING}[kind]
         shapes.append(Shape(_rect(n0 + BLOCK / 2, e0 + BLOCK / 2, BLOCK, BLOCK), _jit(rng, base, 12)))
         # The usable lot, inside the roads.

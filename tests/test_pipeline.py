@@ -112,3 +112,15 @@ def test_threshold_defaults_to_the_models_own_and_an_explicit_one_wins():
     explicit = PipelineConfig(occupancy=OccupancyParams(threshold=0.0))
     assert SLZPipeline(Model(), explicit, projection=nadir).config.occupancy.threshold == 0.0
     assert SLZPipeline(lambda f: f, projection=nadir).config.occupancy.threshold == 0.0
+
+
+def test_ground_all_free_up_to_the_view_edge_is_view_limited():
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    pipe = SLZPipeline(lambda f: np.zeros((120, 160), np.float32),
+                       PipelineConfig(r_0=1.0), intrinsics=K, mount=Mount())
+    pose = Pose(0.0, 0.0, 0.0, -6.0, 0.0, 0.0, 0.0)  # low: the view is ~6 x 4.5 m
+    for k in range(4):
+        res = pipe.process(np.zeros((480, 640, 3), np.uint8), 0.1 * k, pose)
+    t = res.tracks[0]
+    assert t.view_limited and t.r == pytest.approx(t.r_view, abs=1e-6)
+    assert 1.5 < t.r_view < 2.5

@@ -118,15 +118,20 @@ def pixels_per_cell(proj: PlaneProjection, grid: GridSpec) -> float:
     return float(d.max()) if d.size else 1.0
 
 
-def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec) -> np.ndarray:
+def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
+                   seen: list[np.ndarray] | None = None) -> np.ndarray:
     """Sample the image free map (255 free, 0 occupied) onto ``grid``: uint8, 255 free, 0 occupied
-    or unknown. Conservative: a cell is free only if every image pixel it spans is free."""
+    or unknown. Conservative: a cell is free only if every image pixel it spans is free.
+
+    seen: if given, a uint8 grid with 255 where the camera sees the cell (free or occupied) and 0
+    where it is unknown is appended to it."""
     ppc = pixels_per_cell(proj, grid)
     src = free_img
+    kernel = None
     if ppc > 1.0:
         k = int(math.ceil(ppc)) | 1
-        src = cv2.erode(free_img, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT,
-                        borderValue=0)
+        kernel = np.ones((k, k), np.uint8)
+        src = cv2.erode(free_img, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
     M = proj.H @ grid.cell_to_plane()
     out = cv2.warpPerspective(
         src, M, (grid.cols, grid.rows),
@@ -138,8 +143,22 @@ def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec) 
     wrow = M[2]
     corners = np.array([[0, 0, 1], [grid.cols - 1, 0, 1], [0, grid.rows - 1, 1],
                         [grid.cols - 1, grid.rows - 1, 1]], dtype=float)
+    behind = None
     if (corners @ wrow * proj.w_sign <= 0).any():
         jj, ii = np.meshgrid(np.arange(grid.cols), np.arange(grid.rows))
         behind = (wrow[0] * jj + wrow[1] * ii + wrow[2]) * proj.w_sign <= 0
         out[behind] = 0
+    if seen is not None:
+        h, w = free_img.shape[:2]
+        whole = np.full((h, w), 255, np.uint8)
+        if kernel is not None:
+            # The same border erosion as the free map, so that ground seen free up to the edge of
+            # the view reaches exactly as far as the view does.
+            whole = cv2.erode(whole, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        view = cv2.warpPerspective(whole, M, (grid.cols, grid.rows),
+                                   flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        if behind is not None:
+            view[behind] = 0
+        seen.append(view)
     return out

@@ -37,7 +37,8 @@ def distance_cells(free_grid: np.ndarray) -> np.ndarray:
 
 def clearance_at(dist: np.ndarray, grid: GridSpec, x: float, y: float) -> float:
     """Radius in metres of the largest circle centred at plane point (x, y) that touches no
-    non-free cell, from the distance map of ``distance_cells``; 0 outside the grid."""
+    non-free cell, from the distance map of ``distance_cells``; 0 outside the grid.
+    (Given the distance map of the *seen* grid instead, it is how far the view reaches.)"""
     j = int(round((x - grid.x0) / grid.cell))
     i = int(round((y - grid.y0) / grid.cell))
     if not (0 <= i < dist.shape[0] and 0 <= j < dist.shape[1]):

@@ -126,12 +126,18 @@ class SLZPipeline:
             free = cv2.remap(free, *self._undistort, cv2.INTER_NEAREST,
                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         grid = grid_for_view(proj, (h, w), self.config.grid)
-        free_grid = sample_to_grid(free, proj, grid)
+        seen: list[np.ndarray] = []
+        free_grid = sample_to_grid(free, proj, grid, seen)
         t3 = time.perf_counter()
         dist = distance_cells(free_grid)
         proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r_0, dist)
         t4 = time.perf_counter()
-        tracks = self.tracker.update(proposals, t, lambda x, y: clearance_at(dist, grid, x, y))
+        view_dist = distance_cells(seen[0])
+
+        def clearance(x: float, y: float) -> tuple[float, float]:
+            return clearance_at(dist, grid, x, y), clearance_at(view_dist, grid, x, y)
+
+        tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r_0)
         target = self.tracker.oldest_stable(self.config.r_0)
         t5 = time.perf_counter()
         for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4), (t1, t2, t3, t4, t5)):

@@ -25,6 +25,9 @@ from companion.pipeline.circles import Circle, iou_matrix
 # coast zones a long way on an old velocity.
 MAX_DT = 2.0
 MIN_DT = 1e-3
+# A zone is confirmed by a view that is smaller than the zone only if the view still reaches this
+# far (m) around its centre: a camera that sees next to nothing confirms nothing.
+_MIN_VIEW = 1.0
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,10 @@ class Track:
     r_filtered: the filter's own radius estimate.
     age: frames since the track was born; hits: frames it was matched; misses: consecutive
     frames without a match (0 = confirmed by the latest frame).
+    view_limited: on the confirming frame, ``r`` was bounded by the edge of the camera's view,
+    not by anything seen occupied: everything the camera saw within ``r_view`` metres of the
+    centre was free (low over a zone, the view is smaller than the zone).
+    r_view: how far the view reached from the centre on the confirming frame (m).
     born_t, last_t: capture times (s) of the birth and of the last confirming frame.
     """
 
@@ -80,6 +87,8 @@ class Track:
     misses: int
     born_t: float
     last_t: float
+    view_limited: bool = False
+    r_view: float = math.inf
 
     @property
     def confirmed(self) -> bool:
@@ -117,6 +126,7 @@ class _ZoneFilter:
         self.last_t = t
         self.last_z = z
         self.clear: float | None = None
+        self.view: float = math.inf
 
     def predict(self, dt: float, sigma_a: float) -> None:
         F, Q = _cv_matrices(dt, sigma_a)
@@ -145,8 +155,9 @@ class _ZoneFilter:
         z = self.last_z
         bound = self.clear if self.clear is not None else z.r - math.hypot(x - z.x, y - z.y)
         safe = max(0.0, min(r, bound))
+        limited = self.clear is not None and self.clear >= self.view - 1e-6
         return Track(self.id, x, y, safe, r, self.age, self.hits, self.misses,
-                     self.born_t, self.last_t)
+                     self.born_t, self.last_t, limited, self.view)
 
 
 @dataclass
@@ -188,11 +199,17 @@ class ZoneTracker:
         self._t = None
 
     def update(self, proposals: list[Circle], t: float,
-               clearance: Callable[[float, float], float] | None = None) -> list[Track]:
+               clearance: Callable[[float, float], tuple[float, float]] | None = None,
+               r_min: float | None = None) -> list[Track]:
         """Advance to capture time ``t`` (s) with this frame's proposals; returns the tracks.
 
-        clearance: the free radius (m) about a plane point on this frame; when given, each
-        confirmed track's reported radius is measured at its filtered centre with it.
+        clearance: for a plane point, (free radius, view radius) in metres on this frame: how far
+        the ground is free and seen around it, and how far the view reaches. When given, each
+        confirmed track's radius is measured at its filtered centre, and a track that no
+        proposal matched is still confirmed when the ground under it is free on this frame for at
+        least ``r_min`` metres (or, when the view is smaller than that, for all the view shows).
+        Proposals are the largest circles, which jump about as people move and as the footprint
+        changes; the ground under a zone is what decides whether it still holds.
         """
         if not math.isfinite(t):
             raise ValueError(f"frame time must be finite, got {t!r}")
@@ -210,9 +227,17 @@ class ZoneTracker:
             f = self._filters[fi]
             f.update(proposals[pi], t)
             if clearance is not None:
-                f.clear = clearance(float(f.kf.x[0]), float(f.kf.x[1]))
+                f.clear, f.view = clearance(float(f.kf.x[0]), float(f.kf.x[1]))
         for fi in missed:
-            self._filters[fi].misses += 1
+            f = self._filters[fi]
+            if clearance is not None and r_min is not None:
+                x, y = float(f.kf.x[0]), float(f.kf.x[1])
+                clear, view = clearance(x, y)
+                if clear >= r_min or (clear >= view - 1e-6 and view >= _MIN_VIEW):
+                    f.update(Circle(x, y, clear), t)
+                    f.clear, f.view = clear, view
+                    continue
+            f.misses += 1
         alive = [f for f in self._filters if f.misses <= p.mu_1]
         self.ended += len(self._filters) - len(alive)
         self._filters = alive

@@ -79,6 +79,7 @@ class LandingConfig:
     descend_step_m: float = 3.0
     alt_tolerance_m: float = 0.5
     land_abort_above_m: float = 5.0
+    hold_height_m: float = 15.0
     max_pose_age_s: float = 0.25
     state_timeout_s: float = 1.0
     pose_timeout_s: float = 2.0
@@ -92,6 +93,7 @@ class LandingConfig:
         if self.handback_action not in ("LAND", "RTL"):
             raise ValueError(f"controller handback_action must be LAND or RTL, not {self.handback_action!r}")
         for name in ("select_timeout_s", "hold_timeout_s", "arrive_radius_m", "descend_alt_m", "descend_step_m",
+                     "hold_height_m",
                      "max_pose_age_s", "state_timeout_s", "pose_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -338,7 +340,9 @@ class LandingController:
         if s is None or not self._status_fresh():
             return []
         self._last_goto = None
-        return self._goto(s.north, s.east, s.alt, None)
+        # Low over a lost zone the camera sees too little to confirm any zone of r0 plus margin:
+        # climb back to where it sees enough, rather than hover blind until the handback.
+        return self._goto(s.north, s.east, s.alt + max(0.0, self.config.hold_height_m - s.height), None)
 
     def _goto(self, north: float, east: float, alt: float, zone_id: int | None) -> list[Command]:
         assert self.status is not None

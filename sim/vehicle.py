@@ -44,6 +44,7 @@ class VehicleParams:
     max_speed_down: float = 1.5       # WPNAV_SPEED_DN
     max_accel_xy: float = 2.5         # WPNAV_ACCEL
     max_accel_z: float = 2.5          # PILOT_ACCEL_Z
+    attitude_tc: float = 0.15         # ATC_INPUT_TC: time constant of the tilt response (s)
     max_yaw_rate: float = math.radians(90.0)
     land_speed_high: float = 1.5      # LAND_SPEED_HIGH (0 = WPNAV_SPEED_DN), above land_alt_low
     land_speed: float = 0.5           # LAND_SPEED, the final descent
@@ -304,8 +305,14 @@ class Vehicle:
         cy, sy = math.cos(s.yaw), math.sin(s.yaw)
         a_fwd = cy * s.acceleration[0] + sy * s.acceleration[1]
         a_right = -sy * s.acceleration[0] + cy * s.acceleration[1]
-        s.pitch = -math.atan2(a_fwd, GRAVITY)
-        s.roll = math.atan2(a_right * math.cos(s.pitch), GRAVITY)
+        pitch = -math.atan2(a_fwd, GRAVITY)
+        roll = math.atan2(a_right * math.cos(pitch), GRAVITY)
+        # The attitude controller follows the demanded tilt with a lag (ArduPilot ATC_INPUT_TC):
+        # the velocity model's acceleration steps would otherwise make the camera jump by
+        # degrees between two telemetry samples, which no real airframe does.
+        k = min(1.0, dt / p.attitude_tc) if p.attitude_tc > 0 else 1.0
+        s.pitch += (pitch - s.pitch) * k
+        s.roll += (roll - s.roll) * k
 
     def _update_battery(self, dt: float) -> None:
         p, s = self.params, self.state

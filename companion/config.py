@@ -152,6 +152,10 @@ class ControllerConfig:
                                min=0.5, max=50.0)
     land_abort_above_m: float = _f(5.0, "during LAND, a lost zone above this height sends the vehicle "
                                         "back to HOLD; below it the landing is committed (m)", min=0.0, max=100.0)
+    hold_height_m: float = _f(15.0, "on a lost zone the vehicle holds at least this high above the "
+                              "ground, where the camera sees enough to confirm a zone again", min=2.0, max=120.0)
+    max_takeover_s: float = _f(90.0, "not landed this long after the trigger: hand back to the "
+                               "autopilot's own failsafe", min=10.0, max=600.0)
     handback_action: str = _f("LAND", "what the autopilot is asked to do on handback", choices=("LAND", "RTL"))
 
 

@@ -333,3 +333,32 @@ def test_touching_down_early_during_the_descent_hands_to_land():
     assert ctl.on_frame(0.2, [zone(1, 10, 0, 0.2, born=-8)], pose(0.2, 10, 0, 14.0)) == [Land()]
     ctl.on_state(status(0.3, 10, 0, 14.0, mode="LAND", on_ground=True))
     assert ctl.phase == Phase.LANDED
+
+
+def test_hold_low_over_a_lost_zone_climbs_back_to_see():
+    ctl = LandingController(dataclasses.replace(CFG, hold_height_m=15.0))
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    t = 0.2
+    ctl.on_state(status(t, 10, 0, 8, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, r=1.0, born=-8)], pose(t, 10, 0, 8))
+    assert ctl.phase == Phase.HOLD
+    assert cmds[0].zone_id is None and cmds[0].target.rel_alt_m == pytest.approx(15.0)
+
+
+def test_a_takeover_that_keeps_retargeting_hands_back_within_its_budget():
+    ctl = LandingController(dataclasses.replace(CFG, max_takeover_s=5.0))
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8), zone(2, -20, 5, 0.0, born=-4)])
+    t, handed_back = 0.2, None
+    while t < 10.0 and handed_back is None:
+        # Zones come and go: each frame shows the other one only, so the controller keeps
+        # re-targeting and never lands.
+        zid, x = (2, -20) if int(t * 10) % 2 else (1, 10)
+        ctl.on_state(status(t, 0, 0, 18, mode="GUIDED"))
+        ctl.on_frame(t, [zone(zid, x, 0, t, born=-8)], pose(t, 0, 0, 18))
+        cmds = ctl.tick(t)
+        if ctl.phase == Phase.HANDBACK:
+            handed_back = t
+        t += 0.1
+    assert handed_back == pytest.approx(5.0, abs=0.15)
+    assert isinstance(cmds[0], Handback)
+    assert any("not landed within 5 s of the trigger" in x for x in texts(ctl))

@@ -80,6 +80,7 @@ class LandingConfig:
     alt_tolerance_m: float = 0.5
     land_abort_above_m: float = 5.0
     hold_height_m: float = 15.0
+    max_takeover_s: float = 90.0
     max_pose_age_s: float = 0.25
     state_timeout_s: float = 1.0
     pose_timeout_s: float = 2.0
@@ -93,7 +94,7 @@ class LandingConfig:
         if self.handback_action not in ("LAND", "RTL"):
             raise ValueError(f"controller handback_action must be LAND or RTL, not {self.handback_action!r}")
         for name in ("select_timeout_s", "hold_timeout_s", "arrive_radius_m", "descend_alt_m", "descend_step_m",
-                     "hold_height_m",
+                     "hold_height_m", "max_takeover_s",
                      "max_pose_age_s", "state_timeout_s", "pose_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -241,6 +242,14 @@ class LandingController:
             return self._handback(f"no safe zone confirmed within {c.select_timeout_s:g} s")
         if self.phase == Phase.HOLD and self.now - self._phase_t > c.hold_timeout_s:
             return self._handback(f"held {c.hold_timeout_s:g} s without a safe zone")
+        # Zones that keep being lost and re-targeted must not keep a vehicle with a failing
+        # battery in the air: past this budget the autopilot's own failsafe lands it. Once LAND
+        # is committed low, the autopilot is landing anyway.
+        committed = self.phase == Phase.LAND and self.status is not None and \
+            self.status.height <= c.land_abort_above_m
+        if self.trigger is not None and not committed and \
+                self.now - self.trigger.t > c.max_takeover_s:
+            return self._handback(f"not landed within {c.max_takeover_s:g} s of the trigger")
         if self.phase in FLYING:
             if self.status is None or self.now - self.status.t > c.pose_timeout_s:
                 return self._handback("vehicle position stale")

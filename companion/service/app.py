@@ -258,6 +258,7 @@ class Service:
             select_timeout_s=c.select_timeout_s, hold_timeout_s=c.hold_timeout_s,
             arrive_radius_m=c.arrive_radius_m, descend_alt_m=c.descend_alt_m,
             descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
+            hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
             max_pose_age_s=self.cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         )
         return LandingRunner(LandingController(lcfg), self.autopilot, self.state, self.link)

@@ -1,0 +1,68 @@
+"""SITL: the real service (a subprocess) flies the simulator over MAVLink on loopback UDP, sees
+through the simulated MJPEG camera with the shipped density model, and is judged on the
+simulator's truth (who stood where at touchdown), never on what the service says."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from sim.flight import FlightSpec, fly
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
+
+FLAVOURS = ["ardupilot", "px4"]
+
+
+def _fly(spec: FlightSpec):
+    result = asyncio.run(fly(spec))
+    assert result.service_exit == 0, result.log_tail
+    return result
+
+
+def _explain(r) -> str:
+    return (f"outcome {r.outcome}, touchdown {r.touchdown}, clearance {r.clearance_m}, "
+            f"phases {r.phases}\n" + "\n".join(r.messages) + "\n--- service log tail ---\n"
+            + r.log_tail)
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_failsafe_lands_with_nobody_within_r0(flavour, model_path):
+    r = _fly(FlightSpec(flavour=flavour, world="free_area", seed=2, altitude_m=18.0))
+    assert r.outcome == "safe", _explain(r)
+    assert r.clearance_m >= r.spec.r0_m
+    assert r.took_control and not r.handed_back
+    # It landed in the circle the crowd keeps free, not just somewhere lucky.
+    fn, fe, fr = r.free_circle
+    assert (r.touchdown[0] - fn) ** 2 + (r.touchdown[1] - fe) ** 2 <= fr**2, _explain(r)
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_no_safe_zone_hands_back_and_the_autopilot_lands(flavour, model_path):
+    r = _fly(FlightSpec(flavour=flavour, world="dense", seed=3, altitude_m=16.0,
+                        service_set=("controller.select_timeout_s=6",)))
+    # The companion never flew toward a zone: the autopilot's own LAND stayed in charge.
+    assert not r.took_control, _explain(r)
+    assert r.outcome == "handback", _explain(r)
+    assert "APPROACH" not in r.phases
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_people_walking_into_the_target_make_it_retarget_or_hold(flavour, model_path):
+    r = _fly(FlightSpec(flavour=flavour, world="intrusion", seed=4, altitude_m=18.0))
+    assert r.outcome in ("safe", "handback"), _explain(r)
+    assert r.took_control, _explain(r)
+    # Walkers entered the zone during the approach/descent: the controller noticed.
+    assert any("lost" in m or "holding" in m or "re-target" in m for m in r.messages), _explain(r)
+    if r.outcome == "safe":
+        assert r.clearance_m >= r.spec.r0_m
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_twenty_percent_packet_loss_still_lands_safely_or_hands_back(flavour, model_path):
+    r = _fly(FlightSpec(flavour=flavour, world="free_area", seed=5, altitude_m=18.0,
+                        packet_loss=0.2))
+    assert r.outcome in ("safe", "handback"), _explain(r)
+    if r.outcome == "safe":
+        assert r.clearance_m >= r.spec.r0_m

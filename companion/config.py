@@ -150,7 +150,7 @@ class ControllerConfig:
     descend_alt_m: float = _f(10.0, "altitude above home at which LAND is commanded (m)", min=1.0, max=200.0)
     descend_step_m: float = _f(3.0, "the descent target is never more than this below the vehicle (m)",
                                min=0.5, max=50.0)
-    land_abort_above_m: float = _f(5.0, "during LAND, a lost zone above this height sends the vehicle "
+    land_abort_above_m: float = _f(3.5, "during LAND, a lost zone above this height sends the vehicle "
                                         "back to HOLD; below it the landing is committed (m)", min=0.0, max=100.0)
     hold_height_m: float = _f(15.0, "on a lost zone the vehicle holds at least this high above the "
                               "ground, where the camera sees enough to confirm a zone again", min=2.0, max=120.0)

@@ -78,7 +78,7 @@ class LandingConfig:
     descend_alt_m: float = 10.0
     descend_step_m: float = 3.0
     alt_tolerance_m: float = 0.5
-    land_abort_above_m: float = 5.0
+    land_abort_above_m: float = 3.5
     hold_height_m: float = 15.0
     max_takeover_s: float = 90.0
     max_pose_age_s: float = 0.25

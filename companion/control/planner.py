@@ -29,7 +29,7 @@ from companion.pipeline.tracker import Track
 
 
 #: The least view (m around the zone centre) that can keep confirming a zone during the descent.
-MIN_VIEW_M = 1.0
+MIN_VIEW_M = 0.75
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ class ZonePlanner:
         if now - track.last_t > self.config.zone_max_age_s:
             return ZoneCheck.LOST, track, f"not confirmed for {now - track.last_t:.1f} s"
         # Low over the zone the camera sees less than r0 around it; then everything it does see
-        # must be free (the tracker says so with view_limited), and it must see at least a metre.
+        # must be free (the tracker says so with view_limited), and it must see at least 0.75 m.
         seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
         if track.r < self.config.r0_m and not seen_all_free:
             return ZoneCheck.LOST, track, f"shrank to r {track.r:.1f} m < r0 {self.config.r0_m:g} m"

@@ -27,7 +27,7 @@ MAX_DT = 2.0
 MIN_DT = 1e-3
 # A zone is confirmed by a view that is smaller than the zone only if the view still reaches this
 # far (m) around its centre: a camera that sees next to nothing confirms nothing.
-_MIN_VIEW = 1.0
+_MIN_VIEW = 0.75
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.evaluation import datasets as D
-from companion.evaluation.metrics import SetResult, bench_frame, evaluate_set, latency_ms
+from companion.evaluation.metrics import SetResult, bench_frame, evaluate_set, latency_ms, latency_pair_ms
 from companion.pipeline.density import DensityModel, DensityModelError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -127,8 +127,10 @@ def _print(res: dict[str, Any], curve: bool, file=sys.stdout) -> None:
         line = f"  {name:22s} images {s['images']:5d} heads {s['heads']:6d}  recall {_fmt(s['recall'], True):>8s}  free {_fmt(s['free'], True):>8s}"
         if s["mae"] is not None:
             line += f"  MAE {_fmt(s['mae'])}  RMSE {_fmt(s['rmse'])}"
-        if "peer_recall_at_our_free" in s:
-            line += f"  | peer recall at this free: {_fmt(s['peer_recall_at_our_free'], True)}"
+        if "ours_recall_at_peer_free" in s:
+            line += (f"  | at the peer's free {_fmt(s['peer_free'], True)}: ours {_fmt(s['ours_recall_at_peer_free'], True)}"
+                     f" vs peer {_fmt(s['peer_recall'], True)}; peer at our free: {_fmt(s['peer_recall_at_our_free'], True)}"
+                     f" (its best: {_fmt(s['peer_best_recall'], True)} at free {_fmt(s['peer_best_recall_free'], True)})")
         print(line, file=file)
         if curve:
             for c in s["curve"]:
@@ -157,15 +159,28 @@ def run(args: argparse.Namespace) -> int:
     except (DensityModelError, D.DatasetError, ValueError) as exc:
         print(f"companion eval: {exc}", file=sys.stderr)
         return 2
-    res = measure(model, data, args.latency_runs)
+    # With a peer, latency is timed alternately below (fair ratio on a shared machine).
+    res = measure(model, data, 0 if args.peer else args.latency_runs)
     doc: dict[str, Any] = {"shared": str(shared), "mall_step": args.mall_step, "limit": args.limit, "model": res}
     if peer is not None:
-        pres = measure(peer, data, args.latency_runs)
+        pres = measure(peer, data, 0)
         doc["peer"] = pres
         for name, ours in res["_results"].items():
             theirs = pres["_results"][name]
-            res["sets"][name]["peer_recall_at_our_free"] = theirs.at_free(ours.free)
-        if "latency_ms" in res:
+            best, best_free = theirs.best_recall()
+            res["sets"][name].update(
+                peer_recall_at_our_free=theirs.at_free(ours.free),
+                peer_best_recall=best,
+                peer_best_recall_free=best_free,
+                peer_free=theirs.free,
+                peer_recall=theirs.recall,
+                ours_recall_at_peer_free=ours.at_free(theirs.free),
+            )
+        if args.latency_runs > 0:
+            src = next(iter(data.values()))[0].image()
+            res["latency_ms"], pres["latency_ms"] = {}, {}
+            for k, hw in LATENCY_SIZES.items():
+                res["latency_ms"][k], pres["latency_ms"][k] = latency_pair_ms([model, peer], bench_frame(src, hw), args.latency_runs)
             doc["latency_ratio_ours_over_peer"] = {
                 k: res["latency_ms"][k]["median"] / pres["latency_ms"][k]["median"] for k in LATENCY_SIZES
             }

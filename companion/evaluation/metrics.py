@@ -103,6 +103,11 @@ class SetResult:
             return float("nan")
         return float(np.interp(free, f, r))
 
+    def best_recall(self) -> tuple[float, float]:
+        """(recall, free) at the curve's lowest threshold: the most this model covers at all."""
+        c = self.curve[0]
+        return c["recall"], c["free"]
+
 
 def evaluate_set(
     name: str,
@@ -163,6 +168,24 @@ def latency_ms(density_fn: Callable[[np.ndarray], np.ndarray], frame: np.ndarray
         times.append((time.perf_counter() - t0) * 1e3)
     return {"median": float(np.median(times)), "p10": float(np.percentile(times, 10)),
             "p90": float(np.percentile(times, 90)), "runs": runs}
+
+
+def latency_pair_ms(
+    fns: Sequence[Callable[[np.ndarray], np.ndarray]], frame: np.ndarray, runs: int = 20, warmup: int = 3
+) -> list[dict[str, float]]:
+    """Like :func:`latency_ms` for several models timed alternately run by run, so that load from
+    other processes on a shared machine falls on all of them alike and their ratio stays fair."""
+    for fn in fns:
+        for _ in range(warmup):
+            fn(frame)
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(runs):
+        for fn, ts in zip(fns, times):
+            t0 = time.perf_counter()
+            fn(frame)
+            ts.append((time.perf_counter() - t0) * 1e3)
+    return [{"median": float(np.median(t)), "p10": float(np.percentile(t, 10)), "p90": float(np.percentile(t, 90)),
+             "runs": runs} for t in times]
 
 
 def bench_frame(source: np.ndarray, hw: tuple[int, int]) -> np.ndarray:

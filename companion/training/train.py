@@ -127,7 +127,7 @@ def train(args: argparse.Namespace) -> Path:
         l.backward()
         opt.step()
         sched.step()
-        running += float(l)
+        running += l.item()
         if step % 50 == 0:
             el = time.monotonic() - t0
             log.info("step %d/%d loss %.4f lr %.2e %.2f s/step elapsed %.1f min", step, args.steps,
@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--shared", default="../shared", help="the shared data directory")
     p.add_argument("--out", default="models/slz-density.onnx", help="ONNX file to write")
     p.add_argument("--work", default="/tmp/slz-train", help="checkpoint directory (outside the repo)")
-    p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--steps", type=int, default=2400)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--crop", type=int, default=256, help="crop side in pixels (multiple of 4)")
     p.add_argument("--lr", type=float, default=3e-3)

@@ -1,0 +1,230 @@
+"""The ONNX density runner: shipped model, the MCNN peer via overrides, metadata, every error path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from companion.pipeline.density import DensityModel, DensityModelError, DensitySpec, FrameError
+
+
+def _save(tmp_path: Path, graph: onnx.GraphProto, meta: dict[str, str] | None = None, name: str = "m.onnx") -> Path:
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    for k, v in (meta or {}).items():
+        e = model.metadata_props.add()
+        e.key, e.value = k, v
+    onnx.checker.check_model(model)
+    path = tmp_path / name
+    onnx.save(model, str(path))
+    return path
+
+
+def first_channel_model(tmp_path: Path, meta: dict[str, str] | None = None, channels: int = 3) -> Path:
+    """(N, C, H, W) -> 1x1 conv picking channel 0 -> 2x2 average pool -> (N, 1, H/2, W/2)."""
+    w = np.zeros((1, channels, 1, 1), np.float32)
+    w[0, 0] = 1.0
+    graph = helper.make_graph(
+        [
+            helper.make_node("Conv", ["x", "w"], ["c"]),
+            helper.make_node("AveragePool", ["c"], ["y"], kernel_shape=[2, 2], strides=[2, 2]),
+        ],
+        "pick",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", channels, "h", "w"])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", 1, "h2", "w2"])],
+        [numpy_helper.from_array(w, "w")],
+    )
+    return _save(tmp_path, graph, meta)
+
+
+def identity_model(tmp_path: Path, in_shape: list, out_shape: list | None = None, op: str = "Identity", **attrs) -> Path:
+    graph = helper.make_graph(
+        [helper.make_node(op, ["x"], ["y"], **attrs)],
+        "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, in_shape)],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, out_shape or in_shape)],
+    )
+    return _save(tmp_path, graph)
+
+
+def bgr_frame(h: int, w: int, b: int = 10, g: int = 20, r: int = 30) -> np.ndarray:
+    f = np.empty((h, w, 3), np.uint8)
+    f[..., 0], f[..., 1], f[..., 2] = b, g, r
+    return f
+
+
+# --- the shipped model ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("hw", [(480, 640), (720, 1280)])
+def test_shipped_model_gives_stride_4_map(model_path: Path, hw: tuple[int, int]) -> None:
+    m = DensityModel(model_path, threads=2)
+    assert isinstance(m.spec, DensitySpec)
+    assert m.spec.stride == 4 and m.spec.input_multiple == 4 and m.spec.color == "bgr"
+    assert m.spec.occupancy_threshold is not None and 0 < m.spec.occupancy_threshold < 1
+    rng = np.random.default_rng(0)
+    d = m(rng.integers(0, 256, (*hw, 3), dtype=np.uint8))
+    assert d.dtype == np.float32 and d.shape == (hw[0] // 4, hw[1] // 4)
+    assert np.isfinite(d).all() and d.min() >= 0 and d.max() <= 1  # sigmoid occupancy score
+
+
+def test_shipped_model_sees_people_in_a_drone_photo(model_path: Path, shared_dir: Path) -> None:
+    from companion.evaluation.datasets import semantic_drone
+
+    s = next(x for x in semantic_drone(shared_dir, "val") if len(x.points) >= 3)
+    img = s.image()
+    d = DensityModel(model_path)(img)
+    assert d.shape == (-(-img.shape[0] // 4), -(-img.shape[1] // 4))
+    rows, cols = (s.points[:, 1] // 4).astype(int), (s.points[:, 0] // 4).astype(int)
+    # People score far above the frame's median cell.
+    assert np.median(d[rows, cols]) > 10 * np.median(d)
+
+
+def test_odd_frame_sizes_are_padded_and_cropped_back(model_path: Path) -> None:
+    d = DensityModel(model_path)(np.full((501, 750, 3), 128, np.uint8))
+    assert d.shape == (126, 188)
+
+
+def test_grey_frame_runs_on_a_colour_model(model_path: Path) -> None:
+    assert DensityModel(model_path)(np.full((64, 64), 90, np.uint8)).shape == (16, 16)
+
+
+# --- the MCNN peer through overrides -----------------------------------------------------------
+
+
+def test_mcnn_peer_runs_with_overrides(shared_dir: Path) -> None:
+    from companion.evaluation.datasets import shanghaitech_b
+
+    m = DensityModel(shared_dir / "peers" / "mcnn-shb.onnx", overrides={"color": "gray", "scale": 1, "stride": 4})
+    assert m.spec.color == "gray" and m.spec.stride == 4 and m.spec.occupancy_threshold is None
+    assert m(np.zeros((480, 640, 3), np.uint8)).shape == (120, 160)
+    s = shanghaitech_b(shared_dir, "test")[0]
+    count = m.count(m(s.image()))
+    assert 0.5 * len(s.points) < count < 2 * len(s.points)  # a working counter (35.6 for 23 here), not noise
+
+
+def test_mcnn_stride_is_inferred_when_not_given(shared_dir: Path) -> None:
+    m = DensityModel(shared_dir / "peers" / "mcnn-shb.onnx", overrides={"color": "gray"})
+    assert m.spec.stride == 4 and m.spec.input_multiple == 4
+
+
+# --- metadata, overrides and preprocessing on a tiny exact model ---------------------------
+
+
+META = {"companion.color": "bgr", "companion.scale": "0.01", "companion.mean": "0.05,0,0",
+        "companion.std": "0.5", "companion.occupancy_threshold": "0.25", "companion.count_scale": "2"}
+
+
+def test_metadata_drives_preprocessing(tmp_path: Path) -> None:
+    m = DensityModel(first_channel_model(tmp_path, META))
+    assert m.spec == DensitySpec("bgr", 0.01, (0.05, 0.0, 0.0), (0.5, 0.5, 0.5), 2, 2, 0.25, 2.0)
+    d = m(bgr_frame(8, 12))
+    assert d.shape == (4, 6)
+    np.testing.assert_allclose(d, (10 * 0.01 - 0.05) / 0.5, rtol=1e-6)  # blue channel first
+    assert m.count(d) == pytest.approx(2 * d.sum())
+
+
+def test_overrides_win_over_metadata(tmp_path: Path) -> None:
+    m = DensityModel(first_channel_model(tmp_path, META),
+                     overrides={"color": "rgb", "companion.mean": 0, "std": "1", "occupancy_threshold": 0.5})
+    assert (m.spec.color, m.spec.mean, m.spec.std, m.spec.occupancy_threshold) == ("rgb", (0.0,) * 3, (1.0,) * 3, 0.5)
+    np.testing.assert_allclose(m(bgr_frame(4, 4)), 30 * 0.01)  # red channel first now
+
+
+def test_frame_is_padded_to_the_input_multiple(tmp_path: Path) -> None:
+    m = DensityModel(first_channel_model(tmp_path), overrides={"input_multiple": 8})
+    assert m.preprocess(bgr_frame(30, 30)).shape == (1, 3, 32, 32)
+    assert m(bgr_frame(30, 30)).shape == (15, 15)
+
+
+def test_fixed_size_model_gets_a_resized_frame(tmp_path: Path) -> None:
+    path = identity_model(tmp_path, [1, 1, 16, 16], [1, 1, 8, 8], op="AveragePool", kernel_shape=[2, 2], strides=[2, 2])
+    m = DensityModel(path)
+    assert m.spec.color == "gray" and m.spec.stride == 2
+    assert m(np.full((100, 60), 7, np.uint8)).shape == (8, 8)
+
+
+# --- error paths --------------------------------------------------------------------------
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(DensityModelError, match="does not exist"):
+        DensityModel(tmp_path / "nope.onnx")
+
+
+def test_not_onnx(tmp_path: Path) -> None:
+    bad = tmp_path / "model.onnx"
+    bad.write_text("this is not a protobuf")
+    with pytest.raises(DensityModelError, match="not a loadable ONNX model") as exc:
+        DensityModel(bad)
+    assert str(bad) in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    "shape,match",
+    [(["n", 3, "h"], "image tensor"), (["n", 2, "h", "w"], "image tensor"), (["n", "c", "h", "w"], "image tensor")],
+)
+def test_input_not_an_image(tmp_path: Path, shape: list, match: str) -> None:
+    with pytest.raises(DensityModelError, match=match):
+        DensityModel(identity_model(tmp_path, shape))
+
+
+def test_output_not_a_2d_map(tmp_path: Path) -> None:
+    # Identity keeps 3 channels: (N, 3, H, W) is not a single-channel map.
+    with pytest.raises(DensityModelError, match="2-D map|one channel"):
+        DensityModel(identity_model(tmp_path, ["n", 3, "h", "w"]))
+
+
+def test_output_of_unexpected_rank(tmp_path: Path) -> None:
+    path = identity_model(tmp_path, ["n", 1, "h", "w"], ["n", "h", "w"], op="Squeeze")
+    with pytest.raises(DensityModelError, match="2-D map"):
+        DensityModel(path)
+
+
+def test_non_integer_stride_cannot_be_inferred(tmp_path: Path) -> None:
+    path = identity_model(tmp_path, [1, 1, 64, 64], [1, 1, 21, 21], op="AveragePool", kernel_shape=[3, 3], strides=[3, 3])
+    with pytest.raises(DensityModelError, match="cannot infer the output stride"):
+        DensityModel(path)
+
+
+def test_unknown_override_key(tmp_path: Path) -> None:
+    with pytest.raises(DensityModelError, match="unknown density model setting.*colour"):
+        DensityModel(first_channel_model(tmp_path), overrides={"colour": "rgb"})
+
+
+@pytest.mark.parametrize(
+    "overrides,match",
+    [({"color": "hsv"}, "color must be one of"), ({"color": "gray"}, "does not fit"), ({"std": "1,0,1"}, "std"),
+     ({"mean": "1,2"}, "mean needs"), ({"scale": -1}, "scale"), ({"stride": 2.5}, "stride"),
+     ({"occupancy_threshold": -0.1}, "occupancy_threshold"), ({"scale": "abc"}, "scale")],
+)
+def test_bad_override_values(tmp_path: Path, overrides: dict, match: str) -> None:
+    with pytest.raises(DensityModelError, match=match):
+        DensityModel(first_channel_model(tmp_path), overrides=overrides)
+
+
+def test_bad_metadata_value_names_the_file(tmp_path: Path) -> None:
+    path = first_channel_model(tmp_path, {"companion.color": "purple"})
+    with pytest.raises(DensityModelError, match="m.onnx.*color"):
+        DensityModel(path)
+
+
+def test_bad_thread_count(tmp_path: Path) -> None:
+    with pytest.raises(DensityModelError, match="threads"):
+        DensityModel(first_channel_model(tmp_path), threads=0)
+
+
+@pytest.mark.parametrize(
+    "frame,match",
+    [(np.zeros((8, 8, 3), np.float32), "uint8"), (np.zeros((8, 8, 4), np.uint8), "shape"),
+     (np.zeros((2, 8, 8, 3), np.uint8), "shape"), ([[0, 1], [2, 3]], "numpy array"),
+     (np.zeros((1, 8, 3), np.uint8), "smaller than the stride")],
+)
+def test_bad_frames(tmp_path: Path, frame: object, match: str) -> None:
+    m = DensityModel(first_channel_model(tmp_path))
+    with pytest.raises(FrameError, match=match):
+        m(frame)  # type: ignore[arg-type]

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from companion.pipeline.camera import Intrinsics, Mount, Pose
+from companion.service.camera import as_bgr
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 KINDS = ("auto", "frames", "video", "recording")
@@ -59,18 +60,6 @@ class ReplaySource:
     skipped_upstream: Callable[[], dict[str, int]] | None = None
 
 
-def _as_bgr(image: object) -> np.ndarray | None:
-    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.size == 0:
-        return None
-    if image.ndim == 2:
-        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    if image.ndim == 3 and image.shape[2] == 3:
-        return image
-    if image.ndim == 3 and image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
-    return None
-
-
 def _check_fps(fps: float) -> float:
     if not (math.isfinite(fps) and fps > 0):
         raise ReplayInputError(f"--fps must be a number > 0, got {fps!r}")
@@ -97,7 +86,7 @@ def open_folder(folder: Path, fps: float) -> ReplaySource:
 
     def frames() -> Iterator[ReplayFrame]:
         for i, p in enumerate(files):
-            image = _as_bgr(cv2.imread(str(p), cv2.IMREAD_UNCHANGED))
+            image = as_bgr(cv2.imread(str(p), cv2.IMREAD_UNCHANGED))
             problem = None if image is not None else f"{p}: not a readable image"
             yield ReplayFrame(i, i / fps, image, None, problem, p.name)
 
@@ -130,7 +119,7 @@ def open_video(path: Path, fps: float | None) -> ReplaySource:
                                           f"{path}: frame {i} could not be decoded; "
                                           f"the remaining {count - i - 1} frame(s) are lost")
                     return
-                img = _as_bgr(image)
+                img = as_bgr(image)
                 yield ReplayFrame(i, i / rate, img, None,
                                   None if img is not None else f"{path}: frame {i} is not an image")
                 i += 1
@@ -153,7 +142,7 @@ def open_recording(path: Path) -> ReplaySource:
 
     def frames() -> Iterator[ReplayFrame]:
         for rec in reader.frames():
-            img = _as_bgr(rec.frame_bgr)
+            img = as_bgr(rec.frame_bgr)
             problem = None if img is not None else f"{path}: recorded frame {rec.index} is not an image"
             yield ReplayFrame(int(rec.index), float(rec.t), img, rec.pose, problem)
 

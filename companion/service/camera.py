@@ -127,7 +127,7 @@ class _Status(Enum):
     LOST = 5  # the connection closed: reopen now rather than wait for the stall timeout
 
 
-def _as_bgr(image: object) -> np.ndarray | None:
+def as_bgr(image: object) -> np.ndarray | None:
     """The frame as BGR uint8 (H, W, 3), or None when it is not a usable image."""
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.size == 0:
         return None
@@ -177,7 +177,7 @@ class _CvReader(_Reader):
         ok, image = self.cap.read()
         if not ok:
             return (_Status.FAIL if self.live else _Status.END), None
-        bgr = _as_bgr(image)
+        bgr = as_bgr(image)
         return (_Status.OK, bgr) if bgr is not None else (_Status.CORRUPT, None)
 
     def close(self) -> None:

@@ -209,3 +209,20 @@ def test_folder_that_is_not_a_recording(tmp_path: Path) -> None:
     (tmp_path / "meta.json").write_text("{broken")
     with pytest.raises(ReplayInputError, match="meta.json"):
         open_input(tmp_path)
+
+
+def test_skipped_frames_are_logged_a_few_times_per_reason_then_only_counted(caplog):
+    import logging
+
+    from companion.replay.runner import LOGGED_SKIPS, _log_skip
+
+    counts: dict[str, int] = {}
+    with caplog.at_level(logging.WARNING, logger="companion.replay.runner"):
+        for i in range(LOGGED_SKIPS + 10):
+            _log_skip(counts, "geometry", i, "camera below the head plane")
+        _log_skip(counts, "unreadable", 99, "truncated JPEG")
+    lines = [r.getMessage() for r in caplog.records]
+    assert sum("camera below the head plane" in m for m in lines) == LOGGED_SKIPS
+    assert any("counted in the summary only" in m for m in lines)
+    assert any("frame 99 skipped: truncated JPEG" in m for m in lines)
+    assert counts == {"geometry": LOGGED_SKIPS + 10, "unreadable": 1}

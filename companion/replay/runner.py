@@ -98,16 +98,29 @@ class ReplayOutputs:
     video: VideoOut | None = None
 
 
-def _process(pipe: SLZPipeline, frame: ReplayFrame, use_pose: bool) -> tuple[FrameResult | None, str | None]:
+def _process(pipe: SLZPipeline, frame: ReplayFrame, use_pose: bool
+             ) -> tuple[FrameResult | None, str | None, str]:
+    """The frame's result, or (None, skip reason, why)."""
     assert frame.image is not None
     try:
-        return pipe.process(frame.image, frame.t, frame.pose if use_pose else None), None
+        return pipe.process(frame.image, frame.t, frame.pose if use_pose else None), None, ""
     except GeometryError as exc:
-        log.warning("frame %d skipped: %s", frame.index, exc)
-        return None, SKIP_GEOMETRY
+        return None, SKIP_GEOMETRY, str(exc)
     except DensityModelError as exc:
-        log.warning("frame %d skipped: %s", frame.index, exc)
-        return None, SKIP_MODEL
+        return None, SKIP_MODEL, str(exc)
+
+
+#: Skipped frames logged one by one per reason; the rest are only counted (a recording that ends
+#: on the ground would otherwise log every grounded frame).
+LOGGED_SKIPS = 5
+
+
+def _log_skip(counts: dict[str, int], reason: str, index: int, why: str) -> None:
+    counts[reason] = counts.get(reason, 0) + 1
+    if counts[reason] <= LOGGED_SKIPS:
+        log.warning("frame %d skipped: %s", index, why)
+        if counts[reason] == LOGGED_SKIPS:
+            log.warning("further frames skipped for the same reason are counted in the summary only")
 
 
 def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_pose: bool,
@@ -122,6 +135,7 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
         progress = sys.stderr.isatty()
     total = source.total if max_frames is None else min(source.total or max_frames, max_frames)
     summary = SummaryBuilder()
+    skip_logs: dict[str, int] = {}
     if outputs.masks is not None:
         outputs.masks.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -131,11 +145,12 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
         for frame in itertools.islice(source.frames, max_frames):
             bar.update(1)
             if frame.image is None:
-                log.warning("frame %d skipped: %s", frame.index, frame.problem)
+                _log_skip(skip_logs, SKIP_UNREADABLE, frame.index, str(frame.problem))
                 summary.add_skip(SKIP_UNREADABLE)
                 continue
-            result, skip = _process(pipe, frame, use_pose)
+            result, skip, why = _process(pipe, frame, use_pose)
             if result is None:
+                _log_skip(skip_logs, skip or "unknown", frame.index, why)
                 summary.add_skip(skip or "unknown")
                 continue
             target_id = None if result.target is None else result.target.id

@@ -362,3 +362,20 @@ def test_a_takeover_that_keeps_retargeting_hands_back_within_its_budget():
     assert handed_back == pytest.approx(5.0, abs=0.15)
     assert isinstance(cmds[0], Handback)
     assert any("not landed within 5 s of the trigger" in x for x in texts(ctl))
+
+
+def test_the_takeover_budget_does_not_interrupt_a_landing_under_way():
+    ctl = LandingController(dataclasses.replace(CFG, max_takeover_s=5.0))
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    t = 0.2
+    while ctl.phase != Phase.LAND and t < 3.0:
+        ctl.on_state(status(t, 10, 0, 9.5, mode="GUIDED"))
+        ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.5))
+        t += 0.1
+    assert ctl.phase == Phase.LAND
+    for k in range(80):  # 8 s more, well past the budget, still descending over the zone
+        t += 0.1
+        ctl.on_state(status(t, 10, 0, 9.0 - 0.05 * k, mode="LAND"))
+        ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.0 - 0.05 * k))
+        ctl.tick(t)
+    assert ctl.phase == Phase.LAND

@@ -243,11 +243,10 @@ class LandingController:
         if self.phase == Phase.HOLD and self.now - self._phase_t > c.hold_timeout_s:
             return self._handback(f"held {c.hold_timeout_s:g} s without a safe zone")
         # Zones that keep being lost and re-targeted must not keep a vehicle with a failing
-        # battery in the air: past this budget the autopilot's own failsafe lands it. Once LAND
-        # is committed low, the autopilot is landing anyway.
-        committed = self.phase == Phase.LAND and self.status is not None and \
-            self.status.height <= c.land_abort_above_m
-        if self.trigger is not None and not committed and \
+        # battery in the air: past this budget the autopilot's own failsafe lands it. In LAND the
+        # autopilot is already landing over a confirmed zone; handing back would change nothing
+        # but the zone checks (a lost zone still sends it to HOLD, where the budget applies).
+        if self.trigger is not None and self.phase != Phase.LAND and \
                 self.now - self.trigger.t > c.max_takeover_s:
             return self._handback(f"not landed within {c.max_takeover_s:g} s of the trigger")
         if self.phase in FLYING:

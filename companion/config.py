@@ -142,7 +142,7 @@ class ControllerConfig:
     min_track_age_s: float = _f(1.0, "a zone must have been tracked this long to be a target (s)", min=0.0)
     min_track_hits: int = _f(3, "a zone must have been matched this many times", min=1)
     zone_max_age_s: float = _f(1.0, "a zone not confirmed for this long is stale (s)", min=0.05, max=30.0)
-    radius_margin_m: float = _f(1.0, "zone radius must exceed r0 plus this margin (m)", min=0.0)
+    radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen, and to commit to LAND: walkers keep moving during the last metres of the descent (m)", min=0.0)
     select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: hand back (s)", min=0.5)
     hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: hand back (s)", min=0.5)
     arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",

@@ -37,7 +37,7 @@ class PlannerConfig:
     """Zone acceptance thresholds (metres, seconds, frames)."""
 
     r0_m: float = 2.0
-    radius_margin_m: float = 1.0
+    radius_margin_m: float = 2.0
     min_track_age_s: float = 1.0
     min_track_hits: int = 3
     zone_max_age_s: float = 1.0

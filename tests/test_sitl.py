@@ -44,9 +44,6 @@ def test_failsafe_lands_with_nobody_within_r0(flavour, model_path):
     assert r.outcome == "safe", "\n\n".join(_explain(x) for x in results)
     assert r.clearance_m >= r.spec.r0_m
     assert r.took_control and not r.handed_back
-    # It landed in the circle the crowd keeps free, not just somewhere lucky.
-    fn, fe, fr = r.free_circle
-    assert (r.touchdown[0] - fn) ** 2 + (r.touchdown[1] - fe) ** 2 <= fr**2, _explain(r)
 
 
 @pytest.mark.parametrize("flavour", FLAVOURS)

@@ -379,3 +379,14 @@ def test_the_takeover_budget_does_not_interrupt_a_landing_under_way():
         ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.0 - 0.05 * k))
         ctl.tick(t)
     assert ctl.phase == Phase.LAND
+
+
+def test_descent_needs_r0_free_around_the_vehicle_not_only_around_the_zone_centre():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    t = 0.2
+    # The vehicle is 0.9 m off the zone's centre; the zone is 2.5 m: only 1.6 m free around it.
+    ctl.on_state(status(t, 10.9, 0, 17, mode="GUIDED"))
+    ctl.on_frame(t, [zone(1, 10, 0, t, r=2.5, born=-8)], pose(t, 10.9, 0, 17))
+    assert ctl.phase == Phase.HOLD
+    assert any("1.6 m free around the vehicle < r0 2 m" in x for x in texts(ctl))

@@ -109,7 +109,7 @@ async def rig(autopilot: int = m.MAV_AUTOPILOT_ARDUPILOTMEGA, custom_mode: int =
         await link.close()
 
 
-def zone(id: int, north: float, east: float, t: float, r: float = 4.0) -> Track:
+def zone(id: int, north: float, east: float, t: float, r: float = 5.0) -> Track:
     return Track(id=id, x=north, y=east, r=r, r_filtered=r, age=50, hits=50, misses=0, born_t=t - 5.0, last_t=t)
 
 
@@ -138,7 +138,7 @@ async def test_ardupilot_trigger_guided_target_over_zone_then_land():
         assert sp.lat_int == round(g["lat2"] * 1e7) and sp.lon_int == round(g["lon2"] * 1e7)
         assert sp.alt == pytest.approx(30.0, abs=0.01) and sp.type_mask == 3576 and sp.coordinate_frame == 6
         _, text = await peer.wait_for_text("landing at zone 3")
-        assert text == "SLZ: landing at zone 3, 13.0 m away, radius 4.0 m"
+        assert text == "SLZ: landing at zone 3, 13.0 m away, radius 5.0 m"
         # The vehicle arrives, then follows each descent target down.
         vehicle.north, vehicle.east = 12.0, -5.0
 

@@ -43,7 +43,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from companion.control.geodesy import GeoPoint, geo_from_ned
-from companion.control.planner import PlannerConfig, ZoneCheck, ZonePlanner
+from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
 from companion.mavlink.autopilot import PositionTarget
 from companion.mavlink.failsafe import Trigger
 from companion.pipeline.camera import Pose
@@ -318,6 +318,12 @@ class LandingController:
         assert s is not None
         c = self.config
         dist = math.hypot(track.x - s.north, track.y - s.east)
+        # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
+        # free is r0 around the vehicle, i.e. the zone's radius less the vehicle's offset.
+        seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
+        if self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free and \
+                track.r - dist < c.planner.r0_m:
+            return self._lost(f"{track.r - dist:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m")
         if self.phase == Phase.APPROACH:
             if dist > c.arrive_radius_m:
                 return self._goto(track.x, track.y, self._approach_alt, track.id)
@@ -327,7 +333,7 @@ class LandingController:
             # Commit to LAND only over a zone with the full margin (or one whose whole visible
             # surroundings are free): below the commit height nobody checks any more, and walkers
             # keep walking.
-            roomy = track.r >= c.planner.r0_m + c.planner.radius_margin_m or track.view_limited
+            roomy = track.r - dist >= c.planner.r0_m + c.planner.radius_margin_m or seen_all_free
             if (dist <= c.arrive_radius_m and low and roomy) or s.on_ground:
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m")

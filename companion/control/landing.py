@@ -330,11 +330,7 @@ class LandingController:
             self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m")
         if self.phase == Phase.DESCEND:
             low = s.height <= c.descend_alt_m + c.alt_tolerance_m
-            # Commit to LAND only over a zone with the full margin (or one whose whole visible
-            # surroundings are free): below the commit height nobody checks any more, and walkers
-            # keep walking.
-            roomy = track.r - dist >= c.planner.r0_m + c.planner.radius_margin_m or seen_all_free
-            if (dist <= c.arrive_radius_m and low and roomy) or s.on_ground:
+            if (dist <= c.arrive_radius_m and low) or s.on_ground:
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m")
                 return [Land()]

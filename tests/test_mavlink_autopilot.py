@@ -15,7 +15,7 @@ from companion.mavlink.statustext import send_statustext, statustext_chunks
 from tests.mavpeer import MavPeer
 
 FAST = dict(heartbeat_period_s=0.1, heartbeat_timeout_s=0.5, command_timeout_s=0.1, command_retries=1)
-TARGET = PositionTarget(47.3980118, 8.5450641, 12.5)
+TARGET = PositionTarget(47.3980118, 8.5450641, 12.5, 500.5)  # 12.5 m above a home at 488 m AMSL
 
 
 async def connected(autopilot: int, custom_mode: int = 0):
@@ -125,7 +125,10 @@ async def test_px4_streams_setpoints_before_offboard_then_lands(px4):
     before = [msg for msg, _ in peer.received[:first_mode_index] if msg.get_type() == "SET_POSITION_TARGET_GLOBAL_INT"]
     assert len(before) >= 2
     sp = before[0]
-    assert sp.coordinate_frame == 6 and sp.type_mask == 3576 and sp.lat_int == 473980118
+    # Frame 5 (GLOBAL_INT) with the altitude above mean sea level: PX4 converts frame 6 wrongly
+    # whenever home and its estimator's origin differ in altitude (issue 19, docs/autopilot.md).
+    assert sp.coordinate_frame == m.MAV_FRAME_GLOBAL_INT and sp.alt == pytest.approx(500.5)
+    assert sp.type_mask == 3576 and sp.lat_int == 473980118
     # Stream rate >= 5 Hz over half a second.
     n0 = flavour.setpoints_sent
     await asyncio.sleep(0.5)
@@ -147,6 +150,15 @@ async def test_px4_auto_sub_modes(px4, action, sub, name):
     assert (cmd.param2, cmd.param3) == (4, sub)
     await asyncio.sleep(0.1)
     assert flavour.mode == name
+
+
+async def test_px4_refuses_a_target_without_its_altitude_above_sea_level(px4):
+    _, peer, flavour = px4
+    with pytest.raises(FlavourError):
+        await flavour.goto(PositionTarget(47.3980118, 8.5450641, 12.5))  # no amsl_m: no home altitude
+    await asyncio.sleep(0.2)
+    assert not flavour.streaming and peer.of_type("SET_POSITION_TARGET_GLOBAL_INT") == []
+    assert peer.commands_of(m.MAV_CMD_DO_SET_MODE) == []
 
 
 async def test_px4_offboard_refused_stops_the_stream(px4):

@@ -45,14 +45,23 @@ class FlavourError(ValueError):
 
 @dataclass(frozen=True)
 class PositionTarget:
-    """Where to fly: WGS84 degrees and metres above home (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)."""
+    """Where to fly: WGS84 degrees, metres above home and, when home's altitude is known, the same
+    altitude above mean sea level (``amsl_m`` = home AMSL + ``rel_alt_m``).
+
+    Each flavour picks the frame its autopilot converts correctly (``docs/autopilot.md``):
+    ArduPilot reads ``rel_alt_m`` (frame 6, GLOBAL_RELATIVE_ALT_INT), PX4 ``amsl_m`` (frame 5,
+    GLOBAL_INT), because PX4 converts frame 6 wrongly whenever home and its estimator's origin
+    differ in altitude.
+    """
 
     lat_deg: float
     lon_deg: float
     rel_alt_m: float
+    amsl_m: float | None = None
 
     def __post_init__(self) -> None:
-        if not all(math.isfinite(v) for v in (self.lat_deg, self.lon_deg, self.rel_alt_m)):
+        values = (self.lat_deg, self.lon_deg, self.rel_alt_m) + (() if self.amsl_m is None else (self.amsl_m,))
+        if not all(math.isfinite(v) for v in values):
             raise ValueError(f"position target has a NaN or infinite value: {self!r}")
         if not (-90 <= self.lat_deg <= 90 and -180 <= self.lon_deg <= 180):
             raise ValueError(f"position target out of range: {self!r}")
@@ -127,17 +136,25 @@ class Autopilot(ABC):
     async def stop(self) -> None:
         """Stop any background stream (PX4's setpoints). Idempotent."""
 
+    #: SET_POSITION_TARGET_GLOBAL_INT frame: altitude above home. ArduPilot Copter turns it into a
+    #: Location with ALT_FRAME_ABOVE_HOME and converts through home's altitude, which is right.
+    TARGET_FRAME = m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+
+    def target_altitude(self, target: PositionTarget) -> float:
+        """The ``alt`` field of the target in ``TARGET_FRAME`` (metres)."""
+        return target.rel_alt_m
+
     def position_target_message(self, target: PositionTarget) -> Any:
-        """SET_POSITION_TARGET_GLOBAL_INT, position only, altitude above home."""
+        """SET_POSITION_TARGET_GLOBAL_INT, position only, in the flavour's ``TARGET_FRAME``."""
         return self.link.mav.set_position_target_global_int_encode(
             int(time.monotonic() * 1000) & 0xFFFFFFFF,
             self.link.target_system,
             self.link.config.target_component,
-            m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            self.TARGET_FRAME,
             TYPE_MASK_POSITION_ONLY,
             round(target.lat_deg * 1e7),
             round(target.lon_deg * 1e7),
-            target.rel_alt_m,
+            self.target_altitude(target),
             0, 0, 0, 0, 0, 0, 0, 0,
         )
 

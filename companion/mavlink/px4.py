@@ -6,7 +6,8 @@ PX4 leaves OFFBOARD (its COM_OBL_RC_ACT action) if they stop for COM_OF_LOSS_T, 
 SET_POSITION_TARGET_GLOBAL_INT stream at ``setpoint_rate_hz`` (>= 5 Hz, well above PX4's 2 Hz
 minimum) and only then switches, after ``warmup_s`` (PX4 >= 1.14 wants the offboard signal for
 more than 1 s before it allows the switch); the stream runs until the vehicle is told to land, loiter or
-return.
+return. Targets go in frame 5 (GLOBAL_INT, altitude above mean sea level), which PX4 converts
+correctly; its frame-6 conversion is wrong (see ``TARGET_FRAME``).
 """
 
 from __future__ import annotations
@@ -76,7 +77,21 @@ class PX4(Autopilot):
     def streaming(self) -> bool:
         return self._stream is not None and not self._stream.done()
 
+    # Frame 5, altitude above mean sea level, never frame 6. PX4's MAVLink receiver (1.15 to 1.17)
+    # converts frame 6 as z = (home_alt - alt) - ref_alt instead of ref_alt - home_alt - alt, so
+    # every target is off by twice the altitude between home and the estimator's origin: 1.48 m
+    # apart in SIH made each target about 3 m too high, and a vehicle told to descend climbed to
+    # 220 m. Frame 5 is converted as z = ref_alt - alt, which is right. See docs/autopilot.md.
+    TARGET_FRAME = m.MAV_FRAME_GLOBAL_INT
+
+    def target_altitude(self, target: PositionTarget) -> float:
+        if target.amsl_m is None:
+            raise FlavourError("PX4 targets need home's altitude above mean sea level (HOME_POSITION)")
+        return target.amsl_m
+
     async def goto(self, target: PositionTarget) -> None:
+        if target.amsl_m is None:  # refuse before streaming anything PX4 would misread
+            raise FlavourError("PX4 targets need home's altitude above mean sea level (HOME_POSITION)")
         self.target = target
         if not self.streaming:
             self._stream = asyncio.create_task(self._stream_loop(), name="px4 setpoints")

@@ -148,7 +148,8 @@ class ControllerConfig:
     arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",
                                 min=0.1, max=20.0)
     descend_alt_m: float = _f(10.0, "altitude above home at which LAND is commanded (m)", min=1.0, max=200.0)
-    descend_step_m: float = _f(3.0, "the descent target is never more than this below the vehicle (m)",
+    descend_step_m: float = _f(3.0, "the descent plan goes down in steps of this, one step once the "
+                               "vehicle has reached the last (m)",
                                min=0.5, max=50.0)
     land_abort_above_m: float = _f(3.5, "during LAND, a lost zone above this height sends the vehicle "
                                         "back to HOLD; below it the landing is committed (m)", min=0.0, max=100.0)
@@ -157,6 +158,14 @@ class ControllerConfig:
     max_takeover_s: float = _f(90.0, "not landed this long after the trigger: hand back to the "
                                "autopilot's own failsafe", min=10.0, max=600.0)
     handback_action: str = _f("LAND", "what the autopilot is asked to do on handback", choices=("LAND", "RTL"))
+    search_climb_m: float = _f(5.0, "the ceiling: the vehicle is never sent more than this above its "
+                               "altitude at the trigger (m); above it, control goes back to LAND",
+                               min=1.0, max=50.0)
+    max_alt_m: float = _f(120.0, "the ceiling is never above this altitude above home (m)", min=5.0, max=500.0)
+    obey_tolerance_z_m: float = _f(1.0, "a vehicle further than this above or below its target than it "
+                                   "has shown it can be is handed back to LAND (m)", min=0.3, max=20.0)
+    obey_tolerance_xy_m: float = _f(2.0, "a vehicle further than this from its target than it has shown "
+                                    "it can be is handed back to LAND (m)", min=0.5, max=50.0)
 
 
 @dataclass(frozen=True)

@@ -351,10 +351,11 @@ def test_a_takeover_that_keeps_retargeting_hands_back_within_its_budget():
     t, handed_back = 0.2, None
     while t < 10.0 and handed_back is None:
         # Zones come and go: each frame shows the other one only, so the controller keeps
-        # re-targeting and never lands.
+        # re-targeting and never lands. The vehicle stays where start_descent left it: a jump of
+        # 10 m in 0.1 s would (rightly) be judged a vehicle that does not obey its target.
         zid, x = (2, -20) if int(t * 10) % 2 else (1, 10)
-        ctl.on_state(status(t, 0, 0, 18, mode="GUIDED"))
-        ctl.on_frame(t, [zone(zid, x, 0, t, born=-8)], pose(t, 0, 0, 18))
+        ctl.on_state(status(t, 10, 0, 18, mode="GUIDED"))
+        ctl.on_frame(t, [zone(zid, x, 0, t, born=-8)], pose(t, 10, 0, 18))
         cmds = ctl.tick(t)
         if ctl.phase == Phase.HANDBACK:
             handed_back = t

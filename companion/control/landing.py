@@ -23,15 +23,27 @@ Inputs (times are monotonic seconds):
 Each returns the list of ``Command``s to execute now; ``pop_events()`` gives the human-readable
 events (the runner sends them as STATUSTEXT).
 
-Flying: the vehicle first flies level (at its altitude when the zone was chosen, at least
-``descend_alt_m``) to the zone centre, then descends toward it with a target never more than
-``descend_step_m`` below itself, re-checking the zone at every frame, so a lost zone stops the
-descent within one step. At ``descend_alt_m`` above home over the zone it commands the autopilot's
+Flying: every target altitude comes from the altitude at the trigger and the descent plan, never
+from "where the vehicle is now minus a step" (against the real PX4 such targets, read a few metres
+too high, ratcheted the vehicle up to 220 m). The plan keeps one planned altitude, the *level*:
+the altitude at the trigger (lower if the vehicle came down before the companion took over, never
+below ``descend_alt_m`` above the ground). The vehicle first flies level to the zone, then descends
+one ``descend_step_m`` at a time: the level moves one step down only when the vehicle has reached
+it over the zone, re-checking the zone at every frame, so a lost zone stops the descent within one
+step. The landing point (the *aim*) is the zone's centre when chosen, and it stays put while the
+zone still holds ``r0_m + radius_margin_m`` around it: a zone bounded by the edge of the view moves
+with the camera, and following its centre would chase it across uniform free ground for ever. At ``descend_alt_m`` above home over the zone it commands the autopilot's
 LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
 sequence is used for both autopilots so that the descent down to ``descend_alt_m`` is always
 re-checked. During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends
 the vehicle back to HOLD; below it the landing is committed. HOLD is a position target at the
 vehicle's own position, so the autopilot stays in GUIDED/OFFBOARD and can resume.
+
+Never fly away: no target is ever above the *ceiling* less ``ceiling_margin_m``; the ceiling is the
+altitude at the trigger plus ``search_climb_m``, and never above ``max_alt_m`` above home. While the
+vehicle is in GUIDED/OFFBOARD an ``ObedienceMonitor`` checks that it goes where it is told; a vehicle
+that climbs against its target, sinks below it, moves away from it, or rises above the ceiling is
+handed back to the autopilot's LAND at once, with the reason as an event.
 """
 
 from __future__ import annotations
@@ -43,6 +55,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from companion.control.geodesy import GeoPoint, geo_from_ned
+from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
 from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
 from companion.mavlink.autopilot import PositionTarget
 from companion.mavlink.failsafe import Trigger
@@ -89,18 +102,27 @@ class LandingConfig:
     external_modes: tuple[str, ...] = ("GUIDED", "OFFBOARD")
     retarget_min_move_m: float = 0.3
     refresh_s: float = 1.0
+    search_climb_m: float = 5.0
+    max_alt_m: float = 120.0
+    ceiling_margin_m: float = 1.0
+    obedience: ObedienceConfig = field(default_factory=ObedienceConfig)
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
             raise ValueError(f"controller handback_action must be LAND or RTL, not {self.handback_action!r}")
         for name in ("select_timeout_s", "hold_timeout_s", "arrive_radius_m", "descend_alt_m", "descend_step_m",
-                     "hold_height_m", "max_takeover_s",
+                     "hold_height_m", "max_takeover_s", "max_alt_m",
                      "max_pose_age_s", "state_timeout_s", "pose_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
         if self.max_refusals < 1:
             raise ValueError("controller max_refusals must be >= 1")
+        if not (math.isfinite(self.ceiling_margin_m) and self.ceiling_margin_m >= 0):
+            raise ValueError(f"controller ceiling_margin_m must be >= 0, not {self.ceiling_margin_m!r}")
+        if not (math.isfinite(self.search_climb_m) and self.search_climb_m >= self.ceiling_margin_m):
+            raise ValueError(f"controller search_climb_m must be >= ceiling_margin_m "
+                             f"({self.ceiling_margin_m:g} m), not {self.search_climb_m!r}")
 
 
 @dataclass(frozen=True)
@@ -108,7 +130,8 @@ class VehicleStatus:
     """The vehicle now: ``t`` receive time (s) of its position; NED metres from home; ``home`` WGS84.
 
     ``mode`` is the flavour's mode name; ``on_ground``/``armed`` None when unknown; ``agl`` metres
-    above ground from a fresh rangefinder, None without one (then heights are above home).
+    above ground from a fresh rangefinder, None without one (then heights are above home);
+    ``vn``/``ve``/``vd`` velocity in NED m/s.
     """
 
     t: float
@@ -120,6 +143,9 @@ class VehicleStatus:
     armed: bool | None = None
     on_ground: bool | None = None
     agl: float | None = None
+    vn: float = 0.0
+    ve: float = 0.0
+    vd: float = 0.0
 
     @property
     def alt(self) -> float:
@@ -184,11 +210,15 @@ class LandingController:
         self.frames_ignored = 0
         self.refusals = 0
         self._phase_t = 0.0
-        self._approach_alt = 0.0
         self._last_goto: Goto | None = None
         self._last_goto_t = -math.inf
         self._mode_confirmed = False
         self._events: list[Event] = []
+        self.trigger_alt: float | None = None  # metres above home at the trigger
+        self.ceiling_m: float | None = None  # metres above home; see the module docstring
+        self._level = math.nan  # the planned altitude (m above home)
+        self._aim: tuple[float, float] | None = None  # landing point, north/east metres
+        self.obedience = ObedienceMonitor(self.config.obedience)
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -198,6 +228,10 @@ class LandingController:
             return []
         self.trigger = trigger
         self._set_phase(Phase.SELECT, f"trigger: {trigger.reason}; looking for a landing zone", warning=True)
+        if self._status_fresh():
+            refused = self._set_ceiling()
+            if refused:
+                return refused
         return self._select()
 
     def on_state(self, status: VehicleStatus) -> list[Command]:
@@ -207,9 +241,28 @@ class LandingController:
         self.status = status
         if self.phase not in ACTIVE:
             return []
+        if self.ceiling_m is None:
+            refused = self._set_ceiling()
+            if refused:
+                return refused
         if self.phase == Phase.LAND and (status.on_ground or status.armed is False):
             self._set_phase(Phase.LANDED, f"landed in zone {self._zone_id()}")
             return []
+        if self.phase in FLYING and status.armed is False:
+            # Disarmed outside our LAND: PX4's land detector disarms in OFFBOARD too (its heartbeat
+            # still says OFFBOARD). Nothing more to command to a vehicle with its motors off.
+            if status.on_ground:
+                self._set_phase(Phase.LANDED, f"vehicle on the ground and disarmed (zone {self._zone_id()})")
+            else:
+                self.target = None
+                self._set_phase(Phase.HANDBACK, "vehicle disarmed in the air: companion stops", warning=True)
+            return []
+        if self.phase in FLYING and self.ceiling_m is not None and status.alt > self.ceiling_m:
+            return self._handback(f"vehicle at {status.alt:.1f} m, above the {self.ceiling_m:.1f} m ceiling",
+                                  action="LAND")
+        obeying = self._check_obedience(status)
+        if obeying:
+            return obeying
         if self.phase in FLYING and status.mode is not None:
             allowed = (*self.config.external_modes, "LAND")
             if status.mode in allowed:
@@ -288,8 +341,40 @@ class LandingController:
     def _status_fresh(self) -> bool:
         return self.status is not None and self.now - self.status.t <= self.config.state_timeout_s
 
+    def _set_ceiling(self) -> list[Command]:
+        """Fix the altitude at the trigger and the ceiling from the first status after it."""
+        s, c = self.status, self.config
+        if s is None or self.trigger is None or self.ceiling_m is not None:
+            return []
+        self.trigger_alt = s.alt
+        self._level = s.alt
+        self.ceiling_m = min(s.alt + c.search_climb_m, c.max_alt_m)
+        if s.alt > c.max_alt_m:
+            return self._handback(f"vehicle at {s.alt:.1f} m, above the {c.max_alt_m:g} m ceiling: "
+                                  "not taking over", action="LAND")
+        return []
+
+    def _check_obedience(self, status: VehicleStatus) -> list[Command]:
+        """Hand back to LAND when the vehicle does not follow our targets (see ``obedience``)."""
+        ours = (self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.HOLD)
+                and status.mode in self.config.external_modes and self._last_goto is not None)
+        if not ours:
+            self.obedience.disengage()
+            return []
+        sample = Sample(status.north, status.east, status.alt, status.vn, status.ve, status.vd, status.t)
+        if not self.obedience.engaged:
+            self.obedience.engage(sample)
+            return []
+        why = self.obedience.check(sample)
+        return [] if why is None else self._handback(why, action="LAND")
+
+    def _cap(self) -> float:
+        """The highest altitude a target may have (m above home)."""
+        assert self.ceiling_m is not None
+        return self.ceiling_m - self.config.ceiling_margin_m
+
     def _select(self) -> list[Command]:
-        if not self._status_fresh():
+        if not self._status_fresh() or self.ceiling_m is None:
             return []
         zone = self.planner.choose(self.tracks, self.now)
         if zone is None:
@@ -297,14 +382,18 @@ class LandingController:
         return self._approach(zone, "landing at")
 
     def _approach(self, zone: Track, verb: str) -> list[Command]:
-        assert self.status is not None
+        s, c = self.status, self.config
+        assert s is not None
         self.target = zone
+        self._aim = (zone.x, zone.y)
+        if s.alt < self._level - c.alt_tolerance_m:
+            self._level = s.alt  # it came down before we took over: do not climb back for nothing
         # Level flight, but never lower than descend_alt_m above the ground below.
-        self._approach_alt = self.status.alt + max(0.0, self.config.descend_alt_m - self.status.height)
-        dist = math.hypot(zone.x - self.status.north, zone.y - self.status.east)
+        self._level = min(self._cap(), max(self._level, s.alt - s.height + c.descend_alt_m))
+        dist = math.hypot(zone.x - s.north, zone.y - s.east)
         self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m")
         self._last_goto = None
-        return self._goto(zone.x, zone.y, self._approach_alt, zone.id)
+        return self._goto(zone.x, zone.y, self._level, zone.id)
 
     def _follow(self) -> list[Command]:
         assert self.target is not None
@@ -317,16 +406,23 @@ class LandingController:
         s = self.status
         assert s is not None
         c = self.config
-        dist = math.hypot(track.x - s.north, track.y - s.east)
+        # The landing point stays where it is while the zone still holds r0 plus the margin around
+        # it; only then does it move to the zone's new centre (see the module docstring).
+        aim = self._aim
+        if aim is None or track.r - math.hypot(aim[0] - track.x, aim[1] - track.y) < \
+                c.planner.r0_m + c.planner.radius_margin_m:
+            aim = self._aim = (track.x, track.y)
+        dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
         # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
         # free is r0 around the vehicle, i.e. the zone's radius less the vehicle's offset.
+        off_centre = math.hypot(track.x - s.north, track.y - s.east)
         seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
         if self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free and \
-                track.r - dist < c.planner.r0_m:
-            return self._lost(f"{track.r - dist:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m")
+                track.r - off_centre < c.planner.r0_m:
+            return self._lost(f"{track.r - off_centre:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m")
         if self.phase == Phase.APPROACH:
             if dist > c.arrive_radius_m:
-                return self._goto(track.x, track.y, self._approach_alt, track.id)
+                return self._goto(aim[0], aim[1], self._level, track.id)
             self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m")
         if self.phase == Phase.DESCEND:
             low = s.height <= c.descend_alt_m + c.alt_tolerance_m
@@ -334,10 +430,15 @@ class LandingController:
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m")
                 return [Land()]
-            # The carrot stays within one step below the vehicle, and only moves down while over
-            # the zone: a lost zone never leaves the vehicle committed to a long descent.
-            drop = 0.0 if dist > 2 * c.arrive_radius_m else min(c.descend_step_m, max(0.0, s.height - c.descend_alt_m))
-            return self._goto(track.x, track.y, s.alt - drop, track.id)
+            # The plan's next step: one step down once the vehicle has reached the current level
+            # over the zone, so a lost zone never leaves the vehicle committed to a long descent.
+            # Never below descend_alt_m above the ground under the vehicle (a rangefinder may show
+            # the ground rising): the plan's floor, from terrain, not from the vehicle's altitude.
+            floor = s.alt - s.height + c.descend_alt_m
+            self._level = min(self._cap(), max(self._level, floor))
+            if dist <= 2 * c.arrive_radius_m and s.alt <= self._level + c.alt_tolerance_m:
+                self._level = max(self._level - c.descend_step_m, floor)
+            return self._goto(aim[0], aim[1], self._level, track.id)
         return []
 
     def _lost(self, why: str) -> list[Command]:
@@ -355,11 +456,15 @@ class LandingController:
             return []
         self._last_goto = None
         # Low over a lost zone the camera sees too little to confirm any zone of r0 plus margin:
-        # climb back to where it sees enough, rather than hover blind until the handback.
-        return self._goto(s.north, s.east, s.alt + max(0.0, self.config.hold_height_m - s.height), None)
+        # climb back to where it sees enough (never above the ceiling), rather than hover blind
+        # until the handback.
+        self._aim = None
+        self._level = min(self._cap(), max(self._level, s.alt - s.height + self.config.hold_height_m))
+        return self._goto(s.north, s.east, self._level, None)
 
     def _goto(self, north: float, east: float, alt: float, zone_id: int | None) -> list[Command]:
         assert self.status is not None
+        alt = min(alt, self._cap())  # never a target above the ceiling, whatever asked for it
         last = self._last_goto
         if (
             last is not None
@@ -369,13 +474,16 @@ class LandingController:
             and self.now - self._last_goto_t < self.config.refresh_s
         ):
             return []  # the vehicle already has this target; do not flood the link
-        point = geo_from_ned(self.status.home, north, east)
-        cmd = Goto(PositionTarget(point.lat_deg, point.lon_deg, alt), zone_id, north, east)
+        point = geo_from_ned(self.status.home, north, east, -alt)
+        cmd = Goto(PositionTarget(point.lat_deg, point.lon_deg, alt, point.alt_m), zone_id, north, east)
         self._last_goto, self._last_goto_t = cmd, self.now
+        s = self.status
+        self.obedience.target(north, east, alt, Sample(s.north, s.east, s.alt, s.vn, s.ve, s.vd, s.t))
         return [cmd]
 
-    def _handback(self, why: str) -> list[Command]:
-        action = self.config.handback_action
+    def _handback(self, why: str, action: str | None = None) -> list[Command]:
+        """Give the vehicle back: ``action`` LAND or RTL (default: the configured one)."""
+        action = action or self.config.handback_action
         self.target = None
         self._set_phase(Phase.HANDBACK, f"{why}: handing back to the autopilot ({action})", warning=True)
         return [Handback(action, why)]

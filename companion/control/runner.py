@@ -61,6 +61,9 @@ def vehicle_status(
         armed=state.armed,
         on_ground=None if state.landed is None else state.landed.on_ground,
         agl=state.altitude_above_ground(time.monotonic() if now is None else now),
+        vn=state.position.vn,
+        ve=state.position.ve,
+        vd=state.position.vd,
     )
 
 

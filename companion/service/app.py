@@ -247,6 +247,7 @@ class Service:
         """The landing controller behind its async runner (commands through the autopilot
         flavour, events to the ground station as STATUSTEXT)."""
         from companion.control.landing import LandingConfig, LandingController
+        from companion.control.obedience import ObedienceConfig
         from companion.control.planner import PlannerConfig
         from companion.control.runner import LandingRunner
 
@@ -260,6 +261,8 @@ class Service:
             descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
             hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
             max_pose_age_s=self.cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
+            search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
+            obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         )
         return LandingRunner(LandingController(lcfg), self.autopilot, self.state, self.link)
 

@@ -9,6 +9,12 @@ sequences, and failsafes. Each flavour maps its own ``custom_mode`` numbers onto
 Units: world = local NED metres from home, ground ``z = 0``; MAVLink fields in their own units
 (degE7, mm, cm/s, cdeg) are converted at the message boundary only. Times are seconds of the
 simulator clock, ``time_boot_ms`` counts from the simulator start.
+
+The autopilot's own local frame (LOCAL_POSITION_NED, SET_POSITION_TARGET_LOCAL_NED in
+MAV_FRAME_LOCAL_NED, HOME_POSITION x/y/z) has its origin at the estimator's origin, which a flavour
+may put ``origin_down_m()`` metres below home (world down); horizontally it is home. In that frame
+``z_local = world_down - origin_down_m()``. ArduPilot's is home here (0); PX4's is
+``AutopilotConfig.origin_alt_offset_m``.
 """
 
 from __future__ import annotations
@@ -97,7 +103,15 @@ class AutopilotConfig:
     """Identity, home and failsafe set-up of the simulated autopilot.
 
     Home: WGS84 degrees and metres AMSL. Heights in metres above home. Battery thresholds as
-    remaining fractions 0..1. ``failsafe_action`` maps a failsafe to ``"land"`` or ``"rtl"``.
+    remaining fractions 0..1. ``failsafe_action`` maps a failsafe to ``"land"`` or ``"rtl"``
+    (PX4 only warns on battery low, whatever its entry says).
+
+    ``origin_alt_offset_m`` is ``home_alt - ref_alt`` in metres, where ``ref_alt`` is the AMSL
+    altitude of the estimator's (EKF) local origin: the origin sits at ``home_alt -
+    origin_alt_offset_m`` AMSL, horizontally at home. Negative = home below the origin. Only the
+    PX4 flavour uses it (its local frame and its MAV_FRAME_GLOBAL_RELATIVE_ALT_INT conversion,
+    which is wrong by ``2 * origin_alt_offset_m``); ArduPilot converts correctly and its local
+    frame stays at home in this model.
     """
 
     system_id: int = 1
@@ -119,8 +133,11 @@ class AutopilotConfig:
     gcs_system_id: int = 255           # SYSID_MYGCS: whose heartbeats count for the GCS failsafe
     gcs_timeout_s: float | None = None  # FS_GCS_TIMEOUT; None = FS_GCS_ENABLE 0 (the default)
     telemetry_rates: dict[int, float] | None = None  # overrides of the flavour's default rates
+    origin_alt_offset_m: float = 0.0   # home_alt - EKF origin alt AMSL (m); PX4 only, see above
 
     def __post_init__(self) -> None:
+        if not math.isfinite(self.origin_alt_offset_m):
+            raise ValueError(f"origin_alt_offset_m must be finite, got {self.origin_alt_offset_m}")
         for kind, action in self.failsafe_action.items():
             if action not in ("land", "rtl"):
                 raise ValueError(f"failsafe action for {kind.value} must be 'land' or 'rtl'")
@@ -181,7 +198,9 @@ class Autopilot(ABC):
 
     MAV_AUTOPILOT: int = R.MAV_AUTOPILOT_GENERIC
     FLAVOUR: str = "generic"
-    LAND_DISARM_S: float = 0.0  # after the land detector fires in a landing mode
+    LAND_DISARM_S: float = 0.0  # after the land detector fires (see ``disarms_when_landed``)
+    LANDED_DISARM_TEXT: str = "Disarming: landed"
+    IDLE_DISARM_TEXT: str = "Disarming: auto disarm while landed"
 
     def __init__(self, vehicle: Vehicle, config: AutopilotConfig | None = None,
                  start_time: float = 0.0) -> None:
@@ -198,6 +217,8 @@ class Autopilot(ABC):
         }
         self._rtl_phase = ""
         self._armed_on_ground_since: float | None = None
+        # Airborne since the last arming: the land detector's disarm applies only after a flight.
+        self._has_flown = vehicle.state.armed and not vehicle.state.land_complete
         self.on_mode_change: list[Callable[[int, int], None]] = []
         self.on_touchdown: list[Callable[[], None]] = []
         self._was_landed = vehicle.state.land_complete
@@ -240,6 +261,30 @@ class Autopilot(ABC):
     def mode_from_command(self, main: float, sub: float) -> int:
         """The custom_mode that MAV_CMD_DO_SET_MODE param2/param3 name (flavour encoding)."""
         return int(main)
+
+    def origin_down_m(self) -> float:
+        """World down (m) of the local frame's origin (the estimator's origin); 0 = at home."""
+        return 0.0
+
+    def global_target_down(self, frame: int, alt: float) -> float | None:
+        """World down (m) of a SET_POSITION_TARGET_GLOBAL_INT altitude in ``frame``.
+
+        ``alt`` is metres AMSL (GLOBAL), above home (RELATIVE_ALT) or above terrain (TERRAIN_ALT;
+        the terrain is flat at home's height here). None: the firmware discards that frame.
+        """
+        if frame in (R.MAV_FRAME_GLOBAL_INT, R.MAV_FRAME_GLOBAL):
+            return self.config.home_alt - alt
+        if frame in (R.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, R.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                     R.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT, R.MAV_FRAME_GLOBAL_TERRAIN_ALT):
+            return -alt
+        return None
+
+    def disarms_when_landed(self, behaviour: Behaviour) -> bool:
+        """Whether the land detector disarms (after LAND_DISARM_S) in this behaviour.
+
+        Otherwise an armed vehicle on the ground disarms after ``idle_disarm_s``.
+        """
+        return behaviour in (Behaviour.LAND, Behaviour.RTL)
 
     # ----- state -----
 
@@ -296,6 +341,7 @@ class Autopilot(ABC):
     def arm(self) -> None:
         self.vehicle.arm()
         self._armed_on_ground_since = self.now
+        self._has_flown = False
 
     def disarm(self) -> None:
         self.vehicle.disarm()
@@ -323,14 +369,17 @@ class Autopilot(ABC):
             for cb in list(self.on_touchdown):
                 cb()
         self._was_landed = landed
+        if s.armed and not landed:
+            self._has_flown = True
         if s.armed and landed:
-            if b in (Behaviour.LAND, Behaviour.RTL) and v.landed_for_s >= self.LAND_DISARM_S:
+            by_landing = self.disarms_when_landed(b)
+            if by_landing and v.landed_for_s >= self.LAND_DISARM_S:
                 self.disarm()
-                self._say(R.MAV_SEVERITY_INFO, "Disarming: landed")
-            elif self._armed_on_ground_since is not None and b not in (Behaviour.LAND, Behaviour.RTL):
+                self._say(R.MAV_SEVERITY_INFO, self.LANDED_DISARM_TEXT)
+            elif self._armed_on_ground_since is not None and not by_landing:
                 if now - self._armed_on_ground_since >= self.config.idle_disarm_s:
                     self.disarm()
-                    self._say(R.MAV_SEVERITY_INFO, "Disarming: auto disarm while landed")
+                    self._say(R.MAV_SEVERITY_INFO, self.IDLE_DISARM_TEXT)
         if not landed:
             self._armed_on_ground_since = now if s.armed else None
         timeout = self.config.gcs_timeout_s
@@ -356,7 +405,7 @@ class Autopilot(ABC):
     # ----- failsafes -----
 
     def trigger_failsafe(self, kind: Failsafe) -> None:
-        """Raise a failsafe as the firmware would: flag it, tell the GCS, switch mode if flying."""
+        """Raise a failsafe as the firmware would: flag it (latched), then ``react_to_failsafe``."""
         if kind in self.failsafes:
             return
         self.failsafes.add(kind)
@@ -366,15 +415,26 @@ class Autopilot(ABC):
         elif kind is Failsafe.BATTERY_CRITICAL:
             self.vehicle.set_battery_remaining(min(self.vehicle.battery_remaining,
                                                    self.config.battery_critical))
+        self.react_to_failsafe(kind)
+
+    def react_to_failsafe(self, kind: Failsafe) -> None:
+        """What the firmware does about a new failsafe: tell the GCS, switch mode at once."""
         action = self.config.failsafe_action.get(kind, "land")
         self._say(R.MAV_SEVERITY_CRITICAL, f"Failsafe {kind.value}: {action.upper()}")
+        target = self.failsafe_target(kind)
+        if target is not None:
+            self.set_mode(self.mode_for(target))
+
+    def failsafe_target(self, kind: Failsafe) -> Behaviour | None:
+        """The behaviour ``kind``'s action switches to now; None when it changes nothing."""
         if not self.flying:
-            return
+            return None
+        action = self.config.failsafe_action.get(kind, "land")
         target = Behaviour.RTL if action == "rtl" else Behaviour.LAND
         # A failsafe never de-escalates: already landing stays landing.
         if self.behaviour is Behaviour.LAND or self.behaviour is target:
-            return
-        self.set_mode(self.mode_for(target))
+            return None
+        return target
 
     def clear_failsafe(self, kind: Failsafe) -> None:
         """The condition went away (RC back, GCS back); the mode stays as it is, like the firmwares."""
@@ -467,7 +527,7 @@ class Autopilot(ABC):
             pos = np.array([msg.x, msg.y, msg.z], dtype=float)
             vel = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
             if frame == R.MAV_FRAME_LOCAL_NED:
-                pass
+                pos[2] += self.origin_down_m()  # local frame (estimator origin) -> world
             elif frame == R.MAV_FRAME_LOCAL_OFFSET_NED:
                 pos = pos + s.position
             elif frame in (R.MAV_FRAME_BODY_NED, R.MAV_FRAME_BODY_OFFSET_NED, R.MAV_FRAME_BODY_FRD):
@@ -479,17 +539,12 @@ class Autopilot(ABC):
                 return None
         else:
             frame = int(msg.coordinate_frame)
-            if frame not in (R.MAV_FRAME_GLOBAL_INT, R.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
-                             R.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT, R.MAV_FRAME_GLOBAL,
-                             R.MAV_FRAME_GLOBAL_RELATIVE_ALT, R.MAV_FRAME_GLOBAL_TERRAIN_ALT):
+            down = self.global_target_down(frame, float(msg.alt))
+            if down is None:
                 return None
             north, east = (0.0, 0.0)
             if pos_bits == 0:
                 north, east = self.geo.to_local(msg.lat_int / 1e7, msg.lon_int / 1e7)
-            if frame in (R.MAV_FRAME_GLOBAL_INT, R.MAV_FRAME_GLOBAL):
-                down = self.config.home_alt - float(msg.alt)
-            else:
-                down = -float(msg.alt)  # relative to home; terrain is flat at home height here
             pos = np.array([north, east, down])
             vel = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
         if pos_bits == 0:
@@ -741,6 +796,10 @@ class Autopilot(ABC):
     def flight_sw_version(self) -> int:
         return 0
 
+    def reported_home(self) -> tuple[float, float, float]:
+        """Where HOME_POSITION says home is, world NED metres (the configured home: origin)."""
+        return 0.0, 0.0, 0.0
+
     def build(self, msg_id: int) -> MAVMessage | None:
         """The current telemetry message ``msg_id``, or None if this autopilot does not send it."""
         if msg_id not in self.supported_messages():
@@ -767,11 +826,14 @@ class Autopilot(ABC):
                 tb, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
                 int(round(-d * 1000)), _i16(vn * 100), _i16(ve * 100), _i16(vd * 100), hdg)
         if msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
-            return mav.MAVLink_local_position_ned_message(tb, n, e, d, vn, ve, vd)
+            return mav.MAVLink_local_position_ned_message(tb, n, e, d - self.origin_down_m(),
+                                                          vn, ve, vd)
         if msg_id == mav.MAVLINK_MSG_ID_HOME_POSITION:
+            hn, he, hd = self.reported_home()
+            lat, lon, alt = self.geo.to_global(hn, he, hd)
             return mav.MAVLink_home_position_message(
-                int(round(c.home_lat * 1e7)), int(round(c.home_lon * 1e7)),
-                int(round(c.home_alt * 1000)), 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0],
+                int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+                hn, he, hd - self.origin_down_m(), [1.0, 0.0, 0.0, 0.0],
                 0.0, 0.0, 0.0, int((self.now - self.start_time) * 1e6))
         if msg_id == mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             return mav.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED,

@@ -58,8 +58,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--home", type=_home, default=None, metavar="LAT,LON,ALT",
                         help="home in degrees and metres AMSL (default PX4's Zurich SITL home)")
     parser.add_argument("--sysid", type=int, default=1, help="MAVLink system id (default 1)")
+    parser.add_argument("--origin-alt-offset", type=float, default=0.0, metavar="M",
+                        help="PX4: home altitude minus the EKF origin's, m (SIH showed -1.48); "
+                             "non-zero reproduces PX4's GLOBAL_RELATIVE_ALT_INT altitude error")
     parser.add_argument("--failsafe-action", choices=("land", "rtl"), default=None,
-                        help="what every failsafe does (default: battery low RTL, others LAND)")
+                        help="what every failsafe does (default: battery low RTL, others LAND; "
+                             "PX4 only warns on battery low)")
     parser.add_argument("--failsafe", choices=[f.value for f in Failsafe], default=None,
                         help="raise this failsafe after --failsafe-after seconds")
     parser.add_argument("--failsafe-after", type=float, default=30.0, help="seconds (default 30)")
@@ -81,7 +85,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def build_config(args: argparse.Namespace) -> SimConfig:
     """The simulator configuration the command-line arguments describe."""
-    ap = AutopilotConfig(system_id=args.sysid)
+    ap = AutopilotConfig(system_id=args.sysid, origin_alt_offset_m=args.origin_alt_offset)
     if args.home is not None:
         ap.home_lat, ap.home_lon, ap.home_alt = args.home
     if args.failsafe_action is not None:

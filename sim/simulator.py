@@ -24,7 +24,7 @@ from sim.ardupilot import ArduPilotCopter
 from sim.autopilot import Autopilot, AutopilotConfig, Behaviour
 from sim.endpoint import Endpoint, UdpLink
 from sim.faults import Failsafe, LinkFaults
-from sim.px4 import OffboardConfig, Px4Multicopter
+from sim.px4 import OffboardConfig, Px4FailsafeConfig, Px4Multicopter
 from sim.vehicle import Vehicle, VehicleParams
 
 log = logging.getLogger(__name__)
@@ -38,7 +38,11 @@ class Steppable(Protocol):
 
 @dataclass
 class SimConfig:
-    """Everything a simulator run needs. Positions world NED metres, yaw radians, rate Hz."""
+    """Everything a simulator run needs. Positions world NED metres, yaw radians, rate Hz.
+
+    ``offboard`` and ``px4_failsafe`` apply to the PX4 flavour only; ``seed`` makes the link
+    faults and PX4's pre-arming HOME_POSITION wander repeatable (None: fresh entropy).
+    """
 
     flavour: str = "ardupilot"
     outputs: list[str] = field(default_factory=lambda: ["udpout:127.0.0.1:14550"])
@@ -49,6 +53,7 @@ class SimConfig:
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
     offboard: OffboardConfig = field(default_factory=OffboardConfig)
+    px4_failsafe: Px4FailsafeConfig = field(default_factory=Px4FailsafeConfig)
     seed: int | None = None
 
     def __post_init__(self) -> None:
@@ -90,7 +95,8 @@ class Simulator:
         self.vehicle = Vehicle(c.vehicle, c.start_position, c.start_yaw, c.battery_remaining)
         self.autopilot: Autopilot
         if c.flavour == "px4":
-            self.autopilot = Px4Multicopter(self.vehicle, c.autopilot, offboard=c.offboard)
+            self.autopilot = Px4Multicopter(self.vehicle, c.autopilot, offboard=c.offboard,
+                                            failsafe=c.px4_failsafe, seed=c.seed)
         else:
             self.autopilot = ArduPilotCopter(self.vehicle, c.autopilot)
         self.world = world

@@ -19,6 +19,7 @@ from enum import Enum
 import numpy as np
 
 GRAVITY = 9.80665  # m/s^2
+TOUCHDOWN_SPEED = 0.3  # m/s, the slowest descent onto a position target on the ground
 
 
 class Demand(Enum):
@@ -224,6 +225,12 @@ class Vehicle:
                 speed = sqrt_controller(dist_xy, p.position_gain, p.max_accel_xy)
                 v[:2] = err[:2] / dist_xy * speed
             v[2] = sqrt_controller(float(err[2]), p.position_gain, p.max_accel_z)
+            if self.target_position[2] >= 0.0:
+                # A target on the ground is reached by touching it: keep a touchdown speed
+                # rather than creep toward z = 0 forever (the linear end of the approach is
+                # exponential), as a real vehicle settles onto the ground and its land detector
+                # fires.
+                v[2] = max(v[2], min(TOUCHDOWN_SPEED, p.land_speed))
         elif self.demand is Demand.LAND:
             # Hold the horizontal position the landing started at; descend by the schedule.
             err = self.target_position - s.position

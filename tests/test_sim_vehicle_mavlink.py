@@ -17,7 +17,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from sim.ardupilot import GUIDED, LAND, LOITER, RTL
 from sim.autopilot import AutopilotConfig
 from sim.faults import Failsafe
-from sim.px4 import AUTO_LAND, AUTO_LOITER, OFFBOARD, MAIN_AUTO, MAIN_OFFBOARD, SUB_LAND
+from sim.px4 import (AUTO_LAND, AUTO_LOITER, MAIN_AUTO, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD,
+                     POSCTL, SUB_LAND)
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
 
@@ -318,16 +319,22 @@ async def test_px4_offboard_needs_stream_and_falls_back_on_loss(px4) -> None:
     await c.wait("STATUSTEXT", lambda m: "Offboard" in m.text, timeout=1.0)
 
 
-@pytest.mark.parametrize("flavour,kind,mode,status", [
-    ("ardupilot", Failsafe.BATTERY_LOW, RTL, mav.MAV_STATE_CRITICAL),
-    ("ardupilot", Failsafe.RC_LOSS, LAND, mav.MAV_STATE_CRITICAL),
-    ("px4", Failsafe.BATTERY_CRITICAL, AUTO_LAND, mav.MAV_STATE_EMERGENCY),
-    ("px4", Failsafe.GCS_LOSS, AUTO_LAND, mav.MAV_STATE_CRITICAL),
+@pytest.mark.parametrize("flavour,kind,mode,then,status", [
+    ("ardupilot", Failsafe.BATTERY_LOW, RTL, None, mav.MAV_STATE_CRITICAL),
+    ("ardupilot", Failsafe.RC_LOSS, LAND, None, mav.MAV_STATE_CRITICAL),
+    # PX4 holds (AUTO.LOITER) for COM_FAIL_ACT_T = 5 s, then acts; the companion takes over
+    # after the action (battery) or during the hold, which cancels the action (GCS loss).
+    ("px4", Failsafe.BATTERY_CRITICAL, AUTO_LOITER, AUTO_LAND, mav.MAV_STATE_EMERGENCY),
+    ("px4", Failsafe.GCS_LOSS, AUTO_LOITER, None, mav.MAV_STATE_CRITICAL),
 ])
 async def test_failsafe_switches_mode_by_itself_and_companion_can_take_over(
-        flavour, kind, mode, status) -> None:
+        flavour, kind, mode, then, status) -> None:
     sim, c = await fly(flavour, start=(0.0, 0.0, -10.0))
     try:
+        if flavour == "px4":  # out of AUTO.LOITER first, so the failsafe's hold shows
+            assert await c.command(mav.MAV_CMD_DO_SET_MODE, 1, MAIN_POSCTL) == \
+                mav.MAV_RESULT_ACCEPTED
+            await c.heartbeat(lambda m: m.custom_mode == POSCTL, timeout=2.0)
         sim.inject_failsafe(kind)
         hb = await c.heartbeat(lambda m: m.custom_mode == mode, timeout=2.0)
         assert hb.system_status == status
@@ -337,6 +344,9 @@ async def test_failsafe_switches_mode_by_itself_and_companion_can_take_over(
             bat = await c.wait("BATTERY_STATUS", since=c.mark(), timeout=3.0)
             assert bat.charge_state == want
             assert bat.battery_remaining <= (20 if kind is Failsafe.BATTERY_LOW else 10)
+        if then is not None:
+            hb = await c.heartbeat(lambda m: m.custom_mode == then, timeout=6.0)
+            assert hb.system_status == status
         if flavour == "ardupilot":
             assert await c.command(mav.MAV_CMD_DO_SET_MODE, 1, GUIDED) == mav.MAV_RESULT_ACCEPTED
             await c.heartbeat(lambda m: m.custom_mode == GUIDED, timeout=2.0)
@@ -347,6 +357,11 @@ async def test_failsafe_switches_mode_by_itself_and_companion_can_take_over(
                 assert await c.command(mav.MAV_CMD_DO_SET_MODE, 1, MAIN_OFFBOARD) == \
                     mav.MAV_RESULT_ACCEPTED
                 await c.heartbeat(lambda m: m.custom_mode == OFFBOARD, timeout=2.0)
+                if then is None:  # taken over during the hold: the action never comes
+                    await asyncio.sleep(4.5)
+                    assert sim.truth.mode == "OFFBOARD"
+                    hb = await c.heartbeat(timeout=2.0)
+                    assert hb.custom_mode == OFFBOARD and hb.system_status == status
             finally:
                 stream.cancel()
     finally:

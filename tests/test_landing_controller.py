@@ -391,3 +391,44 @@ def test_descent_needs_r0_free_around_the_vehicle_not_only_around_the_zone_centr
     ctl.on_frame(t, [zone(1, 10, 0, t, r=2.5, born=-8)], pose(t, 10.9, 0, 17))
     assert ctl.phase == Phase.HOLD
     assert any("1.6 m free around the vehicle < r0 2 m" in x for x in texts(ctl))
+
+
+def _in_land(ctl: LandingController, r_view: float) -> float:
+    """Fly ctl to LAND over a view-limited zone 1 whose last view reached ``r_view`` m."""
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    t = 0.2
+    while ctl.phase != Phase.LAND and t < 3.0:
+        ctl.on_state(status(t, 10, 0, 10.2, mode="GUIDED"))
+        ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 10.2))
+        t += 0.1
+    assert ctl.phase == Phase.LAND
+    ctl.on_state(status(t, 10, 0, 6.0, mode="LAND"))
+    low = dataclasses.replace(zone(1, 10, 0, t, born=-8, r=r_view), view_limited=True, r_view=r_view)
+    ctl.on_frame(t, [low], pose(t, 10, 0, 6.0))
+    assert ctl.phase == Phase.LAND
+    texts(ctl)
+    return t + 0.1
+
+
+def test_a_zone_dropping_out_of_a_tiny_all_free_view_in_land_commits_the_landing():
+    ctl = LandingController(CFG)
+    t = _in_land(ctl, r_view=1.1)
+    for k in range(15):  # gone from the tracks: the view at 5.9 m is too small to confirm anything
+        ctl.on_state(status(t, 10, 0, 5.9 - 0.1 * k, mode="LAND"))
+        assert ctl.on_frame(t, [], pose(t, 10, 0, 5.9 - 0.1 * k)) == []
+        t += 0.1
+    assert ctl.phase == Phase.LAND
+    assert any("out of view at 5.9 m, last seen all free: landing committed" in x for x in texts(ctl))
+
+
+def test_a_zone_seen_occupied_or_lost_from_a_large_view_in_land_still_sends_it_to_hold():
+    ctl = LandingController(CFG)
+    t = _in_land(ctl, r_view=3.0)  # the view was large: losing the zone means something
+    ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
+    ctl.on_frame(t, [], pose(t, 10, 0, 5.9))
+    assert ctl.phase == Phase.HOLD
+    ctl = LandingController(CFG)
+    t = _in_land(ctl, r_view=1.1)
+    ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
+    ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, r=0.4)], pose(t, 10, 0, 5.9))  # someone walked in
+    assert ctl.phase == Phase.HOLD

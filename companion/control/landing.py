@@ -36,7 +36,9 @@ with the camera, and following its centre would chase it across uniform free gro
 LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
 sequence is used for both autopilots so that the descent down to ``descend_alt_m`` is always
 re-checked. During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends
-the vehicle back to HOLD; below it the landing is committed. HOLD is a position target at the
+the vehicle back to HOLD; below it the landing is committed. It is committed too when the zone,
+last seen all free in a view smaller than ``BLIND_VIEW_M``, drops out of the tracks: the camera
+has come too low to confirm anything (seen occupied, it is lost as before). HOLD is a position target at the
 vehicle's own position, so the autopilot stays in GUIDED/OFFBOARD and can resume.
 
 Never fly away: no target is ever above the *ceiling* less ``ceiling_margin_m``; the ceiling is the
@@ -75,6 +77,9 @@ class Phase(str, enum.Enum):
     HOLD = "HOLD"
     HANDBACK = "HANDBACK"
 
+
+#: A view radius (m) under which a zone that drops out of view during LAND commits the landing.
+BLIND_VIEW_M = 2 * MIN_VIEW_M
 
 ACTIVE = frozenset({Phase.SELECT, Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD})
 FLYING = frozenset({Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD})
@@ -218,6 +223,7 @@ class LandingController:
         self.ceiling_m: float | None = None  # metres above home; see the module docstring
         self._level = math.nan  # the planned altitude (m above home)
         self._aim: tuple[float, float] | None = None  # landing point, north/east metres
+        self._blind = False  # in LAND, the zone went out of view: committed
         self.obedience = ObedienceMonitor(self.config.obedience)
 
     # -- inputs ------------------------------------------------------------------------------
@@ -399,6 +405,8 @@ class LandingController:
         assert self.target is not None
         verdict, track, why = self.planner.check_target(self.target.id, self.tracks, self.now)
         if verdict == ZoneCheck.LOST:
+            if self._out_of_view(track):
+                return []
             return self._lost(why)
         if verdict == ZoneCheck.UNCONFIRMED or track is None or not self._status_fresh():
             return []  # no new command toward a zone this frame did not confirm
@@ -407,10 +415,13 @@ class LandingController:
         assert s is not None
         c = self.config
         # The landing point stays where it is while the zone still holds r0 plus the margin around
-        # it; only then does it move to the zone's new centre (see the module docstring).
+        # it; only then does it move to the zone's new centre (see the module docstring). A zone
+        # bounded by the view (everything seen is free) keeps it while the view still shows
+        # MIN_VIEW_M around it: low down the view is smaller than r0 plus the margin.
         aim = self._aim
-        if aim is None or track.r - math.hypot(aim[0] - track.x, aim[1] - track.y) < \
-                c.planner.r0_m + c.planner.radius_margin_m:
+        room = MIN_VIEW_M if track.view_limited and track.r_view >= MIN_VIEW_M else \
+            c.planner.r0_m + c.planner.radius_margin_m
+        if aim is None or track.r - math.hypot(aim[0] - track.x, aim[1] - track.y) < room:
             aim = self._aim = (track.x, track.y)
         dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
         # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
@@ -440,6 +451,23 @@ class LandingController:
                 self._level = max(self._level - c.descend_step_m, floor)
             return self._goto(aim[0], aim[1], self._level, track.id)
         return []
+
+    def _out_of_view(self, track: Track | None) -> bool:
+        """In LAND, a zone last seen all free with a view of under ``BLIND_VIEW_M`` that then
+        drops out of the tracks (rather than being seen occupied) has gone below what the camera
+        can confirm: the landing is committed, as below ``land_abort_above_m``. Over uniform free
+        ground this happens a little above the commit height; sending the vehicle back up to HOLD
+        there only to come down again churned for a minute."""
+        last = self.target
+        gone = track is None or self.now - track.last_t > self.config.planner.zone_max_age_s
+        if self.phase != Phase.LAND or last is None or not gone or not last.view_limited or \
+                last.r_view >= BLIND_VIEW_M:
+            return False
+        if not self._blind:
+            self._blind = True
+            h = "?" if self.status is None else f"{self.status.height:.1f}"
+            self._event(f"zone {last.id} out of view at {h} m, last seen all free: landing committed")
+        return True
 
     def _lost(self, why: str) -> list[Command]:
         assert self.target is not None

@@ -36,7 +36,10 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     rec = out / "recording"
+    # A PX4 flies with its home 1.48 m below its estimator's origin, as PX4's own SIH did.
+    offset = -1.48 if args.flavour == "px4" else 0.0
     spec = FlightSpec(flavour=args.flavour, seed=args.seed, altitude_m=args.altitude,
+                      home_origin_offset_m=offset,
                       record_dir=rec, service_log=out / "service.log",
                       service_set=() if args.model is None else (f"model.path={args.model}",))
     print(f"demo: {args.flavour} vehicle hovering {args.altitude:.0f} m over a crowd; the service "

@@ -3,8 +3,8 @@
 This is what the demo, the scenario runner and the SITL tests fly. The vehicle hovers over a
 crowd; the service (``companion run``, a subprocess, exactly as systemd starts it) watches through
 the simulated MJPEG camera and talks MAVLink over loopback UDP; after a while the simulator raises
-a failsafe as the autopilot would (it switches itself to LAND), and the flight ends at touchdown or
-at a time limit. The outcome is judged on the simulator's truth, never on what the service says:
+a failsafe as the autopilot would (ArduPilot switches itself to LAND; PX4 holds for COM_FAIL_ACT_T,
+5 s, then switches to AUTO.LAND), and the flight ends at touchdown or at a time limit. The outcome is judged on the simulator's truth, never on what the service says:
 
 - ``safe``: touched down with nobody within ``r_0`` of the touchdown point, with the companion in
   charge;
@@ -36,7 +36,8 @@ import numpy as np
 
 from companion.pipeline.camera import Intrinsics, Mount
 from sim.camera_server import CameraServer
-from sim.ground import ProceduralGround
+from sim.autopilot import AutopilotConfig
+from sim.ground import FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
 from sim.walkers import Circle
@@ -44,8 +45,9 @@ from sim.world import World, crowd_with_free_area, dense_crowd, dronecrowd_world
 
 log = logging.getLogger("sim.flight")
 
-WORLDS = ("free_area", "dense", "intrusion", "dronecrowd")
+WORLDS = ("free_area", "dense", "intrusion", "dronecrowd", "uniform")
 OUTCOMES = ("safe", "unsafe", "handback", "timeout")
+UNIFORM_GROUND_BGR = (70, 140, 95)  # mown grass
 
 _PHASE_RE = re.compile(r"landing controller: (\w+) -> (\w+)")
 _SLZ_RE = re.compile(r"(SLZ: .*)$")
@@ -57,7 +59,8 @@ class FlightSpec:
 
     world: ``free_area`` (a crowd with one free circle in view), ``dense`` (people everywhere:
     no safe zone), ``intrusion`` (the free circle is entered by walkers during the descent) or
-    ``dronecrowd`` (real DroneCrowd motion, needs ../shared).
+    ``dronecrowd`` (real DroneCrowd motion, needs ../shared) or ``uniform`` (nobody, and a ground
+    of one colour: every frame the same, the largest free circle bounded by the edge of the view).
     start_offset_m: where the vehicle hovers relative to the free circle's centre (north, east);
         the scene is laid out around a park lawn of the procedural ground (``scene_centre``).
     watch_s: seconds the service watches before the failsafe is raised.
@@ -65,6 +68,8 @@ class FlightSpec:
     packet_loss: share of MAVLink datagrams dropped each way.
     intrusion_after_s: for ``intrusion``, seconds after the failsafe when walkers reach the circle.
     land_speed: final-descent speed of the autopilot's LAND (m/s; ArduPilot LAND_SPEED).
+    home_origin_offset_m: the simulated PX4's home altitude minus its estimator origin's altitude
+        (m). The real PX4 converts frame-6 position targets wrongly unless this is 0.
     """
 
     flavour: str = "ardupilot"
@@ -85,6 +90,7 @@ class FlightSpec:
     record_dir: Path | None = None
     service_log: Path | None = None
     service_set: tuple[str, ...] = ()
+    home_origin_offset_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
@@ -105,6 +111,8 @@ class FlightResult:
     phases: list[str] = field(default_factory=list)
     messages: list[str] = field(default_factory=list)
     free_circle: tuple[float, float, float] | None = None
+    trigger_alt_m: float | None = None
+    max_climb_m: float | None = None  # highest altitude after the trigger less the altitude at it
     service_exit: int | None = None
     log_tail: str = ""
 
@@ -125,6 +133,9 @@ class FlightResult:
             else round(self.clearance_m, 3),
             "time_to_touchdown_s": None if self.time_to_touchdown_s is None
             else round(self.time_to_touchdown_s, 2),
+            "trigger_alt_m": None if self.trigger_alt_m is None else round(self.trigger_alt_m, 2),
+            "max_climb_m": None if self.max_climb_m is None else round(self.max_climb_m, 2),
+            "home_origin_offset_m": round(self.spec.home_origin_offset_m, 3),
             "phases": self.phases, "messages": self.messages,
         }
 
@@ -148,6 +159,8 @@ def build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, fl
     vehicle's start (north, east): ``start_offset_m`` from the circle's centre."""
     cn, ce = scene_centre(spec)
     start = (cn + spec.start_offset_m[0], ce + spec.start_offset_m[1])
+    if spec.world == "uniform":
+        return World(seed=spec.seed), None, start
     if spec.world == "dense":
         return dense_crowd(seed=spec.seed, centre=start, half_size=45.0, spacing=2.0), None, start
     if spec.world == "dronecrowd":
@@ -201,9 +214,11 @@ async def fly(spec: FlightSpec) -> FlightResult:
     vp = VehicleParams(land_speed=spec.land_speed)
     sim = Simulator(SimConfig(flavour=spec.flavour, outputs=[f"udpout:127.0.0.1:{link_port}"],
                               start_position=(start[0], start[1], -spec.altitude_m), vehicle=vp,
+                              autopilot=AutopilotConfig(origin_alt_offset_m=spec.home_origin_offset_m),
                               seed=spec.seed), world=world)
     K = Intrinsics.from_fov(640, 480, spec.hfov_deg)
-    camera = CameraServer(sim.pose, world, K, Mount(), fps=spec.fps, port=cam_port)
+    ground = FlatGround(UNIFORM_GROUND_BGR) if spec.world == "uniform" else None
+    camera = CameraServer(sim.pose, world, K, Mount(), fps=spec.fps, port=cam_port, ground=ground)
     result = FlightResult(spec, "timeout",
                           free_circle=None if free is None else (free.north, free.east, free.radius))
     touchdown: dict[str, object] = {}
@@ -216,6 +231,14 @@ async def fly(spec: FlightSpec) -> FlightResult:
                              clearance=world.nearest_person_distance(point))
 
     sim.on_touchdown(on_touchdown)
+    climb: dict[str, float] = {}
+
+    def watch_climb(_dt: float) -> None:
+        # The truth, every physics step from the trigger to touchdown: how high it went.
+        if "trigger_alt" in climb and "t" not in touchdown:
+            climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.truth.altitude)
+
+    sim.add_stepper(watch_climb)
     lines: list[str] = []
     sink = open(spec.service_log, "w") if spec.service_log is not None else None
     proc = None
@@ -235,6 +258,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
             sim.set_link_faults(loss=spec.packet_loss)
         await asyncio.sleep(spec.watch_s)
         t_trigger = time.monotonic()
+        climb["trigger_alt"] = sim.truth.altitude
         sim.inject_failsafe(spec.failsafe)
         if spec.world == "intrusion" and free is not None:
             # Walkers reach the free circle while the companion approaches or descends into it.
@@ -275,6 +299,9 @@ async def fly(spec: FlightSpec) -> FlightResult:
         if s and s.group(1) not in result.messages:
             result.messages.append(s.group(1))
     result.log_tail = "\n".join(lines[-40:])
+    if "trigger_alt" in climb:
+        result.trigger_alt_m = climb["trigger_alt"]
+        result.max_climb_m = max(0.0, climb.get("max_alt", climb["trigger_alt"]) - climb["trigger_alt"])
     result.outcome = judge(result, spec.r0_m)
     return result
 
@@ -295,9 +322,11 @@ def summarise(results: list[FlightResult]) -> dict:
     landed = [r for r in results if r.outcome in ("safe", "unsafe")]
     clear = [r.clearance_m for r in landed if r.clearance_m is not None]
     times = [r.time_to_touchdown_s for r in results if r.time_to_touchdown_s is not None]
+    climbs = [r.max_climb_m for r in results if r.max_climb_m is not None]
     return {
         "total": len(results), "safe": counts["safe"], "handbacks": counts["handback"],
         "unsafe": counts["unsafe"], "timeouts": counts["timeout"],
         "min_clearance_m": round(min(clear), 3) if clear else None,
         "median_time_to_touchdown_s": round(float(np.median(times)), 2) if times else None,
+        "max_climb_m": round(max(climbs), 2) if climbs else None,
     }

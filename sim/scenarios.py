@@ -5,7 +5,8 @@ view and how large it is, the failsafe that fires, and, for one seed in six, a d
 safe zone at all (the right answer there is a handback). Every flight is judged on the simulator's
 truth (see ``sim.flight``). Prints safe landings / total, the minimum clearance at touchdown, the
 median time from trigger to touchdown and the handbacks; ``--json`` prints one JSON object with
-``total, safe, handbacks, unsafe, min_clearance_m, median_time_to_touchdown_s`` (and more).
+``total, safe, handbacks, unsafe, min_clearance_m, median_time_to_touchdown_s, max_climb_m`` (and
+more; ``max_climb_m`` is the most any flight rose above its altitude at the trigger, on the truth).
 """
 
 from __future__ import annotations
@@ -49,9 +50,14 @@ def scenario(seed: int, flavour: str | None = None) -> FlightSpec:
     bearing = rng.uniform(0, 2 * math.pi)
     dist = rng.uniform(3.0, 0.45 * alt)
     offset = (-dist * math.cos(bearing), -dist * math.sin(bearing))
+    radius = float(rng.uniform(5.0, 8.0))
+    failsafe = ("battery_critical", "rc_loss", "gcs_loss")[int(rng.integers(3))]
+    # The simulated PX4's home sits 0-3 m above or below its estimator's origin, as on a real
+    # one (1.48 m in PX4's SIH): frame-6 targets would be read wrongly. Drawn last, so the
+    # earlier draws (and every seed's scene) stay what they were.
+    offset_m = float(rng.uniform(0.0, 3.0)) * (1.0 if rng.random() < 0.5 else -1.0)
     return FlightSpec(flavour=fl, world=world, seed=seed, altitude_m=alt, start_offset_m=offset,
-                      free_radius_m=float(rng.uniform(5.0, 8.0)),
-                      failsafe=("battery_critical", "rc_loss", "gcs_loss")[int(rng.integers(3))])
+                      free_radius_m=radius, failsafe=failsafe, home_origin_offset_m=offset_m)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -79,8 +85,9 @@ def run(args: argparse.Namespace) -> int:
         results.append(res)
         clear = "-" if res.clearance_m is None else f"{res.clearance_m:.1f} m"
         ttd = "-" if res.time_to_touchdown_s is None else f"{res.time_to_touchdown_s:.0f} s"
+        climb = "-" if res.max_climb_m is None else f"{res.max_climb_m:.1f} m"
         print(f"seed {seed:>3} {spec.flavour:<9} {spec.world:<9} alt {spec.altitude_m:4.1f} m "
-              f"-> {res.outcome:<8} clearance {clear:>7}  to touchdown {ttd:>5}",
+              f"-> {res.outcome:<8} clearance {clear:>7}  to touchdown {ttd:>5}  climb {climb:>6}",
               file=sys.stderr if args.json else sys.stdout, flush=True)
         if args.verbose:
             for m in res.messages:
@@ -93,5 +100,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"\nsafe landings {summary['safe']}/{summary['total']}, unsafe {summary['unsafe']}, "
               f"handbacks {summary['handbacks']}, timeouts {summary['timeouts']}")
         print(f"minimum clearance at touchdown: {summary['min_clearance_m']} m; median time from "
-              f"trigger to touchdown: {summary['median_time_to_touchdown_s']} s")
+              f"trigger to touchdown: {summary['median_time_to_touchdown_s']} s; highest climb "
+              f"above the altitude at the trigger: {summary['max_climb_m']} m")
     return 0 if summary["unsafe"] == 0 else 1

@@ -20,11 +20,14 @@ FAST_BUDGET = ("controller.max_takeover_s=45",)
 def _fly(spec: FlightSpec):
     result = asyncio.run(fly(spec))
     assert result.service_exit == 0, result.log_tail
+    # Never a fly-away: no flight rises more than the ceiling's 5 m above its trigger altitude.
+    assert result.max_climb_m is not None and result.max_climb_m <= 5.0, _explain(result)
     return result
 
 
 def _explain(r) -> str:
     return (f"outcome {r.outcome}, touchdown {r.touchdown}, clearance {r.clearance_m}, "
+            f"climb {r.max_climb_m}, "
             f"phases {r.phases}\n" + "\n".join(r.messages) + "\n--- service log tail ---\n"
             + r.log_tail)
 
@@ -72,3 +75,14 @@ def test_twenty_percent_packet_loss_still_lands_safely_or_hands_back(flavour, mo
     assert r.outcome in ("safe", "handback"), _explain(r)
     if r.outcome == "safe":
         assert r.clearance_m >= r.spec.r0_m
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_uniform_free_ground_lands_under_the_companion_within_the_budget(flavour, model_path):
+    # Every frame the same: the free circle is bounded by the view and moves with the camera. The
+    # vehicle must converge and land instead of chasing it. PX4 with its home 1.5 m below its
+    # estimator's origin, as in PX4's SIH: frame-6 targets would make it climb (issue 19).
+    r = _fly(FlightSpec(flavour=flavour, world="uniform", seed=6, altitude_m=18.0,
+                        home_origin_offset_m=-1.5))
+    assert r.outcome == "safe" and not r.handed_back, _explain(r)
+    assert r.max_climb_m <= 1.0, _explain(r)

@@ -43,7 +43,8 @@ def parse_seeds(text: str) -> list[int]:
 def scenario(seed: int, flavour: str | None = None) -> FlightSpec:
     """The random scenario of one seed (deterministic)."""
     rng = np.random.default_rng(seed)
-    fl = flavour or ("ardupilot", "px4")[int(rng.integers(2))]
+    drawn = ("ardupilot", "px4")[int(rng.integers(2))]  # drawn even when overridden, so that a
+    fl = flavour or drawn  # seed is the same scene whatever --flavour says
     alt = float(rng.uniform(15.0, 25.0))
     world = "dense" if rng.random() < 1 / 6 else "free_area"
     # Somewhere well inside the view (90 deg camera: half-width ~ altitude).

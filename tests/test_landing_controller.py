@@ -432,3 +432,18 @@ def test_a_zone_seen_occupied_or_lost_from_a_large_view_in_land_still_sends_it_t
     ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
     ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, r=0.4)], pose(t, 10, 0, 5.9))  # someone walked in
     assert ctl.phase == Phase.HOLD
+
+
+def test_disarmed_by_landing_in_offboard_is_landed_and_disarmed_in_the_air_stops_the_companion():
+    # PX4's land detector disarms in OFFBOARD too, and its heartbeat still says OFFBOARD.
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    assert ctl.on_state(status(0.2, 10, 0, 0.0, mode="OFFBOARD", armed=False, on_ground=True)) == []
+    assert ctl.phase == Phase.LANDED
+    assert ctl.on_frame(0.3, [zone(1, 10, 0, 0.3, born=-8)], pose(0.3, 10, 0, 0.0)) == []
+    assert ctl.tick(5.0) == []
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    assert ctl.on_state(status(0.2, 10, 0, 11.0, mode="GUIDED", armed=False, on_ground=False)) == []
+    assert ctl.phase == Phase.HANDBACK  # nothing to command to a vehicle with its motors off
+    assert any("disarmed in the air" in x for x in texts(ctl))

@@ -382,3 +382,39 @@ async def test_sigterm_during_a_takeover_hands_back_to_the_autopilot(
         finally:
             svc.stop()
             notify.close()
+
+
+async def test_sigterm_with_an_autopilot_that_never_acks_insists_on_land_and_exits_0(tmp_path: Path) -> None:
+    """Shutdown during a takeover with nothing coming back from the autopilot (no ACK): LAND is
+    sent again and again within the 2 s, not once, and the service still exits 0 in time."""
+    port = _free_udp_port()
+    notify = NotifySocket(tmp_path / "notify.sock")
+    async with simulated_vehicle(port, altitude=20.0, flavour="ardupilot") as (sim, cam, _world):
+        cfg = _write_config(tmp_path, port, cam.url, "[controller]\nselect_timeout_s = 30.0\nhold_timeout_s = 60.0\n")
+        svc = Service(["--config", str(cfg)], _env(notify), tmp_path / "svc.log")
+        try:
+            await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
+            await sim.wait_for(lambda t: t.position[2] < -18.0, 40)
+            await _until(lambda: notify.has("STATUS=MONITOR: oldest stable zone"), 40, "a stable zone", svc)
+            sim.inject_failsafe("battery_critical")
+            await sim.wait_for(lambda t: t.mode == "GUIDED", 20)  # the companion took over
+            await asyncio.sleep(0.5)
+            modes: list[float] = []
+            ap = sim.autopilot
+            real = ap._cmd_set_mode
+
+            def counting(p, channel, msg, is_int):  # the simulator still obeys; its ACKs are lost
+                modes.append(float(p[1]))
+                return real(p, channel, msg, is_int)
+            ap._cmd_set_mode = counting  # type: ignore[method-assign]
+            sim.set_link_faults(loss_tx=1.0, loss_rx=0.0)  # nothing from the vehicle arrives
+            t0 = time.monotonic()
+            svc.proc.send_signal(signal.SIGTERM)
+            rc = await asyncio.to_thread(svc.proc.wait, 5)
+            assert rc == 0 and time.monotonic() - t0 < 2.0, svc.log()[-3000:]
+            land = 9.0  # COPTER_MODE_LAND
+            assert modes.count(land) >= 3, (modes, svc.log()[-3000:])
+            assert sim.truth.mode == "LAND"
+        finally:
+            svc.stop()
+            notify.close()

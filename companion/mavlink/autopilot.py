@@ -97,14 +97,16 @@ class Autopilot(ABC):
     def mode_params(self, name: str) -> tuple[float, ...]:
         """DO_SET_MODE params (base mode, custom main mode, custom sub mode) for a mode name."""
 
-    async def set_mode(self, name: str) -> None:
-        """Switch mode and wait for the ack; raises ``CommandError`` (``FlavourError`` for a bad name)."""
+    async def set_mode(self, name: str, *, timeout_s: float | None = None, retries: int | None = None) -> None:
+        """Switch mode and wait for the ack; raises ``CommandError`` (``FlavourError`` for a bad name).
+
+        ``timeout_s``/``retries``: per-attempt wait and resends (default: the link's)."""
         params = self.mode_params(name)
         # Recorded before sending: the heartbeat showing the new mode may overtake the ack, and
         # the failsafe monitor must know this switch was ours, not the autopilot's own failsafe.
         self.commanded_mode = name
         self.commanded_t = time.monotonic()
-        await self.link.command_long(m.MAV_CMD_DO_SET_MODE, params)
+        await self.link.command_long(m.MAV_CMD_DO_SET_MODE, params, timeout_s=timeout_s, retries=retries)
         self.mode = name  # the next heartbeat confirms; meanwhile do not command it twice
         log.info("%s: mode %s", self.name, name)
 
@@ -114,24 +116,27 @@ class Autopilot(ABC):
     async def goto(self, target: PositionTarget) -> None:
         """Enter the external-control mode if needed and fly to ``target``, holding there."""
 
-    async def land(self) -> None:
+    async def land(self, *, timeout_s: float | None = None, retries: int | None = None) -> None:
         """Land where the vehicle is (the autopilot descends vertically)."""
         await self.stop()
-        await self.set_mode("LAND")
+        await self.set_mode("LAND", timeout_s=timeout_s, retries=retries)
 
-    async def rtl(self) -> None:
+    async def rtl(self, *, timeout_s: float | None = None, retries: int | None = None) -> None:
         await self.stop()
-        await self.set_mode("RTL")
+        await self.set_mode("RTL", timeout_s=timeout_s, retries=retries)
 
     async def loiter(self) -> None:
         await self.stop()
         await self.set_mode("LOITER")
 
-    async def handback(self, action: str) -> None:
-        """Give control back to the autopilot's own failsafe: ``action`` is "LAND" or "RTL"."""
+    async def handback(self, action: str, *, timeout_s: float | None = None, retries: int | None = None) -> None:
+        """Give control back to the autopilot's own failsafe: ``action`` is "LAND" or "RTL".
+
+        ``timeout_s``/``retries`` as for ``set_mode`` (shutdown resends quickly within its 2 s)."""
         if action not in self.FAILSAFE_MODES:
             raise FlavourError(f"handback action must be LAND or RTL, not {action!r}")
-        await (self.land() if action == "LAND" else self.rtl())
+        kw = {"timeout_s": timeout_s, "retries": retries}
+        await (self.land(**kw) if action == "LAND" else self.rtl(**kw))
 
     async def stop(self) -> None:
         """Stop any background stream (PX4's setpoints). Idempotent."""

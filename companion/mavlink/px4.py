@@ -120,14 +120,14 @@ class PX4(Autopilot):
                 pass
             self._stream = None
 
-    async def land(self) -> None:
+    async def land(self, *, timeout_s: float | None = None, retries: int | None = None) -> None:
         # Switch first, then stop the stream: stopping first would make PX4 fire its
         # offboard-loss action before the LAND command arrives.
-        await self.set_mode("LAND")
+        await self.set_mode("LAND", timeout_s=timeout_s, retries=retries)
         await self.stop()
 
-    async def rtl(self) -> None:
-        await self.set_mode("RTL")
+    async def rtl(self, *, timeout_s: float | None = None, retries: int | None = None) -> None:
+        await self.set_mode("RTL", timeout_s=timeout_s, retries=retries)
         await self.stop()
 
     async def loiter(self) -> None:

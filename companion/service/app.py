@@ -326,7 +326,10 @@ class Service:
 
             send_statustext(self.link, f"SLZ: companion stopping; handing back ({action})",
                             m.MAV_SEVERITY_WARNING)
-            await asyncio.wait_for(self.autopilot.handback(action), 1.0)
+            # Insist within the shutdown's budget: one packet can be lost (at 20 % loss one
+            # shutdown in five left the vehicle in GUIDED/OFFBOARD), so resend every 0.25 s
+            # until acknowledged, five times at most (1.25 s).
+            await asyncio.wait_for(self.autopilot.handback(action, timeout_s=0.25, retries=4), 1.3)
         except Exception as exc:  # timeouts, refusals: nothing more we can do on the way out
             log.error("handback on exit failed: %r", exc)
 

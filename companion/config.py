@@ -317,9 +317,17 @@ def _cross_checks(cfg: Config) -> None:
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")
-    if not cfg.link.url.split(":", 1)[0] in ("udpin", "udpout", "udp", "tcp", "tcpin", "serial"):
+    from companion.mavlink.transports import TransportError, parse_url  # a pure parser
+
+    if cfg.link.url.split(":", 1)[0] not in ("udpin", "udpout", "tcp", "tcpin", "serial"):
         raise ConfigError(f"link.url must start with udpin:, udpout:, tcp:, tcpin: or serial:, got "
                           f"{cfg.link.url!r}")
+    try:
+        parse_url(cfg.link.url)
+    except TransportError as exc:
+        # "udp:..." or a port above 65535 used to pass here and crash the start (exit 1, a
+        # traceback, systemd restarting it): say what is wrong, exit 2.
+        raise ConfigError(f"link.url: {exc}") from None
 
 
 def from_dict(raw: Mapping[str, Any], source: Path | None = None) -> Config:

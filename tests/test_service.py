@@ -185,6 +185,19 @@ def test_bad_camera_source_exits_non_zero(tmp_path: Path) -> None:
     assert r.returncode == 2 and "missing.mp4" in r.stderr
 
 
+def test_bad_link_urls_and_an_empty_frames_folder_exit_2_with_a_message(tmp_path: Path) -> None:
+    for url, words in (("udp:127.0.0.1:14550", "must start with udpin:"),
+                       ("udpin:127.0.0.1:70000", "port 70000 out of range")):
+        r = _run_quick(["--link", url], tmp_path)
+        assert r.returncode == 2 and "link.url" in r.stderr and words in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr
+    empty = tmp_path / "frames"
+    empty.mkdir()
+    r = _run_quick(["--camera", str(empty), "--model", str(_model())], tmp_path)
+    assert r.returncode == 2 and "folder holds no image files" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+
+
 # ---- running against the simulator -------------------------------------------------------------
 
 async def test_ready_watchdog_stall_and_clean_sigterm(tmp_path: Path) -> None:

@@ -184,12 +184,26 @@ class _CvReader(_Reader):
         self.cap.release()
 
 
+def folder_images(folder: Path) -> list[Path]:
+    """The image files of a folder source, sorted; CameraError when it holds none."""
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise CameraError(f"camera.source {str(folder)!r}: folder holds no image files "
+                          f"({', '.join(IMAGE_SUFFIXES)})")
+    return files
+
+
+def check_source(source: str) -> Kind:
+    """``classify``, and for a folder, that it holds images: what start-up can know is wrong."""
+    kind = classify(source)
+    if kind is Kind.FOLDER:
+        folder_images(Path(source.strip()))
+    return kind
+
+
 class _FolderReader(_Reader):
     def __init__(self, folder: Path, pacer: _Pacer) -> None:
-        self.files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if not self.files:
-            raise CameraError(f"camera.source {str(folder)!r}: folder holds no image files "
-                              f"({', '.join(IMAGE_SUFFIXES)})")
+        self.files = folder_images(folder)
         self.i = 0
         self.pacer = pacer
 

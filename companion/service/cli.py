@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     from companion.pipeline.density import DensityModelError
     from companion.service.app import Service, load_model, signing_key
-    from companion.service.camera import CameraError, classify
+    from companion.service.camera import CameraError, check_source, classify
 
     try:
         signing_key(cfg)
@@ -84,6 +84,11 @@ def run(args: argparse.Namespace) -> int:
         model = load_model(cfg)
     except DensityModelError as exc:
         print(f"companion: model error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    try:
+        check_source(cfg.camera.source)  # an empty frames folder: a start-up error, not a crash loop
+    except CameraError as exc:
+        print(f"companion: camera error: {exc}", file=sys.stderr)
         return EXIT_CONFIG
 
     async def main() -> int:

@@ -133,6 +133,8 @@ class FailsafeConfig:
     autopilot_land: bool = _f(True, "the autopilot switches itself to LAND or RTL")
     gcs_command: bool = _f(True, "an explicit command from the ground station")
     local_trigger: bool = _f(True, "SIGUSR1 to the service triggers (bench tests)")
+    gcs_system_ids: list[int] = _f([255], "system ids whose MAV_CMD_USER_1 trigger is accepted (1..255)")
+    local_socket: str = _f("", "Unix socket taking 'trigger [reason]' lines; empty = none", path=True)
 
 
 @dataclass(frozen=True)
@@ -203,8 +205,12 @@ class Config:
     source: Path | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain nested dict (for the recorder's meta.json and debugging)."""
-        return {k: v for k, v in _to_dict(self).items() if k != "source"}
+        """Plain nested dict (for the recorder's meta.json and debugging), secrets redacted: a
+        recording must never carry the link's signing key."""
+        d = {k: v for k, v in _to_dict(self).items() if k != "source"}
+        if d["link"].get("signing_key"):
+            d["link"]["signing_key"] = "<redacted>"
+        return d
 
 
 def _to_dict(obj: Any) -> Any:
@@ -251,6 +257,10 @@ def _check_value(key: str, tp: Any, meta: Mapping[str, Any], value: Any) -> Any:
     elif tp is str:
         if not isinstance(value, str):
             raise bad
+    elif origin is list and typing.get_args(tp) == (int,):
+        if not isinstance(value, list) or any(isinstance(v, bool) or not isinstance(v, int) for v in value):
+            raise ConfigError(f"{key} must be a list of integers, got {value!r}")
+        value = [int(v) for v in value]
     elif origin is list:
         if not isinstance(value, list) or any(isinstance(v, bool) or not isinstance(v, (int, float))
                                                for v in value):
@@ -317,6 +327,9 @@ def _cross_checks(cfg: Config) -> None:
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")
+    if not cfg.failsafe.gcs_system_ids or any(not 1 <= i <= 255 for i in cfg.failsafe.gcs_system_ids):
+        raise ConfigError(f"failsafe.gcs_system_ids must list system ids 1..255, got "
+                          f"{cfg.failsafe.gcs_system_ids!r}")
     from companion.mavlink.transports import TransportError, parse_url  # a pure parser
 
     if cfg.link.url.split(":", 1)[0] not in ("udpin", "udpout", "tcp", "tcpin", "serial"):

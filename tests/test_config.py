@@ -116,3 +116,26 @@ def test_parse_assignment() -> None:
     assert config.parse_assignment("recorder.enabled=true") == ("recorder.enabled", True)
     with pytest.raises(ConfigError, match="key=value"):
         config.parse_assignment("camera.fps")
+
+
+def test_ground_station_ids_and_the_trigger_socket_are_settings(tmp_path: Path) -> None:
+    f = tmp_path / "c.toml"
+    f.write_text('[failsafe]\ngcs_system_ids = [42, 255]\nlocal_socket = "run/trigger.sock"\n')
+    cfg = config.load(f)
+    assert cfg.failsafe.gcs_system_ids == [42, 255]
+    assert cfg.failsafe.local_socket == str(tmp_path / "run" / "trigger.sock")  # beside the file
+    for text, pattern in (("gcs_system_ids = [0]", "1..255"), ("gcs_system_ids = []", "1..255"),
+                          ("gcs_system_ids = [2.5]", "list of integers")):
+        f.write_text(f"[failsafe]\n{text}\n")
+        with pytest.raises(ConfigError, match=rf"failsafe\.gcs_system_ids .*{pattern}"):
+            config.load(f)
+
+
+def test_the_signing_key_never_leaves_in_the_config_dict(tmp_path: Path) -> None:
+    key = "ab" * 32
+    f = tmp_path / "c.toml"
+    f.write_text(f'[link]\nsigning_key = "{key}"\n')
+    cfg = config.load(f)
+    assert cfg.link.signing_key == key  # the service still has it
+    dumped = repr(cfg.to_dict())  # what the recorder writes into meta.json
+    assert key not in dumped and "<redacted>" in dumped

@@ -182,3 +182,21 @@ def test_gimbal_pointing_down_gives_the_camera_rotation_in_the_body_frame():
         pose = s.pose_at(1.0)
         # The camera's forward axis points straight down in the body frame of a level vehicle.
         assert pose.gimbal @ np.array([1.0, 0, 0]) == pytest.approx([0, 0, 1], abs=1e-9)
+
+
+def test_finite_but_absurd_telemetry_is_counted_and_dropped():
+    s = VehicleState()
+    s.update(home_msg(), 0.0)
+    s.update(att(0, 0.1, -0.2, 3.0), 1.0)
+    s.update(gpi(0, 5.0, 5.0, 20.0), 1.0)
+    good_att, good_pos = s.attitude, s.position
+    s.update(att(10, 1e30, 0, 0), 1.01)           # roll 1e30 rad
+    s.update(att(20, 0, 2.0, 0), 1.02)            # pitch past the vertical
+    huge = m.MAVLink_global_position_int_message(0, 473977420, 85455940, 488000, 2_147_000_000, 0, 0, 0, 0)
+    s.update(huge, 1.03)                          # 2,147 km above home
+    fast = m.MAVLink_global_position_int_message(0, 473977420, 85455940, 508000, 20000, 32000, 0, 0, 0)
+    s.update(fast, 1.04)                          # 320 m/s
+    assert s.rejected == 4
+    assert s.attitude is good_att and s.position is good_pos
+    pose = s.pose_at(1.0)
+    assert pose is not None and pose.roll == pytest.approx(0.1) and -pose.down == pytest.approx(20.0, abs=0.01)

@@ -431,3 +431,54 @@ async def test_sigterm_with_an_autopilot_that_never_acks_insists_on_land_and_exi
         finally:
             svc.stop()
             notify.close()
+
+
+async def test_configured_ground_station_ids_and_the_local_trigger_socket(tmp_path: Path) -> None:
+    """failsafe.gcs_system_ids and failsafe.local_socket are settings the service uses: the trigger
+    from a configured ground station is accepted, from another system refused; the socket answers."""
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    from companion.mavlink.failsafe import send_local_trigger
+
+    port = _free_udp_port()
+    notify = NotifySocket(tmp_path / "notify.sock")
+    sock_path = tmp_path / "trigger.sock"
+    async with simulated_vehicle(port, altitude=20.0) as (sim, cam, _world):
+        cfg = _write_config(tmp_path, port, cam.url,
+                            f'[failsafe]\ngcs_system_ids = [42]\nlocal_socket = "{sock_path}"\n')
+        svc = Service(["--config", str(cfg)], _env(notify), tmp_path / "svc.log")
+        gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        gcs.bind(("127.0.0.1", 0))
+        gcs.setblocking(False)
+        loop = asyncio.get_running_loop()
+
+        async def trigger_from(sysid: int) -> int:
+            out = mav.MAVLink(None, srcSystem=sysid, srcComponent=190)
+            rx = mav.MAVLink(None)
+            rx.robust_parsing = True
+            end = time.monotonic() + 5.0
+            while time.monotonic() < end:
+                gcs.sendto(out.command_long_encode(1, 191, 31010, 0, 0, 0, 0, 0, 0, 0, 0).pack(out),
+                           ("127.0.0.1", port))
+                try:
+                    data = await asyncio.wait_for(loop.sock_recv(gcs, 4096), 0.5)
+                except asyncio.TimeoutError:
+                    continue
+                for msg in rx.parse_buffer(data) or []:
+                    if msg.get_type() == "COMMAND_ACK" and msg.command == 31010 and msg.target_system == sysid:
+                        return int(msg.result)
+            raise AssertionError(f"no COMMAND_ACK for system {sysid}")
+        try:
+            await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
+            assert sock_path.is_socket()
+            assert await trigger_from(255) == mav.MAV_RESULT_DENIED  # the default id, not configured
+            assert "not in gcs_system_ids (42,)" in svc.log()
+            assert await send_local_trigger(str(sock_path), "bench check") == "ok"
+            assert await trigger_from(42) == mav.MAV_RESULT_ACCEPTED
+            svc.proc.send_signal(signal.SIGTERM)
+            assert await asyncio.to_thread(svc.proc.wait, 5) == 0
+            assert not sock_path.exists()  # removed at shutdown
+        finally:
+            gcs.close()
+            svc.stop()
+            notify.close()

@@ -3,8 +3,9 @@
 ``VehicleState.update(msg, t)`` takes one message and its receive time (``time.monotonic()``
 seconds); ``attach(link)`` subscribes it to a ``MavLink``. Frames: local NED metres from home
 (HOME_POSITION, through geographiclib), ground at ``z = 0``; angles in radians as in ATTITUDE
-(aerospace Z-Y-X, yaw from north). Messages with NaN or out-of-range values are counted in
-``rejected`` and dropped so they never reach the pose.
+(aerospace Z-Y-X, yaw from north). Messages with NaN or out-of-range values (angles past +-pi,
+altitudes past 20 km, speeds past 100 m/s, latitudes past +-90) are counted in ``rejected`` and
+dropped so they never reach the pose.
 
 ``pose_at(t)`` interpolates between the two ATTITUDE samples and the two GLOBAL_POSITION_INT
 samples around ``t`` (attitude by quaternion slerp, so yaw wraps correctly across +-pi). It returns
@@ -137,6 +138,11 @@ class LandedState:
         return self.landed_state == m.MAV_LANDED_STATE_ON_GROUND
 
 
+#: Limits past which telemetry is corrupt or forged: 20 km altitude, 100 m/s.
+MAX_ALT_MM = 20_000_000
+MAX_SPEED_CMS = 10_000
+
+
 def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
@@ -225,6 +231,10 @@ class VehicleState:
     def _on_attitude(self, msg: Any, t: float) -> None:
         if not _finite(msg.roll, msg.pitch, msg.yaw):
             raise StateError(f"ATTITUDE has NaN: roll={msg.roll} pitch={msg.pitch} yaw={msg.yaw}")
+        # Finite but absurd (roll 1e30) is as unusable as NaN: angles are within +-pi (2 pi for
+        # yaw, which some autopilots send 0..2 pi).
+        if abs(msg.roll) > math.pi + 1e-3 or abs(msg.pitch) > math.pi / 2 + 1e-3 or abs(msg.yaw) > 2 * math.pi + 1e-3:
+            raise StateError(f"ATTITUDE out of range: roll={msg.roll} pitch={msg.pitch} yaw={msg.yaw}")
         att = Attitude(t, msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw)
         self.attitude = att
         self._append(self._att, att)
@@ -233,6 +243,12 @@ class VehicleState:
         if msg.lat == 0 and msg.lon == 0:
             raise StateError("GLOBAL_POSITION_INT without a fix (0, 0)")
         point = GeoPoint(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)  # validates the range
+        # Altitudes beyond anything a multicopter reaches (the int32 fields allow 2,147 km) and
+        # speeds beyond 100 m/s are corrupt or forged, not a pose to project frames with.
+        if abs(msg.alt) > MAX_ALT_MM or abs(msg.relative_alt) > MAX_ALT_MM or \
+                max(abs(msg.vx), abs(msg.vy), abs(msg.vz)) > MAX_SPEED_CMS:
+            raise StateError(f"GLOBAL_POSITION_INT out of range: alt={msg.alt} mm "
+                             f"relative_alt={msg.relative_alt} mm v=({msg.vx}, {msg.vy}, {msg.vz}) cm/s")
         hdg = None if msg.hdg == 65535 else math.radians(msg.hdg / 100.0)
         pos = GlobalPosition(
             t, msg.time_boot_ms, point.lat_deg, point.lon_deg, point.alt_m, msg.relative_alt * 1e-3,

@@ -182,6 +182,12 @@ class Service:
             except FlavourError as exc:
                 log.error("%s", exc)
                 return 2
+            if self.monitor is not None and c.failsafe.local_trigger and c.failsafe.local_socket:
+                try:
+                    await self.monitor.start_local_socket()
+                    log.info("local trigger socket: %s", c.failsafe.local_socket)
+                except (OSError, ValueError) as exc:
+                    log.error("local trigger socket %s not started: %s", c.failsafe.local_socket, exc)
             if c.recorder.enabled:
                 self._start_recorder()
             log.info("ready: model %s, link %s, camera %s", c.model.path, c.link.url, c.camera.source)
@@ -237,7 +243,8 @@ class Service:
         self.monitor = FailsafeMonitor(
             FailsafeConfig(battery=f.battery, battery_level=f.battery_level, system_status=f.system_status,
                            autopilot_land=f.autopilot_land, gcs_command=f.gcs_command,
-                           local_trigger=f.local_trigger),
+                           local_trigger=f.local_trigger, gcs_system_ids=tuple(f.gcs_system_ids),
+                           local_socket=f.local_socket or None),
             self.link, self.autopilot)
         self.monitor.attach()
         self.controller = self._make_controller()
@@ -336,6 +343,11 @@ class Service:
     async def _shutdown(self, tasks: list[asyncio.Task[Any]]) -> None:
         if self.controller is not None and self.link is not None:
             await self._handback_on_exit()
+        if self.monitor is not None:
+            try:
+                await asyncio.wait_for(self.monitor.stop_local_socket(), 0.5)
+            except (asyncio.TimeoutError, OSError):
+                pass
         for task in tasks:
             task.cancel()
         for task in tasks:

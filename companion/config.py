@@ -338,7 +338,7 @@ def _cross_checks(cfg: Config) -> None:
     try:
         parse_url(cfg.link.url)
     except TransportError as exc:
-        # "udp:..." or a port above 65535 used to pass here and crash the start (exit 1, a
+        # A port above 65535 (or no host) used to pass here and crash the start (exit 1, a
         # traceback, systemd restarting it): say what is wrong, exit 2.
         raise ConfigError(f"link.url: {exc}") from None
 

@@ -236,7 +236,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
     def watch_climb(_dt: float) -> None:
         # The truth, every physics step from the trigger to touchdown: how high it went.
         if "trigger_alt" in climb and "t" not in touchdown:
-            climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.truth.altitude)
+            climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.vehicle.altitude)
 
     sim.add_stepper(watch_climb)
     lines: list[str] = []
@@ -258,7 +258,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
             sim.set_link_faults(loss=spec.packet_loss)
         await asyncio.sleep(spec.watch_s)
         t_trigger = time.monotonic()
-        climb["trigger_alt"] = sim.truth.altitude
+        climb["trigger_alt"] = sim.vehicle.altitude
         sim.inject_failsafe(spec.failsafe)
         if spec.world == "intrusion" and free is not None:
             # Walkers reach the free circle while the companion approaches or descends into it.

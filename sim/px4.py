@@ -353,16 +353,12 @@ class Px4Multicopter(Autopilot):
         if kind is Failsafe.BATTERY_LOW:
             self._say(mav.MAV_SEVERITY_WARNING, "Low battery level! Return advised")
             return
-        action = self.config.failsafe_action.get(kind, "land")
         target = self.failsafe_target(kind)
         delay = self.failsafe_config.action_delay_s
-        if target is None:
-            self._say(mav.MAV_SEVERITY_CRITICAL, f"Failsafe {kind.value}: {action.upper()}")
+        if target is None or delay <= 0.0:
+            super().react_to_failsafe(kind)  # nothing to change, or act at once (COM_FAIL_ACT_T 0)
             return
-        if delay <= 0.0:
-            self._say(mav.MAV_SEVERITY_CRITICAL, f"Failsafe {kind.value}: {action.upper()}")
-            self.set_mode(self.mode_for(target))
-            return
+        action = self.config.failsafe_action.get(kind, "land")
         pending = self._pending
         if pending is None:
             pending = self._pending = _PendingAction({kind}, self.now + delay, target)

@@ -44,14 +44,6 @@ class Frame6PX4(PX4):
     def target_altitude(self, target: PositionTarget) -> float:
         return target.rel_alt_m
 
-    async def goto(self, target: PositionTarget) -> None:  # no AMSL needed for frame 6
-        self.target = target
-        if not self.streaming:
-            self._stream = asyncio.create_task(self._stream_loop(), name="px4 setpoints")
-            await asyncio.sleep(self.warmup_s)
-        if self.mode != self.OFFBOARD:
-            await self.set_mode(self.OFFBOARD)
-
 
 @contextlib.asynccontextmanager
 async def companion_on_px4(flavour_cls: type[PX4]) -> AsyncIterator[tuple[Simulator, LandingRunner]]:

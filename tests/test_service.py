@@ -363,6 +363,16 @@ async def test_frames_without_a_fresh_pose_are_not_used(tmp_path: Path) -> None:
             svc.stop()
 
 
+async def _take_over(sim: Any, svc: Service, notify: NotifySocket, external: str) -> None:
+    """Ready, the vehicle up and a stable zone seen; then the battery failsafe, until the
+    companion has switched the autopilot to its ``external`` mode (GUIDED / OFFBOARD)."""
+    await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
+    await sim.wait_for(lambda t: t.position[2] < -18.0, 40)
+    await _until(lambda: notify.has("STATUS=MONITOR: oldest stable zone"), 40, "a stable zone", svc)
+    sim.inject_failsafe("battery_critical")
+    await sim.wait_for(lambda t: t.mode == external, 20)  # the companion took over
+
+
 @pytest.mark.parametrize("flavour, external, land", [("ardupilot", "GUIDED", "LAND"),
                                                       ("px4", "OFFBOARD", "AUTO.LAND")])
 async def test_sigterm_during_a_takeover_hands_back_to_the_autopilot(
@@ -376,11 +386,7 @@ async def test_sigterm_during_a_takeover_hands_back_to_the_autopilot(
         cfg = _write_config(tmp_path, port, cam.url, "[controller]\nselect_timeout_s = 30.0\nhold_timeout_s = 60.0\n")
         svc = Service(["--config", str(cfg)], _env(notify), tmp_path / "svc.log")
         try:
-            await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
-            await sim.wait_for(lambda t: t.position[2] < -18.0, 40)
-            await _until(lambda: notify.has("STATUS=MONITOR: oldest stable zone"), 40, "a stable zone", svc)
-            sim.inject_failsafe("battery_critical")
-            await sim.wait_for(lambda t: t.mode == external, 20)  # the companion took over
+            await _take_over(sim, svc, notify, external)
             await asyncio.sleep(1.0)
             assert sim.truth.mode == external
             assert f"autopilot flavour: {flavour}" in svc.log()
@@ -406,11 +412,7 @@ async def test_sigterm_with_an_autopilot_that_never_acks_insists_on_land_and_exi
         cfg = _write_config(tmp_path, port, cam.url, "[controller]\nselect_timeout_s = 30.0\nhold_timeout_s = 60.0\n")
         svc = Service(["--config", str(cfg)], _env(notify), tmp_path / "svc.log")
         try:
-            await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
-            await sim.wait_for(lambda t: t.position[2] < -18.0, 40)
-            await _until(lambda: notify.has("STATUS=MONITOR: oldest stable zone"), 40, "a stable zone", svc)
-            sim.inject_failsafe("battery_critical")
-            await sim.wait_for(lambda t: t.mode == "GUIDED", 20)  # the companion took over
+            await _take_over(sim, svc, notify, "GUIDED")
             await asyncio.sleep(0.5)
             modes: list[float] = []
             ap = sim.autopilot

@@ -31,15 +31,16 @@ below ``descend_alt_m`` above the ground). The vehicle first flies level to the 
 one ``descend_step_m`` at a time: the level moves one step down only when the vehicle has reached
 it over the zone, re-checking the zone at every frame, so a lost zone stops the descent within one
 step. The landing point (the *aim*) is the zone's centre when chosen, and it stays put while the
-zone still holds ``r0_m + radius_margin_m`` around it: a zone bounded by the edge of the view moves
-with the camera, and following its centre would chase it across uniform free ground for ever. At ``descend_alt_m`` above home over the zone it commands the autopilot's
-LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
+zone still holds ``r0_m + radius_margin_m`` around it (a zone bounded by the view: while the view
+still shows ``MIN_VIEW_M`` around it): such a zone moves with the camera, and following its centre
+would chase it across uniform free ground for ever. At ``descend_alt_m`` above home over the zone
+it commands the autopilot's LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
 sequence is used for both autopilots so that the descent down to ``descend_alt_m`` is always
 re-checked. During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends
 the vehicle back to HOLD; below it the landing is committed. It is committed too when the zone,
 last seen all free in a view smaller than ``BLIND_VIEW_M``, drops out of the tracks: the camera
-has come too low to confirm anything (seen occupied, it is lost as before). HOLD is a position target at the
-vehicle's own position, so the autopilot stays in GUIDED/OFFBOARD and can resume.
+has come too low to confirm anything (seen occupied, it is lost as before). HOLD is a position
+target at the vehicle's own position, so the autopilot stays in GUIDED/OFFBOARD and can resume.
 
 Never fly away: no target is ever above the *ceiling* less ``ceiling_margin_m``; the ceiling is the
 altitude at the trigger plus ``search_climb_m``, and never above ``max_alt_m`` above home. While the
@@ -379,6 +380,11 @@ class LandingController:
         assert self.ceiling_m is not None
         return self.ceiling_m - self.config.ceiling_margin_m
 
+    def _raise_level(self, alt: float) -> None:
+        """The planned level, at least ``alt`` (m above home; a terrain floor or the hold height)
+        and never above the ceiling's cap."""
+        self._level = min(self._cap(), max(self._level, alt))
+
     def _select(self) -> list[Command]:
         if not self._status_fresh() or self.ceiling_m is None:
             return []
@@ -395,7 +401,7 @@ class LandingController:
         if s.alt < self._level - c.alt_tolerance_m:
             self._level = s.alt  # it came down before we took over: do not climb back for nothing
         # Level flight, but never lower than descend_alt_m above the ground below.
-        self._level = min(self._cap(), max(self._level, s.alt - s.height + c.descend_alt_m))
+        self._raise_level(s.alt - s.height + c.descend_alt_m)
         dist = math.hypot(zone.x - s.north, zone.y - s.east)
         self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m")
         self._last_goto = None
@@ -414,20 +420,19 @@ class LandingController:
         s = self.status
         assert s is not None
         c = self.config
+        seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
         # The landing point stays where it is while the zone still holds r0 plus the margin around
         # it; only then does it move to the zone's new centre (see the module docstring). A zone
         # bounded by the view (everything seen is free) keeps it while the view still shows
         # MIN_VIEW_M around it: low down the view is smaller than r0 plus the margin.
         aim = self._aim
-        room = MIN_VIEW_M if track.view_limited and track.r_view >= MIN_VIEW_M else \
-            c.planner.r0_m + c.planner.radius_margin_m
+        room = MIN_VIEW_M if seen_all_free else c.planner.r0_m + c.planner.radius_margin_m
         if aim is None or track.r - math.hypot(aim[0] - track.x, aim[1] - track.y) < room:
             aim = self._aim = (track.x, track.y)
         dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
         # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
         # free is r0 around the vehicle, i.e. the zone's radius less the vehicle's offset.
         off_centre = math.hypot(track.x - s.north, track.y - s.east)
-        seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
         if self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free and \
                 track.r - off_centre < c.planner.r0_m:
             return self._lost(f"{track.r - off_centre:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m")
@@ -446,7 +451,7 @@ class LandingController:
             # Never below descend_alt_m above the ground under the vehicle (a rangefinder may show
             # the ground rising): the plan's floor, from terrain, not from the vehicle's altitude.
             floor = s.alt - s.height + c.descend_alt_m
-            self._level = min(self._cap(), max(self._level, floor))
+            self._raise_level(floor)
             if dist <= 2 * c.arrive_radius_m and s.alt <= self._level + c.alt_tolerance_m:
                 self._level = max(self._level - c.descend_step_m, floor)
             return self._goto(aim[0], aim[1], self._level, track.id)
@@ -487,7 +492,7 @@ class LandingController:
         # climb back to where it sees enough (never above the ceiling), rather than hover blind
         # until the handback.
         self._aim = None
-        self._level = min(self._cap(), max(self._level, s.alt - s.height + self.config.hold_height_m))
+        self._raise_level(s.alt - s.height + self.config.hold_height_m)
         return self._goto(s.north, s.east, self._level, None)
 
     def _goto(self, north: float, east: float, alt: float, zone_id: int | None) -> list[Command]:

@@ -90,8 +90,7 @@ class PX4(Autopilot):
         return target.amsl_m
 
     async def goto(self, target: PositionTarget) -> None:
-        if target.amsl_m is None:  # refuse before streaming anything PX4 would misread
-            raise FlavourError("PX4 targets need home's altitude above mean sea level (HOME_POSITION)")
+        self.target_altitude(target)  # refuse before streaming anything PX4 would misread
         self.target = target
         if not self.streaming:
             self._stream = asyncio.create_task(self._stream_loop(), name="px4 setpoints")

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from companion import synthetic
-from companion.pipeline.camera import Intrinsics, Mount, Pose
+from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.pipeline.slz import STAGES, PipelineConfig, SLZPipeline
 
 RESOLUTIONS = ((640, 480), (1280, 720))

@@ -28,7 +28,7 @@ from typing import Callable, Iterator
 import cv2
 import numpy as np
 
-from companion.pipeline.camera import Intrinsics, Mount, Pose
+from companion.geometry.camera import Intrinsics, Mount, Pose
 from sim.render import render_world
 
 BOUNDARY = "simcamframe"
@@ -66,7 +66,7 @@ class CameraServer:
 
     pose_provider: returns the vehicle pose now (world NED metres, radians).
     world: a :class:`sim.world.World` (positions/headings/moving/t/seed).
-    intrinsics, mount: the camera model (``companion.pipeline.camera``); frames are
+    intrinsics, mount: the camera model (``companion.geometry.camera``); frames are
         ``intrinsics.width x intrinsics.height``.
     fps: render rate, frames per second. port: TCP port on 127.0.0.1 (0 = any free port; see
         ``url`` after ``start``). ground: a :class:`sim.ground.ProceduralGround` or alike.

@@ -106,7 +106,7 @@ async def _main(args: argparse.Namespace) -> int:
     world = camera = None
     if args.camera:
         try:
-            from companion.pipeline.camera import Intrinsics, Mount
+            from companion.geometry.camera import Intrinsics, Mount
             from sim.camera_server import CameraServer
             from sim.world import default_world
         except ImportError as exc:

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.pipeline.camera import Intrinsics, Mount
+from companion.geometry.camera import Intrinsics, Mount
 from sim.camera_server import CameraServer
 from sim.autopilot import AutopilotConfig
 from sim.ground import FlatGround, ProceduralGround

@@ -1,6 +1,6 @@
 """The simulated camera's picture: the ground and the people seen from the vehicle's pose.
 
-Rendering goes through the service's own camera model (:mod:`companion.pipeline.camera`): the
+Rendering goes through the service's own camera model (:mod:`companion.geometry.camera`): the
 ground plane ``z = 0`` is drawn with its plane-to-image homography (``cv2.warpPerspective`` of a
 procedural texture), then every person is drawn as a few 3-D parts projected with the camera
 extrinsics and intrinsics, so a head at ``z = -1.7`` lands exactly where
@@ -25,7 +25,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from companion.pipeline.camera import Intrinsics, Mount, Pose, camera_extrinsics
+from companion.geometry.camera import Intrinsics, Mount, Pose, camera_extrinsics
 
 HEAD_Z = -1.7  # m, centre of the head (the pipeline's head plane)
 SHOULDER_Z = -1.4  # m
@@ -245,7 +245,7 @@ def render(world_positions: np.ndarray, pose: Pose, intrinsics: Intrinsics, moun
     intrinsics of the simulator).
 
     world_positions: (N, 2) people's ground positions (north, east), metres.
-    pose, intrinsics, mount: the camera model of the service (``companion.pipeline.camera``).
+    pose, intrinsics, mount: the camera model of the service (``companion.geometry.camera``).
     ground: a :class:`sim.ground.ProceduralGround` or anything with its ``view`` method.
     headings: (N,) radians from north toward east (default: all facing north).
     moving: (N,) bool, walking people swing their legs and arms (default: none).

@@ -19,7 +19,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from companion.pipeline.camera import Pose, rotation_from_euler
+from companion.geometry.camera import Pose, rotation_from_euler
 from sim.ardupilot import ArduPilotCopter
 from sim.autopilot import Autopilot, AutopilotConfig, Behaviour
 from sim.endpoint import Endpoint, UdpLink

@@ -8,7 +8,7 @@ import math
 import pytest
 from geographiclib.geodesic import Geodesic
 
-from companion.control.geodesy import GeoPoint
+from companion.geometry.geodesy import GeoPoint
 from companion.control.landing import (
     Goto,
     Handback,
@@ -19,9 +19,9 @@ from companion.control.landing import (
     VehicleStatus,
 )
 from companion.control.planner import PlannerConfig, ZonePlanner
-from companion.mavlink.failsafe import Trigger, TriggerSource
+from companion.control.trigger import Trigger, TriggerSource
 from companion.mavlink.link import CommandRefused
-from companion.pipeline.camera import Pose
+from companion.geometry.camera import Pose
 from companion.pipeline.tracker import Track
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)

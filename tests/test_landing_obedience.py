@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from companion.control.geodesy import GeoPoint
+from companion.geometry.geodesy import GeoPoint
 from companion.control.landing import (
     Command,
     Goto,
@@ -28,8 +28,8 @@ from companion.control.landing import (
 )
 from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
 from companion.control.planner import PlannerConfig
-from companion.mavlink.failsafe import Trigger, TriggerSource
-from companion.pipeline.camera import Pose
+from companion.control.trigger import Trigger, TriggerSource
+from companion.geometry.camera import Pose
 from companion.pipeline.tracker import Track
 from sim.vehicle import Vehicle
 

@@ -16,12 +16,12 @@ import pytest
 from geographiclib.geodesic import Geodesic
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from companion.control.geodesy import GeoPoint, geo_from_ned
+from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.control.landing import Goto, Handback, LandingConfig, LandingController, Phase
 from companion.control.planner import PlannerConfig
-from companion.control.runner import LandingRunner
-from companion.mavlink.autopilot import select_flavour
-from companion.mavlink.failsafe import Trigger, TriggerSource
+from companion.service.landing_runner import LandingRunner
+from companion.mavlink.flavours import select_flavour
+from companion.control.trigger import Trigger, TriggerSource
 from companion.mavlink.link import CommandRefused, CommandTimeout, LinkConfig, MavLink
 from companion.mavlink.px4 import px4_custom_mode
 from companion.mavlink.state import VehicleState

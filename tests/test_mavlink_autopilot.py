@@ -8,7 +8,9 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.mavlink.ardupilot import ArduPilotCopter
-from companion.mavlink.autopilot import FlavourError, PositionTarget, select_flavour
+from companion.control.commands import PositionTarget
+from companion.mavlink.autopilot import FlavourError
+from companion.mavlink.flavours import select_flavour
 from companion.mavlink.link import CommandRefused, CommandTimeout, LinkConfig, MavLink
 from companion.mavlink.px4 import PX4, px4_custom_mode
 from companion.mavlink.statustext import send_statustext, statustext_chunks

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from companion.control.geodesy import GeoPoint, geo_from_ned
+from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.mavlink.link import LinkConfig, MavLink
 from companion.mavlink.state import VehicleState
 from tests.mavpeer import MavPeer

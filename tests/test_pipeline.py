@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from companion import synthetic
-from companion.pipeline.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
+from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.occupancy import OCCUPIED
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 

@@ -19,9 +19,9 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.control.landing import LandingConfig, LandingController, Phase
 from companion.control.planner import PlannerConfig
-from companion.control.runner import LandingRunner
-from companion.mavlink.autopilot import PositionTarget
-from companion.mavlink.failsafe import Trigger, TriggerSource
+from companion.service.landing_runner import LandingRunner
+from companion.control.commands import PositionTarget
+from companion.control.trigger import Trigger, TriggerSource
 from companion.mavlink.link import LinkConfig, MavLink
 from companion.mavlink.px4 import PX4
 from companion.mavlink.state import VehicleState

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.pipeline.camera import Intrinsics, Mount, Pose
-from companion.service.recorder import FlightRecorder, RecordingError, RecordingReader
+from companion.geometry.camera import Intrinsics, Mount, Pose
+from companion.recording import FlightRecorder, RecordingError, RecordingReader
 
 
 def _frame(i: int, w: int = 160, h: int = 120) -> np.ndarray:

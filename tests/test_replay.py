@@ -21,7 +21,7 @@ from onnx import TensorProto, helper
 
 from companion import synthetic
 from companion.cli import main
-from companion.pipeline.camera import Intrinsics, Mount, Pose
+from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.pipeline.density import DensityModel
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
 from companion.replay.cli import shipped_model
@@ -283,7 +283,7 @@ def test_bad_inputs_give_clear_errors(case: str, work: dict[str, Path], tmp_path
 
 
 def test_recording_replays_with_its_poses(work: dict[str, Path], tmp_path: Path) -> None:
-    from companion.service.recorder import FlightRecorder
+    from companion.recording import FlightRecorder
 
     K = Intrinsics.from_fov(640, 480, 70.0)
     rec = FlightRecorder(tmp_path / "rec", intrinsics=K, mount=Mount(), fps=10.0)

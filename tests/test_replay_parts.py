@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.pipeline.camera import Intrinsics, Mount, PlaneProjection, Pose
+from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.circles import Circle
 from companion.pipeline.headplane import GridSpec
 from companion.pipeline.tracker import Track

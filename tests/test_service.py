@@ -17,8 +17,8 @@ from typing import Any, AsyncIterator
 
 import pytest
 
-from companion.pipeline.camera import Intrinsics, Mount
-from companion.service.recorder import RecordingReader
+from companion.geometry.camera import Intrinsics, Mount
+from companion.recording import RecordingReader
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED_MODEL = REPO / "models" / "slz-density.onnx"

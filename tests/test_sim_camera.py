@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.pipeline.camera import Intrinsics, Mount, Pose
+from companion.geometry.camera import Intrinsics, Mount, Pose
 from sim.camera_server import CameraServer, LatestFrameReader, read_mjpeg, read_stamp, stamp_index
 from sim.ground import ProceduralGround
 from sim.render import render_world

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.pipeline.camera import Intrinsics, Mount, PlaneProjection, Pose
+from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from sim.ground import FlatGround, ProceduralGround
 from sim.render import SKY, Looks, plane_homography, render, render_ground
 

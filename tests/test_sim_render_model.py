@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.pipeline.camera import Intrinsics, Mount, PlaneProjection, Pose
+from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.occupancy import FREE, OCCUPIED, OccupancyParams, occupancy_map
 from sim.ground import ProceduralGround
 from sim.render import render_world

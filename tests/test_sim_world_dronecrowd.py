@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.pipeline.camera import Intrinsics, Mount, Pose
+from companion.geometry.camera import Intrinsics, Mount, Pose
 from sim.dronecrowd import (DroneCrowdMotion, DroneCrowdUnavailable, cleaned, estimate_scale, load_tracks,
                             stabilised, track_speeds)
 from sim.ground import ProceduralGround

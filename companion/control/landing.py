@@ -57,12 +57,12 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from companion.control.geodesy import GeoPoint, geo_from_ned
+from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
 from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
-from companion.mavlink.autopilot import PositionTarget
-from companion.mavlink.failsafe import Trigger
-from companion.pipeline.camera import Pose
+from companion.control.commands import Command, Goto, Handback, Land, PositionTarget
+from companion.control.trigger import Trigger
+from companion.geometry.camera import Pose
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
@@ -162,32 +162,6 @@ class VehicleStatus:
     def height(self) -> float:
         """Metres above the ground below: a fresh downward rangefinder if any, else above home."""
         return self.agl if self.agl is not None and math.isfinite(self.agl) else self.alt
-
-
-@dataclass(frozen=True)
-class Goto:
-    """Fly to ``target`` and hold there (entering GUIDED/OFFBOARD); ``zone_id`` None = hold in place."""
-
-    target: PositionTarget
-    zone_id: int | None
-    north: float
-    east: float
-
-
-@dataclass(frozen=True)
-class Land:
-    """Switch to the autopilot's LAND mode (lands where the vehicle is)."""
-
-
-@dataclass(frozen=True)
-class Handback:
-    """Give control back to the autopilot's own failsafe: its LAND or RTL mode."""
-
-    action: str
-    reason: str
-
-
-Command = Goto | Land | Handback
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from companion.mavlink.autopilot import Autopilot, FlavourError, PositionTarget
+from companion.control.commands import PositionTarget
+from companion.mavlink.autopilot import Autopilot, FlavourError
 
 # ArduCopter flight modes (Copter's mode numbers, ardupilotmega COPTER_MODE_*).
 COPTER_MODES: dict[str, int] = {

@@ -7,8 +7,7 @@ failsafe (``handback``: LAND or RTL). Every mode change is a ``MAV_CMD_DO_SET_MO
 retries, timeout); a refusal raises ``CommandRefused`` and a silence ``CommandTimeout``, both
 ``CommandError``, which the controller's runner counts.
 
-``select_flavour`` picks ArduPilot or PX4 from the heartbeat's ``autopilot`` field unless the
-configuration says which.
+``companion.mavlink.flavours.select_flavour`` picks ArduPilot or PX4.
 """
 
 from __future__ import annotations
@@ -22,6 +21,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as m
 
+from companion.control.commands import PositionTarget
 from companion.mavlink.link import MavLink
 
 log = logging.getLogger(__name__)
@@ -41,30 +41,6 @@ TYPE_MASK_POSITION_ONLY = (
 
 class FlavourError(ValueError):
     """An unknown flavour name or a mode the flavour does not have."""
-
-
-@dataclass(frozen=True)
-class PositionTarget:
-    """Where to fly: WGS84 degrees, metres above home and, when home's altitude is known, the same
-    altitude above mean sea level (``amsl_m`` = home AMSL + ``rel_alt_m``).
-
-    Each flavour picks the frame its autopilot converts correctly (``docs/autopilot.md``):
-    ArduPilot reads ``rel_alt_m`` (frame 6, GLOBAL_RELATIVE_ALT_INT), PX4 ``amsl_m`` (frame 5,
-    GLOBAL_INT), because PX4 converts frame 6 wrongly whenever home and its estimator's origin
-    differ in altitude.
-    """
-
-    lat_deg: float
-    lon_deg: float
-    rel_alt_m: float
-    amsl_m: float | None = None
-
-    def __post_init__(self) -> None:
-        values = (self.lat_deg, self.lon_deg, self.rel_alt_m) + (() if self.amsl_m is None else (self.amsl_m,))
-        if not all(math.isfinite(v) for v in values):
-            raise ValueError(f"position target has a NaN or infinite value: {self!r}")
-        if not (-90 <= self.lat_deg <= 90 and -180 <= self.lon_deg <= 180):
-            raise ValueError(f"position target out of range: {self!r}")
 
 
 class Autopilot(ABC):
@@ -165,27 +141,3 @@ class Autopilot(ABC):
 
 
 FLAVOURS = ("ardupilot", "px4")
-
-
-def select_flavour(link: MavLink, override: str = "auto") -> Autopilot:
-    """The flavour named by ``override`` ("ardupilot", "px4"), or from the heartbeat with "auto".
-
-    With "auto" the link must have heard the autopilot (``link.vehicle_autopilot``).
-    """
-    from companion.mavlink.ardupilot import ArduPilotCopter
-    from companion.mavlink.px4 import PX4
-
-    if override == "ardupilot":
-        return ArduPilotCopter(link)
-    if override == "px4":
-        return PX4(link)
-    if override != "auto":
-        raise FlavourError(f"autopilot flavour must be auto, ardupilot or px4, not {override!r}")
-    if link.vehicle_autopilot == m.MAV_AUTOPILOT_ARDUPILOTMEGA:
-        return ArduPilotCopter(link)
-    if link.vehicle_autopilot == m.MAV_AUTOPILOT_PX4:
-        return PX4(link)
-    raise FlavourError(
-        f"cannot choose the autopilot flavour from heartbeat autopilot={link.vehicle_autopilot!r}; "
-        "set link.flavour to ardupilot or px4"
-    )

@@ -33,6 +33,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as m
 
+from companion.control.trigger import Trigger, TriggerSource
 from companion.mavlink.autopilot import Autopilot
 from companion.mavlink.link import MavLink
 
@@ -45,23 +46,6 @@ BATTERY_LEVELS = {
     "critical": m.MAV_BATTERY_CHARGE_STATE_CRITICAL,
     "emergency": m.MAV_BATTERY_CHARGE_STATE_EMERGENCY,
 }
-
-
-class TriggerSource(str, enum.Enum):
-    BATTERY = "battery"
-    SYSTEM_STATUS = "system_status"
-    AUTOPILOT_MODE = "autopilot_land"
-    GCS_COMMAND = "gcs_command"
-    LOCAL = "local_trigger"
-
-
-@dataclass(frozen=True)
-class Trigger:
-    """Why a safe landing was asked for: human-readable ``reason``, its ``source``, monotonic ``t`` (s)."""
-
-    reason: str
-    source: TriggerSource
-    t: float
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,8 @@ import logging
 
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from companion.mavlink.autopilot import Autopilot, FlavourError, PositionTarget
+from companion.control.commands import PositionTarget
+from companion.mavlink.autopilot import Autopilot, FlavourError
 from companion.mavlink.link import MavLink
 
 log = logging.getLogger(__name__)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from companion.pipeline.camera import GeometryError, PlaneProjection
+from companion.geometry.camera import GeometryError, PlaneProjection
 
 
 @dataclass(frozen=True)

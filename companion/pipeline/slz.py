@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from companion.pipeline.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
+from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.circles import Circle
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map

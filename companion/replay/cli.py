@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from companion.pipeline.camera import GeometryError, PlaneProjection
+from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.density import DensityModel, DensityModelError
 from companion.pipeline.occupancy import OccupancyParams
 from companion.pipeline.slz import PipelineConfig, SLZPipeline

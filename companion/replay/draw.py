@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from companion.pipeline.camera import PlaneProjection
+from companion.geometry.camera import PlaneProjection
 from companion.pipeline.circles import Circle
 from companion.pipeline.headplane import GridSpec
 from companion.pipeline.occupancy import OCCUPIED

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.pipeline.camera import GeometryError, PlaneProjection
+from companion.geometry.camera import GeometryError, PlaneProjection
 
 JSON_KEYS = ("H", "homography", "image_to_plane")
 

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.pipeline.camera import PlaneProjection
+from companion.geometry.camera import PlaneProjection
 from companion.pipeline.circles import Circle
 from companion.pipeline.slz import FrameResult
 from companion.pipeline.tracker import Track

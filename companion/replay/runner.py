@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from companion.pipeline.camera import GeometryError
+from companion.geometry.camera import GeometryError
 from companion.pipeline.density import DensityModelError
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.replay import draw

@@ -16,10 +16,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from companion.pipeline.camera import Intrinsics, Mount, Pose
-from companion.service.camera import as_bgr
+from companion.geometry.camera import Intrinsics, Mount, Pose
+from companion.frames import IMAGE_SUFFIXES, as_bgr, image_files, read_image
+from companion.recording import RecordingError, RecordingReader
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 KINDS = ("auto", "frames", "video", "recording")
 
 
@@ -66,12 +66,6 @@ def _check_fps(fps: float) -> float:
     return float(fps)
 
 
-def image_files(folder: Path) -> list[Path]:
-    """Image files of ``folder`` sorted by name (the frame order)."""
-    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
-                  key=lambda p: p.name)
-
-
 def open_folder(folder: Path, fps: float) -> ReplaySource:
     """A folder of image frames, sorted by name, frame ``i`` at ``t = i / fps`` seconds."""
     fps = _check_fps(fps)
@@ -86,7 +80,7 @@ def open_folder(folder: Path, fps: float) -> ReplaySource:
 
     def frames() -> Iterator[ReplayFrame]:
         for i, p in enumerate(files):
-            image = as_bgr(cv2.imread(str(p), cv2.IMREAD_UNCHANGED))
+            image = read_image(p)
             problem = None if image is not None else f"{p}: not a readable image"
             yield ReplayFrame(i, i / fps, image, None, problem, p.name)
 
@@ -130,11 +124,9 @@ def open_video(path: Path, fps: float | None) -> ReplaySource:
 
 
 def open_recording(path: Path) -> ReplaySource:
-    """A flight recording made by the service (``companion.service.recorder``)."""
+    """A flight recording made by the service (``companion.recording``)."""
     if not path.exists():
         raise ReplayInputError(f"recording {path} does not exist")
-    from companion.service.recorder import RecordingError, RecordingReader
-
     try:
         reader = RecordingReader(path)
     except RecordingError as exc:

@@ -29,12 +29,12 @@ import cv2
 import numpy as np
 
 from companion.config import Config
-from companion.pipeline.camera import GeometryError, Intrinsics, Mount, Pose
+from companion.geometry.camera import GeometryError, Intrinsics, Mount, Pose
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
 from companion.service.camera import CameraSource
 from companion.service.health import FrameCounters, StageTimings
 from companion.service.notify import Notifier
-from companion.service.recorder import FlightRecorder
+from companion.recording import FlightRecorder
 
 log = logging.getLogger("companion.service")
 
@@ -233,7 +233,7 @@ class Service:
         return True
 
     def _wire_vehicle(self) -> None:
-        from companion.mavlink.autopilot import select_flavour
+        from companion.mavlink.flavours import select_flavour
         from companion.mavlink.failsafe import FailsafeConfig, FailsafeMonitor
 
         c = self.cfg
@@ -256,7 +256,7 @@ class Service:
         from companion.control.landing import LandingConfig, LandingController
         from companion.control.obedience import ObedienceConfig
         from companion.control.planner import PlannerConfig
-        from companion.control.runner import LandingRunner
+        from companion.service.landing_runner import LandingRunner
 
         c = self.cfg.controller
         lcfg = LandingConfig(

@@ -37,9 +37,10 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from companion.frames import IMAGE_SUFFIXES, as_bgr, image_files, read_image
+
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 
 
 class CameraError(RuntimeError):
@@ -127,19 +128,6 @@ class _Status(Enum):
     LOST = 5  # the connection closed: reopen now rather than wait for the stall timeout
 
 
-def as_bgr(image: object) -> np.ndarray | None:
-    """The frame as BGR uint8 (H, W, 3), or None when it is not a usable image."""
-    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.size == 0:
-        return None
-    if image.ndim == 2:
-        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    if image.ndim == 3 and image.shape[2] == 3:
-        return image
-    if image.ndim == 3 and image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
-    return None
-
-
 class _Reader:
     """One open camera; ``read`` returns a status and the image (only with OK)."""
 
@@ -186,7 +174,7 @@ class _CvReader(_Reader):
 
 def folder_images(folder: Path) -> list[Path]:
     """The image files of a folder source, sorted; CameraError when it holds none."""
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    files = image_files(folder)
     if not files:
         raise CameraError(f"camera.source {str(folder)!r}: folder holds no image files "
                           f"({', '.join(IMAGE_SUFFIXES)})")
@@ -213,7 +201,7 @@ class _FolderReader(_Reader):
         self.pacer.wait()
         path = self.files[self.i]
         self.i += 1
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        image = read_image(path)
         if image is None:
             log.debug("cannot decode %s", path)
             return _Status.CORRUPT, None

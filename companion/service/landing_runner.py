@@ -31,11 +31,11 @@ from companion.control.landing import (
     VehicleStatus,
 )
 from companion.mavlink.autopilot import Autopilot
-from companion.mavlink.failsafe import Trigger
+from companion.control.trigger import Trigger
 from companion.mavlink.link import MavLink
 from companion.mavlink.state import VehicleState
 from companion.mavlink.statustext import send_statustext
-from companion.pipeline.camera import Pose
+from companion.geometry.camera import Pose
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)

@@ -36,7 +36,7 @@ from typing import Any, Iterator
 import cv2
 import numpy as np
 
-from companion.pipeline.camera import Intrinsics, Mount, Pose
+from companion.geometry.camera import Intrinsics, Mount, Pose
 
 log = logging.getLogger(__name__)
 

@@ -12,6 +12,7 @@ Units are in the key names where they matter (``_s`` seconds, ``_m`` metres, ``_
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 import typing
@@ -19,8 +20,22 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-#: Where the shipped model lives in a source checkout or an editable install.
-REPO_MODEL = Path(__file__).resolve().parents[1] / "models" / "slz-density.onnx"
+from companion.control.landing import LandingConfig
+from companion.control.obedience import ObedienceConfig
+from companion.control.planner import PlannerConfig
+from companion.geometry.camera import Intrinsics, Mount
+from companion.mavlink.failsafe import FailsafeConfig
+from companion.mavlink.link import LinkConfig, message_rates
+from companion.mavlink.transports import TransportError, parse_url
+from companion.pipeline.density import DensitySpec, resolve_threshold
+from companion.pipeline.headplane import GridParams
+from companion.pipeline.occupancy import OccupancyParams
+from companion.pipeline.slz import PipelineConfig
+from companion.pipeline.tracker import TrackerParams
+
+#: The shipped density model, in ``models/`` of a source checkout or an editable install: the one
+#: definition the service, replay, evaluation and the benchmark use.
+SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "slz-density.onnx"
 
 FLAVOURS = ("auto", "ardupilot", "px4")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -42,7 +57,7 @@ def _f(default: Any, doc: str = "", *, min: float | None = None, max: float | No
 
 
 @dataclass(frozen=True)
-class LinkConfig:
+class LinkSettings:
     """MAVLink connection to the flight controller."""
 
     url: str = _f("udpin:127.0.0.1:14550", "udpin:HOST:PORT, udpout:, tcp:, tcpin:, serial:/dev/ttyX:BAUD")
@@ -59,7 +74,7 @@ class LinkConfig:
 
 
 @dataclass(frozen=True)
-class CameraConfig:
+class CameraSettings:
     """Camera source, calibration and mount."""
 
     source: str = _f("http://127.0.0.1:8080/stream.mjpg",
@@ -85,16 +100,16 @@ class CameraConfig:
 
 
 @dataclass(frozen=True)
-class ModelConfig:
+class ModelSettings:
     """The ONNX density model."""
 
-    path: str = _f(str(REPO_MODEL), "ONNX density model file", path=True)
+    path: str = _f(str(SHIPPED_MODEL), "ONNX density model file", path=True)
     threads: int = _f(2, "onnxruntime intra-op threads", min=1, max=64)
     overrides: dict[str, Any] = _f({}, "settings that win over the model's metadata (color, scale, ...)")
 
 
 @dataclass(frozen=True)
-class TrackerConfig:
+class TrackerSettings:
     """Kalman tracker of landing zones (pipeline step 5)."""
 
     sigma_a: float = _f(0.5, "process noise: acceleration std of zone centre/radius (m/s^2)", min=0.0,
@@ -106,11 +121,11 @@ class TrackerConfig:
 
 
 @dataclass(frozen=True)
-class PipelineConfig:
+class PipelineSettings:
     """Safe-landing-zone pipeline (occupancy, head plane, proposals)."""
 
     occupancy_threshold: float = _f(-1.0, "density above min(D) marking a pixel occupied; "
-                                          "-1 = the model's validated value, else 0", min=-1.0)
+                                          "-1 = not set: the model's validated value, else 0", min=-1.0)
     dilate_kernel: int = _f(5, "side of the square dilation kernel (px, odd)", min=1, max=99)
     dilate_iterations: int = _f(2, "dilations applied to the occupied map", min=0, max=20)
     head_height_m: float = _f(1.7, "height of the head plane above the ground (m)", min=0.0, max=3.0)
@@ -120,11 +135,11 @@ class PipelineConfig:
     r0_m: float = _f(2.0, "smallest useful landing-zone radius (m)", min=0.1, max=100.0)
     max_pose_age_s: float = _f(0.25, "a frame whose pose is further than this from its capture time "
                                      "is not used for decisions (s)", min=0.0, max=5.0, min_exclusive=True)
-    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    tracker: TrackerSettings = field(default_factory=TrackerSettings)
 
 
 @dataclass(frozen=True)
-class FailsafeConfig:
+class FailsafeSettings:
     """Which telemetry events trigger a safe landing."""
 
     battery: bool = _f(True, "battery charge state LOW/CRITICAL/EMERGENCY")
@@ -138,7 +153,7 @@ class FailsafeConfig:
 
 
 @dataclass(frozen=True)
-class ControllerConfig:
+class ControllerSettings:
     """Landing controller timeouts and margins."""
 
     min_track_age_s: float = _f(1.0, "a zone must have been tracked this long to be a target (s)", min=0.0)
@@ -171,7 +186,7 @@ class ControllerConfig:
 
 
 @dataclass(frozen=True)
-class RecorderConfig:
+class RecorderSettings:
     """Flight recorder."""
 
     enabled: bool = _f(False, "record frames, poses, telemetry and decisions")
@@ -182,7 +197,7 @@ class RecorderConfig:
 
 
 @dataclass(frozen=True)
-class LogConfig:
+class LogSettings:
     """Logging (stderr; journald under systemd)."""
 
     level: str = _f("INFO", "log level", choices=LOG_LEVELS)
@@ -193,14 +208,14 @@ class LogConfig:
 class Config:
     """The whole service configuration (one section per TOML table)."""
 
-    link: LinkConfig = field(default_factory=LinkConfig)
-    camera: CameraConfig = field(default_factory=CameraConfig)
-    model: ModelConfig = field(default_factory=ModelConfig)
-    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
-    failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
-    controller: ControllerConfig = field(default_factory=ControllerConfig)
-    recorder: RecorderConfig = field(default_factory=RecorderConfig)
-    log: LogConfig = field(default_factory=LogConfig)
+    link: LinkSettings = field(default_factory=LinkSettings)
+    camera: CameraSettings = field(default_factory=CameraSettings)
+    model: ModelSettings = field(default_factory=ModelSettings)
+    pipeline: PipelineSettings = field(default_factory=PipelineSettings)
+    failsafe: FailsafeSettings = field(default_factory=FailsafeSettings)
+    controller: ControllerSettings = field(default_factory=ControllerSettings)
+    recorder: RecorderSettings = field(default_factory=RecorderSettings)
+    log: LogSettings = field(default_factory=LogSettings)
     #: The file it came from (None for built-in defaults); relative paths resolve beside it.
     source: Path | None = None
 
@@ -330,8 +345,6 @@ def _cross_checks(cfg: Config) -> None:
     if not cfg.failsafe.gcs_system_ids or any(not 1 <= i <= 255 for i in cfg.failsafe.gcs_system_ids):
         raise ConfigError(f"failsafe.gcs_system_ids must list system ids 1..255, got "
                           f"{cfg.failsafe.gcs_system_ids!r}")
-    from companion.mavlink.transports import TransportError, parse_url  # a pure parser
-
     if cfg.link.url.split(":", 1)[0] not in ("udpin", "udpout", "tcp", "tcpin", "serial"):
         raise ConfigError(f"link.url must start with udpin:, udpout:, tcp:, tcpin: or serial:, got "
                           f"{cfg.link.url!r}")
@@ -418,8 +431,127 @@ def all_keys(cls: type = Config, prefix: str = "") -> list[tuple[str, Any, str]]
     return out
 
 
+
+# ---- the objects each part takes ------------------------------------------------------------
+# The one place where settings become the parts' own configuration objects: the service, replay
+# and the simulator call these, so a setting has one name and one meaning everywhere.
+
+def threshold_setting(cfg: Config) -> float | None:
+    """``pipeline.occupancy_threshold`` with TOML's stand-in for "not set" (-1) turned into None,
+    for ``companion.pipeline.density.resolve_threshold``."""
+    value = cfg.pipeline.occupancy_threshold
+    return None if value < 0 else value
+
+
+def intrinsics(cfg: Config) -> Intrinsics:
+    """Pinhole intrinsics (``geometry.camera.Intrinsics``) for ``camera.width x camera.height``."""
+    c = cfg.camera
+    base = Intrinsics.from_fov(c.width, c.height, c.hfov_deg)
+    fx = c.fx or base.fx
+    fy = c.fy or fx
+    cx = base.cx if c.cx < 0 else c.cx
+    cy = base.cy if c.cy < 0 else c.cy
+    return Intrinsics(fx, fy, cx, cy, c.width, c.height, tuple(c.distortion))
+
+
+def mount(cfg: Config) -> Mount:
+    """The camera mount (``geometry.camera.Mount``) from ``camera.mount_*``."""
+    c = cfg.camera
+    return Mount.from_degrees(c.mount_roll_deg, c.mount_pitch_deg, c.mount_yaw_deg,
+                              tuple(c.mount_offset_m))
+
+
+def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> PipelineConfig:
+    """The pipeline's ``PipelineConfig``; the occupancy threshold resolved against the model's
+    ``DensitySpec`` (``resolve_threshold``: the setting, else the model's, else 0)."""
+    p, t = cfg.pipeline, cfg.pipeline.tracker
+    return PipelineConfig(
+        occupancy=OccupancyParams(threshold=resolve_threshold(threshold_setting(cfg), model_spec),
+                                  kernel=p.dilate_kernel, iterations=p.dilate_iterations),
+        grid=GridParams(cell=p.cell_size_m, max_extent=p.max_extent_m),
+        tracker=TrackerParams(sigma_a=t.sigma_a, r_std=(t.r_std[0], t.r_std[1], t.r_std[2]),
+                              min_iou=t.min_iou, mu_1=t.mu_1, mu_2=t.mu_2, max_tracks=p.n_proposals),
+        head_height_m=p.head_height_m,
+        r0_m=p.r0_m,
+    )
+
+
+def planner_config(cfg: Config) -> PlannerConfig:
+    """The ``PlannerConfig``: the one rule for which zone is the target (flight and replay)."""
+    c = cfg.controller
+    return PlannerConfig(r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
+                         min_track_age_s=c.min_track_age_s, min_track_hits=c.min_track_hits,
+                         zone_max_age_s=c.zone_max_age_s)
+
+
+def landing_config(cfg: Config) -> LandingConfig:
+    """The landing controller's ``LandingConfig``."""
+    c = cfg.controller
+    return LandingConfig(
+        planner=planner_config(cfg),
+        select_timeout_s=c.select_timeout_s, hold_timeout_s=c.hold_timeout_s,
+        arrive_radius_m=c.arrive_radius_m, descend_alt_m=c.descend_alt_m,
+        descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
+        hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
+        max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
+        search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
+        obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
+    )
+
+
+def signing_key(cfg: Config) -> bytes | None:
+    """The 32-byte MAVLink signing secret from ``link.signing_key_file`` or ``link.signing_key``;
+    ConfigError naming the file when it cannot be read or holds no key."""
+    text = cfg.link.signing_key
+    if cfg.link.signing_key_file:
+        try:
+            text = Path(cfg.link.signing_key_file).read_text().strip()
+        except OSError as exc:
+            raise ConfigError(f"link.signing_key_file {cfg.link.signing_key_file}: {exc.strerror}") from None
+        if len(text) != 64 or any(ch not in "0123456789abcdefABCDEF" for ch in text):
+            raise ConfigError(f"link.signing_key_file {cfg.link.signing_key_file} must hold 64 "
+                              "hexadecimal characters")
+    return bytes.fromhex(text) if text else None
+
+
+def link_config(cfg: Config) -> LinkConfig:
+    """The MAVLink link's ``LinkConfig`` (reads the signing key file)."""
+    c = cfg.link
+    return LinkConfig(
+        url=c.url, system_id=c.system_id, component_id=c.component_id,
+        target_system=c.target_system or None, target_component=c.target_component,
+        heartbeat_timeout_s=c.heartbeat_timeout_s, signing_key=signing_key(cfg),
+        message_rates_hz=message_rates(c.telemetry_rate_hz),
+    )
+
+
+def failsafe_config(cfg: Config) -> FailsafeConfig:
+    """The failsafe monitor's ``FailsafeConfig``."""
+    f = cfg.failsafe
+    return FailsafeConfig(battery=f.battery, battery_level=f.battery_level, system_status=f.system_status,
+                          autopilot_land=f.autopilot_land, gcs_command=f.gcs_command,
+                          local_trigger=f.local_trigger, gcs_system_ids=tuple(f.gcs_system_ids),
+                          local_socket=f.local_socket or None)
+
+
+def from_recording(meta_config: Mapping[str, Any], overrides: Mapping[str, Any] | None = None) -> Config:
+    """The settings a recording was flown with (its ``meta.json`` ``config``), with ``overrides``
+    (dotted keys) on top, validated as a file would be. The signing key is never recorded (it
+    reads ``<redacted>``) and is dropped."""
+    raw = json.loads(json.dumps(dict(meta_config)))  # a deep copy of plain JSON data
+    link = raw.get("link")
+    if isinstance(link, dict):
+        link.pop("signing_key", None)
+        link.pop("signing_key_file", None)
+    for dotted, value in (overrides or {}).items():
+        _set_dotted(raw, dotted, value)
+    return from_dict(raw)
+
+
 __all__ = [
-    "Config", "ConfigError", "LinkConfig", "CameraConfig", "ModelConfig", "PipelineConfig",
-    "TrackerConfig", "FailsafeConfig", "ControllerConfig", "RecorderConfig", "LogConfig",
-    "load", "from_dict", "parse_assignment", "all_keys",
+    "Config", "ConfigError", "LinkSettings", "CameraSettings", "ModelSettings", "PipelineSettings",
+    "TrackerSettings", "FailsafeSettings", "ControllerSettings", "RecorderSettings", "LogSettings",
+    "load", "from_dict", "parse_assignment", "all_keys", "SHIPPED_MODEL", "threshold_setting",
+    "intrinsics", "mount", "pipeline_config", "planner_config", "landing_config", "signing_key",
+    "link_config", "failsafe_config", "from_recording",
 ]

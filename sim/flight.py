@@ -4,7 +4,11 @@ This is what the demo, the scenario runner and the SITL tests fly. The vehicle h
 crowd; the service (``companion run``, a subprocess, exactly as systemd starts it) watches through
 the simulated MJPEG camera and talks MAVLink over loopback UDP; after a while the simulator raises
 a failsafe as the autopilot would (ArduPilot switches itself to LAND; PX4 holds for COM_FAIL_ACT_T,
-5 s, then switches to AUTO.LAND), and the flight ends at touchdown or at a time limit. The outcome is judged on the simulator's truth, never on what the service says:
+5 s, then switches to AUTO.LAND), and the flight ends at touchdown or at a time limit. The outcome
+is judged on the simulator's truth and on the landing controller's typed events, which the service
+records in its flight recording (``companion.recording``); never on its log, which is for people
+and may be reworded at will. Readiness is the service's ``READY=1`` on a ``NOTIFY_SOCKET``, as
+systemd sees it:
 
 - ``safe``: touched down with nobody within ``r_0`` of the touchdown point, with the companion in
   charge;
@@ -23,18 +27,20 @@ import contextlib
 import logging
 import math
 import os
-import re
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from companion.geometry.camera import Intrinsics, Mount
+from companion.recording import RecordingError, RecordingReader
 from sim.camera_server import CameraServer
 from sim.autopilot import AutopilotConfig
 from sim.ground import FlatGround, ProceduralGround
@@ -49,8 +55,6 @@ WORLDS = ("free_area", "dense", "intrusion", "dronecrowd", "uniform")
 OUTCOMES = ("safe", "unsafe", "handback", "timeout")
 UNIFORM_GROUND_BGR = (70, 140, 95)  # mown grass
 
-_PHASE_RE = re.compile(r"landing controller: (\w+) -> (\w+)")
-_SLZ_RE = re.compile(r"(SLZ: .*)$")
 
 
 @dataclass(frozen=True)
@@ -70,6 +74,10 @@ class FlightSpec:
     land_speed: final-descent speed of the autopilot's LAND (m/s; ArduPilot LAND_SPEED).
     home_origin_offset_m: the simulated PX4's home altitude minus its estimator origin's altitude
         (m). The real PX4 converts frame-6 position targets wrongly unless this is 0.
+    record_dir: where the service records the flight (a temporary folder when None: the judge
+        reads the controller's events from the recording either way).
+    service_env: extra environment variables for the service process (tests use it to prove the
+        verdict does not depend on the log's wording).
     """
 
     flavour: str = "ardupilot"
@@ -91,6 +99,7 @@ class FlightSpec:
     service_log: Path | None = None
     service_set: tuple[str, ...] = ()
     home_origin_offset_m: float = 0.0
+    service_env: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
@@ -108,8 +117,9 @@ class FlightResult:
     touchdown: tuple[float, float] | None = None
     clearance_m: float | None = None
     time_to_touchdown_s: float | None = None
-    phases: list[str] = field(default_factory=list)
-    messages: list[str] = field(default_factory=list)
+    phases: list[str] = field(default_factory=list)  # every phase the controller entered, in order
+    messages: list[str] = field(default_factory=list)  # the events' STATUSTEXT lines, each once
+    events: list[dict] = field(default_factory=list)  # the controller's events as recorded
     free_circle: tuple[float, float, float] | None = None
     trigger_alt_m: float | None = None
     max_climb_m: float | None = None  # highest altitude after the trigger less the altitude at it
@@ -170,29 +180,76 @@ def build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, fl
     return world, free, start
 
 
-def service_command(spec: FlightSpec, link_port: int, camera_url: str) -> list[str]:
+def service_command(spec: FlightSpec, link_port: int, camera_url: str, record_dir: Path) -> list[str]:
     """``companion run`` as the flight starts it (a subprocess, like systemd would)."""
     cmd = [sys.executable, "-m", "companion", "--log-level", "INFO", "run",
            "--link", f"udpin:127.0.0.1:{link_port}", "--camera", camera_url,
            "--flavour", spec.flavour,
            "--set", f"camera.hfov_deg={spec.hfov_deg}", "--set", f"camera.fps={spec.fps}",
-           "--set", f"pipeline.r0_m={spec.r0_m}", "--set", "log.health_interval_s=5"]
-    if spec.record_dir is not None:
-        cmd += ["--record", str(spec.record_dir)]
+           "--set", f"pipeline.r0_m={spec.r0_m}", "--set", "log.health_interval_s=5",
+           "--record", str(record_dir)]
     for item in spec.service_set:
         cmd += ["--set", item]
     return cmd
 
 
-async def _wait_ready(proc: asyncio.subprocess.Process, lines: list[str], timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if any("ready:" in ln for ln in lines):
-            return True
-        if proc.returncode is not None:
-            return False
-        await asyncio.sleep(0.1)
-    return False
+class NotifySocket:
+    """The ``NOTIFY_SOCKET`` systemd gives a ``Type=notify`` service: a Unix datagram socket on
+    which the service says ``READY=1`` (and WATCHDOG, STATUS, STOPPING)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / "notify.sock"
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(self.path))
+        self.sock.setblocking(False)
+        self.ready = False
+
+    def poll(self) -> None:
+        while True:
+            try:
+                data = self.sock.recv(4096)
+            except (BlockingIOError, InterruptedError):
+                return
+            if b"READY=1" in data.split(b"\n"):
+                self.ready = True
+
+    async def wait_ready(self, proc: asyncio.subprocess.Process, timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            self.poll()
+            if self.ready:
+                return True
+            if proc.returncode is not None:
+                return False
+            await asyncio.sleep(0.05)
+        return False
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def recorded_events(record_dir: Path) -> list[dict]:
+    """The landing controller's events (``kind`` "controller") of the flight recorded in
+    ``record_dir`` (its newest run), in order; empty when nothing was recorded."""
+    runs = sorted(p.parent for p in record_dir.glob("*/meta.json"))
+    if not runs:
+        return []
+    try:
+        return list(RecordingReader(runs[-1]).events("controller"))
+    except RecordingError as exc:
+        log.warning("cannot read the flight recording %s: %s", runs[-1], exc)
+        return []
+
+
+def judge_events(result: FlightResult, events: list[dict]) -> None:
+    """Fill the result's phases and messages from the recorded controller events."""
+    result.events = events
+    for ev in events:
+        if ev.get("old") != ev.get("phase") and isinstance(ev.get("phase"), str):
+            result.phases.append(ev["phase"])
+        text = ev.get("text")
+        if isinstance(text, str) and text not in result.messages:
+            result.messages.append(text)
 
 
 async def _pump(stream: asyncio.StreamReader, lines: list[str], sink) -> None:
@@ -242,15 +299,19 @@ async def fly(spec: FlightSpec) -> FlightResult:
     lines: list[str] = []
     sink = open(spec.service_log, "w") if spec.service_log is not None else None
     proc = None
+    scratch = tempfile.TemporaryDirectory(prefix="companion-flight-")
+    record_dir = spec.record_dir if spec.record_dir is not None else Path(scratch.name) / "recording"
+    notify = NotifySocket(Path(scratch.name))
+    env: Mapping[str, str] = {**os.environ, "PYTHONUNBUFFERED": "1", "NOTIFY_SOCKET": str(notify.path),
+                              **dict(spec.service_env)}
     try:
         await sim.start()
         await camera.start()
         proc = await asyncio.create_subprocess_exec(
-            *service_command(spec, link_port, camera.url), stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            *service_command(spec, link_port, camera.url, record_dir), stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=dict(env))
         pump = asyncio.create_task(_pump(proc.stderr, lines, sink))  # type: ignore[arg-type]
-        if not await _wait_ready(proc, lines, timeout=60.0):
+        if not await notify.wait_ready(proc, timeout=60.0):
             result.outcome = "timeout"
             result.log_tail = "\n".join(lines[-30:])
             raise RuntimeError("the service did not become ready:\n" + result.log_tail)
@@ -273,7 +334,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
             result.touchdown = touchdown["point"]  # type: ignore[assignment]
             result.clearance_m = float(touchdown["clearance"])  # type: ignore[arg-type]
             result.time_to_touchdown_s = float(touchdown["t"]) - t_trigger  # type: ignore[arg-type]
-        # Let the last log lines of the landing arrive before judging.
+        # Let the last events of the landing (LANDED) be recorded before stopping the service.
         await asyncio.sleep(0.5)
     finally:
         if proc is not None and proc.returncode is None:
@@ -291,13 +352,10 @@ async def fly(spec: FlightSpec) -> FlightResult:
         await sim.stop()
         if sink is not None:
             sink.close()
-    for ln in lines:
-        m = _PHASE_RE.search(ln)
-        if m:
-            result.phases.append(m.group(2))
-        s = _SLZ_RE.search(ln)
-        if s and s.group(1) not in result.messages:
-            result.messages.append(s.group(1))
+        notify.close()
+        # The service has stopped (its recorder closed): its events are all on disk.
+        judge_events(result, recorded_events(record_dir))
+        scratch.cleanup()
     result.log_tail = "\n".join(lines[-40:])
     if "trigger_alt" in climb:
         result.trigger_alt_m = climb["trigger_alt"]

@@ -6,9 +6,17 @@ import numpy as np
 import pytest
 
 from companion import synthetic
+from companion.control.planner import PlannerConfig, ZonePlanner
 from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.occupancy import OCCUPIED
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
+
+
+def _target(res, r0_m: float = 1.0):
+    """The zone the landing controller would fly to (the planner decides, not the pipeline), with
+    the age, hit and margin checks off so that only "confirmed and r >= r0" is left."""
+    planner = ZonePlanner(PlannerConfig(r0_m=r0_m, radius_margin_m=0.0, min_track_age_s=0.0, min_track_hits=1))
+    return planner.choose(res.tracks, res.t)
 
 
 def _pipeline_for(scene, **kw):
@@ -19,7 +27,7 @@ def _pipeline_for(scene, **kw):
 def test_nadir_pipeline_finds_the_known_free_circle():
     scene = synthetic.crowd_scene(free=((250.0, 240.0, 100.0),), n_people=400)
     gsd = 0.05
-    pipe = _pipeline_for(scene, config=PipelineConfig(r_0=1.0),
+    pipe = _pipeline_for(scene, config=PipelineConfig(r0_m=1.0),
                          projection=PlaneProjection.nadir(gsd))
     frame = synthetic.render(scene)
     for k in range(4):
@@ -28,8 +36,9 @@ def test_nadir_pipeline_finds_the_known_free_circle():
     # The free disc shrinks by the occupancy dilation (4 px) and the density stride (< 4 px).
     assert math.hypot(best.x / gsd - 250.0, best.y / gsd - 240.0) < 12
     assert 100 - 12 <= best.r / gsd <= 100
-    assert res.target is not None and res.target.r >= 1.0
-    assert math.hypot(res.target.x / gsd - 250, res.target.y / gsd - 240) < 12
+    target = _target(res)
+    assert target is not None and target.r >= 1.0
+    assert math.hypot(target.x / gsd - 250, target.y / gsd - 240) < 12
     assert set(res.timings_ms) >= {"density", "occupancy", "projection", "proposals", "tracking",
                                    "post_density", "total"}
     # No proposal covers a person.
@@ -43,7 +52,7 @@ def test_posed_pipeline_places_zones_in_world_metres():
     alt = 25.0
     pose = Pose(0.0, 100.0, -50.0, -alt, 0.0, 0.0, 0.0)
     scene = synthetic.crowd_scene(free=((420.0, 150.0, 80.0),), n_people=300, seed=3)
-    pipe = _pipeline_for(scene, config=PipelineConfig(r_0=1.0), intrinsics=K, mount=Mount())
+    pipe = _pipeline_for(scene, config=PipelineConfig(r0_m=1.0), intrinsics=K, mount=Mount())
     res = pipe.process(synthetic.render(scene), 0.0, pose)
     # Where the free circle's centre pixel lands on the head plane, in world NED.
     expect = res.projection.image_to_plane(np.array([[420.0, 150.0]]))[0]
@@ -78,7 +87,7 @@ def test_all_occupied_frame_gives_no_proposals_not_an_error():
                        projection=PlaneProjection.nadir(0.05))
     res = pipe.process(np.zeros((480, 640, 3), np.uint8), 0.0)
     assert (res.occupancy == OCCUPIED).mean() > 0.99
-    assert res.proposals == [] and res.tracks == [] and res.target is None
+    assert res.proposals == [] and res.tracks == [] and _target(res) is None
 
 
 def test_bad_inputs_are_clear_errors():
@@ -117,7 +126,7 @@ def test_threshold_defaults_to_the_models_own_and_an_explicit_one_wins():
 def test_ground_all_free_up_to_the_view_edge_is_view_limited():
     K = Intrinsics.from_fov(640, 480, 70.0)
     pipe = SLZPipeline(lambda f: np.zeros((120, 160), np.float32),
-                       PipelineConfig(r_0=1.0), intrinsics=K, mount=Mount())
+                       PipelineConfig(r0_m=1.0), intrinsics=K, mount=Mount())
     pose = Pose(0.0, 0.0, 0.0, -6.0, 0.0, 0.0, 0.0)  # low: the view is ~6 x 4.5 m
     for k in range(4):
         res = pipe.process(np.zeros((480, 640, 3), np.uint8), 0.1 * k, pose)

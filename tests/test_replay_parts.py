@@ -19,6 +19,7 @@ from companion.replay.homography import HomographyFileError, projection_from_fil
 from companion.replay.records import circle_in_image, frame_record
 from companion.replay.sources import ReplayInputError, open_folder, open_input
 from companion.replay.summary import SummaryBuilder, format_summary
+from companion.control.planner import PlannerConfig, ZonePlanner
 
 H = np.array([[0.05, 0.01, -3.0], [-0.02, 0.06, 4.0], [1e-5, 2e-5, 1.0]])
 
@@ -108,13 +109,17 @@ class _Result:
         self.proposals = [Circle(float("nan"), 1.0, 2.0), Circle(3.0, 4.0, 1.0)]
         self.tracks = [Track(7, 3.0, 4.0, 1.0, 1.1, 4, 5, 0, 0.0, 1.5),
                        Track(8, 9.0, 9.0, 3.0, 3.0, 9, 9, 1, 0.0, 1.4)]
-        self.target = self.tracks[0]
         self.timings_ms = {"density": 1.0, "occupancy": 0.1, "projection": 0.2, "proposals": 0.3,
                            "tracking": 0.4, "total": float("nan")}
 
 
+def _planner(r0_m: float) -> ZonePlanner:
+    """The landing controller's target rule, its margin off (these tracks are 1 m and 3 m wide)."""
+    return ZonePlanner(PlannerConfig(r0_m=r0_m, radius_margin_m=0.0))
+
+
 def test_record_is_valid_json_with_nulls_and_stability() -> None:
-    rec = frame_record(4, _Result(PlaneProjection.nadir(0.1)), r_0=0.5)  # type: ignore[arg-type]
+    rec = frame_record(4, _Result(PlaneProjection.nadir(0.1)), _planner(0.5))  # type: ignore[arg-type]
     text = json.dumps(rec, allow_nan=False)
     back = json.loads(text)
     assert back["frame"] == 4 and back["target"] == 7
@@ -123,7 +128,7 @@ def test_record_is_valid_json_with_nulls_and_stability() -> None:
     assert back["timing_ms"]["total"] is None
     # Stable needs misses == 0 and r >= r_0: track 8 was missed this frame.
     assert [t["stable"] for t in back["tracks"]] == [True, False]
-    assert frame_record(0, _Result(PlaneProjection.nadir(0.1)), r_0=2.0)["tracks"][0]["stable"] is False  # type: ignore[arg-type]
+    assert frame_record(0, _Result(PlaneProjection.nadir(0.1)), _planner(2.0))["tracks"][0]["stable"] is False  # type: ignore[arg-type]
 
 
 def test_summary_counts_target_switches_per_minute() -> None:

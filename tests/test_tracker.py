@@ -85,24 +85,6 @@ def test_ages_increase_and_hits_count():
     assert tr.tracks()[0].hits == 5
 
 
-def test_oldest_stable_is_the_one_the_paper_picks():
-    tr = ZoneTracker(TrackerParams(mu_2=1, mu_1=5))
-    a, b, c = Circle(0.0, 0.0, 3.0), Circle(20.0, 0.0, 6.0), Circle(40.0, 0.0, 1.0)
-    tr.update([a], 0.0)
-    tr.update([a, b], 0.1)
-    tr.update([a, b, c], 0.2)
-    ida, idb = (t.id for t in tr.tracks()[:2])
-    # The oldest wins even though b is larger.
-    assert tr.oldest_stable(r_min=2.0).id == ida
-    # a not confirmed by the latest frame: b, the next oldest, is the target.
-    tr.update([b, c], 0.3)
-    assert tr.oldest_stable(r_min=2.0).id == idb
-    # c is too small ever to be picked.
-    tr.update([c], 0.4)
-    assert tr.oldest_stable(r_min=2.0) is None
-    assert tr.oldest_stable(r_min=0.5).r == pytest.approx(1.0, abs=0.05)
-
-
 def test_safe_radius_stays_inside_the_last_proposal():
     tr = ZoneTracker(TrackerParams(mu_2=1))
     for k in range(5):

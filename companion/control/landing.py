@@ -20,8 +20,9 @@ Inputs (times are monotonic seconds):
 - ``tick(now)``: timeouts.
 - ``on_command_result(command, error)``: what became of a command the runner executed.
 
-Each returns the list of ``Command``s to execute now; ``pop_events()`` gives the human-readable
-events (the runner sends them as STATUSTEXT).
+Each returns the list of ``Command``s to execute now; ``pop_events()`` gives the typed events
+(``companion.control.events``: every phase change, target, hold and handback, with its time); the
+service records them and sends their text as STATUSTEXT.
 
 Flying: every target altitude comes from the altitude at the trigger and the descent plan, never
 from "where the vehicle is now minus a step" (against the real PX4 such targets, read a few metres
@@ -51,7 +52,6 @@ handed back to the autopilot's LAND at once, with the reason as an event.
 
 from __future__ import annotations
 
-import enum
 import logging
 import math
 from collections.abc import Sequence
@@ -61,22 +61,12 @@ from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
 from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
 from companion.control.commands import Command, Goto, Handback, Land, PositionTarget
+from companion.control.events import Event, HandedBack, Holding, Note, Phase, PhaseChanged, TargetChosen
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
-
-
-class Phase(str, enum.Enum):
-    MONITOR = "MONITOR"
-    SELECT = "SELECT"
-    APPROACH = "APPROACH"
-    DESCEND = "DESCEND"
-    LAND = "LAND"
-    LANDED = "LANDED"
-    HOLD = "HOLD"
-    HANDBACK = "HANDBACK"
 
 
 #: A view radius (m) under which a zone that drops out of view during LAND commits the landing.
@@ -164,16 +154,6 @@ class VehicleStatus:
         return self.agl if self.agl is not None and math.isfinite(self.agl) else self.alt
 
 
-@dataclass(frozen=True)
-class Event:
-    """A human-readable state change (``text`` starts with "SLZ: "); ``t`` monotonic s."""
-
-    t: float
-    phase: Phase
-    text: str
-    warning: bool = False
-
-
 class LandingController:
     """See the module docstring. Pure: no I/O, no clock; every time comes in through an input."""
 
@@ -227,16 +207,19 @@ class LandingController:
             if refused:
                 return refused
         if self.phase == Phase.LAND and (status.on_ground or status.armed is False):
-            self._set_phase(Phase.LANDED, f"landed in zone {self._zone_id()}")
+            self._set_phase(Phase.LANDED, f"landed in zone {self._zone_id()}",
+                            zone_id=None if self.target is None else self.target.id)
             return []
         if self.phase in FLYING and status.armed is False:
             # Disarmed outside our LAND: PX4's land detector disarms in OFFBOARD too (its heartbeat
             # still says OFFBOARD). Nothing more to command to a vehicle with its motors off.
             if status.on_ground:
-                self._set_phase(Phase.LANDED, f"vehicle on the ground and disarmed (zone {self._zone_id()})")
+                self._set_phase(Phase.LANDED, f"vehicle on the ground and disarmed (zone {self._zone_id()})",
+                                zone_id=None if self.target is None else self.target.id)
             else:
                 self.target = None
-                self._set_phase(Phase.HANDBACK, "vehicle disarmed in the air: companion stops", warning=True)
+                self._set_phase(Phase.HANDBACK, "vehicle disarmed in the air: companion stops", warning=True,
+                                event=HandedBack, reason="vehicle disarmed in the air")
             return []
         if self.phase in FLYING and self.ceiling_m is not None and status.alt > self.ceiling_m:
             return self._handback(f"vehicle at {status.alt:.1f} m, above the {self.ceiling_m:.1f} m ceiling",
@@ -251,7 +234,7 @@ class LandingController:
             elif self._mode_confirmed:
                 # Someone else (pilot, GCS, the autopilot's own failsafe) took over: stop at once.
                 self._set_phase(Phase.HANDBACK, f"mode changed to {status.mode} by someone else: companion stops",
-                                warning=True)
+                                warning=True, event=HandedBack, reason=f"mode changed to {status.mode}")
         return []
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None) -> list[Command]:
@@ -304,6 +287,16 @@ class LandingController:
         if isinstance(command, Goto):
             self._last_goto = None  # re-send at the next frame
         return []
+
+    def zone_target(self) -> Track | None:
+        """The zone the vehicle flies to (after a trigger), or would fly to now (before one): what
+        the flight recording, the status line and the ground station call "the target". After
+        the flight (LANDED, HANDBACK) there is none."""
+        if self.phase in ACTIVE:
+            return self.target
+        if self.phase != Phase.MONITOR:
+            return None
+        return self.planner.choose(self.tracks, self.now)
 
     def pop_events(self) -> list[Event]:
         events, self._events = self._events, []
@@ -367,7 +360,7 @@ class LandingController:
             return []
         return self._approach(zone, "landing at")
 
-    def _approach(self, zone: Track, verb: str) -> list[Command]:
+    def _approach(self, zone: Track, verb: str, lost_id: int | None = None) -> list[Command]:
         s, c = self.status, self.config
         assert s is not None
         self.target = zone
@@ -377,7 +370,9 @@ class LandingController:
         # Level flight, but never lower than descend_alt_m above the ground below.
         self._raise_level(s.alt - s.height + c.descend_alt_m)
         dist = math.hypot(zone.x - s.north, zone.y - s.east)
-        self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m")
+        self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m",
+                        event=TargetChosen, zone_id=zone.id, north=zone.x, east=zone.y, r=zone.r,
+                        lost_zone_id=lost_id)
         self._last_goto = None
         return self._goto(zone.x, zone.y, self._level, zone.id)
 
@@ -413,12 +408,13 @@ class LandingController:
         if self.phase == Phase.APPROACH:
             if dist > c.arrive_radius_m:
                 return self._goto(aim[0], aim[1], self._level, track.id)
-            self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m")
+            self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m", zone_id=track.id)
         if self.phase == Phase.DESCEND:
             low = s.height <= c.descend_alt_m + c.alt_tolerance_m
             if (dist <= c.arrive_radius_m and low) or s.on_ground:
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
-                self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m")
+                self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",
+                                zone_id=track.id)
                 return [Land()]
             # The plan's next step: one step down once the vehicle has reached the current level
             # over the zone, so a lost zone never leaves the vehicle committed to a long descent.
@@ -456,9 +452,10 @@ class LandingController:
             return []  # committed: too low to fly away safely; the autopilot finishes the landing
         other = self.planner.choose(self.tracks, self.now, exclude=(lost.id,)) if self._status_fresh() else None
         if other is not None:
-            return self._approach(other, f"zone {lost.id} lost ({why}); re-targeting")
+            return self._approach(other, f"zone {lost.id} lost ({why}); re-targeting", lost_id=lost.id)
         self.target = None
-        self._set_phase(Phase.HOLD, f"zone {lost.id} lost ({why}); holding", warning=True)
+        self._set_phase(Phase.HOLD, f"zone {lost.id} lost ({why}); holding", warning=True,
+                        event=Holding, lost_zone_id=lost.id, reason=why)
         if s is None or not self._status_fresh():
             return []
         self._last_goto = None
@@ -492,7 +489,8 @@ class LandingController:
         """Give the vehicle back: ``action`` LAND or RTL (default: the configured one)."""
         action = action or self.config.handback_action
         self.target = None
-        self._set_phase(Phase.HANDBACK, f"{why}: handing back to the autopilot ({action})", warning=True)
+        self._set_phase(Phase.HANDBACK, f"{why}: handing back to the autopilot ({action})", warning=True,
+                        event=HandedBack, action=action, reason=why)
         return [Handback(action, why)]
 
     # -- bookkeeping -------------------------------------------------------------------------
@@ -504,14 +502,20 @@ class LandingController:
     def _zone_id(self) -> str:
         return "?" if self.target is None else str(self.target.id)
 
-    def _set_phase(self, phase: Phase, text: str, warning: bool = False) -> None:
-        if phase != self.phase:
-            log.info("landing: %s -> %s", self.phase.value, phase.value)
+    def _set_phase(self, phase: Phase, text: str, warning: bool = False, event: type[Event] = PhaseChanged,
+                   **fields: object) -> None:
+        """Enter ``phase`` (or stay in it), reporting it as one ``event`` of the given type: the
+        only way the phase changes, so no change goes unreported."""
+        old = self.phase
+        if phase != old:
+            log.info("landing: %s -> %s", old.value, phase.value)
             self.phase = phase
             self._phase_t = self.now
-        self._event(text, warning)
+        self._emit(event(self.now, old, phase, f"SLZ: {text}", warning, **fields))  # type: ignore[arg-type]
 
     def _event(self, text: str, warning: bool = False) -> None:
-        event = Event(self.now, self.phase, f"SLZ: {text}", warning)
-        (log.warning if warning else log.info)("%s", event.text)
+        self._emit(Note(self.now, self.phase, self.phase, f"SLZ: {text}", warning))
+
+    def _emit(self, event: Event) -> None:
+        (log.warning if event.warning else log.info)("%s", event.text)
         self._events.append(event)

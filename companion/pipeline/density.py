@@ -311,3 +311,14 @@ class DensityModel:
     def count(self, density: np.ndarray) -> float:
         """People count estimated from a density map of this model (sum x ``count_scale``)."""
         return float(np.sum(density, dtype=np.float64) * self.spec.count_scale)
+
+
+def resolve_threshold(setting: float | None, spec: DensitySpec | None) -> float:
+    """The occupancy threshold to use: the user's ``setting`` when given (None = not set), else
+    the model's validated ``occupancy_threshold`` (a model that carries one chosen on held-out
+    data knows its own output scale better than the paper's 0), else the paper's 0. The one
+    place this rule lives: the service, replay, evaluation and the pipeline all call it."""
+    if setting is not None:
+        return float(setting)
+    model = None if spec is None else spec.occupancy_threshold
+    return float(model) if model is not None else 0.0

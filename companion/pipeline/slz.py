@@ -17,6 +17,7 @@ import numpy as np
 
 from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.circles import Circle
+from companion.pipeline.density import resolve_threshold
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
 from companion.pipeline.proposals import clearance_at, distance_cells, propose
@@ -29,20 +30,21 @@ STAGES = ("density", "occupancy", "projection", "proposals", "tracking")
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    """head_height: h_h, metres of the head plane above the ground. r_0: smallest landing radius
-    in metres (proposals below it are not made; targets below it are not picked)."""
+    """head_height_m: h_h, metres of the head plane above the ground. r0_m: smallest landing
+    radius in metres (proposals below it are not made). Which zone is the target is not the
+    pipeline's to say: ``companion.control.planner`` decides that, in flight and in replay."""
 
     occupancy: OccupancyParams = field(default_factory=OccupancyParams)
     grid: GridParams = field(default_factory=GridParams)
     tracker: TrackerParams = field(default_factory=TrackerParams)
-    head_height: float = 1.7
-    r_0: float = 2.0
+    head_height_m: float = 1.7
+    r0_m: float = 2.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.head_height) and 0 <= self.head_height < 5):
-            raise ValueError(f"head_height must be in [0, 5) m, got {self.head_height!r}")
-        if not (math.isfinite(self.r_0) and self.r_0 > 0):
-            raise ValueError(f"r_0 must be > 0 m, got {self.r_0!r}")
+        if not (math.isfinite(self.head_height_m) and 0 <= self.head_height_m < 5):
+            raise ValueError(f"head_height_m must be in [0, 5) m, got {self.head_height_m!r}")
+        if not (math.isfinite(self.r0_m) and self.r0_m > 0):
+            raise ValueError(f"r0_m must be > 0 m, got {self.r0_m!r}")
 
     @property
     def n_proposals(self) -> int:
@@ -58,7 +60,6 @@ class FrameResult:
     t: float
     proposals: list[Circle]
     tracks: list[Track]
-    target: Track | None
     timings_ms: dict[str, float]
     projection: PlaneProjection
     occupancy: np.ndarray
@@ -80,12 +81,8 @@ class SLZPipeline:
                  projection: PlaneProjection | None = None):
         self.density = density
         if config.occupancy.threshold is None:
-            # A model that carries a threshold validated on held-out data knows its own output
-            # scale better than the paper's 0 does; a user's explicit threshold always wins.
-            spec = getattr(density, "spec", None)
-            model_thr = getattr(spec, "occupancy_threshold", None)
             config = replace(config, occupancy=replace(
-                config.occupancy, threshold=float(model_thr) if model_thr is not None else 0.0))
+                config.occupancy, threshold=resolve_threshold(None, getattr(density, "spec", None))))
         self.config = config
         self.intrinsics = intrinsics
         self.mount = mount or Mount()
@@ -99,7 +96,7 @@ class SLZPipeline:
             if self.intrinsics is None:
                 raise GeometryError("a pose was given but the pipeline has no camera intrinsics")
             return PlaneProjection.from_pose(self.intrinsics, self.mount, pose,
-                                             self.config.head_height)
+                                             self.config.head_height_m)
         if self.fixed_projection is None:
             raise GeometryError("no pose and no fixed projection: cannot place the frame on the "
                                 "head plane")
@@ -130,19 +127,18 @@ class SLZPipeline:
         free_grid = sample_to_grid(free, proj, grid, seen)
         t3 = time.perf_counter()
         dist = distance_cells(free_grid)
-        proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r_0, dist)
+        proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r0_m, dist)
         t4 = time.perf_counter()
         view_dist = distance_cells(seen[0])
 
         def clearance(x: float, y: float) -> tuple[float, float]:
             return clearance_at(dist, grid, x, y), clearance_at(view_dist, grid, x, y)
 
-        tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r_0)
-        target = self.tracker.oldest_stable(self.config.r_0)
+        tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
         t5 = time.perf_counter()
         for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4), (t1, t2, t3, t4, t5)):
             timings[name] = (b - a) * 1e3
         timings["post_density"] = (t5 - t1) * 1e3
         timings["total"] = (t5 - t0) * 1e3
-        return FrameResult(t, proposals, tracks, target, timings, proj, free, grid, free_grid,
+        return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
                            density)

@@ -266,10 +266,3 @@ class ZoneTracker:
 
     def tracks(self) -> list[Track]:
         return [f.snapshot() for f in self._filters]
-
-    def oldest_stable(self, r_min: float) -> Track | None:
-        """The oldest track confirmed by the latest frame whose radius is at least ``r_min`` m."""
-        stable = [t for t in self.tracks() if t.misses == 0 and t.r >= r_min]
-        if not stable:
-            return None
-        return min(stable, key=lambda t: (t.born_t, t.id))

@@ -13,24 +13,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from companion import config as settings
+from companion.config import SHIPPED_MODEL, Config, ConfigError
+from companion.control.planner import ZonePlanner
 from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.density import DensityModel, DensityModelError
-from companion.pipeline.occupancy import OccupancyParams
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 from companion.replay.homography import HomographyFileError, projection_from_file
 from companion.replay.runner import ReplayOutputError, ReplayOutputs, VideoOut, replay
-from companion.replay.sources import KINDS, ReplayInputError, open_input
+from companion.replay.sources import KINDS, ReplayInputError, ReplaySource, open_input
 from companion.replay.summary import format_summary
-
-MODEL_NAME = "slz-density.onnx"
-
-
-def shipped_model() -> Path:
-    """The shipped density model: ``models/`` of the repository, or the package's data folder."""
-    pkg = Path(__file__).resolve().parents[1]
-    candidates = [pkg.parent / "models" / MODEL_NAME, pkg / "data" / MODEL_NAME]
-    return next((p for p in candidates if p.is_file()), candidates[0])
-
 
 def _key_value(text: str) -> tuple[str, str]:
     key, sep, value = text.partition("=")
@@ -55,17 +47,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
     geo.add_argument("--gsd", type=float, default=None, help="metres per pixel on the head plane")
     geo.add_argument("--homography", type=Path, default=None,
                      help="3x3 image-to-head-plane matrix in metres (.npy, .txt/.csv, .json)")
-    mdl = parser.add_argument_group("model and pipeline")
+    mdl = parser.add_argument_group("settings, model and pipeline (default: a recording's own "
+                                    "settings, so that replay reproduces the pipeline that flew)")
+    mdl.add_argument("--config", type=Path, default=None,
+                     help="settings from this TOML file (as `companion run` reads it) instead of "
+                          "the recording's")
+    mdl.add_argument("--default-settings", action="store_true",
+                     help="the built-in default settings instead of the recording's")
+    mdl.add_argument("--set", dest="set_", action="append", default=[], metavar="KEY=VALUE",
+                     help="override one setting (e.g. pipeline.r0_m=3); repeatable")
     mdl.add_argument("--model", type=Path, default=None,
-                     help=f"ONNX density model (default: the shipped {MODEL_NAME})")
+                     help="ONNX density model (default: the recording's model when that file "
+                          f"exists, else the shipped {SHIPPED_MODEL.name})")
     mdl.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
     mdl.add_argument("--threshold", type=float, default=None,
-                     help="occupancy threshold on D - min(D) (default: the model's recommended "
-                          "value, else 0)")
+                     help="occupancy threshold on D - min(D), = --set pipeline.occupancy_threshold "
+                          "(default: the settings', else the model's recommended value, else 0)")
     mdl.add_argument("--r0", type=float, default=None,
-                     help="smallest landing radius in metres (default: pipeline default)")
+                     help="smallest landing radius in metres, = --set pipeline.r0_m")
     mdl.add_argument("--head-height", type=float, default=None,
-                     help="head-plane height above ground in metres (default 1.7)")
+                     help="head-plane height above ground in metres, = --set pipeline.head_height_m")
     mdl.add_argument("--model-color", choices=("bgr", "rgb", "gray"), default=None,
                      help="override the model's input channel order")
     mdl.add_argument("--model-scale", default=None, help="override the multiplier on 0-255 pixels")
@@ -108,8 +109,8 @@ def _projection(args: argparse.Namespace) -> PlaneProjection | None:
     return None
 
 
-def _model_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    given: dict[str, Any] = dict(args.model_set)
+def _model_overrides(args: argparse.Namespace, cfg: Config) -> dict[str, Any]:
+    given: dict[str, Any] = {**cfg.model.overrides, **dict(args.model_set)}
     for key in ("color", "scale", "stride"):
         value = getattr(args, f"model_{key}")
         if value is not None:
@@ -117,27 +118,55 @@ def _model_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return given
 
 
-def _load_model(args: argparse.Namespace) -> DensityModel:
-    path = args.model if args.model is not None else shipped_model()
-    if args.model is None and not path.is_file():
-        raise _Fail(f"the shipped density model {path} is missing; pass --model FILE")
+def _settings(args: argparse.Namespace, source: ReplaySource) -> tuple[Config, str]:
+    """The settings to replay with and where they came from: the recording's own (the ones it
+    flew with), unless ``--config`` or ``--default-settings`` says otherwise; then ``--set`` and
+    the shorthand flags on top."""
+    overrides: dict[str, Any] = {}
+    for item in args.set_:
+        key, value = settings.parse_assignment(item)
+        overrides[key] = value
+    for flag, key in (("threshold", "pipeline.occupancy_threshold"), ("r0", "pipeline.r0_m"),
+                      ("head_height", "pipeline.head_height_m")):
+        if getattr(args, flag) is not None:
+            overrides[key] = getattr(args, flag)
+    if args.config is not None and args.default_settings:
+        raise _Fail("--config and --default-settings are alternatives; give one")
+    recorded = source.meta.get("config") if source.kind == "recording" else None
     try:
-        return DensityModel(path, threads=args.threads, overrides=_model_overrides(args))
+        if args.config is not None:
+            cfg, origin = settings.load(args.config, overrides), f"the file {args.config}"
+        elif isinstance(recorded, dict) and not args.default_settings:
+            cfg = settings.from_recording(recorded, overrides)
+            origin = f"the recording ({source.path / 'meta.json'})"
+        else:
+            cfg = settings.load(None, overrides)
+            origin = "the built-in defaults" + (" (the recording holds none)" if source.kind == "recording"
+                                                and not args.default_settings else "")
+    except ConfigError as exc:
+        raise _Fail(f"settings: {exc}") from None
+    if overrides:
+        origin += " with " + ", ".join(f"{k}={v}" for k, v in overrides.items())
+    return cfg, origin
+
+
+def _load_model(args: argparse.Namespace, cfg: Config, from_recording: bool) -> DensityModel:
+    if args.model is not None:
+        path = args.model
+    else:
+        recorded = Path(cfg.model.path)
+        path = recorded if from_recording and recorded.is_file() else SHIPPED_MODEL
+        if not path.is_file():
+            raise _Fail(f"the shipped density model {path} is missing; pass --model FILE")
+    try:
+        return DensityModel(path, threads=args.threads, overrides=_model_overrides(args, cfg))
     except DensityModelError as exc:
         raise _Fail(f"--model: {exc}") from None
 
 
-def _config(args: argparse.Namespace, model: DensityModel) -> PipelineConfig:
-    threshold = args.threshold
-    if threshold is None:
-        threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
-    kw: dict[str, Any] = {}
-    if args.r0 is not None:
-        kw["r_0"] = args.r0
-    if args.head_height is not None:
-        kw["head_height"] = args.head_height
+def _config(cfg: Config, model: DensityModel) -> PipelineConfig:
     try:
-        return PipelineConfig(occupancy=OccupancyParams(threshold=float(threshold)), **kw)
+        return settings.pipeline_config(cfg, model.spec)
     except ValueError as exc:
         raise _Fail(str(exc)) from None
 
@@ -157,8 +186,10 @@ def _run(args: argparse.Namespace) -> int:
     if use_pose and source.intrinsics is None:
         raise _Fail(f"recording {args.input} has no camera intrinsics: give --nadir --gsd M or "
                     "--homography FILE")
-    model = _load_model(args)
-    config = _config(args, model)
+    cfg, origin = _settings(args, source)
+    model = _load_model(args, cfg, origin.startswith("the recording"))
+    config = _config(cfg, model)
+    planner = ZonePlanner(settings.planner_config(cfg))
     pipe = SLZPipeline(model, config, intrinsics=source.intrinsics if use_pose else None,
                        mount=source.mount if use_pose else None, projection=projection)
 
@@ -180,7 +211,7 @@ def _run(args: argparse.Namespace) -> int:
             raise _Fail(f"--masks: {args.masks} exists and is not a folder")
         try:
             summary = replay(source, pipe, ReplayOutputs(jsonl, args.masks, video), use_pose,
-                             max_frames=args.max_frames, progress=args.progress)
+                             max_frames=args.max_frames, progress=args.progress, planner=planner)
         except ReplayOutputError as exc:
             raise _Fail(str(exc)) from None
     finally:
@@ -189,8 +220,10 @@ def _run(args: argparse.Namespace) -> int:
     summary["input"] = {"path": str(args.input), "kind": source.kind}
     summary["model"] = str(model.path)
     summary["occupancy_threshold"] = config.occupancy.threshold
-    summary["r_0"] = config.r_0
+    summary["r_0"] = config.r0_m
+    summary["settings"] = origin
     print(format_summary(summary))
+    print(f"settings: from {origin}")
     if args.summary_json is not None:
         try:
             args.summary_json.parent.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,7 @@ import numpy as np
 
 from companion.geometry.camera import PlaneProjection
 from companion.pipeline.circles import Circle
+from companion.control.planner import ZoneCheck, ZonePlanner
 from companion.pipeline.slz import FrameResult
 from companion.pipeline.tracker import Track
 
@@ -69,33 +70,43 @@ def _circle_fields(proj: PlaneProjection, x: float, y: float, r: float) -> dict[
             "u": u, "v": v, "r_px": r_px}
 
 
-def is_stable(track: Track, r_0: float) -> bool:
-    """Confirmed by this frame and at least ``r_0`` metres wide: what may be landed on."""
-    return track.misses == 0 and track.r >= r_0
+def is_stable(track: Track, planner: ZonePlanner, now: float) -> bool:
+    """The planner would keep this zone as a target at ``now``: confirmed by this frame and at
+    least ``r0_m`` wide (or, low down, everything seen around it free). What may be landed on;
+    not what is chosen, which is ``planner.choose``."""
+    return planner.check_target(track.id, [track], now)[0] is ZoneCheck.OK
 
 
 def proposal_record(proj: PlaneProjection, c: Circle) -> dict[str, Any]:
     return _circle_fields(proj, c.x, c.y, c.r)
 
 
-def track_record(proj: PlaneProjection, tr: Track, r_0: float) -> dict[str, Any]:
+def track_record(proj: PlaneProjection, tr: Track, planner: ZonePlanner, now: float) -> dict[str, Any]:
     rec: dict[str, Any] = {"id": int(tr.id), "age": int(tr.age), "hits": int(tr.hits),
-                           "stable": is_stable(tr, r_0)}
+                           "stable": is_stable(tr, planner, now)}
     rec.update(_circle_fields(proj, tr.x, tr.y, tr.r))
     rec["misses"] = int(tr.misses)
     rec["r_filtered"] = finite_or_none(tr.r_filtered)
     return rec
 
 
-def frame_record(index: int, result: FrameResult, r_0: float) -> dict[str, Any]:
+def frame_target(result: FrameResult, planner: ZonePlanner) -> Track | None:
+    """The zone the vehicle would fly to after this frame: the planner's choice among the tracks,
+    as the landing controller makes it before a trigger (the one rule; the pipeline only
+    reports tracks)."""
+    return planner.choose(result.tracks, result.t)
+
+
+def frame_record(index: int, result: FrameResult, planner: ZonePlanner) -> dict[str, Any]:
     """The JSON Lines record of one processed frame (``index`` is its position in the input)."""
     proj = result.projection
+    target = frame_target(result, planner)
     timing = {k: finite_or_none(result.timings_ms.get(k, float("nan"))) for k in TIMING_KEYS}
     return {
         "frame": int(index),
         "t": finite_or_none(result.t),
         "proposals": [proposal_record(proj, c) for c in result.proposals],
-        "tracks": [track_record(proj, tr, r_0) for tr in result.tracks],
-        "target": None if result.target is None else int(result.target.id),
+        "tracks": [track_record(proj, tr, planner, result.t) for tr in result.tracks],
+        "target": None if target is None else int(target.id),
         "timing_ms": timing,
     }

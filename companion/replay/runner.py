@@ -23,9 +23,10 @@ from tqdm import tqdm
 
 from companion.geometry.camera import GeometryError
 from companion.pipeline.density import DensityModelError
+from companion.control.planner import PlannerConfig, ZonePlanner
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.replay import draw
-from companion.replay.records import frame_record
+from companion.replay.records import frame_record, frame_target
 from companion.replay.sources import ReplayFrame, ReplaySource
 from companion.replay.summary import SummaryBuilder
 
@@ -125,14 +126,20 @@ def _log_skip(counts: dict[str, int], reason: str, index: int, why: str) -> None
 
 def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_pose: bool,
            max_frames: int | None = None, progress: bool | None = None,
-           on_result: Callable[[ReplayFrame, FrameResult], None] | None = None) -> dict[str, Any]:
+           on_result: Callable[[ReplayFrame, FrameResult], None] | None = None,
+           planner: ZonePlanner | None = None) -> dict[str, Any]:
     """Run ``pipe`` over ``source``; returns the summary (see summary.SummaryBuilder.build).
 
+    planner: picks the target of each frame (the JSONL ``target``, the video's highlighted zone,
+    the summary's switches) by the landing controller's rule; default: the default settings with
+    the pipeline's ``r0_m``.
     use_pose: project with each frame's recorded pose (else the pipeline's fixed projection).
     progress: show a tqdm bar; default only when stderr is a terminal.
     """
     if progress is None:
         progress = sys.stderr.isatty()
+    if planner is None:
+        planner = ZonePlanner(PlannerConfig(r0_m=pipe.config.r0_m))
     total = source.total if max_frames is None else min(source.total or max_frames, max_frames)
     summary = SummaryBuilder()
     skip_logs: dict[str, int] = {}
@@ -153,10 +160,11 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
                 _log_skip(skip_logs, skip or "unknown", frame.index, why)
                 summary.add_skip(skip or "unknown")
                 continue
-            target_id = None if result.target is None else result.target.id
+            target = frame_target(result, planner)
+            target_id = None if target is None else target.id
             summary.add_frame(frame.t, result.timings_ms, target_id)
             if outputs.jsonl is not None:
-                outputs.jsonl.write(dumps_record(frame_record(frame.index, result, pipe.config.r_0)) + "\n")
+                outputs.jsonl.write(dumps_record(frame_record(frame.index, result, planner)) + "\n")
             if outputs.masks is not None:
                 path = outputs.masks / mask_name(frame.index)
                 if not cv2.imwrite(str(path), occupied_mask_image(result.occupancy)):

@@ -21,20 +21,33 @@ import asyncio
 import logging
 import signal
 import time
-from dataclasses import asdict, is_dataclass
-from pathlib import Path
+from dataclasses import asdict
 from typing import Any
 
 import cv2
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as m
 
+from companion import config as settings
 from companion.config import Config
-from companion.geometry.camera import GeometryError, Intrinsics, Mount, Pose
+from companion.control.events import Event, Phase
+from companion.control.landing import LandingController
+from companion.control.trigger import Trigger
+from companion.geometry.camera import GeometryError, Pose
+from companion.mavlink.autopilot import Autopilot, FlavourError
+from companion.mavlink.failsafe import FailsafeMonitor
+from companion.mavlink.flavours import select_flavour
+from companion.mavlink.link import MavLink
+from companion.mavlink.state import VehicleState
+from companion.mavlink.statustext import send_statustext
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
+from companion.pipeline.slz import SLZPipeline
+from companion.pipeline.tracker import Track
+from companion.recording import FlightRecorder
 from companion.service.camera import CameraSource
 from companion.service.health import FrameCounters, StageTimings
+from companion.service.landing_runner import LandingRunner
 from companion.service.notify import Notifier
-from companion.recording import FlightRecorder
 
 log = logging.getLogger("companion.service")
 
@@ -44,89 +57,54 @@ PIPELINE_STUCK_S = 5.0
 TICK_S = 0.25
 
 
-def intrinsics_from_config(cfg: Config) -> Intrinsics:
-    """Pinhole intrinsics for ``camera.width x camera.height`` from the config (pixels)."""
-    c = cfg.camera
-    base = Intrinsics.from_fov(c.width, c.height, c.hfov_deg)
-    fx = c.fx or base.fx
-    fy = c.fy or fx
-    cx = base.cx if c.cx < 0 else c.cx
-    cy = base.cy if c.cy < 0 else c.cy
-    return Intrinsics(fx, fy, cx, cy, c.width, c.height, tuple(c.distortion))
-
-
-def mount_from_config(cfg: Config) -> Mount:
-    c = cfg.camera
-    return Mount.from_degrees(c.mount_roll_deg, c.mount_pitch_deg, c.mount_yaw_deg,
-                              tuple(c.mount_offset_m))  # type: ignore[arg-type]
-
-
-def signing_key(cfg: Config) -> bytes | None:
-    """The 32-byte MAVLink signing secret from ``link.signing_key_file`` or ``link.signing_key``."""
-    from companion.config import ConfigError
-
-    text = cfg.link.signing_key
-    if cfg.link.signing_key_file:
-        try:
-            text = Path(cfg.link.signing_key_file).read_text().strip()
-        except OSError as exc:
-            raise ConfigError(f"link.signing_key_file {cfg.link.signing_key_file}: {exc.strerror}") from None
-        if len(text) != 64 or any(ch not in "0123456789abcdefABCDEF" for ch in text):
-            raise ConfigError(f"link.signing_key_file {cfg.link.signing_key_file} must hold 64 "
-                              "hexadecimal characters")
-    return bytes.fromhex(text) if text else None
-
-
 def load_model(cfg: Config) -> DensityModel:
     """The density model; raises DensityModelError naming the file."""
     return DensityModel(cfg.model.path, threads=cfg.model.threads, overrides=cfg.model.overrides)
 
 
-def build_pipeline(cfg: Config, model: DensityModel, intrinsics: Intrinsics, mount: Mount) -> Any:
-    from companion.pipeline.headplane import GridParams
-    from companion.pipeline.occupancy import OccupancyParams
-    from companion.pipeline.slz import PipelineConfig, SLZPipeline
-    from companion.pipeline.tracker import TrackerParams
+def build_pipeline(cfg: Config, model: DensityModel) -> SLZPipeline:
+    """The pipeline the settings describe, for frames of ``camera.width x camera.height``."""
+    return SLZPipeline(model, settings.pipeline_config(cfg, model.spec),
+                       intrinsics=settings.intrinsics(cfg), mount=settings.mount(cfg))
 
-    p = cfg.pipeline
-    threshold = p.occupancy_threshold
-    if threshold < 0:
-        threshold = model.spec.occupancy_threshold or 0.0
-    pcfg = PipelineConfig(
-        occupancy=OccupancyParams(threshold=threshold, kernel=p.dilate_kernel, iterations=p.dilate_iterations),
-        grid=GridParams(cell=p.cell_size_m, max_extent=p.max_extent_m),
-        tracker=TrackerParams(sigma_a=p.tracker.sigma_a, r_std=tuple(p.tracker.r_std),  # type: ignore[arg-type]
-                              min_iou=p.tracker.min_iou, mu_1=p.tracker.mu_1, mu_2=p.tracker.mu_2,
-                              max_tracks=p.n_proposals),
-        head_height=p.head_height_m,
-        r_0=p.r0_m,
-    )
-    return SLZPipeline(model, pcfg, intrinsics=intrinsics, mount=mount)
+
+def build_camera(cfg: Config) -> CameraSource:
+    c = cfg.camera
+    return CameraSource(c.source, width=c.width, height=c.height, fps=c.fps,
+                        stall_timeout_s=c.stall_timeout_s, max_backoff_s=c.reopen_max_backoff_s, loop=c.loop)
 
 
 class Service:
-    """The running daemon. ``await Service(cfg, model).run()`` returns the exit code."""
+    """The running daemon. ``await Service(cfg, model).run()`` returns the exit code.
 
-    def __init__(self, cfg: Config, model: DensityModel, notifier: Notifier | None = None) -> None:
+    Its parts are built from the settings unless given: a test drives it in-process by handing it
+    a link, a camera or a pipeline of its own (real ones, pointed at the simulator). The parts
+    that depend on the autopilot (flavour, failsafe monitor, landing runner) are made once its
+    first heartbeat says which autopilot it is.
+    """
+
+    def __init__(self, cfg: Config, model: DensityModel, notifier: Notifier | None = None, *,
+                 link: MavLink | None = None, camera: CameraSource | None = None,
+                 pipeline: SLZPipeline | None = None) -> None:
         self.cfg = cfg
         self.model = model
         self.notifier = notifier or Notifier()
-        self.intrinsics = intrinsics_from_config(cfg)
-        self.mount = mount_from_config(cfg)
-        self.pipeline = build_pipeline(cfg, model, self.intrinsics, self.mount)
+        self.intrinsics = settings.intrinsics(cfg)
+        self.mount = settings.mount(cfg)
+        self.pipeline = pipeline or build_pipeline(cfg, model)
+        self.link = link or MavLink(settings.link_config(cfg))
+        self.state = VehicleState(max_extrapolation_s=cfg.pipeline.max_pose_age_s)
+        self.camera = camera or build_camera(cfg)
         self.timings = StageTimings()
         self.counters = FrameCounters()
         self.stop_event = asyncio.Event()
         self.busy_since: float | None = None
         self.last_processed_t: float | None = None
-        self.link: Any = None
-        self.state: Any = None
-        self.autopilot: Any = None
-        self.monitor: Any = None
-        self.controller: Any = None
-        self.camera: CameraSource | None = None
+        self.autopilot: Autopilot | None = None
+        self.monitor: FailsafeMonitor | None = None
+        self.runner: LandingRunner | None = None
         self.recorder: FlightRecorder | None = None
-        self.last_target: Any = None
+        self.events: list[Event] = []  # every controller event of this run, in order
 
     # ---- lifecycle ---------------------------------------------------------------------------
     def request_stop(self, why: str = "") -> None:
@@ -137,9 +115,14 @@ class Service:
 
     def _install_signals(self) -> None:
         loop = asyncio.get_running_loop()
-        loop.add_signal_handler(signal.SIGTERM, self.request_stop, "SIGTERM")
-        loop.add_signal_handler(signal.SIGINT, self.request_stop, "SIGINT")
-        loop.add_signal_handler(signal.SIGUSR1, self._local_trigger)
+        try:
+            loop.add_signal_handler(signal.SIGTERM, self.request_stop, "SIGTERM")
+            loop.add_signal_handler(signal.SIGINT, self.request_stop, "SIGINT")
+            loop.add_signal_handler(signal.SIGUSR1, self._local_trigger)
+        except (RuntimeError, ValueError):
+            # Not the main thread (a test driving the service in-process): it stops by
+            # request_stop() instead.
+            log.debug("signal handlers not installed: not in the main thread")
 
     def _local_trigger(self) -> None:
         if self.monitor is None:
@@ -149,21 +132,8 @@ class Service:
 
     async def run(self) -> int:
         self._install_signals()
-        from companion.mavlink.link import LinkConfig, MavLink, message_rates
-        from companion.mavlink.state import VehicleState
-
         c = self.cfg
-        self.link = MavLink(LinkConfig(
-            url=c.link.url, system_id=c.link.system_id, component_id=c.link.component_id,
-            target_system=c.link.target_system or None, target_component=c.link.target_component,
-            heartbeat_timeout_s=c.link.heartbeat_timeout_s, signing_key=signing_key(c),
-            message_rates_hz=message_rates(c.link.telemetry_rate_hz),
-        ))
-        self.state = VehicleState(max_extrapolation_s=c.pipeline.max_pose_age_s)
         self.state.attach(self.link)
-        self.camera = CameraSource(c.camera.source, width=c.camera.width, height=c.camera.height,
-                                   fps=c.camera.fps, stall_timeout_s=c.camera.stall_timeout_s,
-                                   max_backoff_s=c.camera.reopen_max_backoff_s, loop=c.camera.loop)
         try:
             await self.link.start()
         except OSError as exc:
@@ -175,8 +145,6 @@ class Service:
             self.notifier.status(f"waiting for the autopilot heartbeat on {c.link.url}")
             if not await self._wait_heartbeat():
                 return 0  # stopped before the autopilot appeared
-            from companion.mavlink.autopilot import FlavourError
-
             try:
                 self._wire_vehicle()
             except FlavourError as exc:
@@ -196,9 +164,8 @@ class Service:
                 asyncio.create_task(self._frame_loop(), name="frames"),
                 asyncio.create_task(self._health_loop(), name="health"),
             ]
-            runner = getattr(self.controller, "run", None)
-            if runner is not None:
-                tasks.append(asyncio.create_task(runner(), name="controller"))
+            if self.runner is not None:
+                tasks.append(asyncio.create_task(self.runner.run(), name="controller"))
             stop = asyncio.create_task(self.stop_event.wait())
             tasks.append(stop)
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
@@ -233,57 +200,42 @@ class Service:
         return True
 
     def _wire_vehicle(self) -> None:
-        from companion.mavlink.flavours import select_flavour
-        from companion.mavlink.failsafe import FailsafeConfig, FailsafeMonitor
-
         c = self.cfg
         self.autopilot = select_flavour(self.link, c.link.flavour)
         log.info("autopilot flavour: %s", self.autopilot.name)
-        f = c.failsafe
-        self.monitor = FailsafeMonitor(
-            FailsafeConfig(battery=f.battery, battery_level=f.battery_level, system_status=f.system_status,
-                           autopilot_land=f.autopilot_land, gcs_command=f.gcs_command,
-                           local_trigger=f.local_trigger, gcs_system_ids=tuple(f.gcs_system_ids),
-                           local_socket=f.local_socket or None),
-            self.link, self.autopilot)
+        self.monitor = FailsafeMonitor(settings.failsafe_config(c), self.link, self.autopilot)
         self.monitor.attach()
-        self.controller = self._make_controller()
+        # The landing controller behind its async runner: commands through the autopilot
+        # flavour, events recorded here and sent to the ground station as STATUSTEXT.
+        self.runner = LandingRunner(LandingController(settings.landing_config(c)), self.autopilot,
+                                    self.state, self.link)
+        self.runner.subscribe(self._on_controller_event)
         self.monitor.subscribe(self._on_trigger)
 
-    def _make_controller(self) -> Any:
-        """The landing controller behind its async runner (commands through the autopilot
-        flavour, events to the ground station as STATUSTEXT)."""
-        from companion.control.landing import LandingConfig, LandingController
-        from companion.control.obedience import ObedienceConfig
-        from companion.control.planner import PlannerConfig
-        from companion.service.landing_runner import LandingRunner
-
-        c = self.cfg.controller
-        lcfg = LandingConfig(
-            planner=PlannerConfig(r0_m=self.cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
-                                  min_track_age_s=c.min_track_age_s, min_track_hits=c.min_track_hits,
-                                  zone_max_age_s=c.zone_max_age_s),
-            select_timeout_s=c.select_timeout_s, hold_timeout_s=c.hold_timeout_s,
-            arrive_radius_m=c.arrive_radius_m, descend_alt_m=c.descend_alt_m,
-            descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
-            hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
-            max_pose_age_s=self.cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
-            search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
-            obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
-        )
-        return LandingRunner(LandingController(lcfg), self.autopilot, self.state, self.link)
+    @property
+    def controller(self) -> LandingController | None:
+        return None if self.runner is None else self.runner.controller
 
     @property
     def phase(self) -> str:
-        ctl = getattr(self.controller, "controller", None)
-        phase = getattr(ctl, "phase", None)
-        return "MONITOR" if phase is None else str(getattr(phase, "value", phase))
+        return Phase.MONITOR.value if self.controller is None else self.controller.phase.value
 
-    def _on_trigger(self, trigger: Any) -> None:
+    def _on_controller_event(self, event: Event) -> None:
+        """Every controller event, as it happens: recorded (the simulator's judge and replay read
+        these, never the log) and, for a phase change, logged for the operator."""
+        self.events.append(event)
+        if event.changed:
+            log.warning("landing controller: %s -> %s", event.old.value, event.phase.value)
+            self._record_event("phase", event.t, old=event.old.value, new=event.phase.value)
+        record = event.as_record()
+        del record["t"]  # the recording's own time field
+        self._record_event("controller", event.t, **record)
+
+    def _on_trigger(self, trigger: Trigger) -> None:
         log.warning("failsafe trigger: %s (%s)", trigger.reason, trigger.source.value)
         self._record_event("trigger", trigger.t, reason=trigger.reason, source=trigger.source.value)
-        if self.controller is not None:
-            self.controller.on_trigger(trigger)
+        if self.runner is not None:
+            self.runner.on_trigger(trigger)
         else:
             log.warning("no landing controller: the autopilot's own failsafe stays in charge")
 
@@ -328,9 +280,6 @@ class Service:
         action = self.cfg.controller.handback_action
         log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)
         try:
-            from companion.mavlink.statustext import send_statustext
-            from pymavlink.dialects.v20 import ardupilotmega as m
-
             send_statustext(self.link, f"SLZ: companion stopping; handing back ({action})",
                             m.MAV_SEVERITY_WARNING)
             # Insist within the shutdown's budget: one packet can be lost (at 20 % loss one
@@ -341,7 +290,7 @@ class Service:
             log.error("handback on exit failed: %r", exc)
 
     async def _shutdown(self, tasks: list[asyncio.Task[Any]]) -> None:
-        if self.controller is not None and self.link is not None:
+        if self.runner is not None:
             await self._handback_on_exit()
         if self.monitor is not None:
             try:
@@ -355,23 +304,13 @@ class Service:
                 await task
             except (asyncio.CancelledError, Exception):
                 pass
-        stop = getattr(self.controller, "close", None)
-        if stop is not None:
-            try:
-                res = stop()
-                if asyncio.iscoroutine(res):
-                    await asyncio.wait_for(res, 1.0)
-            except Exception as exc:
-                log.warning("controller close: %s", exc)
-        if self.camera is not None:
-            await asyncio.to_thread(self.camera.stop, 1.0)
+        await asyncio.to_thread(self.camera.stop, 1.0)
         if self.recorder is not None:
             await asyncio.to_thread(self.recorder.close, 1.0)
-        if self.link is not None:
-            try:
-                await asyncio.wait_for(self.link.close(), 1.0)
-            except (asyncio.TimeoutError, OSError):
-                pass
+        try:
+            await asyncio.wait_for(self.link.close(), 1.0)
+        except (asyncio.TimeoutError, OSError):
+            pass
         log.info("stopped")
 
     # ---- frames ------------------------------------------------------------------------------
@@ -383,7 +322,6 @@ class Service:
         return image
 
     async def _frame_loop(self) -> None:
-        assert self.camera is not None
         while not self.stop_event.is_set():
             frame = await self.camera.next_frame(timeout=0.5)
             if frame is None:
@@ -417,12 +355,15 @@ class Service:
             self.counters.processed += 1
             self.last_processed_t = time.monotonic()
             self.timings.add(result.timings_ms)
-            if self.controller is not None:
-                self.controller.on_frame(frame.t, result.tracks, pose)
-            self.last_target = result.target
+            target: Track | None = None
+            if self.runner is not None:
+                self.runner.on_frame(frame.t, result.tracks, pose)
+                # The zone the vehicle flies to, or would fly to now: the planner's choice, the
+                # one rule (the pipeline reports tracks; it does not pick).
+                target = self.runner.controller.zone_target()
             self._record_event("zones", frame.t, frame=frame.index,
-                               tracks=[_track_dict(t) for t in result.tracks],
-                               target=None if result.target is None else result.target.id,
+                               tracks=[asdict(t) for t in result.tracks],
+                               target=None if target is None else target.id,
                                timings_ms=result.timings_ms)
 
     def _record_event(self, kind: str, t: float, **data: Any) -> None:
@@ -434,7 +375,6 @@ class Service:
         """Link alive, camera delivering, pipeline not stuck; with the reason when not."""
         if not self.link.connected:
             return False, "no autopilot heartbeat"
-        assert self.camera is not None
         if not self.camera.delivering(now):
             return False, "camera not delivering"
         if self.busy_since is not None and now - self.busy_since > PIPELINE_STUCK_S:
@@ -442,7 +382,7 @@ class Service:
         return True, "ok"
 
     def _status_line(self) -> str:
-        target = self.last_target
+        target = None if self.controller is None else self.controller.zone_target()
         zone = f"oldest stable zone {target.id} r={target.r:.1f} m" if target is not None else "no zone"
         return f"{self.phase}: {zone}"
 
@@ -451,14 +391,8 @@ class Service:
         next_log = time.monotonic() + self.cfg.log.health_interval_s
         was_healthy = True
         last_ping = 0.0
-        last_phase = self.phase
         while not self.stop_event.is_set():
             now = time.monotonic()
-            phase = self.phase
-            if phase != last_phase:
-                log.warning("landing controller: %s -> %s", last_phase, phase)
-                self._record_event("phase", now, old=last_phase, new=phase)
-                last_phase = phase
             ok, why = self.healthy(now)
             if ok and interval is not None and now - last_ping >= min(interval, 1.0):
                 self.notifier.watchdog()
@@ -476,7 +410,6 @@ class Service:
                 pass
 
     def _log_health(self, ok: bool, why: str) -> None:
-        assert self.camera is not None
         cs, fc, ls = self.camera.stats, self.counters, self.link.stats
         log.info(
             "health %s: frames camera=%d processed=%d dropped=%d corrupt=%d no_pose=%d bad=%d "
@@ -487,6 +420,3 @@ class Service:
             f" | recorder frames={self.recorder.stats.frames} dropped={self.recorder.stats.dropped}",
         )
 
-
-def _track_dict(t: Any) -> dict[str, Any]:
-    return asdict(t) if is_dataclass(t) else {"id": getattr(t, "id", None)}

@@ -3,8 +3,8 @@
 ``LandingRunner`` ticks the ``LandingController`` at ``tick_hz`` with the latest ``VehicleState``,
 forwards triggers and frames to it, executes the commands it returns through an ``Autopilot``
 flavour one at a time (a newer position target replaces one still waiting, so a slow mode change
-never builds a backlog of stale targets), reports each result back to it, and sends its events as
-STATUSTEXT. Wiring in the service::
+never builds a backlog of stale targets), reports each result back to it, and hands its typed events
+to subscribers (the service records them) and sends their text as STATUSTEXT. Wiring in the service::
 
     runner = LandingRunner(LandingController(cfg), autopilot, state, link)
     monitor.subscribe(runner.on_trigger)
@@ -21,6 +21,7 @@ from collections.abc import Callable, Sequence
 
 from pymavlink.dialects.v20 import ardupilotmega as m
 
+from companion.control.events import Event
 from companion.control.landing import (
     Command,
     Goto,
@@ -88,6 +89,12 @@ class LandingRunner:
         self._wake = asyncio.Event()
         self.executed: list[tuple[Command, Exception | None]] = []
         self._stopped_stream = False
+        self._listeners: list[Callable[[Event], None]] = []
+
+    def subscribe(self, listener: Callable[[Event], None]) -> None:
+        """Call ``listener`` with every controller event, in order, as it is emitted (before its
+        STATUSTEXT goes out); the service records them."""
+        self._listeners.append(listener)
 
     # -- inputs from the service ---------------------------------------------------------------
 
@@ -165,6 +172,12 @@ class LandingRunner:
 
     def _flush_events(self) -> None:
         events = self.controller.pop_events()
+        for event in events:
+            for listener in self._listeners:
+                try:
+                    listener(event)
+                except Exception:  # a listener's bug must not stop the landing
+                    log.exception("event listener failed on %s", event)
         if self.link is None:
             return
         for event in events:

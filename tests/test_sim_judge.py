@@ -1,0 +1,59 @@
+"""The simulator's verdicts rest on its truth and the controller's recorded events, not on logs.
+
+The flight of ``test_sitl.py::test_uniform_free_ground_lands_under_the_companion_within_the_budget``
+(ArduPilot), whose verdict there is "safe", is flown with every log message of the service
+reworded (a ``sitecustomize`` module rewrites ``LogRecord.getMessage`` in the service process).
+The verdict must still be "safe", with every phase of the landing; the reworded log must really
+hold none of the original wording, so a judge matching log lines (as this one once did) would have
+seen no phase at all and called the flight a handback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from pathlib import Path
+
+import pytest
+
+from companion.recording import RecordingReader
+from sim.flight import FlightSpec, fly
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(300)]
+
+REWORD = '''\
+import logging
+
+_original = logging.LogRecord.getMessage
+
+
+def _reworded(self):
+    # Every word reversed and upper-cased: the meaning is gone for any pattern matcher.
+    return "REWORDED " + " ".join(w[::-1].upper() for w in _original(self).split())
+
+
+logging.LogRecord.getMessage = _reworded
+'''
+
+
+def test_verdicts_do_not_depend_on_the_wording_of_the_log(tmp_path: Path, model_path) -> None:
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(REWORD)
+    pythonpath = os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH", "")) if p)
+    spec = FlightSpec(flavour="ardupilot", world="uniform", seed=6, altitude_m=18.0,
+                      record_dir=tmp_path / "rec", service_log=tmp_path / "service.log",
+                      service_env=(("PYTHONPATH", pythonpath),))
+    r = asyncio.run(fly(spec))
+
+    log = spec.service_log.read_text()  # type: ignore[union-attr]
+    assert "REWORDED" in log and "landing controller:" not in log and "SLZ:" not in log
+    assert r.service_exit == 0, r.log_tail
+    assert r.outcome == "safe" and not r.handed_back, (r.phases, r.log_tail)
+    assert r.phases[:2] == ["SELECT", "APPROACH"] and r.phases[-2:] == ["LAND", "LANDED"], r.phases
+    # The phases are the recorded events'; their STATUSTEXT wording is the controller's own.
+    runs = sorted(p.parent for p in (tmp_path / "rec").glob("*/meta.json"))
+    recorded = list(RecordingReader(runs[-1]).events("controller"))
+    assert [e["phase"] for e in recorded if e["old"] != e["phase"]] == r.phases
+    assert {e["event"] for e in recorded} >= {"phase", "target"}
+    assert all(m.startswith("SLZ: ") for m in r.messages) and r.messages

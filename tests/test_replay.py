@@ -326,6 +326,41 @@ def test_recording_replays_with_its_poses(work: dict[str, Path], tmp_path: Path)
     assert ok and img.shape[0] == 480 and img.shape[1] > 640 + 400  # head-plane panel beside
 
 
+def test_recording_replays_with_the_settings_it_was_flown_with(work: dict[str, Path], tmp_path: Path) -> None:
+    from companion import config
+    from companion.recording import FlightRecorder
+
+    # Flown with r0 1 m and the planner's age and margin checks off: with the default settings
+    # (r0 2 m, tracked 1 s) these five frames (0.4 s) would never show a target.
+    flown = config.load(None, {"pipeline.r0_m": 1.0, "controller.min_track_age_s": 0.0,
+                               "controller.radius_margin_m": 0.0, "link.signing_key": "ab" * 32})
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    rec = FlightRecorder(tmp_path / "rec", intrinsics=K, mount=Mount(), fps=10.0,
+                         meta={"config": flown.to_dict()})
+    run_dir = rec.start()
+    for k, s in enumerate(_scenes()[:5]):
+        assert rec.add_frame(k, 100.0 + 0.1 * k, synthetic.render(s, seed=k),
+                             Pose(100.0 + 0.1 * k, 10.0, -5.0, -25.0, 0.0, 0.0, 0.0))
+    rec.close()
+    summaries = {}
+    for name, extra in (("recorded", []), ("defaults", ["--default-settings"]),
+                        ("override", ["--set", "pipeline.r0_m=1.5"])):
+        out = tmp_path / name
+        code = main(["replay", str(run_dir), "--model", str(work["model"]), "--threads", "1", *extra,
+                     "--jsonl", str(out / "r.jsonl"), "--summary-json", str(out / "s.json")])
+        assert code == 0
+        summaries[name] = (json.loads((out / "s.json").read_text()), _read_jsonl(out / "r.jsonl"))
+    recorded, recs = summaries["recorded"]
+    assert recorded["settings"].startswith("the recording") and recorded["r_0"] == 1.0
+    assert recs[-1]["target"] is not None and recorded["frames_with_target"] >= 1
+    defaults, recs = summaries["defaults"]
+    assert defaults["settings"].startswith("the built-in defaults") and defaults["r_0"] == 2.0
+    assert all(r["target"] is None for r in recs)
+    override, _ = summaries["override"]
+    assert override["settings"].startswith("the recording") and "pipeline.r0_m=1.5" in override["settings"]
+    assert override["r_0"] == 1.5
+
+
 def test_default_model_is_the_shipped_one() -> None:
     repo = Path(__file__).resolve().parents[1]
     assert SHIPPED_MODEL == repo / "models" / "slz-density.onnx"

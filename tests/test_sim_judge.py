@@ -11,11 +11,13 @@ seen no phase at all and called the flight a handback.
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 from pathlib import Path
 
 import pytest
 
+from companion.pipeline.slz import SLZPipeline
 from companion.recording import RecordingReader
 from sim.flight import FlightSpec, fly
 
@@ -57,3 +59,35 @@ def test_verdicts_do_not_depend_on_the_wording_of_the_log(tmp_path: Path, model_
     assert [e["phase"] for e in recorded if e["old"] != e["phase"]] == r.phases
     assert {e["event"] for e in recorded} >= {"phase", "target"}
     assert all(m.startswith("SLZ: ") for m in r.messages) and r.messages
+
+    # The same recorded flight, replayed with the settings it flew with: each frame's target in
+    # the replay's JSONL is the planner's choice among that frame's tracks (one rule, one decider).
+    _replay_target_is_the_planners_choice(runs[-1], tmp_path / "replay.jsonl")
+
+
+def _replay_target_is_the_planners_choice(run: Path, jsonl_path: Path) -> None:
+    from companion import config
+    from companion.control.planner import ZonePlanner
+    from companion.pipeline.density import DensityModel
+    from companion.replay.runner import ReplayOutputs, replay
+    from companion.replay.sources import open_input
+
+    source = open_input(run)
+    flown = config.from_recording(source.meta["config"])
+    model = DensityModel(flown.model.path, threads=2)
+    pipe = SLZPipeline(model, config.pipeline_config(flown, model.spec), intrinsics=source.intrinsics,
+                       mount=source.mount)
+    planner = ZonePlanner(config.planner_config(flown))
+    chosen: dict[int, int | None] = {}
+
+    def check(frame, result) -> None:
+        target = planner.choose(result.tracks, result.t)
+        chosen[frame.index] = None if target is None else target.id
+
+    with open(jsonl_path, "w") as fh:
+        summary = replay(source, pipe, ReplayOutputs(jsonl=fh), use_pose=True, on_result=check,
+                         planner=ZonePlanner(config.planner_config(flown)))
+    records = [json.loads(line) for line in jsonl_path.read_text().splitlines()]
+    assert len(records) == summary["frames"] == len(chosen) > 50
+    assert {rec["frame"]: rec["target"] for rec in records} == chosen
+    assert summary["frames_with_target"] > 0  # over free ground the planner picks zones

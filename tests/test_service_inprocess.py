@@ -1,0 +1,82 @@
+"""The service driven in-process: its parts handed to it, the simulator in the same event loop.
+
+The subprocess tests (``test_service.py``, ``test_sitl.py``) run ``companion run`` exactly as
+systemd does; this one builds ``Service`` directly, hands it a link of its own, and reads its
+typed events and the simulator's truth, with no process boundary or log in between.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import time
+
+import pytest
+
+from companion import config
+from companion.control.events import HandedBack, Phase, TargetChosen
+from companion.geometry.camera import Intrinsics, Mount
+from companion.mavlink.link import MavLink
+from companion.service.app import Service, load_model
+from sim.autopilot import AutopilotConfig
+from sim.camera_server import CameraServer
+from sim.flight import UNIFORM_GROUND_BGR, FlightSpec, build_world, free_port
+from sim.ground import FlatGround
+from sim.simulator import SimConfig, Simulator
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(180)]
+
+
+async def _fly_in_process(flavour: str) -> tuple[Service, int, dict[str, float]]:
+    spec = FlightSpec(flavour=flavour, world="uniform", seed=6, altitude_m=18.0)
+    world, _, start = build_world(spec)
+    link_port, cam_port = free_port(), free_port(socket.SOCK_STREAM)
+    sim = Simulator(SimConfig(flavour=flavour, outputs=[f"udpout:127.0.0.1:{link_port}"],
+                              start_position=(start[0], start[1], -spec.altitude_m),
+                              autopilot=AutopilotConfig(origin_alt_offset_m=-1.5), seed=spec.seed), world=world)
+    camera = CameraServer(sim.pose, world, Intrinsics.from_fov(640, 480, 70.0), Mount(), fps=10.0,
+                          port=cam_port, ground=FlatGround(UNIFORM_GROUND_BGR))
+    cfg = config.load(None, {"link.url": f"udpin:127.0.0.1:{link_port}", "link.flavour": flavour,
+                             "camera.source": camera.url, "camera.hfov_deg": 70.0})
+    model = load_model(cfg)
+    svc = Service(cfg, model, link=MavLink(config.link_config(cfg)))  # a part handed in, typed
+    truth: dict[str, float] = {}
+
+    def on_touchdown() -> None:
+        if "t" not in truth:
+            p = sim.truth.position
+            truth.update(t=time.monotonic(), clearance=world.nearest_person_distance((float(p[0]), float(p[1]))))
+
+    sim.on_touchdown(on_touchdown)
+    await sim.start()
+    await camera.start()
+    task = asyncio.create_task(svc.run())
+    try:
+        end = time.monotonic() + 60
+        while svc.runner is None and time.monotonic() < end and not task.done():
+            await asyncio.sleep(0.1)
+        assert svc.runner is not None, "the service never wired the vehicle"
+        await asyncio.sleep(3.0)  # watch the ground before the failsafe
+        sim.inject_failsafe("battery_critical")
+        end = time.monotonic() + 90
+        while "t" not in truth and time.monotonic() < end and not task.done():
+            await asyncio.sleep(0.1)
+        await asyncio.sleep(0.5)
+    finally:
+        svc.request_stop("test over")
+        code = await asyncio.wait_for(task, 10.0)
+        await camera.stop()
+        await sim.stop()
+    return svc, code, truth
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_the_service_in_process_lands_on_free_ground_and_reports_every_phase(flavour, model_path):
+    svc, code, truth = asyncio.run(_fly_in_process(flavour))
+    assert code == 0
+    changes = [e.phase for e in svc.events if e.changed]
+    assert "t" in truth, changes
+    assert changes[:2] == [Phase.SELECT, Phase.APPROACH] and changes[-2:] == [Phase.LAND, Phase.LANDED], changes
+    assert not any(isinstance(e, HandedBack) for e in svc.events), [e.text for e in svc.events]
+    assert any(isinstance(e, TargetChosen) for e in svc.events)
+    assert svc.phase == "LANDED" and truth["clearance"] > 2.0

@@ -16,9 +16,10 @@ import json
 import math
 import tomllib
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from companion.control.landing import LandingConfig
 from companion.control.obedience import ObedienceConfig

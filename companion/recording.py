@@ -28,10 +28,11 @@ import math
 import queue
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
@@ -151,7 +152,7 @@ class FlightRecorder:
         self._meta = {
             "format": "companion-recording",
             "version": FORMAT_VERSION,
-            "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
             "monotonic_at_start": time.monotonic(),
             "codec": codec,
             "segment_s": self.segment_s,
@@ -176,7 +177,7 @@ class FlightRecorder:
     def start(self) -> Path:
         """Create the run folder, write meta.json and start the writer thread. Raises OSError
         (naming the folder) when the folder cannot be created or written."""
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.root / stamp
         n = 1
@@ -333,7 +334,7 @@ class ReadStats:
 
 def _read_jsonl(path: Path, stats: ReadStats) -> Iterator[dict[str, Any]]:
     try:
-        fh = open(path, "r", encoding="utf-8", errors="replace")
+        fh = open(path, encoding="utf-8", errors="replace")
     except FileNotFoundError:
         raise RecordingError(f"{path} is missing: not a complete recording") from None
     with fh:

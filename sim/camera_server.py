@@ -17,13 +17,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import http.client
 import socket
 import threading
 import time
 import urllib.parse
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -140,7 +139,7 @@ class CameraServer:
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
             self._server = None
 
-    async def __aenter__(self) -> "CameraServer":
+    async def __aenter__(self) -> CameraServer:
         await self.start()
         return self
 
@@ -148,8 +147,7 @@ class CameraServer:
         await self.stop()
 
     def _render_encode(self, pose: Pose, positions: tuple, index: int) -> Frame:
-        from sim.render import render
-        from sim.render import looks_for
+        from sim.render import looks_for, render
         pos, hd, mv, t, seed, ids = positions
         img = render(pos, pose, self.intrinsics, self.mount, self.ground,  # type: ignore[arg-type]
                      headings=hd, moving=mv, t=t, seed=seed,
@@ -219,8 +217,7 @@ class CameraServer:
             else:
                 writer.write(b"HTTP/1.0 404 Not Found\r\nContent-Length: 0\r\n\r\n")
             await writer.drain()
-        except (asyncio.CancelledError, ConnectionError, asyncio.IncompleteReadError,
-                asyncio.LimitOverrunError, asyncio.TimeoutError):
+        except (TimeoutError, asyncio.CancelledError, ConnectionError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
             pass
         finally:
             if task is not None:
@@ -372,7 +369,7 @@ class LatestFrameReader:
         self._stop.set()
         self._thread.join(timeout=self.timeout + 1.0)
 
-    def __enter__(self) -> "LatestFrameReader":
+    def __enter__(self) -> LatestFrameReader:
         return self
 
     def __exit__(self, *exc: object) -> None:

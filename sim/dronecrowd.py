@@ -142,7 +142,6 @@ def cleaned(tracks: Tracks, max_step_px: float = 8.0) -> Tracks:
             win = np.lib.stride_tricks.sliding_window_view(
                 np.pad(xy[a:b], ((2, 2), (0, 0)), mode="edge"), 5, axis=0)
             xy[a:b] = np.median(win, axis=2)
-        f = tracks.frame[a:b]
         step = np.hypot(*np.diff(xy[a:b], axis=0).T)
         cut = np.flatnonzero(step > max_step_px)
         for c in cut:

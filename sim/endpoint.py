@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
@@ -32,7 +32,7 @@ Address = tuple[str, int]
 class _Writer:
     """File-like sink for the pymavlink codec: every write is one datagram."""
 
-    def __init__(self, link: "UdpLink") -> None:
+    def __init__(self, link: UdpLink) -> None:
         self._link = link
 
     def write(self, data: bytes) -> None:
@@ -69,7 +69,7 @@ class UdpLink(asyncio.DatagramProtocol):
 
     def __init__(self, url: str, system_id: int, component_id: int,
                  streams: StreamSchedule,
-                 on_message: Callable[[mav.MAVLink_message, "UdpLink"], None],
+                 on_message: Callable[[mav.MAVLink_message, UdpLink], None],
                  faults: LinkFaults | None = None, seed: int | None = None) -> None:
         self.url = url
         self.kind, self.address = parse_url(url)

@@ -9,9 +9,9 @@ from __future__ import annotations
 import asyncio
 import math
 import random
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable
 
 
 class Failsafe(str, Enum):
@@ -43,7 +43,7 @@ class LinkFaults:
                 raise ValueError(f"{name} must be >= 0 seconds, got {v!r}")
 
     @classmethod
-    def symmetric(cls, loss: float = 0.0, latency_s: float = 0.0) -> "LinkFaults":
+    def symmetric(cls, loss: float = 0.0, latency_s: float = 0.0) -> LinkFaults:
         return cls(loss, loss, latency_s, latency_s)
 
 

@@ -41,8 +41,8 @@ import numpy as np
 
 from companion.geometry.camera import Intrinsics, Mount
 from companion.recording import RecordingError, RecordingReader
-from sim.camera_server import CameraServer
 from sim.autopilot import AutopilotConfig
+from sim.camera_server import CameraServer
 from sim.ground import FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
@@ -341,7 +341,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
             proc.send_signal(signal.SIGTERM)
             try:
                 result.service_exit = await asyncio.wait_for(proc.wait(), 5.0)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 proc.kill()
                 result.service_exit = await proc.wait()
         elif proc is not None:

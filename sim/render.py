@@ -326,7 +326,7 @@ def _draw_people(img: np.ndarray, pos: np.ndarray, hd: np.ndarray, mv: np.ndarra
             fill(img, [hair[k]], hair_c[k], AA, SHIFT)
 
 
-def render_world(world: "object", pose: Pose, intrinsics: Intrinsics, mount: Mount,
+def render_world(world: object, pose: Pose, intrinsics: Intrinsics, mount: Mount,
                  ground: Ground, **kwargs: object) -> np.ndarray:
     """:func:`render` of a :class:`sim.world.World` at its current time (positions, headings,
     walking state and the world's seed for the people's looks)."""

@@ -34,7 +34,7 @@ class Bounds:
     east_max: float
 
     @classmethod
-    def around(cls, centre: tuple[float, float], half_size: float) -> "Bounds":
+    def around(cls, centre: tuple[float, float], half_size: float) -> Bounds:
         n, e = centre
         return cls(n - half_size, n + half_size, e - half_size, e + half_size)
 

@@ -23,8 +23,16 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sim.walkers import (Bounds, Circle, CrowdParams, GeneratedCrowd, Intrusion, MillingCrowd,
-                         MotionSource, ScriptedWalkers)
+from sim.walkers import (
+    Bounds,
+    Circle,
+    CrowdParams,
+    GeneratedCrowd,
+    Intrusion,
+    MillingCrowd,
+    MotionSource,
+    ScriptedWalkers,
+)
 
 __all__ = ["World", "Bounds", "Circle", "Intrusion", "default_world", "crowd_with_free_area",
            "dense_crowd", "dronecrowd_world", "largest_free_circle"]

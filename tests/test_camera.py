@@ -5,8 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.geometry.camera import (GeometryError, Intrinsics, Mount, PlaneProjection, Pose,
-                                       camera_extrinsics)
+from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose, camera_extrinsics
 
 K = Intrinsics.from_fov(640, 480, 70.0)
 

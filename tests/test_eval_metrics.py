@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 from companion.evaluation import datasets as D
-from companion.evaluation.metrics import (CURVE_THRESHOLDS, best_threshold, evaluate_set, level_map,
-                                          tally_occupancy)
+from companion.evaluation.metrics import CURVE_THRESHOLDS, best_threshold, evaluate_set, level_map, tally_occupancy
 from companion.pipeline.density import DensityModel
 from companion.pipeline.occupancy import FREE, OccupancyParams, occupancy_map
 

@@ -8,7 +8,6 @@ import math
 import pytest
 from geographiclib.geodesic import Geodesic
 
-from companion.geometry.geodesy import GeoPoint
 from companion.control.landing import (
     Goto,
     Handback,
@@ -20,8 +19,9 @@ from companion.control.landing import (
 )
 from companion.control.planner import PlannerConfig, ZonePlanner
 from companion.control.trigger import Trigger, TriggerSource
-from companion.mavlink.link import CommandRefused
 from companion.geometry.camera import Pose
+from companion.geometry.geodesy import GeoPoint
+from companion.mavlink.link import CommandRefused
 from companion.pipeline.tracker import Track
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)
@@ -259,7 +259,7 @@ def test_repeated_refusals_hand_back():
     goto = ctl.on_frame(t, [zone(1, 10, 0, t)], pose(t))[0]
     refused = CommandRefused(176, 2)
     assert ctl.on_command_result(goto, refused) == []
-    for i in range(2):
+    for _ in range(2):
         t += 0.1
         ctl.on_state(status(t))
         again = ctl.on_frame(t, [zone(1, 10, 0, t)], pose(t))

@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from companion.geometry.geodesy import GeoPoint
 from companion.control.landing import (
     Command,
     Goto,
@@ -30,6 +29,7 @@ from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sampl
 from companion.control.planner import PlannerConfig
 from companion.control.trigger import Trigger, TriggerSource
 from companion.geometry.camera import Pose
+from companion.geometry.geodesy import GeoPoint
 from companion.pipeline.tracker import Track
 from sim.vehicle import Vehicle
 
@@ -94,7 +94,7 @@ class Flight:
         self.apply(self.ctl.on_state(self.status()))
         self.apply(self.ctl.on_trigger(Trigger("battery critical", TriggerSource.BATTERY, self.t)))
 
-    def run(self, zones: Callable[["Flight"], list[Track]], until: Callable[["Flight"], bool],
+    def run(self, zones: Callable[[Flight], list[Track]], until: Callable[[Flight], bool],
             t_max: float, dt: float = 0.02, frame_dt: float = 0.1) -> None:
         next_frame = self.t
         while self.t < t_max and not until(self):

@@ -3,8 +3,8 @@
 import pytest
 
 from companion.control.planner import PlannerConfig, ZoneCheck, ZonePlanner
-from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 from companion.pipeline.circles import Circle
+from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
 
 def _track(r, view_limited=False, r_view=20.0, misses=0):

@@ -16,16 +16,16 @@ import pytest
 from geographiclib.geodesic import Geodesic
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.control.landing import Goto, Handback, LandingConfig, LandingController, Phase
 from companion.control.planner import PlannerConfig
-from companion.service.landing_runner import LandingRunner
-from companion.mavlink.flavours import select_flavour
 from companion.control.trigger import Trigger, TriggerSource
+from companion.geometry.geodesy import GeoPoint, geo_from_ned
+from companion.mavlink.flavours import select_flavour
 from companion.mavlink.link import CommandRefused, CommandTimeout, LinkConfig, MavLink
 from companion.mavlink.px4 import px4_custom_mode
 from companion.mavlink.state import VehicleState
 from companion.pipeline.tracker import Track
+from companion.service.landing_runner import LandingRunner
 from tests.mavpeer import MavPeer
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)

@@ -7,8 +7,8 @@ import asyncio
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
-from companion.mavlink.ardupilot import ArduPilotCopter
 from companion.control.commands import PositionTarget
+from companion.mavlink.ardupilot import ArduPilotCopter
 from companion.mavlink.autopilot import FlavourError
 from companion.mavlink.flavours import select_flavour
 from companion.mavlink.link import CommandRefused, CommandTimeout, LinkConfig, MavLink

@@ -3,8 +3,14 @@
 import numpy as np
 import pytest
 
-from companion.pipeline.occupancy import (FREE, OCCUPIED, OccupancyParams, occupancy_map,
-                                          occupied_mask, resize_keep_occupied)
+from companion.pipeline.occupancy import (
+    FREE,
+    OCCUPIED,
+    OccupancyParams,
+    occupancy_map,
+    occupied_mask,
+    resize_keep_occupied,
+)
 
 
 def test_paper_rule_marks_above_minimum():

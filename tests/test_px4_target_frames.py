@@ -17,15 +17,15 @@ from collections.abc import AsyncIterator
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
+from companion.control.commands import PositionTarget
 from companion.control.landing import LandingConfig, LandingController, Phase
 from companion.control.planner import PlannerConfig
-from companion.service.landing_runner import LandingRunner
-from companion.control.commands import PositionTarget
 from companion.control.trigger import Trigger, TriggerSource
 from companion.mavlink.link import LinkConfig, MavLink
 from companion.mavlink.px4 import PX4
 from companion.mavlink.state import VehicleState
 from companion.pipeline.tracker import Track
+from companion.service.landing_runner import LandingRunner
 from sim.autopilot import AutopilotConfig
 from sim.flight import free_port
 from sim.simulator import SimConfig, Simulator

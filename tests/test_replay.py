@@ -21,10 +21,10 @@ from onnx import TensorProto, helper
 
 from companion import synthetic
 from companion.cli import main
+from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.pipeline.density import DensityModel
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
-from companion.config import SHIPPED_MODEL
 
 GSD = 0.05  # m/px
 FREE = (250.0, 240.0, 100.0)  # the known free circle, pixels (u, v, r)

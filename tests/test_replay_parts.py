@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from companion.control.planner import PlannerConfig, ZonePlanner
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.circles import Circle
 from companion.pipeline.headplane import GridSpec
@@ -19,7 +20,6 @@ from companion.replay.homography import HomographyFileError, projection_from_fil
 from companion.replay.records import circle_in_image, frame_record
 from companion.replay.sources import ReplayInputError, open_folder, open_input
 from companion.replay.summary import SummaryBuilder, format_summary
-from companion.control.planner import PlannerConfig, ZonePlanner
 
 H = np.array([[0.05, 0.01, -3.0], [-0.02, 0.06, 4.0], [1e-5, 2e-5, 1.0]])
 

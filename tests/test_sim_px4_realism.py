@@ -18,8 +18,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim.autopilot import AutopilotConfig
 from sim.faults import Failsafe
-from sim.px4 import (AUTO_LAND, AUTO_LOITER, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD, POSCTL,
-                     HomeWander)
+from sim.px4 import AUTO_LAND, AUTO_LOITER, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD, POSCTL, HomeWander
 from tests.test_sim_vehicle_mavlink import HOME, MavClient, fly
 
 pytestmark = pytest.mark.sitl

@@ -17,8 +17,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from sim.ardupilot import GUIDED, LAND, LOITER, RTL
 from sim.autopilot import AutopilotConfig
 from sim.faults import Failsafe
-from sim.px4 import (AUTO_LAND, AUTO_LOITER, MAIN_AUTO, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD,
-                     POSCTL, SUB_LAND)
+from sim.px4 import AUTO_LAND, AUTO_LOITER, MAIN_AUTO, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD, POSCTL, SUB_LAND
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
 
@@ -89,7 +88,7 @@ class MavClient(asyncio.DatagramProtocol):
             self._event.clear()
             try:
                 await asyncio.wait_for(self._event.wait(), left)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
 
     def latest(self, type_: str):

@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 
 from companion.geometry.camera import Intrinsics, Mount, Pose
-from sim.dronecrowd import (DroneCrowdMotion, DroneCrowdUnavailable, cleaned, estimate_scale, load_tracks,
-                            stabilised, track_speeds)
+from sim.dronecrowd import (
+    DroneCrowdMotion,
+    DroneCrowdUnavailable,
+    cleaned,
+    estimate_scale,
+    load_tracks,
+    stabilised,
+    track_speeds,
+)
 from sim.ground import ProceduralGround
 from sim.render import render_world
 from sim.world import dronecrowd_world

@@ -57,13 +57,13 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from companion.geometry.geodesy import GeoPoint, geo_from_ned
-from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
-from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
 from companion.control.commands import Command, Goto, Handback, Land, PositionTarget
 from companion.control.events import Event, HandedBack, Holding, Note, Phase, PhaseChanged, TargetChosen
+from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
+from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
+from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 from companion.pipeline.tracker import Track
 
-
 #: The least view (m around the zone centre) that can keep confirming a zone during the descent.
 MIN_VIEW_M = 0.75
 

@@ -15,8 +15,8 @@ upscaling commute with thresholding), so one map serves every threshold.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Sequence
 
 import cv2
 import numpy as np

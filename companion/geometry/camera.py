@@ -90,7 +90,7 @@ class Intrinsics:
             raise GeometryError(f"image size must be > 0, got {self.width}x{self.height}")
 
     @classmethod
-    def from_fov(cls, width: int, height: int, hfov_deg: float) -> "Intrinsics":
+    def from_fov(cls, width: int, height: int, hfov_deg: float) -> Intrinsics:
         """Square pixels, centred principal point, horizontal field of view in degrees."""
         f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
         return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
@@ -103,7 +103,7 @@ class Intrinsics:
     def has_distortion(self) -> bool:
         return any(abs(d) > 0 for d in self.dist)
 
-    def scaled_to(self, width: int, height: int) -> "Intrinsics":
+    def scaled_to(self, width: int, height: int) -> Intrinsics:
         """The same camera at another resolution (frames resized before processing)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
@@ -131,7 +131,7 @@ class Mount:
 
     @classmethod
     def from_degrees(cls, roll_deg: float = 0.0, pitch_deg: float = -90.0, yaw_deg: float = 0.0,
-                     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> "Mount":
+                     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Mount:
         return cls(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg),
                    tuple(float(v) for v in offset))  # type: ignore[arg-type]
 
@@ -220,14 +220,14 @@ class PlaneProjection:
 
     @classmethod
     def from_plane_to_image(cls, H: np.ndarray, camera_xy: tuple[float, float] | None = None
-                            ) -> "PlaneProjection":
+                            ) -> PlaneProjection:
         """``H = K [c1 c2 c3']`` exactly (positive scale), as built by ``from_pose``."""
         H = _check_homography(H, "plane-to-image homography")
         return cls(H, np.linalg.inv(H), camera_xy, 1.0)
 
     @classmethod
     def from_image_to_plane(cls, H_plane_from_img: np.ndarray,
-                            ref_uv: tuple[float, float] = (0.0, 0.0)) -> "PlaneProjection":
+                            ref_uv: tuple[float, float] = (0.0, 0.0)) -> PlaneProjection:
         """A fixed 3x3 image-to-head-plane matrix (pixels -> metres), as given by a user.
 
         ``ref_uv`` is a pixel known to see the plane (any pixel of the image, for a camera whose
@@ -240,7 +240,7 @@ class PlaneProjection:
         return cls(np.linalg.inv(Hi), Hi, None, float(np.sign(w)))
 
     @classmethod
-    def nadir(cls, gsd: float) -> "PlaneProjection":
+    def nadir(cls, gsd: float) -> PlaneProjection:
         """Camera straight down, ``gsd`` metres per pixel on the head plane.
 
         Plane axes follow the image: x = u * gsd (right), y = v * gsd (down), origin at the
@@ -252,7 +252,7 @@ class PlaneProjection:
 
     @classmethod
     def from_pose(cls, intrinsics: Intrinsics, mount: Mount, pose: Pose,
-                  head_height: float = 1.7) -> "PlaneProjection":
+                  head_height: float = 1.7) -> PlaneProjection:
         """The homography of the head plane ``z = -head_height`` seen from ``pose``."""
         _require_finite("head height", head_height)
         ext = camera_extrinsics(pose, mount)

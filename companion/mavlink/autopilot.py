@@ -13,10 +13,8 @@ retries, timeout); a refusal raises ``CommandRefused`` and a silence ``CommandTi
 from __future__ import annotations
 
 import logging
-import math
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as m
@@ -114,7 +112,7 @@ class Autopilot(ABC):
         kw = {"timeout_s": timeout_s, "retries": retries}
         await (self.land(**kw) if action == "LAND" else self.rtl(**kw))
 
-    async def stop(self) -> None:
+    async def stop(self) -> None:  # noqa: B027 - a no-op by default, not abstract: ArduPilot streams nothing
         """Stop any background stream (PX4's setpoints). Idempotent."""
 
     #: SET_POSITION_TARGET_GLOBAL_INT frame: altitude above home. ArduPilot Copter turns it into a

@@ -22,7 +22,6 @@ and ignored until ``reset()``. The monitor only reports; it never commands the v
 from __future__ import annotations
 
 import asyncio
-import enum
 import logging
 import os
 import stat

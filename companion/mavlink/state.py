@@ -27,8 +27,8 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as m
 from scipy.spatial.transform import Rotation, Slerp
 
-from companion.geometry.geodesy import GeodesyError, GeoPoint, ned_from_geo
 from companion.geometry.camera import Pose, rotation_from_euler, rotation_from_quaternion
+from companion.geometry.geodesy import GeodesyError, GeoPoint, ned_from_geo
 
 log = logging.getLogger(__name__)
 

@@ -37,9 +37,9 @@ Every problem with the model, its settings or a frame raises :class:`DensityMode
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
 
 import cv2
 import numpy as np

@@ -24,6 +24,7 @@ from companion.replay.runner import ReplayOutputError, ReplayOutputs, VideoOut, 
 from companion.replay.sources import KINDS, ReplayInputError, ReplaySource, open_input
 from companion.replay.summary import format_summary
 
+
 def _key_value(text: str) -> tuple[str, str]:
     key, sep, value = text.partition("=")
     if not sep or not key.strip():

@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from companion.control.planner import ZoneCheck, ZonePlanner
 from companion.geometry.camera import PlaneProjection
 from companion.pipeline.circles import Circle
-from companion.control.planner import ZoneCheck, ZonePlanner
 from companion.pipeline.slz import FrameResult
 from companion.pipeline.tracker import Track
 

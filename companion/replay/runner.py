@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from companion.control.planner import PlannerConfig, ZonePlanner
 from companion.geometry.camera import GeometryError
 from companion.pipeline.density import DensityModelError
-from companion.control.planner import PlannerConfig, ZonePlanner
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.replay import draw
 from companion.replay.records import frame_record, frame_target

@@ -16,8 +16,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.frames import IMAGE_SUFFIXES, as_bgr, image_files, read_image
+from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.recording import RecordingError, RecordingReader
 
 KINDS = ("auto", "frames", "video", "recording")

@@ -195,7 +195,7 @@ class Service:
                 last_log = time.monotonic()
             try:
                 await asyncio.wait_for(self.stop_event.wait(), 0.05)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
         return True
 
@@ -295,7 +295,7 @@ class Service:
         if self.monitor is not None:
             try:
                 await asyncio.wait_for(self.monitor.stop_local_socket(), 0.5)
-            except (asyncio.TimeoutError, OSError):
+            except (TimeoutError, OSError):
                 pass
         for task in tasks:
             task.cancel()
@@ -309,7 +309,7 @@ class Service:
             await asyncio.to_thread(self.recorder.close, 1.0)
         try:
             await asyncio.wait_for(self.link.close(), 1.0)
-        except (asyncio.TimeoutError, OSError):
+        except (TimeoutError, OSError):
             pass
         log.info("stopped")
 
@@ -406,7 +406,7 @@ class Service:
                 self._log_health(ok, why)
             try:
                 await asyncio.wait_for(self.stop_event.wait(), TICK_S)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
 
     def _log_health(self, ok: bool, why: str) -> None:

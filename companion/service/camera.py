@@ -25,14 +25,13 @@ from __future__ import annotations
 import asyncio
 import http.client
 import logging
-import socket
 import threading
 import time
 import urllib.parse
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -256,7 +255,7 @@ class _MjpegReader(_Reader):
                 data = self.resp.read(length)
                 if len(data) < length:
                     raise EOFError("MJPEG part truncated")
-        except (TimeoutError, socket.timeout) as exc:
+        except TimeoutError as exc:
             log.debug("MJPEG read timed out: %s", exc)
             return _Status.FAIL, None
         except (OSError, EOFError, ValueError, http.client.HTTPException) as exc:
@@ -324,7 +323,7 @@ class CameraSource:
             _FolderReader(Path(self.source), _Pacer(0, self._stop))
 
     # ---- lifecycle ---------------------------------------------------------------------------
-    def start(self) -> "CameraSource":
+    def start(self) -> CameraSource:
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
             self._thread.start()
@@ -390,7 +389,7 @@ class CameraSource:
             return f
         try:
             await asyncio.wait_for(self._anew.wait(), timeout)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             return None
         return self.take()
 

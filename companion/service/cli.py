@@ -66,8 +66,8 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
     _apply_log_level(cfg)
 
-    from companion.pipeline.density import DensityModelError
     from companion.config import signing_key
+    from companion.pipeline.density import DensityModelError
     from companion.service.app import Service, load_model
     from companion.service.camera import CameraError, check_source, classify
 

@@ -31,12 +31,12 @@ from companion.control.landing import (
     Phase,
     VehicleStatus,
 )
-from companion.mavlink.autopilot import Autopilot
 from companion.control.trigger import Trigger
+from companion.geometry.camera import Pose
+from companion.mavlink.autopilot import Autopilot
 from companion.mavlink.link import MavLink
 from companion.mavlink.state import VehicleState
 from companion.mavlink.statustext import send_statustext
-from companion.geometry.camera import Pose
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)

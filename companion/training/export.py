@@ -5,8 +5,8 @@ The metadata keys (``companion.*``) are documented in :mod:`companion.pipeline.d
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
 import onnx
 import torch

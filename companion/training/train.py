@@ -122,12 +122,12 @@ def train(args: argparse.Namespace) -> Path:
     net.train()
     for step in range(1, args.steps + 1):
         x, y = make_batch(sources, args.batch, args.crop, rng)
-        l = loss(net(x), y, args.pos_weight)
+        batch_loss = loss(net(x), y, args.pos_weight)
         opt.zero_grad(set_to_none=True)
-        l.backward()
+        batch_loss.backward()
         opt.step()
         sched.step()
-        running += l.item()
+        running += batch_loss.item()
         if step % 50 == 0:
             el = time.monotonic() - t0
             log.info("step %d/%d loss %.4f lr %.2e %.2f s/step elapsed %.1f min", step, args.steps,

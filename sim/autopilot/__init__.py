@@ -32,12 +32,12 @@ Package layout, one concern per module (``Autopilot`` combines the mixins):
 from __future__ import annotations
 
 from sim.autopilot.base import (
-    R,
     AutopilotConfig,
     Behaviour,
     Channel,
     GeoFrame,
     MAVMessage,
+    R,
     Setpoint,
     StreamSchedule,
     quaternion_from_euler,

@@ -38,7 +38,7 @@ class Behaviour(Enum):
 class Channel(Protocol):
     """The link a message came on: replies go back on it and it owns its stream rates."""
 
-    streams: "StreamSchedule"
+    streams: StreamSchedule
 
     def send(self, msg: MAVMessage) -> None: ...
 

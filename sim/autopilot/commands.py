@@ -15,12 +15,12 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim.autopilot.base import (
-    R,
     AutopilotConfig,
     Behaviour,
     Channel,
     GeoFrame,
     MAVMessage,
+    R,
     Setpoint,
 )
 from sim.vehicle import Vehicle

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Callable
+from collections.abc import Callable
 
-from sim.autopilot.base import R, AutopilotConfig, Behaviour, GeoFrame, Setpoint
+from sim.autopilot.base import AutopilotConfig, Behaviour, GeoFrame, R, Setpoint
 from sim.autopilot.commands import CommandsMixin
 from sim.autopilot.failsafes import FailsafesMixin
 from sim.autopilot.modes import ModesMixin

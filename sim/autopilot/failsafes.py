@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from sim.autopilot.base import R, AutopilotConfig, Behaviour, MAVMessage
+from sim.autopilot.base import AutopilotConfig, Behaviour, MAVMessage, R
 from sim.faults import Failsafe
 from sim.vehicle import Vehicle
 

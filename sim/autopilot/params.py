@@ -6,7 +6,7 @@ import math
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from sim.autopilot.base import R, AutopilotConfig, Channel, MAVMessage
+from sim.autopilot.base import AutopilotConfig, Channel, MAVMessage, R
 
 
 class ParamsMixin:

@@ -7,11 +7,11 @@ import math
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim.autopilot.base import (
-    R,
     AutopilotConfig,
     Behaviour,
     GeoFrame,
     MAVMessage,
+    R,
     StreamSchedule,
     quaternion_from_euler,
 )

@@ -19,7 +19,7 @@ import numpy as np
 
 from companion import synthetic
 from companion.geometry.camera import Intrinsics, Mount, Pose
-from companion.pipeline.slz import STAGES, PipelineConfig, SLZPipeline
+from companion.pipeline.slz import STAGES, DensityFn, PipelineConfig, SLZPipeline
 
 RESOLUTIONS = ((640, 480), (1280, 720))
 
@@ -35,7 +35,7 @@ def _stats(values: list[float]) -> dict[str, float]:
             "p99_ms": round(float(np.percentile(a, 99)), 3)}
 
 
-def bench_resolution(width: int, height: int, frames: int, model=None, warmup: int = 5,
+def bench_resolution(width: int, height: int, frames: int, model: DensityFn | None = None, warmup: int = 5,
                      seed: int = 0) -> dict[str, dict[str, float]]:
     """Per-stage median and p99 milliseconds over ``frames`` frames at one resolution."""
     scale = width / 640.0

@@ -53,7 +53,7 @@ def build_parser(chosen: str | None) -> tuple[argparse.ArgumentParser, object | 
                 raise
             p.set_defaults(_unavailable=f"'{name}' is not available in this build ({exc.name} missing)")
             continue
-        chosen_module.configure(p)  # type: ignore[attr-defined]
+        chosen_module.configure(p)
     return parser, chosen_module
 
 

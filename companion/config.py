@@ -12,6 +12,7 @@ Units are in the key names where they matter (``_s`` seconds, ``_m`` metres, ``_
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import tomllib
@@ -19,7 +20,7 @@ import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from companion.control.landing import LandingConfig
 from companion.control.obedience import ObedienceConfig
@@ -53,7 +54,7 @@ def _f(default: Any, doc: str = "", *, min: float | None = None, max: float | No
     meta = {"doc": doc, "min": min, "max": max, "choices": choices, "min_exclusive": min_exclusive,
             "length": length, "path": path}
     if isinstance(default, (list, dict)):
-        return field(default_factory=lambda d=default: type(d)(d), metadata=meta)
+        return field(default_factory=functools.partial(type(default), default), metadata=meta)
     return field(default=default, metadata=meta)
 
 
@@ -458,8 +459,8 @@ def intrinsics(cfg: Config) -> Intrinsics:
 def mount(cfg: Config) -> Mount:
     """The camera mount (``geometry.camera.Mount``) from ``camera.mount_*``."""
     c = cfg.camera
-    return Mount.from_degrees(c.mount_roll_deg, c.mount_pitch_deg, c.mount_yaw_deg,
-                              tuple(c.mount_offset_m))
+    offset = cast("tuple[float, float, float]", tuple(c.mount_offset_m))  # length 3: validated
+    return Mount.from_degrees(c.mount_roll_deg, c.mount_pitch_deg, c.mount_yaw_deg, offset)
 
 
 def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> PipelineConfig:

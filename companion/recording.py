@@ -32,7 +32,7 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -56,7 +56,7 @@ class RecordingError(RuntimeError):
 def pose_to_dict(pose: Pose | None) -> dict[str, Any] | None:
     if pose is None:
         return None
-    d = {k: float(getattr(pose, k)) for k in ("t", "north", "east", "down", "roll", "pitch", "yaw")}
+    d: dict[str, Any] = {k: float(getattr(pose, k)) for k in ("t", "north", "east", "down", "roll", "pitch", "yaw")}
     d["gimbal"] = None if pose.gimbal is None else np.asarray(pose.gimbal, float).tolist()
     return d
 
@@ -268,7 +268,8 @@ class FlightRecorder:
         assert self.path is not None
         name = f"seg_{self._seg_no:05d}{SUFFIX[self.codec]}"
         self._seg_no += 1
-        writer = cv2.VideoWriter(str(self.path / name), cv2.VideoWriter_fourcc(*self.codec), self.fps, size)
+        fourcc = cv2.VideoWriter_fourcc(*self.codec)  # type: ignore[attr-defined]  # missing from the cv2 stubs
+        writer = cv2.VideoWriter(str(self.path / name), fourcc, self.fps, size)
         if not writer.isOpened():
             raise OSError(f"cannot open video segment {self.path / name} ({self.codec})")
         self._writer, self._seg_name, self._seg_size, self._seg_start_t, self._seg_k = writer, name, size, t, 0
@@ -388,7 +389,8 @@ class RecordingReader:
                 int(k["height"]), tuple(float(v) for v in k.get("dist", ())))
             m = self.meta.get("mount")
             self.mount: Mount | None = None if m is None else Mount(
-                float(m["roll"]), float(m["pitch"]), float(m["yaw"]), tuple(float(v) for v in m["offset"]))
+                float(m["roll"]), float(m["pitch"]), float(m["yaw"]),
+                cast("tuple[float, float, float]", tuple(float(v) for v in m["offset"])))
         except (KeyError, TypeError, ValueError) as exc:
             raise RecordingError(f"{meta_path}: bad intrinsics or mount: {exc}") from None
         self.stats = ReadStats()

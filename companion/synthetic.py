@@ -46,7 +46,7 @@ def move(scene: SyntheticScene, shift_px: tuple[float, float]) -> SyntheticScene
 def render(scene: SyntheticScene, seed: int = 0) -> np.ndarray:
     """A BGR frame: textured grey-green ground with a dark blob per person."""
     rng = np.random.default_rng(seed)
-    noise = rng.normal(0, 12, (scene.height // 8 + 1, scene.width // 8 + 1)).astype(np.float32)
+    noise: np.ndarray = rng.normal(0, 12, (scene.height // 8 + 1, scene.width // 8 + 1)).astype(np.float32)
     noise = cv2.resize(noise, (scene.width, scene.height), interpolation=cv2.INTER_CUBIC)
     base = np.array([70, 120, 95], np.float32)  # BGR
     frame = np.clip(base[None, None, :] + noise[..., None], 0, 255).astype(np.uint8)

@@ -17,7 +17,7 @@ import math
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from sim.autopilot import Autopilot, Behaviour, Setpoint
+from sim.autopilot import Autopilot, Behaviour, Channel, MAVMessage, Setpoint
 from sim.vehicle import Demand
 
 STABILIZE, ALT_HOLD, GUIDED, LOITER, RTL, LAND, POSHOLD, BRAKE = 0, 2, 4, 5, 6, 9, 16, 17
@@ -106,7 +106,7 @@ class ArduPilotCopter(Autopilot):
             if self.behaviour is Behaviour.GUIDED and self.vehicle.demand is Demand.VELOCITY:
                 self.vehicle.hold()
 
-    def _cmd_takeoff(self, p, channel, msg, is_int) -> int:
+    def _cmd_takeoff(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         alt = float(p[6])
         if (self.custom_mode != GUIDED or not self.vehicle.state.armed
                 or not self.vehicle.state.land_complete or not math.isfinite(alt) or alt <= 0):
@@ -114,7 +114,7 @@ class ArduPilotCopter(Autopilot):
         self._start_takeoff(alt)
         return mav.MAV_RESULT_ACCEPTED
 
-    def _cmd_reposition(self, p, channel, msg, is_int) -> int:
+    def _cmd_reposition(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         change_mode = int(p[1]) & mav.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE if math.isfinite(p[1]) else 0
         if self.custom_mode != GUIDED and not change_mode:
             return mav.MAV_RESULT_DENIED

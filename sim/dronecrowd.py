@@ -65,6 +65,8 @@ def sequence_path(sequence: int | str | Path, gt_dir: str | Path | None = None) 
                 f"DroneCrowd trajectories not found: {d} does not exist. They are a licensed data set "
                 "kept outside the repository (../shared/data/dronecrowd/gt, or set COMPANION_SHARED); "
                 "the default simulator world does not need them (sim.world.default_world).")
+        if isinstance(sequence, Path):
+            raise TypeError(f"a DroneCrowd sequence number must be an int or a str, got the path {sequence}")
         path = d / f"{int(sequence):05d}.mat"
     if not path.is_file():
         raise DroneCrowdUnavailable(f"DroneCrowd sequence file {path} does not exist")

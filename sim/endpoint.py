@@ -15,6 +15,7 @@ Bad input is counted and dropped: a datagram that does not decode to valid MAVLi
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -159,7 +160,7 @@ class UdpLink(asyncio.DatagramProtocol):
 
     def _write(self, data: bytes) -> None:
         for peer in list(self.peers):
-            self.faults.outgoing(data, lambda d, p=peer: self._sendto(d, p))
+            self.faults.outgoing(data, functools.partial(self._sendto, peer=peer))
 
     def _sendto(self, data: bytes, peer: Address) -> None:
         if self._transport is not None:

@@ -36,6 +36,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -252,7 +253,7 @@ def judge_events(result: FlightResult, events: list[dict]) -> None:
             result.messages.append(text)
 
 
-async def _pump(stream: asyncio.StreamReader, lines: list[str], sink) -> None:
+async def _pump(stream: asyncio.StreamReader, lines: list[str], sink: TextIO | None) -> None:
     while True:
         raw = await stream.readline()
         if not raw:
@@ -347,7 +348,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
         elif proc is not None:
             result.service_exit = proc.returncode
         with contextlib.suppress(Exception):
-            await asyncio.wait_for(pump, 2.0)  # type: ignore[possibly-undefined]
+            await asyncio.wait_for(pump, 2.0)
         await camera.stop()
         await sim.stop()
         if sink is not None:

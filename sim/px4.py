@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from sim.autopilot import Autopilot, AutopilotConfig, Behaviour, MAVMessage, Setpoint
+from sim.autopilot import Autopilot, AutopilotConfig, Behaviour, Channel, MAVMessage, Setpoint
 from sim.faults import Failsafe
 from sim.vehicle import Vehicle
 
@@ -419,7 +419,7 @@ class Px4Multicopter(Autopilot):
             self._follow(self._last_setpoint)
         return mav.MAV_RESULT_ACCEPTED
 
-    def _cmd_takeoff(self, p, channel, msg, is_int) -> int:
+    def _cmd_takeoff(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         if not self.vehicle.state.land_complete:
             return mav.MAV_RESULT_TEMPORARILY_REJECTED
         alt_amsl = float(p[6])
@@ -431,7 +431,7 @@ class Px4Multicopter(Autopilot):
             self._start_takeoff(alt)
         return mav.MAV_RESULT_ACCEPTED
 
-    def _cmd_reposition(self, p, channel, msg, is_int) -> int:
+    def _cmd_reposition(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         if not self.flying:
             return mav.MAV_RESULT_TEMPORARILY_REJECTED
         frame = int(msg.frame) if is_int else mav.MAV_FRAME_GLOBAL

@@ -44,6 +44,20 @@ class Ground(Protocol):
              max_px: int = ...) -> tuple[np.ndarray, np.ndarray]: ...
 
 
+class WorldView(Protocol):
+    """What ``render_world`` reads of a world (a :class:`sim.world.World`); ``seed`` and ``ids``
+    are used when present."""
+
+    @property
+    def t(self) -> float: ...
+
+    def positions(self) -> np.ndarray: ...
+
+    def headings(self) -> np.ndarray: ...
+
+    def moving(self) -> np.ndarray: ...
+
+
 def plane_homography(intrinsics: Intrinsics, mount: Mount, pose: Pose, z: float = 0.0) -> np.ndarray:
     """3x3 homography mapping points ``(north, east)`` of the horizontal plane at world height
     ``z`` (NED metres; 0 = ground, -1.7 = head plane) to image pixels ``(u, v)``.
@@ -326,12 +340,12 @@ def _draw_people(img: np.ndarray, pos: np.ndarray, hd: np.ndarray, mv: np.ndarra
             fill(img, [hair[k]], hair_c[k], AA, SHIFT)
 
 
-def render_world(world: object, pose: Pose, intrinsics: Intrinsics, mount: Mount,
-                 ground: Ground, **kwargs: object) -> np.ndarray:
+def render_world(world: WorldView, pose: Pose, intrinsics: Intrinsics, mount: Mount,
+                 ground: Ground, **kwargs: float) -> np.ndarray:
     """:func:`render` of a :class:`sim.world.World` at its current time (positions, headings,
     walking state and the world's seed for the people's looks)."""
     seed = getattr(world, "seed", 0)
     looks = looks_for(world.ids(), seed) if hasattr(world, "ids") else None
-    return render(world.positions(), pose, intrinsics, mount, ground,  # type: ignore[attr-defined]
-                  headings=world.headings(), moving=world.moving(),  # type: ignore[attr-defined]
-                  looks=looks, t=world.t, seed=seed, **kwargs)  # type: ignore[arg-type]
+    return render(world.positions(), pose, intrinsics, mount, ground,
+                  headings=world.headings(), moving=world.moving(),
+                  looks=looks, t=world.t, seed=seed, **kwargs)

@@ -1,6 +1,6 @@
 """A kinematic multicopter: position, velocity, attitude and battery stepped in time, no I/O.
 
-Frames (DESIGN.md): world = local NED metres, origin at home, ground at ``z = 0`` (so altitude
+Frames (docs/design.md): world = local NED metres, origin at home, ground at ``z = 0`` (so altitude
 above home is ``-down``); body = FRD; angles in radians; times in seconds.
 
 The model is what a position controller makes of a multicopter seen from outside: the vehicle

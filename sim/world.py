@@ -80,7 +80,7 @@ class World:
         go): ``1_000_000 * source index + the source's own id`` (its list index if it has none)."""
         parts = []
         for k, s in enumerate(self.sources):
-            own = s.ids() if hasattr(s, "ids") else np.arange(len(s.positions()))  # type: ignore[attr-defined]
+            own = s.ids() if hasattr(s, "ids") else np.arange(len(s.positions()))
             parts.append(np.asarray(own, np.int64).ravel() + 1_000_000 * k)
         return np.concatenate(parts) if parts else np.empty(0, np.int64)
 

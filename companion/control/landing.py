@@ -511,7 +511,7 @@ class LandingController:
             log.info("landing: %s -> %s", old.value, phase.value)
             self.phase = phase
             self._phase_t = self.now
-        self._emit(event(self.now, old, phase, f"SLZ: {text}", warning, **fields))  # type: ignore[arg-type]
+        self._emit(event(self.now, old, phase, f"SLZ: {text}", warning, **fields))
 
     def _event(self, text: str, warning: bool = False) -> None:
         self._emit(Note(self.now, self.phase, self.phase, f"SLZ: {text}", warning))
@@ -519,3 +519,11 @@ class LandingController:
     def _emit(self, event: Event) -> None:
         (log.warning if event.warning else log.info)("%s", event.text)
         self._events.append(event)
+
+
+# The commands the controller returns and its phases are re-exported: a runner drives the
+# controller with this module alone.
+__all__ = [
+    "ACTIVE", "BLIND_VIEW_M", "FLYING", "LandingConfig", "LandingController", "VehicleStatus",
+    "Command", "Goto", "Handback", "Land", "Phase",
+]

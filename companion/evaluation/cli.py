@@ -21,7 +21,7 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from companion.evaluation import datasets as D
 from companion.evaluation.metrics import SetResult, bench_frame, evaluate_set, latency_ms, latency_pair_ms
@@ -121,7 +121,7 @@ def _fmt(v: float | None, pct: bool = False) -> str:
     return f"{100 * v:.1f} %" if pct else f"{v:.2f}"
 
 
-def _print(res: dict[str, Any], curve: bool, file=sys.stdout) -> None:
+def _print(res: dict[str, Any], curve: bool, file: TextIO = sys.stdout) -> None:
     print(f"model {res['model']}  threshold {res['threshold']:.4g}  (count_scale {res['spec']['count_scale']:.4g})", file=file)
     for name, s in res["sets"].items():
         line = f"  {name:22s} images {s['images']:5d} heads {s['heads']:6d}  recall {_fmt(s['recall'], True):>8s}  free {_fmt(s['free'], True):>8s}"

@@ -33,7 +33,7 @@ def level_map(density: np.ndarray, image_hw: tuple[int, int], kernel: int = 5, i
     """float32 image-size map: pixel occupied at threshold t  <=>  level > t (see module doc)."""
     d = np.asarray(density, np.float32)
     finite = np.isfinite(d)
-    lv = np.full(d.shape, np.inf, np.float32)
+    lv: np.ndarray = np.full(d.shape, np.inf, np.float32)
     if finite.any():
         lv[finite] = d[finite] - d[finite].min()
     h, w = image_hw

@@ -1,6 +1,6 @@
 """Step 3 of the pipeline, geometry: the camera model and the head-plane homography.
 
-Frames (DESIGN.md): world = local NED in metres, origin at home, ground at ``z = 0``, head plane at
+Frames (docs/design.md): world = local NED in metres, origin at home, ground at ``z = 0``, head plane at
 ``z = -h_h``; body = FRD; camera = OpenCV (x right, y down, z forward along the optical axis).
 
 The camera is mounted on the body with a rotation given as roll/pitch/yaw of a "camera FRD" frame

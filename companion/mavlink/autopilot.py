@@ -109,8 +109,8 @@ class Autopilot(ABC):
         ``timeout_s``/``retries`` as for ``set_mode`` (shutdown resends quickly within its 2 s)."""
         if action not in self.FAILSAFE_MODES:
             raise FlavourError(f"handback action must be LAND or RTL, not {action!r}")
-        kw = {"timeout_s": timeout_s, "retries": retries}
-        await (self.land(**kw) if action == "LAND" else self.rtl(**kw))
+        switch = self.land if action == "LAND" else self.rtl
+        await switch(timeout_s=timeout_s, retries=retries)
 
     async def stop(self) -> None:  # noqa: B027 - a no-op by default, not abstract: ArduPilot streams nothing
         """Stop any background stream (PX4's setpoints). Idempotent."""

@@ -1,6 +1,6 @@
 """Circles on the head plane and their closed-form intersection over union.
 
-The tracker associates landing-zone proposals to tracks by circle IoU (DESIGN.md step 5).
+The tracker associates landing-zone proposals to tracks by circle IoU (docs/design.md, step 5).
 """
 
 from __future__ import annotations

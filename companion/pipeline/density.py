@@ -37,9 +37,10 @@ Every problem with the model, its settings or a frame raises :class:`DensityMode
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -81,6 +82,7 @@ class DensitySpec:
 
 
 def _floats(value: object, key: str) -> tuple[float, ...]:
+    parts: Sequence[str | float]
     if isinstance(value, str):
         parts = [p for p in value.replace(" ", "").split(",") if p]
     elif isinstance(value, (int, float)):
@@ -214,8 +216,9 @@ class DensityModel:
         except ValueError as exc:
             raise DensityModelError(f"{self.path}: {exc}") from None
         self._channels = channels
-        stride = parsed["stride"]
-        multiple = parsed.get("input_multiple")
+        # _parse: a positive int, or None when not declared
+        stride = cast("int | None", parsed["stride"])
+        multiple = cast("int | None", parsed.get("input_multiple"))
         # A probe run finds the stride when it is not declared and proves the model runs at all.
         probe_hw = self._probe_size(int(stride or 1) * int(multiple or 1))
         out_hw = self._infer(np.zeros((1, channels, *probe_hw), np.float32)).shape
@@ -249,10 +252,10 @@ class DensityModel:
 
     def _infer(self, x: np.ndarray) -> np.ndarray:
         try:
-            y = self._session.run([self._output_name], {self.input_name: x})[0]
+            raw = self._session.run([self._output_name], {self.input_name: x})[0]
         except Exception as exc:
             raise DensityModelError(f"{self.path}: inference failed on input {x.shape}: {exc}") from exc
-        y = np.asarray(y)
+        y = np.asarray(raw)
         if y.ndim == 4 and y.shape[:2] == (1, 1):
             y = y[0, 0]
         if y.ndim != 2:

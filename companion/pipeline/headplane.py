@@ -150,7 +150,7 @@ def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
         out[behind] = 0
     if seen is not None:
         h, w = free_img.shape[:2]
-        whole = np.full((h, w), 255, np.uint8)
+        whole: np.ndarray = np.full((h, w), 255, np.uint8)
         if kernel is not None:
             # The same border erosion as the free map, so that ground seen free up to the edge of
             # the view reaches exactly as far as the view does.

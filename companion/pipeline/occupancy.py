@@ -93,7 +93,7 @@ def occupancy_map(
         # No density at all is no evidence of free ground.
         return np.full((h, w), OCCUPIED, np.uint8)
     occ = occupied_mask(density, 0.0 if params.threshold is None else params.threshold)
-    occ_img = resize_keep_occupied(occ, image_hw).astype(np.uint8) * 255
+    occ_img: np.ndarray = resize_keep_occupied(occ, image_hw).astype(np.uint8) * 255
     if params.iterations > 0 and params.kernel > 1:
         kernel = np.ones((params.kernel, params.kernel), np.uint8)
         occ_img = cv2.dilate(occ_img, kernel, iterations=params.iterations)

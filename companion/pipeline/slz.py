@@ -1,6 +1,6 @@
 """The per-frame safe-landing-zone pipeline: frame (+ pose or fixed projection) in, zones out.
 
-density -> occupancy -> head-plane grid -> proposals -> tracks (DESIGN.md steps 1-5). The density
+density -> occupancy -> head-plane grid -> proposals -> tracks (docs/design.md, steps 1-5). The density
 model is injected (any callable returning a 2-D map), so the pipeline runs with the shipped ONNX
 model, another model, or a synthetic stand-in.
 """

@@ -1,4 +1,4 @@
-"""Step 5 of the pipeline: tracking landing zones over time (DESIGN.md, the paper's section IV).
+"""Step 5 of the pipeline: tracking landing zones over time (docs/design.md, the paper's section IV).
 
 One constant-velocity Kalman filter per zone, state ``(x, y, r, dx, dy, dr)`` in head-plane metres
 and metres per second, measurement ``(x, y, r)``. Proposals are assigned to tracks by the
@@ -148,7 +148,8 @@ class _ZoneFilter:
             self.kf.x[5] = max(self.kf.x[5], 0.0)
 
     def circle(self) -> np.ndarray:
-        return self.kf.x[:3].copy()
+        x: np.ndarray = self.kf.x  # filterpy is untyped
+        return x[:3].copy()
 
     def snapshot(self) -> Track:
         x, y, r = (float(v) for v in self.kf.x[:3])

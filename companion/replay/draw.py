@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 from companion.geometry.camera import PlaneProjection
 from companion.pipeline.circles import Circle
@@ -95,7 +96,7 @@ def grid_north_up(free_grid: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.flipud(free_grid.T))
 
 
-def plane_to_north_up_px(grid: GridSpec, x: np.ndarray, y: np.ndarray, scale: float,
+def plane_to_north_up_px(grid: GridSpec, x: ArrayLike, y: ArrayLike, scale: float,
                          offset: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """Display pixel (col, row) of plane points in the north-up view drawn at ``scale`` px/cell
     with the grid's top-left corner at ``offset`` (col, row) pixels."""
@@ -130,8 +131,8 @@ def draw_plane_view(free_grid: np.ndarray, grid: GridSpec, proposals: Sequence[C
         target = tr.id == target_id
         color, thick = (YELLOW, 3) if target else (BLUE, 2)
         cv2.polylines(img, [poly_of(tr.x, tr.y, tr.r)], True, color, thick, cv2.LINE_AA, shift=4)
-        c, rr = plane_to_north_up_px(grid, tr.x, tr.y, scale, off)
-        _label(img, f"#{tr.id}", (int(c) + 4, int(rr) - 4), color)
+        col, row = plane_to_north_up_px(grid, tr.x, tr.y, scale, off)
+        _label(img, f"#{tr.id}", (int(col) + 4, int(row) - 4), color)
     cv2.arrowedLine(img, (20, 50), (20, 15), WHITE, 2, cv2.LINE_AA, tipLength=0.3)
     _label(img, "N", (28, 30), WHITE)
     # Scale bar of a round number of metres, about a fifth of the panel.

@@ -71,7 +71,8 @@ class VideoOut:
     def write(self, image: np.ndarray) -> None:
         h, w = image.shape[:2]
         if self._writer is None:
-            fourcc = cv2.VideoWriter_fourcc(*("MJPG" if self.path.suffix.lower() == ".avi" else "mp4v"))
+            codec = "MJPG" if self.path.suffix.lower() == ".avi" else "mp4v"
+            fourcc = cv2.VideoWriter_fourcc(*codec)  # type: ignore[attr-defined]  # missing from the cv2 stubs
             self.path.parent.mkdir(parents=True, exist_ok=True)
             # Codecs want even sizes.
             self._size = (w + (w & 1), h + (h & 1))

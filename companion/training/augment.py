@@ -56,7 +56,7 @@ def random_crop(
 
 def photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Random brightness, contrast, hue/saturation, grey, blur and noise on a BGR uint8 image."""
-    img = image.astype(np.float32)
+    img: np.ndarray = image.astype(np.float32)  # float32, then uint8 from the clip on
     if rng.random() < 0.8:
         img = (img - img.mean()) * rng.uniform(0.6, 1.4) + img.mean() + rng.uniform(-40, 40)
     if rng.random() < 0.5:

@@ -51,7 +51,7 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float = MI
         log.warning("no threshold reaches %.1f %% recall on every validation set; storing 0 (the paper's)",
                     100 * min_recall)
         thr = 0.0
-    meta = {
+    meta: dict[str, object] = {
         "companion.occupancy_threshold": f"{thr:.6g}",
         "companion.count_scale": f"{count_scale:.6g}",
         "companion.calibration": f"threshold: largest with recall >= {min_recall} on dronecrowd6, "

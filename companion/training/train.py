@@ -17,6 +17,7 @@ import argparse
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,7 +55,8 @@ def load_sources(shared: Path) -> list[Source]:
     dc = D.dronecrowd_frames(shared, TRAIN_DRONECROWD)
     shb = D.shanghaitech_b(shared, "train")
 
-    def build(name: str, samples: list[D.Sample], make, aug: GeomAug, weight: float) -> Source:
+    def build(name: str, samples: list[D.Sample], make: Callable[[D.Sample, tuple[int, int]], np.ndarray],
+              aug: GeomAug, weight: float) -> Source:
         imgs, tgts, pts = [], [], []
         for s in samples:
             img = s.image()
@@ -63,9 +65,13 @@ def load_sources(shared: Path) -> list[Source]:
             pts.append(s.points)
         return Source(name, imgs, tgts, pts, aug, weight)
 
+    def boxes_target(s: D.Sample, hw: tuple[int, int]) -> np.ndarray:
+        assert s.boxes is not None, f"{s.name} has no person boxes"  # every semantic_drone sample has
+        return box_target(hw, s.boxes)
+
     sources = [
         # Whole people from 5-30 m, straight down: the target domain.
-        build("semantic_drone", sd, lambda s, hw: box_target(hw, s.boxes), GeomAug((0.4, 1.6), True, 0.7), 0.45),
+        build("semantic_drone", sd, boxes_target, GeomAug((0.4, 1.6), True, 0.7), 0.45),
         # Tiny people from 40-60 m (20 px head boxes at 1920x1080).
         build("dronecrowd", dc, lambda s, hw: point_target(hw, s.points, sigma=5.0), GeomAug((0.7, 1.4), True, 0.7), 0.2),
         # Dense street crowds, shrunk toward the size of people seen from a drone.

@@ -19,7 +19,8 @@ may put ``origin_down_m()`` metres below home (world down); horizontally it is h
 Package layout, one concern per module (``Autopilot`` combines the mixins):
 
 - ``base``: shared types and helpers (``Behaviour``, ``Channel``, ``StreamSchedule``,
-  ``AutopilotConfig``, ``GeoFrame``, ``Setpoint``, ``quaternion_from_euler``);
+  ``AutopilotConfig``, ``GeoFrame``, ``Setpoint``, ``quaternion_from_euler``) and
+  ``AutopilotHost``, what the mixins call on one another and on the flavour;
 - ``modes``: mode/behaviour switching, arming, takeoff, landing and RTL sequences;
 - ``commands``: incoming-message dispatch, COMMAND_LONG/COMMAND_INT with their COMMAND_ACK,
   SET_MODE, position-target parsing;

@@ -3,7 +3,8 @@
 Units and frames are those of the package (see ``sim.autopilot``): world = local NED metres from
 home, ground ``z = 0``; MAVLink units are converted at the message boundary only; times are
 seconds of the simulator clock. The mixin modules (``modes``, ``commands``, ``params``,
-``telemetry``, ``failsafes``) take their shared types from here and never import each other.
+``telemetry``, ``failsafes``) take their shared types from here and never import each other;
+what they call on one another through ``self`` is declared here too (``AutopilotHost``).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol, TypeAlias
 
 import numpy as np
 from geographiclib.geodesic import Geodesic
@@ -19,7 +20,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim.faults import Failsafe
 
-MAVMessage = mav.MAVLink_message
+MAVMessage: TypeAlias = mav.MAVLink_message  # pymavlink is untyped: an alias of Any to mypy
 
 R = mav  # short alias for enum constants
 
@@ -159,6 +160,79 @@ class Setpoint:
     position: np.ndarray | None = None
     velocity: np.ndarray | None = None
     yaw: float | None = None
+
+
+class AutopilotHost(Protocol):
+    """What the mixins call through ``self`` on one another and on the flavour.
+
+    ``Autopilot`` (``core``) combines the mixins and declares the flavour hooks; ``sim.ardupilot``
+    and ``sim.px4`` fill them in. Each mixin declares the state it reads itself; what it uses of
+    a sibling mixin or of the flavour is declared here, once, with its real signature.
+    """
+
+    # ----- the flavour: class constants and hooks (``core.Autopilot``, ``sim.ardupilot``, ``sim.px4``)
+
+    FLAVOUR: str
+    MAV_AUTOPILOT: int
+
+    def behaviour_of(self, custom_mode: int) -> Behaviour | None: ...
+
+    def mode_for(self, behaviour: Behaviour) -> int: ...
+
+    def mode_name(self, custom_mode: int | None = None) -> str: ...
+
+    def mode_from_command(self, main: float, sub: float) -> int: ...
+
+    def request_mode(self, custom_mode: int) -> int: ...
+
+    def base_mode_flags(self) -> int: ...
+
+    def default_rates(self) -> dict[int, float]: ...
+
+    def handle_setpoint(self, sp: Setpoint) -> None: ...
+
+    def origin_down_m(self) -> float: ...
+
+    def global_target_down(self, frame: int, alt: float) -> float | None: ...
+
+    # ----- ``modes``
+
+    @property
+    def behaviour(self) -> Behaviour: ...
+
+    @property
+    def flying(self) -> bool: ...
+
+    def set_mode(self, custom_mode: int) -> None: ...
+
+    def arm(self) -> None: ...
+
+    def disarm(self) -> None: ...
+
+    def can_arm(self) -> bool: ...
+
+    # ----- ``telemetry``
+
+    def known_messages(self) -> set[int]: ...
+
+    def build(self, msg_id: int) -> MAVMessage | None: ...
+
+    def _say(self, severity: int, text: str) -> None: ...
+
+    # ----- ``params`` and ``failsafes``
+
+    def _handle_param(self, msg: MAVMessage, channel: Channel) -> None: ...
+
+    def on_peer_heartbeat(self, msg: MAVMessage) -> None: ...
+
+
+if TYPE_CHECKING:
+    # To the type checker each mixin is an ``AutopilotHost``, so that it may call what a sibling
+    # or the flavour provides; at run time a mixin is a plain class and ``Autopilot`` brings the
+    # parts together.
+    MixinBase = AutopilotHost
+else:
+    MixinBase = object
 
 
 

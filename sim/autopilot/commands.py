@@ -20,6 +20,7 @@ from sim.autopilot.base import (
     Channel,
     GeoFrame,
     MAVMessage,
+    MixinBase,
     R,
     Setpoint,
 )
@@ -34,7 +35,7 @@ _IGNORE_ACC = 0b111 << 6
 _IGNORE_YAW = 1 << 10
 
 
-class CommandsMixin(ABC):
+class CommandsMixin(ABC, MixinBase):
     """What the autopilot does with a message from a peer (part of ``Autopilot``)."""
 
     # Set by ``Autopilot.__init__``.
@@ -126,9 +127,11 @@ class CommandsMixin(ABC):
         """Steer the vehicle with a setpoint (the caller checked the mode)."""
         v = self.vehicle
         if sp.position is not None:
-            v.fly_to(*sp.position, yaw=sp.yaw)
+            north, east, down = sp.position
+            v.fly_to(north, east, down, yaw=sp.yaw)
         elif sp.velocity is not None:
-            v.fly_velocity(*sp.velocity, yaw=sp.yaw)
+            vn, ve, vd = sp.velocity
+            v.fly_velocity(vn, ve, vd, yaw=sp.yaw)
 
     def _ack(self, channel: Channel, msg: MAVMessage, result: int) -> None:
         channel.send(mav.MAVLink_command_ack_message(
@@ -170,7 +173,7 @@ class CommandsMixin(ABC):
         if result is not None:
             self._ack(channel, msg, result)
 
-    def _cmd_set_message_interval(self, p, channel, msg, is_int) -> int:
+    def _cmd_set_message_interval(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         msg_id, interval_us = int(p[0]), float(p[1])
         if msg_id not in self.known_messages():
             return R.MAV_RESULT_DENIED
@@ -182,14 +185,14 @@ class CommandsMixin(ABC):
             channel.streams.set_interval(msg_id, interval_us / 1e6, self.now)
         return R.MAV_RESULT_ACCEPTED
 
-    def _cmd_get_message_interval(self, p, channel, msg, is_int) -> int:
+    def _cmd_get_message_interval(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         msg_id = int(p[0])
         if msg_id not in self.known_messages():
             return R.MAV_RESULT_DENIED
         channel.send(mav.MAVLink_message_interval_message(msg_id, channel.streams.interval_us(msg_id)))
         return R.MAV_RESULT_ACCEPTED
 
-    def _cmd_request_message(self, p, channel, msg, is_int) -> int | None:
+    def _cmd_request_message(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int | None:
         msg_id = int(p[0])
         out = self.build(msg_id)
         if out is None:
@@ -199,17 +202,17 @@ class CommandsMixin(ABC):
         channel.send(out)
         return None
 
-    def _cmd_request_capabilities(self, p, channel, msg, is_int) -> int | None:
+    def _cmd_request_capabilities(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int | None:
         self._ack(channel, msg, R.MAV_RESULT_ACCEPTED)
         channel.send(self.build(mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION))
         return None
 
-    def _cmd_get_home(self, p, channel, msg, is_int) -> int | None:
+    def _cmd_get_home(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int | None:
         self._ack(channel, msg, R.MAV_RESULT_ACCEPTED)
         channel.send(self.build(mav.MAVLINK_MSG_ID_HOME_POSITION))
         return None
 
-    def _cmd_arm_disarm(self, p, channel, msg, is_int) -> int:
+    def _cmd_arm_disarm(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         force = int(p[1]) == 21196
         if p[0] >= 0.5:
             if self.vehicle.state.armed:
@@ -230,20 +233,20 @@ class CommandsMixin(ABC):
         return R.MAV_RESULT_FAILED
 
     @abstractmethod
-    def _cmd_takeoff(self, p, channel, msg, is_int) -> int: ...
+    def _cmd_takeoff(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int: ...
 
-    def _cmd_land(self, p, channel, msg, is_int) -> int:
+    def _cmd_land(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         return self.request_mode(self.mode_for(Behaviour.LAND))
 
-    def _cmd_rtl(self, p, channel, msg, is_int) -> int:
+    def _cmd_rtl(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         return self.request_mode(self.mode_for(Behaviour.RTL))
 
-    def _cmd_set_mode(self, p, channel, msg, is_int) -> int:
+    def _cmd_set_mode(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         if not int(p[0]) & R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return R.MAV_RESULT_UNSUPPORTED  # base-mode-only changes are not supported by either
         return self.request_mode(self.mode_from_command(p[1], p[2]))
 
-    def _reposition_target(self, p, is_int: bool, frame: int) -> np.ndarray:
+    def _reposition_target(self, p: list[float], is_int: bool, frame: int) -> np.ndarray:
         s = self.vehicle.state
         target = s.position.copy()
         lat = p[4] / 1e7 if is_int else p[4]
@@ -257,9 +260,9 @@ class CommandsMixin(ABC):
         return target
 
     @abstractmethod
-    def _cmd_reposition(self, p, channel, msg, is_int) -> int: ...
+    def _cmd_reposition(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int: ...
 
-    def _cmd_change_speed(self, p, channel, msg, is_int) -> int:
+    def _cmd_change_speed(self, p: list[float], channel: Channel, msg: MAVMessage, is_int: bool) -> int:
         speed = float(p[1])
         if not math.isfinite(speed) or speed == -1:
             return R.MAV_RESULT_ACCEPTED

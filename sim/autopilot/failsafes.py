@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from sim.autopilot.base import AutopilotConfig, Behaviour, MAVMessage, R
+from sim.autopilot.base import AutopilotConfig, Behaviour, MAVMessage, MixinBase, R
 from sim.faults import Failsafe
 from sim.vehicle import Vehicle
 
 
-class FailsafesMixin:
+class FailsafesMixin(MixinBase):
     """Failsafe detection results and what the autopilot does about them (part of ``Autopilot``)."""
 
     # Set by ``Autopilot.__init__``.

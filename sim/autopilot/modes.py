@@ -8,14 +8,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from sim.autopilot.base import AutopilotConfig, Behaviour
+from sim.autopilot.base import AutopilotConfig, Behaviour, MixinBase
 from sim.faults import Failsafe
 from sim.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
 
 
-class ModesMixin:
+class ModesMixin(MixinBase):
     """What a mode does to the vehicle and the arm/disarm state (part of ``Autopilot``)."""
 
     # Set by ``Autopilot.__init__``.
@@ -58,7 +58,8 @@ class ModesMixin:
         elif b is Behaviour.RTL:
             self._rtl_phase = "climb"
             if self.flying:
-                v.fly_to(*v.state.position[:2], min(v.state.position[2], -self.config.rtl_alt))
+                north, east = v.state.position[:2]
+                v.fly_to(north, east, min(v.state.position[2], -self.config.rtl_alt))
         elif b in (Behaviour.HOLD, Behaviour.MANUAL, Behaviour.GUIDED):
             if self.flying:
                 v.hold()
@@ -72,7 +73,8 @@ class ModesMixin:
         if v.state.land_complete:
             v.take_off(altitude)
         else:
-            v.fly_to(*v.state.position[:2], -abs(altitude))
+            north, east = v.state.position[:2]
+            v.fly_to(north, east, -abs(altitude))
         return True
 
     def arm(self) -> None:

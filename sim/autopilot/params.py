@@ -6,10 +6,10 @@ import math
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from sim.autopilot.base import AutopilotConfig, Channel, MAVMessage, R
+from sim.autopilot.base import AutopilotConfig, Channel, MAVMessage, MixinBase, R
 
 
-class ParamsMixin:
+class ParamsMixin(MixinBase):
     """PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET (part of ``Autopilot``)."""
 
     # Set by ``Autopilot.__init__``.

@@ -11,6 +11,7 @@ from sim.autopilot.base import (
     Behaviour,
     GeoFrame,
     MAVMessage,
+    MixinBase,
     R,
     StreamSchedule,
     quaternion_from_euler,
@@ -19,7 +20,7 @@ from sim.faults import Failsafe
 from sim.vehicle import Demand, Vehicle
 
 
-class TelemetryMixin:
+class TelemetryMixin(MixinBase):
     """The messages the autopilot sends and the states they report (part of ``Autopilot``)."""
 
     # Set by ``Autopilot.__init__``.

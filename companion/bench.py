@@ -18,15 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from companion import synthetic
+from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.pipeline.slz import STAGES, DensityFn, PipelineConfig, SLZPipeline
 
 RESOLUTIONS = ((640, 480), (1280, 720))
-
-
-def default_model_path() -> Path:
-    """The shipped model, found beside the package in a source checkout."""
-    return Path(__file__).resolve().parent.parent / "models" / "slz-density.onnx"
 
 
 def _stats(values: list[float]) -> dict[str, float]:
@@ -79,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     model = None
     if not args.no_model:
-        path = args.model or default_model_path()
+        path = args.model or SHIPPED_MODEL
         if args.model is not None or path.is_file():
             from companion.pipeline.density import DensityModel, DensityModelError
 

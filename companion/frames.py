@@ -38,3 +38,12 @@ def read_image(path: Path) -> np.ndarray | None:
     """One image file as BGR uint8, or None when it cannot be decoded as one."""
     return as_bgr(cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
 
+
+def read_video_frame(cap: cv2.VideoCapture) -> tuple[bool, np.ndarray | None]:
+    """The next frame of an open capture: (False, None) when it gives none (the end of a file, a
+    failed device or decoder), else (True, the frame as BGR uint8, or None when it is not an
+    image)."""
+    ok, image = cap.read()
+    if not ok:
+        return False, None
+    return True, as_bgr(image)

@@ -23,9 +23,10 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
+from companion.config import SHIPPED_MODEL
 from companion.evaluation import datasets as D
 from companion.evaluation.metrics import SetResult, bench_frame, evaluate_set, latency_ms, latency_pair_ms
-from companion.pipeline.density import DensityModel, DensityModelError
+from companion.pipeline.density import DensityModel, DensityModelError, resolve_threshold
 
 REPO = Path(__file__).resolve().parents[2]
 PRESETS: dict[str, dict[str, object]] = {
@@ -45,7 +46,7 @@ def _default_shared() -> Path:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--model", type=Path, default=REPO / "models" / "slz-density.onnx", help="ONNX density model")
+    parser.add_argument("--model", type=Path, default=SHIPPED_MODEL, help="ONNX density model (default: the shipped one)")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="none", help="settings of a known model family")
     g = parser.add_argument_group("overrides of the model's metadata")
     g.add_argument("--color", choices=["bgr", "rgb", "gray"])
@@ -97,7 +98,7 @@ def _datasets(shared: Path, sets: list[str], mall_step: int, limit: int) -> dict
 
 def measure(model: DensityModel, data: dict[str, list[D.Sample]], latency_runs: int) -> dict[str, Any]:
     """All figures of one model as a JSON-able dict."""
-    thr = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
+    thr = resolve_threshold(None, model.spec)
     sets: dict[str, SetResult] = {}
     for name, samples in data.items():
         counting = name in ("shanghaitech_b_test", "mall")

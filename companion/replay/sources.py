@@ -16,7 +16,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from companion.frames import IMAGE_SUFFIXES, as_bgr, image_files, read_image
+from companion.frames import IMAGE_SUFFIXES, as_bgr, image_files, read_image, read_video_frame
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.recording import RecordingError, RecordingReader
 
@@ -104,7 +104,7 @@ def open_video(path: Path, fps: float | None) -> ReplaySource:
         try:
             i = 0
             while True:
-                ok, image = cap.read()
+                ok, img = read_video_frame(cap)
                 if not ok:
                     # A decoder failure and the end of the file look alike to OpenCV; past the
                     # announced length it is the end, before it the rest of the file is lost.
@@ -113,7 +113,6 @@ def open_video(path: Path, fps: float | None) -> ReplaySource:
                                           f"{path}: frame {i} could not be decoded; "
                                           f"the remaining {count - i - 1} frame(s) are lost")
                     return
-                img = as_bgr(image)
                 yield ReplayFrame(i, i / rate, img, None,
                                   None if img is not None else f"{path}: frame {i} is not an image")
                 i += 1

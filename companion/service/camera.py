@@ -36,7 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion.frames import IMAGE_SUFFIXES, as_bgr, image_files, read_image
+from companion.frames import IMAGE_SUFFIXES, image_files, read_image, read_video_frame
 
 log = logging.getLogger(__name__)
 
@@ -161,10 +161,9 @@ class _CvReader(_Reader):
     def read(self) -> tuple[_Status, np.ndarray | None]:
         if self.pacer is not None:
             self.pacer.wait()
-        ok, image = self.cap.read()
+        ok, bgr = read_video_frame(self.cap)
         if not ok:
             return (_Status.FAIL if self.live else _Status.END), None
-        bgr = as_bgr(image)
         return (_Status.OK, bgr) if bgr is not None else (_Status.CORRUPT, None)
 
     def close(self) -> None:

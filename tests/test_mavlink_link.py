@@ -306,6 +306,35 @@ async def test_serial_open_errors_are_clear():
         await busy.close()
 
 
+async def test_one_forged_packet_with_a_far_future_timestamp_does_not_lock_out_the_genuine_stream():
+    # pymavlink stores a stream's timestamp before verifying the signature: one keyless packet
+    # stamped ten years ahead made every genuine packet "old" and the link never recovered.
+    key = parse_signing_key("correct horse battery staple")
+    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, signing_key=key, **FAST))
+    await link.start()
+    genuine = MavPeer(signing_key=key)
+    forger = MavPeer(signing_key=parse_signing_key("not the key"))  # same system, component, link id
+    forger.mav.signing.timestamp += 10 * 365 * 86400 * 100_000  # ten years ahead, in 10 us units
+    try:
+        await genuine.connect_udp(link.local_address)
+        genuine.start_heartbeats(0.05)
+        await link.wait_connected(2.0)
+        await forger.connect_udp(link.local_address)
+        rejected = link.stats.unsigned_rejected
+        forger.heartbeat()
+        await until(lambda: link.stats.unsigned_rejected > rejected)
+        before = link.stats.received
+        await asyncio.sleep(FAST["heartbeat_timeout_s"] * 2)
+        # The genuine stream goes on being accepted (30 heartbeats in 1.5 s at 20 Hz, say) and the
+        # link never drops.
+        assert link.stats.received - before >= 10
+        assert link.connected and link.stats.link_losses == 0
+    finally:
+        for p in (genuine, forger):
+            await p.close()
+        await link.close()
+
+
 async def test_signing_accepts_only_signed_packets():
     key = parse_signing_key("correct horse battery staple")
     assert len(key) == 32 and parse_signing_key("ab" * 32) == bytes.fromhex("ab" * 32)

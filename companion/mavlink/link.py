@@ -194,13 +194,44 @@ class _Writer:
         self._link._write(bytes(buf))
 
 
+class _VerifyFirstMAVLink(mavlink2.MAVLink):
+    """pymavlink's codec with signatures checked before a stream's timestamp is stored.
+
+    pymavlink (2.4.x) records a packet's signing timestamp for its stream *before* it verifies
+    the signature, so one keyless packet with a far-future timestamp made every later genuine
+    packet of that stream "old": the link went down and never recovered (issue 12, item 3). Here
+    the signature is verified first; only an authentic packet moves the stream's timestamp.
+    """
+
+    def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
+        signing = self.signing
+        assert signing.secret_key is not None
+        h = hashlib.new("sha256")
+        h.update(signing.secret_key)
+        h.update(msgbuf[:-6])
+        if h.digest()[:6] != msgbuf[-6:]:
+            return False  # forged or corrupt: it must not touch any stream's state
+        tlow, thigh = self.mav_sign_unpacker.unpack(msgbuf[-12:-6])
+        timestamp = tlow + (thigh << 32)
+        stream_key = (msgbuf[-13], srcSystem, srcComponent)
+        last = signing.stream_timestamps.get(stream_key)
+        if last is not None:
+            if timestamp <= last:
+                return False  # a replay of an old packet
+        elif timestamp + 6000 * 1000 < signing.timestamp:
+            return False  # a new stream more than a minute behind us
+        signing.stream_timestamps[stream_key] = timestamp
+        signing.timestamp = max(signing.timestamp, timestamp)
+        return True
+
+
 class MavLink:
     """One MAVLink connection to a flight controller. Use ``async with MavLink(cfg) as link``."""
 
     def __init__(self, config: LinkConfig) -> None:
         self.config = config
         self.stats = LinkStats()
-        self._mav = mavlink2.MAVLink(_Writer(self), srcSystem=config.system_id, srcComponent=config.component_id)
+        self._mav = _VerifyFirstMAVLink(_Writer(self), srcSystem=config.system_id, srcComponent=config.component_id)
         self._mav.robust_parsing = True
         if config.signing_key is not None:
             signing = self._mav.signing

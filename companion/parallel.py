@@ -8,7 +8,8 @@ module is that, once:
 - ``workers=N``: a ``ProcessPoolExecutor`` of N processes started with ``spawn`` (each item gets
   a clean interpreter state: no inherited event loop, threads or sockets);
 - ``ray_address``: each item is a Ray task needing ``cpus_per_task`` CPUs, on the cluster at that
-  address, or a local Ray instance started here for ``"auto"``. Ray is the optional extra
+  address; ``"auto"`` is ``ray.init()`` without an address: the cluster in ``RAY_ADDRESS`` or one
+  started with ``ray start`` on this machine, else a local instance started here. Ray is the optional extra
   ``scale`` (``pip install '.[scale]'``); without it a clear :class:`ParallelError` says so.
 
 ``fn`` must be a module-level function (it is pickled) and its results picklable. An exception
@@ -75,7 +76,8 @@ def _ray(fn: Callable[[T], R], items: Sequence[T], address: str, cpus_per_task: 
     if started_here:
         try:
             if address == "auto":
-                # A local instance, on loopback, owned by this run (shut down at the end).
+                # RAY_ADDRESS or a `ray start` cluster on this machine, else a local instance on
+                # loopback owned by this run (shut down at the end).
                 ray.init(include_dashboard=False, log_to_driver=False)
             else:
                 ray.init(address=address, log_to_driver=False)

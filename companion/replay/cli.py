@@ -1,15 +1,19 @@
 """``companion replay``: the pipeline offline over a recording, a video or a folder of frames.
 
 Exit status: 0 when frames were processed, 1 when none could be, 2 for an unusable input, model,
-projection or output (the message names the file and the problem). See docs/replay.md.
+projection or output (the message names the file and the problem). With several inputs (a
+fleet's recordings, ``--out-dir``): 0 when every input replayed, 1 when some failed, 2 when none
+could (see companion/replay/batch.py). See docs/replay.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +23,7 @@ from companion.control.planner import ZonePlanner
 from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.density import DensityModel, DensityModelError
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
+from companion.replay import batch
 from companion.replay.homography import HomographyFileError, projection_from_file
 from companion.replay.runner import ReplayOutputError, ReplayOutputs, VideoOut, replay
 from companion.replay.sources import KINDS, ReplayInputError, ReplaySource, open_input
@@ -33,8 +38,10 @@ def _key_value(text: str) -> tuple[str, str]:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", type=Path,
-                        help="a flight recording, a video file, or a folder of image frames")
+    parser.add_argument("inputs", nargs="+", metavar="INPUT",
+                        help="a flight recording, a video file, or a folder of image frames; "
+                             "several (a fleet's recordings) need --out-dir; shell-style patterns "
+                             "such as 'recordings/*/' are expanded")
     parser.add_argument("--input-kind", choices=KINDS, default="auto",
                         help="what INPUT is (default: guessed: folder of images = frames, video "
                              "suffix = video, else a recording)")
@@ -84,10 +91,25 @@ def configure(parser: argparse.ArgumentParser) -> None:
     out.add_argument("--summary-json", type=Path, default=None, help="also write the summary as JSON")
     out.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                      help="progress bar on stderr (default: only when stderr is a terminal)")
+    many = parser.add_argument_group("several inputs (a fleet's recordings)")
+    many.add_argument("--out-dir", type=Path, default=None,
+                      help="one folder per input under DIR (frames.jsonl, summary.json, the video "
+                           "with --videos) and the summary table DIR/summary.json, DIR/summary.csv; "
+                           "required with several inputs")
+    many.add_argument("--videos", action="store_true",
+                      help=f"also write each input's annotated video (DIR/NAME/{batch.VIDEO_NAME})")
+    many.add_argument("--workers", type=batch.parse_workers, default=1, metavar="N|auto",
+                      help="replay N inputs at a time in worker processes (default 1: one after "
+                           "another in this process; auto: as many as the CPUs hold at --threads each)")
+    many.add_argument("--ray", default=None, metavar="ADDRESS|auto",
+                      help="run each input as a Ray task on the cluster at ADDRESS (auto: the one "
+                           "ray.init() finds, else a local Ray started here); needs the extra: "
+                           "pip install '.[scale]'")
 
 
-class _Fail(Exception):
-    """A user-facing error: message for stderr, exit status 2."""
+class _Fail(batch.InputFailed):
+    """A user-facing error: message for stderr, exit status 2 (with several inputs: the message
+    of the input's row)."""
 
 
 def _projection(args: argparse.Namespace) -> PlaneProjection | None:
@@ -172,20 +194,40 @@ def _config(cfg: Config, model: DensityModel) -> PipelineConfig:
         raise _Fail(str(exc)) from None
 
 
-def _run(args: argparse.Namespace) -> int:
+@dataclass(frozen=True)
+class OutputPaths:
+    """Where one replay writes (each optional): ``--jsonl``, ``--masks``, ``--video-out``."""
+
+    jsonl: Path | None = None
+    masks: Path | None = None
+    video: Path | None = None
+
+
+def _check_options(args: argparse.Namespace) -> PlaneProjection | None:
+    """The option errors that do not depend on the input (raised before any input is opened);
+    the fixed projection, if any."""
     if args.max_frames is not None and args.max_frames < 1:
         raise _Fail(f"--max-frames must be >= 1, got {args.max_frames}")
-    projection = _projection(args)
+    return _projection(args)
+
+
+def replay_input(args: argparse.Namespace, path: Path, out: OutputPaths,
+                 progress: bool | None) -> dict[str, Any]:
+    """Replay one input with the command's options into ``out``: the summary dict (with
+    ``input``, ``model``, ``occupancy_threshold``, ``r_0`` and ``settings``); a problem with the
+    input, the options, the model or an output raises :class:`_Fail` naming it. The one code path
+    of a single replay and of each input of several."""
+    projection = _check_options(args)
     try:
-        source = open_input(args.input, args.input_kind, args.fps)
+        source = open_input(path, args.input_kind, args.fps)
     except ReplayInputError as exc:
         raise _Fail(str(exc)) from None
     use_pose = projection is None
     if use_pose and source.kind != "recording":
-        raise _Fail(f"{args.input} has no poses ({source.kind}): give --nadir --gsd M or "
+        raise _Fail(f"{path} has no poses ({source.kind}): give --nadir --gsd M or "
                     "--homography FILE")
     if use_pose and source.intrinsics is None:
-        raise _Fail(f"recording {args.input} has no camera intrinsics: give --nadir --gsd M or "
+        raise _Fail(f"recording {path} has no camera intrinsics: give --nadir --gsd M or "
                     "--homography FILE")
     cfg, origin = _settings(args, source)
     model = _load_model(args, cfg, origin.startswith("the recording"))
@@ -195,44 +237,97 @@ def _run(args: argparse.Namespace) -> int:
                        mount=source.mount if use_pose else None, projection=projection)
 
     video = None
-    if args.video_out is not None:
+    if out.video is not None:
         rate = args.video_fps or source.fps or 10.0
         if not (math.isfinite(rate) and rate > 0):
             raise _Fail(f"--video-fps must be > 0, got {rate!r}")
-        video = VideoOut(args.video_out, rate)
+        video = VideoOut(out.video, rate)
     jsonl = None
     try:
-        if args.jsonl is not None:
+        if out.jsonl is not None:
             try:
-                args.jsonl.parent.mkdir(parents=True, exist_ok=True)
-                jsonl = open(args.jsonl, "w", encoding="utf-8")
+                out.jsonl.parent.mkdir(parents=True, exist_ok=True)
+                jsonl = open(out.jsonl, "w", encoding="utf-8")
             except OSError as exc:
-                raise _Fail(f"--jsonl: cannot write {args.jsonl}: {exc}") from None
-        if args.masks is not None and args.masks.exists() and not args.masks.is_dir():
-            raise _Fail(f"--masks: {args.masks} exists and is not a folder")
+                raise _Fail(f"--jsonl: cannot write {out.jsonl}: {exc}") from None
+        if out.masks is not None and out.masks.exists() and not out.masks.is_dir():
+            raise _Fail(f"--masks: {out.masks} exists and is not a folder")
         try:
-            summary = replay(source, pipe, ReplayOutputs(jsonl, args.masks, video), use_pose,
-                             max_frames=args.max_frames, progress=args.progress, planner=planner)
+            summary = replay(source, pipe, ReplayOutputs(jsonl, out.masks, video), use_pose,
+                             max_frames=args.max_frames, progress=progress, planner=planner)
         except ReplayOutputError as exc:
             raise _Fail(str(exc)) from None
     finally:
         if jsonl is not None:
             jsonl.close()
-    summary["input"] = {"path": str(args.input), "kind": source.kind}
+    summary["input"] = {"path": str(path), "kind": source.kind}
     summary["model"] = str(model.path)
     summary["occupancy_threshold"] = config.occupancy.threshold
     summary["r_0"] = config.r0_m
     summary["settings"] = origin
+    return summary
+
+
+def write_summary_json(path: Path, summary: dict[str, Any], what: str = "--summary-json") -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    except OSError as exc:
+        raise _Fail(f"{what}: cannot write {path}: {exc}") from None
+
+
+def replay_job(job: batch.ReplayJob) -> dict[str, Any]:
+    """One input of several (run by :func:`companion.parallel.fan_out`, maybe in another process):
+    :func:`replay_input` into the input's folder, its ``summary.json`` written there."""
+    if not logging.getLogger().handlers:  # a fresh worker process: log as `companion` does
+        logging.basicConfig(level=getattr(logging, getattr(job.options, "log_level", "INFO")),
+                            format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    outputs = OutputPaths(jsonl=job.out / batch.FRAMES_NAME,
+                          video=job.out / batch.VIDEO_NAME if job.videos else None)
+    with batch.log_prefix(job.name):
+        summary = replay_input(job.options, Path(job.input), outputs, job.progress)
+    write_summary_json(job.out / batch.SUMMARY_NAME, summary, "summary")
+    return summary
+
+
+_ONE_FILE_OPTIONS = (("jsonl", "--jsonl"), ("masks", "--masks"), ("video_out", "--video-out"),
+                     ("summary_json", "--summary-json"))
+
+
+def _run_many(args: argparse.Namespace, inputs: list[batch.Input]) -> int:
+    if args.out_dir is None:
+        raise _Fail(f"{len(inputs)} inputs: give --out-dir DIR (one folder per input and a summary "
+                    "table there)")
+    for attr, flag in _ONE_FILE_OPTIONS:
+        if getattr(args, attr) is not None:
+            raise _Fail(f"{flag} names one file; with --out-dir every input gets its own "
+                        f"(DIR/NAME/{batch.FRAMES_NAME}, {batch.SUMMARY_NAME}, --videos)")
+    _check_options(args)
+    if args.out_dir.exists() and not args.out_dir.is_dir():
+        raise _Fail(f"--out-dir: {args.out_dir} exists and is not a folder")
+    try:
+        return batch.run(inputs, args, replay_job, out_dir=args.out_dir, videos=args.videos,
+                         workers=args.workers, ray_address=args.ray, threads=args.threads)
+    except batch.BatchError as exc:
+        raise _Fail(str(exc)) from None
+
+
+def _run(args: argparse.Namespace) -> int:
+    inputs = batch.expand_inputs(args.inputs)
+    if len(inputs) != 1 or args.out_dir is not None:
+        return _run_many(args, inputs)
+    if inputs[0].problem is not None:
+        raise _Fail(inputs[0].problem)
+    if args.videos:
+        raise _Fail("--videos is for several inputs (with --out-dir); give --video-out FILE")
+    path = Path(inputs[0].path)
+    summary = replay_input(args, path, OutputPaths(args.jsonl, args.masks, args.video_out), args.progress)
     print(format_summary(summary))
-    print(f"settings: from {origin}")
+    print(f"settings: from {summary['settings']}")
     if args.summary_json is not None:
-        try:
-            args.summary_json.parent.mkdir(parents=True, exist_ok=True)
-            args.summary_json.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-        except OSError as exc:
-            raise _Fail(f"--summary-json: cannot write {args.summary_json}: {exc}") from None
+        write_summary_json(args.summary_json, summary)
     if summary["frames"] == 0:
-        print(f"companion replay: error: no frame of {args.input} could be processed "
+        print(f"companion replay: error: no frame of {path} could be processed "
               f"({summary['frames_skipped']} skipped)", file=sys.stderr)
         return 1
     return 0

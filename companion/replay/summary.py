@@ -18,6 +18,11 @@ class SummaryBuilder:
 
     A target switch is the landing target changing from one track id to another (losing the
     target to none is not a switch; the next target, if a different id, is).
+
+    Time on target: a frame's target is held from its time until the next processed frame's (a
+    gap of skipped frames counts as held, as the controller keeps its target); the last frame
+    holds it for the median interval between processed frames (0 for a single frame). For
+    evenly spaced frames with none skipped this is ``frames_with_target / fps``.
     """
 
     frames: int = 0
@@ -29,12 +34,21 @@ class SummaryBuilder:
     first_t: float | None = None
     last_t: float | None = None
     _last_target: int | None = None
+    on_target_s: float = 0.0
+    intervals: list[float] = field(default_factory=list)
+    _held: bool = False
 
     def add_frame(self, t: float, timings_ms: dict[str, float], target_id: int | None) -> None:
         self.frames += 1
         if self.first_t is None:
             self.first_t = t
+        if self.last_t is not None and math.isfinite(t - self.last_t):
+            dt = max(0.0, t - self.last_t)
+            self.intervals.append(dt)
+            if self._held:
+                self.on_target_s += dt
         self.last_t = t
+        self._held = target_id is not None
         for k in STAGE_KEYS:
             v = timings_ms.get(k)
             if v is not None and math.isfinite(v):
@@ -69,7 +83,13 @@ class SummaryBuilder:
             "frames_with_target": self.frames_with_target,
             "target_switches": self.switches,
             "target_switches_per_min": self.switches / (span_s / 60.0) if span_s > 0 else None,
+            "time_on_target_s": self.time_on_target_s(),
         }
+
+    def time_on_target_s(self) -> float:
+        """Seconds a target was held (see the class docstring)."""
+        last = float(np.median(self.intervals)) if self._held and self.intervals else 0.0
+        return self.on_target_s + last
 
 
 def _fmt(v: float | None, spec: str = ".1f") -> str:

@@ -24,16 +24,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import logging
 import math
 import os
+import random
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
@@ -44,6 +46,7 @@ from companion.geometry.camera import Intrinsics, Mount
 from companion.recording import RecordingError, RecordingReader
 from sim.autopilot import AutopilotConfig
 from sim.camera_server import CameraServer
+from sim.evidence import summarise_rows
 from sim.ground import FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
@@ -55,7 +58,18 @@ log = logging.getLogger("sim.flight")
 WORLDS = ("free_area", "dense", "intrusion", "dronecrowd", "uniform")
 OUTCOMES = ("safe", "unsafe", "handback", "timeout")
 UNIFORM_GROUND_BGR = (70, 140, 95)  # mown grass
-
+#: A flight is **starved** (its CPU, not the software under test, decided it) when its service
+#: processed frames at less than STARVED_SHARE of the camera's rate, from READY to touchdown (or to
+#: the end of the flight), or when the pipeline's time per frame (95th percentile) exceeded
+#: STARVED_FRAME_SHARE of the frame period. Measured on an otherwise idle 2-core machine, 34
+#: sequential flights processed 8.8-9.8 Hz of 10 (the last metre or two of a descent, below the
+#: head plane, gives no usable frames), and the 16 of them timed per frame took 31-38 ms (p95);
+#: two flights at once on those 2 cores kept 8.5-9.8 Hz but took 82-105 ms per frame and changed
+#: verdicts, so the rate alone does not show it: docs/scale.md.
+STARVED_SHARE = 0.7
+STARVED_FRAME_SHARE = 0.5
+#: Where flights on one machine claim their loopback ports (one file per port, holding the pid).
+PORT_CLAIMS_DIR = Path("/tmp/companion-ports")
 
 
 @dataclass(frozen=True)
@@ -126,6 +140,9 @@ class FlightResult:
     max_climb_m: float | None = None  # highest altitude after the trigger less the altitude at it
     service_exit: int | None = None
     log_tail: str = ""
+    processed_fps: float | None = None  # frames the service processed per second, READY to the end
+    starved: bool = False  # the flight's CPU could not keep up (see :func:`starved`)
+    frame_ms_p95: float | None = None  # the pipeline's time per frame (its "total"), 95th percentile
 
     @property
     def took_control(self) -> bool:
@@ -134,6 +151,11 @@ class FlightResult:
     @property
     def handed_back(self) -> bool:
         return "HANDBACK" in self.phases
+
+    @property
+    def struck(self) -> bool:
+        """Touched down with somebody within ``r_0``, whoever landed (companion or autopilot)."""
+        return self.touchdown is not None and (self.clearance_m or 0.0) < self.spec.r0_m
 
     def as_dict(self) -> dict:
         return {
@@ -147,6 +169,10 @@ class FlightResult:
             "trigger_alt_m": None if self.trigger_alt_m is None else round(self.trigger_alt_m, 2),
             "max_climb_m": None if self.max_climb_m is None else round(self.max_climb_m, 2),
             "home_origin_offset_m": round(self.spec.home_origin_offset_m, 3),
+            "r0_m": self.spec.r0_m, "strike": self.struck,
+            "processed_fps": None if self.processed_fps is None else round(self.processed_fps, 2),
+            "starved": self.starved,
+            "frame_ms_p95": None if self.frame_ms_p95 is None else round(self.frame_ms_p95, 1),
             "phases": self.phases, "messages": self.messages,
         }
 
@@ -156,6 +182,128 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+@dataclass
+class PortClaim:
+    """A loopback port this process has claimed node-wide (see :func:`reserve_port`)."""
+
+    port: int
+    path: Path
+
+    def release(self) -> None:
+        """Give the port back (only our own claim is removed)."""
+        with contextlib.suppress(OSError):
+            if self.path.read_text().strip() == str(os.getpid()):
+                self.path.unlink()
+
+    def __enter__(self) -> PortClaim:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+@contextlib.contextmanager
+def _claims_lock(folder: Path) -> Iterator[None]:
+    # Every claim is made under this lock, so that taking over a dead process's claim (check,
+    # remove, create) cannot race another claim of the same port; creating one is atomic on its
+    # own (O_EXCL). The kernel releases a flock whose holder dies.
+    fd = os.open(folder / ".lock", os.O_CREAT | os.O_RDWR, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _claim_alive(path: Path) -> bool:
+    try:
+        pid = int(path.read_text().strip() or "0")
+    except (OSError, ValueError):
+        return False  # unreadable or half written by a process that died writing it
+    if pid <= 0:
+        return False
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # somebody else's live process
+    return True
+
+
+def claim_port(port: int, folder: Path | None = None) -> PortClaim | None:
+    """Claim ``port`` for this process, node-wide, or None when a live process holds it.
+
+    The claim is the file ``folder/<port>`` created with ``O_CREAT | O_EXCL`` (atomic on a local
+    file system: of two processes creating it at once exactly one succeeds) holding our pid. A
+    claim whose pid is dead (a crashed flight) is taken over."""
+    folder = port_claims_dir() if folder is None else folder
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / str(port)
+    with _claims_lock(folder):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            if _claim_alive(path):
+                return None
+            path.unlink(missing_ok=True)
+            try:
+                fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                return None
+        with os.fdopen(fd, "w") as f:
+            f.write(f"{os.getpid()}\n")
+    return PortClaim(port, path)
+
+
+def port_claims_dir() -> Path:
+    """``$COMPANION_PORT_DIR``, else ``/tmp/companion-ports``: one folder per machine."""
+    env = os.environ.get("COMPANION_PORT_DIR")
+    return Path(env) if env else PORT_CLAIMS_DIR
+
+
+def _candidate_range() -> tuple[int, int]:
+    # Below the kernel's ephemeral range, so that no socket bound to port 0 (another flight's
+    # outgoing UDP, an HTTP client) can be handed a port we reserved but have not bound yet.
+    try:
+        lo = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        lo = 32768
+    return (max(1024, lo - 12288), lo - 1) if lo > 4096 else (0, 0)
+
+
+def _bindable(port: int, kind: int) -> bool:
+    with socket.socket(socket.AF_INET, kind) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def reserve_port(kind: int = socket.SOCK_DGRAM, folder: Path | None = None, attempts: int = 500) -> PortClaim:
+    """A loopback port free now and claimed for this process until :meth:`PortClaim.release`.
+
+    Two flights running at once (threads, processes or Ray workers on one machine) never get the
+    same port: each candidate is claimed atomically (:func:`claim_port`) before it is used.
+    Candidates lie below the kernel's ephemeral range (see ``_candidate_range``)."""
+    lo, hi = _candidate_range()
+    rng = random.Random(os.urandom(8))
+    for _ in range(attempts):
+        port = rng.randint(lo, hi) if hi > lo else free_port(kind)
+        if not _bindable(port, kind):
+            continue
+        claim = claim_port(port, folder)
+        if claim is None:
+            continue
+        if _bindable(port, kind):  # still free now that it is ours
+            return claim
+        claim.release()
+    raise RuntimeError(f"no free loopback port could be claimed in {attempts} attempts")
 
 
 def scene_centre(spec: FlightSpec) -> tuple[float, float]:
@@ -229,17 +377,26 @@ class NotifySocket:
         self.sock.close()
 
 
-def recorded_events(record_dir: Path) -> list[dict]:
-    """The landing controller's events (``kind`` "controller") of the flight recorded in
-    ``record_dir`` (its newest run), in order; empty when nothing was recorded."""
+def recorded_events(record_dir: Path, kind: str | None = "controller") -> list[dict]:
+    """The events of one ``kind`` (default the landing controller's, "controller"; None: all) of
+    the flight recorded in ``record_dir`` (its newest run), in order; empty when nothing was
+    recorded."""
     runs = sorted(p.parent for p in record_dir.glob("*/meta.json"))
     if not runs:
         return []
     try:
-        return list(RecordingReader(runs[-1]).events("controller"))
+        return list(RecordingReader(runs[-1]).events(kind))
     except RecordingError as exc:
         log.warning("cannot read the flight recording %s: %s", runs[-1], exc)
         return []
+
+
+def processed_rate(frame_times: list[float], t_from: float, t_to: float) -> float | None:
+    """Frames processed per second between two ``time.monotonic()`` instants (the service's
+    ``zones`` events carry the same clock); None for an empty window."""
+    if not t_to > t_from:
+        return None
+    return sum(t_from <= t <= t_to for t in frame_times) / (t_to - t_from)
 
 
 def judge_events(result: FlightResult, events: list[dict]) -> None:
@@ -266,9 +423,14 @@ async def _pump(stream: asyncio.StreamReader, lines: list[str], sink: TextIO | N
 
 
 async def fly(spec: FlightSpec) -> FlightResult:
-    """Fly one scenario end to end and judge it (see the module docstring)."""
+    """Fly one scenario end to end and judge it (see the module docstring). Its two loopback
+    ports are claimed node-wide for the flight (:func:`reserve_port`), so flights may run at once."""
+    with reserve_port() as link, reserve_port(socket.SOCK_STREAM) as cam:
+        return await _fly(spec, link.port, cam.port)
+
+
+async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     world, free, start = build_world(spec)
-    link_port, cam_port = free_port(), free_port(socket.SOCK_STREAM)
     vp = VehicleParams(land_speed=spec.land_speed)
     sim = Simulator(SimConfig(flavour=spec.flavour, outputs=[f"udpout:127.0.0.1:{link_port}"],
                               start_position=(start[0], start[1], -spec.altitude_m), vehicle=vp,
@@ -297,6 +459,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
             climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.vehicle.altitude)
 
     sim.add_stepper(watch_climb)
+    window: dict[str, float] = {}  # READY and the end of the flight, for the processed frame rate
     lines: list[str] = []
     sink = open(spec.service_log, "w") if spec.service_log is not None else None
     proc = None
@@ -316,6 +479,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
             result.outcome = "timeout"
             result.log_tail = "\n".join(lines[-30:])
             raise RuntimeError("the service did not become ready:\n" + result.log_tail)
+        window["ready"] = time.monotonic()
         if spec.packet_loss > 0:
             sim.set_link_faults(loss=spec.packet_loss)
         await asyncio.sleep(spec.watch_s)
@@ -331,6 +495,7 @@ async def fly(spec: FlightSpec) -> FlightResult:
             if proc.returncode is not None:
                 break
             await asyncio.sleep(0.1)
+        window["end"] = float(touchdown["t"]) if "t" in touchdown else time.monotonic()  # type: ignore[arg-type]
         if "t" in touchdown:
             result.touchdown = touchdown["point"]  # type: ignore[assignment]
             result.clearance_m = float(touchdown["clearance"])  # type: ignore[arg-type]
@@ -355,14 +520,33 @@ async def fly(spec: FlightSpec) -> FlightResult:
             sink.close()
         notify.close()
         # The service has stopped (its recorder closed): its events are all on disk.
-        judge_events(result, recorded_events(record_dir))
+        recorded = recorded_events(record_dir, None)
+        judge_events(result, [e for e in recorded if e.get("kind") == "controller"])
+        zones = [e for e in recorded if e.get("kind") == "zones" and isinstance(e.get("t"), (int, float))]
+        frame_times = [float(e["t"]) for e in zones]
+        frame_ms = [float(e["timings_ms"]["total"]) for e in zones
+                    if isinstance(e.get("timings_ms"), dict) and isinstance(e["timings_ms"].get("total"), (int, float))]
         scratch.cleanup()
     result.log_tail = "\n".join(lines[-40:])
     if "trigger_alt" in climb:
         result.trigger_alt_m = climb["trigger_alt"]
         result.max_climb_m = max(0.0, climb.get("max_alt", climb["trigger_alt"]) - climb["trigger_alt"])
+    if frame_ms:
+        result.frame_ms_p95 = float(np.percentile(frame_ms, 95))
+    if "ready" in window and "end" in window:
+        result.processed_fps = processed_rate(frame_times, window["ready"], window["end"])
+    result.starved = starved(result.processed_fps, result.frame_ms_p95, spec.fps)
     result.outcome = judge(result, spec.r0_m)
     return result
+
+
+def starved(processed_fps: float | None, frame_ms_p95: float | None, fps: float) -> bool:
+    """Whether a flight was starved of CPU: it processed frames at less than ``STARVED_SHARE`` of
+    the camera's ``fps``, or its pipeline took more than ``STARVED_FRAME_SHARE`` of a frame
+    period per frame (95th percentile, ms). Unknown figures do not make it starved."""
+    slow_rate = processed_fps is not None and processed_fps < STARVED_SHARE * fps
+    slow_frames = frame_ms_p95 is not None and frame_ms_p95 > STARVED_FRAME_SHARE * 1000.0 / fps
+    return slow_rate or slow_frames
 
 
 def judge(result: FlightResult, r0_m: float) -> str:
@@ -375,17 +559,7 @@ def judge(result: FlightResult, r0_m: float) -> str:
 
 
 def summarise(results: list[FlightResult]) -> dict:
-    """The scenario runner's figures: counts, the minimum clearance at touchdown of the landings
-    the companion made, and the median time from trigger to touchdown."""
-    counts = {k: sum(r.outcome == k for r in results) for k in OUTCOMES}
-    landed = [r for r in results if r.outcome in ("safe", "unsafe")]
-    clear = [r.clearance_m for r in landed if r.clearance_m is not None]
-    times = [r.time_to_touchdown_s for r in results if r.time_to_touchdown_s is not None]
-    climbs = [r.max_climb_m for r in results if r.max_climb_m is not None]
-    return {
-        "total": len(results), "safe": counts["safe"], "handbacks": counts["handback"],
-        "unsafe": counts["unsafe"], "timeouts": counts["timeout"],
-        "min_clearance_m": round(min(clear), 3) if clear else None,
-        "median_time_to_touchdown_s": round(float(np.median(times)), 2) if times else None,
-        "max_climb_m": round(max(climbs), 2) if climbs else None,
-    }
+    """The scenario runner's figures (``sim.evidence.summarise_rows`` over the flights' rows):
+    counts, the minimum clearance at touchdown of the landings the companion made, the median time
+    from trigger to touchdown, the highest climb, and the rates with their 95 % bounds."""
+    return summarise_rows(r.as_dict() for r in results)

@@ -6,20 +6,41 @@ safe zone at all (the right answer there is a handback). Every flight is judged 
 truth (see ``sim.flight``). Prints safe landings / total, the minimum clearance at touchdown, the
 median time from trigger to touchdown and the handbacks; ``--json`` prints one JSON object with
 ``total, safe, handbacks, unsafe, min_clearance_m, median_time_to_touchdown_s, max_climb_m`` (and
-more; ``max_climb_m`` is the most any flight rose above its altitude at the trigger, on the truth).
+more; ``max_climb_m`` is the most any flight rose above its altitude at the trigger, on the truth),
+with the rates and their exact 95 % bounds of ``sim.evidence``.
+
+At scale (docs/scale.md): ``--workers N`` flies N seeds at once on this machine, ``--ray ADDRESS``
+sends each flight to a Ray cluster as a task (``--ray auto``: a local Ray), each flight with its
+own processes and node-wide claimed ports (``sim.flight.reserve_port``). ``--out FILE.jsonl``
+appends each flight's row as it ends and, run again, flies only the seeds not in it yet; the
+summary is then computed from the file. A flight whose service could not keep its frame rate is
+flagged **starved** and kept out of the clean counts.
+
+Exit status: 0 all flights clean and none unsafe; 1 an unsafe landing (starved or not); 2 bad
+arguments or no way to fan out; 3 no unsafe landing but the evidence is incomplete (a flight
+starved, or could not fly: run again with the same ``--out`` to retry those).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import math
+import resource
+import socket
 import sys
+import time
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
-from sim.flight import FlightResult, FlightSpec, fly, summarise
+from companion.parallel import ParallelError, default_workers, fan_out
+from sim.evidence import ResultsFile, read_rows, row_key, summarise_rows, summary_text
+from sim.flight import FlightSpec, fly
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -61,12 +82,105 @@ def scenario(seed: int, flavour: str | None = None) -> FlightSpec:
                       free_radius_m=radius, failsafe=failsafe, home_origin_offset_m=offset_m)
 
 
+#: CPUs one flight is given by default. A flight averages 0.8-0.9 of a CPU (the service and this
+#: simulator together), but its service runs the density model on ``model.threads`` = 2 threads:
+#: two flights on 2 CPUs each took 2.5 times as long per frame as one alone and changed verdicts
+#: (docs/scale.md), so a flight gets 2.
+CPUS_PER_FLIGHT = 2.0
+
+
+@dataclasses.dataclass(frozen=True)
+class FlightJob:
+    """One flight to fly: a seed's scenario, its autopilot forced or drawn, and (for tests) fields
+    of its :class:`FlightSpec` replaced."""
+
+    seed: int
+    flavour: str | None = None
+    overrides: tuple[tuple[str, Any], ...] = ()
+
+    def spec(self) -> FlightSpec:
+        spec = scenario(self.seed, self.flavour)
+        return dataclasses.replace(spec, **dict(self.overrides)) if self.overrides else spec
+
+    def key(self) -> tuple[int, str]:
+        """Its key in a results file (``sim.evidence.row_key``)."""
+        return self.seed, self.spec().flavour
+
+
+def _cpu_s() -> float:
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def fly_seed(job: FlightJob) -> dict[str, Any]:
+    """Fly one job and return its row: ``FlightResult.as_dict()`` plus the scenario's altitude and
+    failsafe, the flight's wall time, the CPU seconds it used (this process and the service) and
+    the host it flew on. Module-level, for worker processes and Ray tasks."""
+    spec = job.spec()
+    t0, cpu0 = time.monotonic(), _cpu_s()
+    result = asyncio.run(fly(spec))
+    row = result.as_dict()
+    row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
+               wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
+               host=socket.gethostname())
+    return row
+
+
+def plan(jobs: list[FlightJob], done_rows: list[dict[str, Any]]) -> tuple[list[FlightJob], dict[tuple[int, str], dict]]:
+    """The jobs still to fly, and the rows of the others already in a results file (by key; the
+    last row of a key wins)."""
+    done = {row_key(r): r for r in done_rows}
+    wanted = {job.key() for job in jobs}
+    kept = {k: r for k, r in done.items() if k in wanted}
+    return [job for job in jobs if job.key() not in kept], kept
+
+
+def flight_line(row: dict[str, Any]) -> str:
+    """One flight, for people."""
+    def fmt(key: str, form: str) -> str:
+        v = row.get(key)
+        return "-" if v is None else form.format(v)
+
+    starved = "  STARVED" if row.get("starved") else ""
+    return (f"seed {row['seed']:>3} {row['flavour']:<9} {row['world']:<9} alt {fmt('altitude_m', '{:4.1f}')} m "
+            f"-> {row['outcome']:<8} clearance {fmt('clearance_m', '{:.1f} m'):>7}  "
+            f"to touchdown {fmt('time_to_touchdown_s', '{:.0f} s'):>5}  climb {fmt('max_climb_m', '{:.1f} m'):>6}  "
+            f"{fmt('processed_fps', '{:.1f} Hz'):>7}  frame p95 {fmt('frame_ms_p95', '{:.0f} ms'):>6}{starved}")
+
+
+def progress_line(done: int, total: int, flown: int, elapsed_s: float, unsafe: int, starved: int) -> str:
+    """``flights 12/1000, unsafe 0, starved 1, about 3 h 10 min left`` (the time left at this run's
+    pace so far: flights finished per second, whatever flies them)."""
+    left = total - done
+    if flown > 0 and left > 0:
+        s = elapsed_s / flown * left
+        eta = f"about {int(s // 3600)} h {int(s % 3600 // 60)} min left" if s >= 3600 else \
+            f"about {max(1, round(s / 60))} min left"
+    else:
+        eta = "done" if left == 0 else "time left unknown"
+    return f"flights {done}/{total}, unsafe {unsafe}, starved {starved}, {eta}"
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", default="1-10", help="seeds, e.g. 1-50 or 1,4,9-12 (default 1-10)")
     parser.add_argument("--flavour", choices=("ardupilot", "px4"), default=None,
                         help="fly every scenario with this autopilot (default: drawn per seed)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--verbose", action="store_true", help="print each flight's messages")
+    scale = parser.add_argument_group("at scale (docs/scale.md)")
+    scale.add_argument("--workers", type=int, default=None, metavar="N",
+                       help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
+                            "at least 1; 1 = one after another in this process)")
+    scale.add_argument("--ray", default=None, metavar="ADDRESS",
+                       help="send each flight to the Ray cluster at ADDRESS (HOST:6379) as a task; "
+                            "'auto' starts a local Ray (needs the 'scale' extra)")
+    scale.add_argument("--cpus-per-flight", type=float, default=CPUS_PER_FLIGHT, metavar="CPUS",
+                       help=f"CPUs one flight needs (default {CPUS_PER_FLIGHT:g}): sets the default "
+                            "--workers and each Ray task's num_cpus")
+    scale.add_argument("--out", type=Path, default=None, metavar="FILE.jsonl",
+                       help="append each flight's row here as it ends; seeds already in it are not "
+                            "flown again (resume), and the summary is computed from it")
+    scale.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -75,32 +189,90 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"companion sim-scenarios: bad --seeds: {exc}", file=sys.stderr)
         return 2
-    results: list[FlightResult] = []
-    for seed in seeds:
-        spec = scenario(seed, args.flavour)
-        try:
-            res = asyncio.run(fly(spec))
-        except RuntimeError as exc:
-            print(f"seed {seed}: could not fly: {exc}", file=sys.stderr)
-            return 1
-        results.append(res)
-        clear = "-" if res.clearance_m is None else f"{res.clearance_m:.1f} m"
-        ttd = "-" if res.time_to_touchdown_s is None else f"{res.time_to_touchdown_s:.0f} s"
-        climb = "-" if res.max_climb_m is None else f"{res.max_climb_m:.1f} m"
-        print(f"seed {seed:>3} {spec.flavour:<9} {spec.world:<9} alt {spec.altitude_m:4.1f} m "
-              f"-> {res.outcome:<8} clearance {clear:>7}  to touchdown {ttd:>5}  climb {climb:>6}",
-              file=sys.stderr if args.json else sys.stdout, flush=True)
-        if args.verbose:
-            for m in res.messages:
-                print(f"      {m}", file=sys.stderr if args.json else sys.stdout)
-    summary = summarise(results)
-    summary["flights"] = [r.as_dict() for r in results]
-    if args.json:
+    if args.cpus_per_flight <= 0:
+        print("companion sim-scenarios: --cpus-per-flight must be > 0", file=sys.stderr)
+        return 2
+    workers = args.workers if args.workers is not None else default_workers(args.cpus_per_flight)
+    if workers < 1:
+        print("companion sim-scenarios: --workers must be >= 1", file=sys.stderr)
+        return 2
+    jobs = [FlightJob(seed, args.flavour) for seed in dict.fromkeys(seeds)]
+    return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
+                    out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress)
+
+
+def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None = None,
+             cpus_per_flight: float = CPUS_PER_FLIGHT, out: Path | None = None, as_json: bool = False,
+             verbose: bool = False, progress: bool = False) -> int:
+    """Fly the jobs not yet in ``out`` (all of them without one), report each as it ends, then
+    the summary over every job's row; the exit status of the module docstring."""
+    stream = sys.stderr if as_json else sys.stdout
+    previous: list[dict[str, Any]] = []
+    if out is not None:
+        previous, bad = read_rows(out)
+        if bad:
+            print(f"{out}: {bad} unreadable line(s) skipped (a row cut short by a crash?)", file=sys.stderr)
+    todo, kept = plan(jobs, previous)
+    if kept:
+        print(f"{out}: {len(kept)} of {len(jobs)} flights already there; flying the other {len(todo)}",
+              file=sys.stderr)
+    rows: dict[tuple[int, str], dict[str, Any]] = dict(kept)
+    failed: dict[int, str] = {}
+    results = ResultsFile(out) if out is not None else None
+    unsafe = sum(r.get("outcome") == "unsafe" for r in kept.values())
+    starved = sum(bool(r.get("starved")) for r in kept.values())
+    # A live bar on a terminal; one plain line per flight in a log file (no carriage returns).
+    live = progress and bool(todo) and sys.stderr.isatty()
+    bar = tqdm(total=len(jobs), initial=len(kept), unit="flight", desc="flights", file=sys.stderr,
+               disable=not live, dynamic_ncols=True)
+    bar.set_postfix(unsafe=unsafe, starved=starved)
+    t0 = time.monotonic()
+    try:
+        for job, res in fan_out(fly_seed, todo, workers=workers, ray_address=ray_address,
+                                cpus_per_task=cpus_per_flight):
+            if isinstance(res, BaseException):
+                failed[job.seed] = f"{type(res).__name__}: {res}"
+                tqdm.write(f"seed {job.seed}: could not fly: {failed[job.seed]}", file=sys.stderr)
+            else:
+                if results is not None:
+                    results.append(res)
+                rows[job.key()] = res
+                unsafe += res.get("outcome") == "unsafe"
+                starved += bool(res.get("starved"))
+                tqdm.write(flight_line(res), file=stream)
+                if verbose:
+                    for m in res.get("messages", []):
+                        tqdm.write(f"      {m}", file=stream)
+            bar.update(1)
+            bar.set_postfix(unsafe=unsafe, starved=starved)
+            if progress and not live:
+                print(progress_line(len(rows) + len(failed), len(jobs), len(rows) + len(failed) - len(kept),
+                                    time.monotonic() - t0, unsafe, starved), file=sys.stderr, flush=True)
+    except ParallelError as exc:
+        print(f"companion sim-scenarios: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        bar.close()
+        if results is not None:
+            results.close()
+    wall = time.monotonic() - t0
+    if out is not None:  # the figures are the file's: every flight of every run that wrote it
+        rows.update(plan(jobs, read_rows(out)[0])[1])
+    asked = [rows[job.key()] for job in jobs if job.key() in rows]
+    summary = summarise_rows(asked)
+    summary["could_not_fly"] = sorted(failed)
+    summary["run"] = {"flown": len(todo) - len(failed), "wall_s": round(wall, 1),
+                      "workers": None if ray_address else workers, "ray": ray_address,
+                      "cpus_per_flight": cpus_per_flight}
+    summary["flights"] = asked
+    if as_json:
         print(json.dumps(summary))
     else:
-        print(f"\nsafe landings {summary['safe']}/{summary['total']}, unsafe {summary['unsafe']}, "
-              f"handbacks {summary['handbacks']}, timeouts {summary['timeouts']}")
-        print(f"minimum clearance at touchdown: {summary['min_clearance_m']} m; median time from "
-              f"trigger to touchdown: {summary['median_time_to_touchdown_s']} s; highest climb "
-              f"above the altitude at the trigger: {summary['max_climb_m']} m")
-    return 0 if summary["unsafe"] == 0 else 1
+        print()
+        print(summary_text(summary))
+        if failed:
+            print(f"could not fly: seeds {sorted(failed)} (run again with the same --out to retry them)")
+    any_unsafe = any(r.get("outcome") == "unsafe" for r in asked)
+    if any_unsafe:
+        return 1
+    return 3 if summary["starved"] or failed or len(asked) < len(jobs) else 0

@@ -1,0 +1,212 @@
+"""What many flights are evidence of: the results file, the summary, and its confidence bounds.
+
+Each flight of ``companion sim-scenarios`` is one JSON object (a *row*: ``FlightResult.as_dict()``
+and the runner's own fields) on one line of a JSON Lines results file, appended and flushed as soon
+as the flight ends, so a run that dies keeps every flight it finished and a re-run with the same
+file flies only the seeds missing from it. The summary is computed from rows, never from a run's
+memory, so the figures of a resumed run are those of all its flights.
+
+Counting (docs/scale.md says why):
+
+- a **starved** flight (its service processed frames at less than ``sim.flight.STARVED_SHARE`` of
+  the camera's rate: a CPU-starved machine, not the software under test) is not a clean result.
+  It is counted in ``starved``, ``starved_outcomes`` and ``starved_strikes`` only, and left out of ``safe``,
+  ``handbacks``, ``unsafe``, ``timeouts``, the strikes and every rate; ``total`` counts it.
+  So ``total = safe + handbacks + unsafe + timeouts + starved``;
+- the rates are per **clean flight** (``clean_flights``: the flights that were not starved):
+  unsafe landings, strikes (a touchdown with somebody within ``r_0``, whoever landed, the companion
+  or the autopilot after a handback) and companion landings (safe or unsafe), each with its exact
+  two-sided 95 % binomial interval (Clopper-Pearson);
+- ``min_clearance_m`` and ``max_climb_m`` are safety figures and take every flight, starved ones
+  included (a bad number never disappears); ``median_time_to_touchdown_s`` is a performance
+  figure and takes the clean flights.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from scipy.stats import beta
+
+CONFIDENCE = 0.95
+#: The unsafe-rate upper bound the runner reports the distance to (further clean flights needed).
+TARGET_UPPER = 0.01
+
+
+def binomial_interval(k: int, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """Exact two-sided (Clopper-Pearson) interval for a proportion of ``k`` in ``n``; (0, 1) when
+    ``n`` is 0. The same as ``scipy.stats.binomtest(k, n).proportion_ci(confidence, "exact")``."""
+    if n < 0 or not 0 <= k <= n:
+        raise ValueError(f"need 0 <= k <= n, got k={k}, n={n}")
+    alpha = 1.0 - confidence
+    lo = 0.0 if k == 0 else float(beta.ppf(alpha / 2, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta.ppf(1 - alpha / 2, k + 1, n - k))
+    return lo, hi
+
+
+def further_clean_flights(k: int, n: int, target: float = TARGET_UPPER,
+                          confidence: float = CONFIDENCE) -> int:
+    """How many more flights, all clean (no further event), bring the upper bound of ``k`` in
+    ``n`` under ``target``: the least ``m >= 0`` with ``upper(k, n + m) < target``."""
+    def below(m: int) -> bool:
+        return binomial_interval(k, n + m, confidence)[1] < target
+
+    if below(0):
+        return 0
+    hi = 1
+    while not below(hi):
+        hi *= 2
+    lo = hi // 2  # not below at lo (or lo == 0, checked above)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if below(mid):
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+def _proportion(k: int, n: int) -> dict[str, Any]:
+    lo, hi = binomial_interval(k, n)
+    return {"count": k, "rate": None if n == 0 else round(k / n, 6),
+            "ci95": [round(lo, 6), round(hi, 6)]}
+
+
+def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
+    """The scenario runner's figures over flight rows (see the module docstring for what counts)."""
+    rows = list(rows)
+    clean = [r for r in rows if not r.get("starved")]
+    starved = [r for r in rows if r.get("starved")]
+
+    def count(rs: list[dict[str, Any]], outcome: str) -> int:
+        return sum(r.get("outcome") == outcome for r in rs)
+
+    n = len(clean)
+    unsafe = count(clean, "unsafe")
+    strikes = sum(bool(r.get("strike")) for r in clean)
+    landings = count(clean, "safe") + unsafe
+    landed_any = [r for r in rows if r.get("outcome") in ("safe", "unsafe")]
+    clear = [r["clearance_m"] for r in landed_any if r.get("clearance_m") is not None]
+    times = [r["time_to_touchdown_s"] for r in clean if r.get("time_to_touchdown_s") is not None]
+    climbs = [r["max_climb_m"] for r in rows if r.get("max_climb_m") is not None]
+    u, s, c = _proportion(unsafe, n), _proportion(strikes, n), _proportion(landings, n)
+    return {
+        "total": len(rows), "safe": count(clean, "safe"), "handbacks": count(clean, "handback"),
+        "unsafe": unsafe, "timeouts": count(clean, "timeout"),
+        "min_clearance_m": round(min(clear), 3) if clear else None,
+        "median_time_to_touchdown_s": round(float(np.median(times)), 2) if times else None,
+        "max_climb_m": round(max(climbs), 2) if climbs else None,
+        "starved": len(starved),
+        "starved_outcomes": {o: count(starved, o) for o in ("safe", "unsafe", "handback", "timeout")
+                             if count(starved, o)},
+        "starved_strikes": sum(bool(r.get("strike")) for r in starved),
+        "clean_flights": n,
+        "strikes": strikes,
+        "companion_landings": landings,
+        "unsafe_rate": u["rate"], "unsafe_rate_ci95": u["ci95"], "unsafe_rate_upper95": u["ci95"][1],
+        "strike_rate": s["rate"], "strike_rate_ci95": s["ci95"], "strike_rate_upper95": s["ci95"][1],
+        "companion_landing_rate": c["rate"], "companion_landing_rate_ci95": c["ci95"],
+        "clean_flights_to_unsafe_upper95_below_1pct": further_clean_flights(unsafe, n),
+    }
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.2f} %"
+
+
+def summary_text(summary: dict[str, Any]) -> str:
+    """The summary for people (the same figures as ``--json``)."""
+    n = summary["clean_flights"]
+    lines = [
+        f"safe landings {summary['safe']}/{summary['total']}, unsafe {summary['unsafe']}, "
+        f"handbacks {summary['handbacks']}, timeouts {summary['timeouts']}, starved {summary['starved']}",
+    ]
+    if summary["starved"]:
+        lines.append(f"STARVED: {summary['starved']} flight(s) were starved of CPU (outcomes "
+                     f"{summary['starved_outcomes']}, strikes {summary['starved_strikes']}); they are left "
+                     "out of the counts and rates below. "
+                     "Fly fewer at once (--workers) or give each more CPU (--cpus-per-flight).")
+    lines.append(f"minimum clearance at touchdown: {summary['min_clearance_m']} m; median time from "
+                 f"trigger to touchdown: {summary['median_time_to_touchdown_s']} s; highest climb "
+                 f"above the altitude at the trigger: {summary['max_climb_m']} m")
+    for label, key, count in (("unsafe landings", "unsafe_rate", summary["unsafe"]),
+                              ("strikes (anyone within r_0 at touchdown)", "strike_rate", summary["strikes"]),
+                              ("companion landings", "companion_landing_rate", summary["companion_landings"])):
+        lo, hi = summary[f"{key}_ci95"]
+        lines.append(f"{label}: {count}/{n} clean flights = {_pct(summary[key])} "
+                     f"(95 % exact interval {_pct(lo)} to {_pct(hi)})")
+    m = summary["clean_flights_to_unsafe_upper95_below_1pct"]
+    lines.append("the unsafe rate's upper 95 % bound is under 1 %" if m == 0 else
+                 f"{m} further clean flights would bring the unsafe rate's upper 95 % bound under 1 %")
+    return "\n".join(lines)
+
+
+# ---- the results file ------------------------------------------------------------------------
+
+def row_key(row: dict[str, Any]) -> tuple[int, str]:
+    """What identifies a flight in a results file: its seed and the autopilot it flew with."""
+    return int(row["seed"]), str(row["flavour"])
+
+
+def read_rows(path: Path) -> tuple[list[dict[str, Any]], int]:
+    """The rows of a results file, and how many lines could not be read (a line cut short by a
+    crash, say); a missing file has none."""
+    rows: list[dict[str, Any]] = []
+    bad = 0
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return rows, 0
+    for line in text.splitlines():
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+            row_key(row)
+        except (ValueError, KeyError, TypeError):
+            bad += 1
+            continue
+        rows.append(row)
+    return rows, bad
+
+
+class ResultsFile:
+    """A JSON Lines results file open for appending: each row is written, flushed and synced as
+    it comes, so a crash loses at most the flight in the air."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torn = path.exists() and path.stat().st_size > 0 and not path.read_bytes().endswith(b"\n")
+        self._f: IO[str] = open(path, "a")
+        if torn:  # a line cut short by a crash: end it, so the next row starts on its own line
+            self._f.write("\n")
+
+    def append(self, row: dict[str, Any]) -> None:
+        self._f.write(json.dumps(row, default=_json_default) + "\n")
+        self._f.flush()
+        os.fsync(self._f.fileno())
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> ResultsFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.floating, np.integer)):
+        v = o.item()
+        return None if isinstance(v, float) and not math.isfinite(v) else v
+    if isinstance(o, (tuple, Path)):
+        return list(o) if isinstance(o, tuple) else str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -1,0 +1,314 @@
+"""`companion sim-scenarios` at scale (docs/scale.md): node-wide port claims, resumable results
+files, starvation flagged rather than counted, exact binomial bounds, and the same verdicts
+whether flights run one after another, in worker processes or as Ray tasks.
+
+The unmarked tests fly nothing (fast lane); the `sitl` ones fly the simulator.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import multiprocessing
+import os
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+from scipy.stats import binomtest
+
+from sim import scenarios
+from sim.evidence import (
+    ResultsFile,
+    binomial_interval,
+    further_clean_flights,
+    read_rows,
+    summarise_rows,
+    summary_text,
+)
+from sim.flight import STARVED_SHARE, FlightSpec, claim_port, fly, reserve_port, starved, summarise
+from sim.scenarios import FlightJob, plan, run_jobs
+
+# ---- ports -----------------------------------------------------------------------------------
+
+
+def _reserve_and_hold(folder: str, count: int, barrier: Any, queue: Any) -> None:
+    claims = [reserve_port(socket.SOCK_DGRAM if i % 2 else socket.SOCK_STREAM, Path(folder))
+              for i in range(count)]
+    queue.put((os.getpid(), [c.port for c in claims]))
+    barrier.wait(timeout=60)  # every process holds its claims until all have reserved
+    for c in claims:
+        c.release()
+
+
+def test_concurrent_reservations_never_get_the_same_port(tmp_path: Path) -> None:
+    folder = tmp_path / "ports"
+    # Threads of one process (the same pid: O_EXCL alone must tell them apart) ...
+    held: list[int] = []
+    lock = threading.Lock()
+    start = threading.Barrier(16)
+
+    def grab() -> None:
+        start.wait()
+        ports = [reserve_port(folder=folder).port for _ in range(15)]
+        with lock:
+            held.extend(ports)
+
+    threads = [threading.Thread(target=grab) for _ in range(16)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(held) == 16 * 15 and len(set(held)) == len(held)
+
+    # ... and processes reserving at once, while this one still holds all of the threads' claims.
+    ctx = multiprocessing.get_context("spawn")
+    barrier, queue = ctx.Barrier(4), ctx.Queue()
+    procs = [ctx.Process(target=_reserve_and_hold, args=(str(folder), 25, barrier, queue)) for _ in range(4)]
+    for p in procs:
+        p.start()
+    got = [queue.get(timeout=60) for _ in procs]
+    for p in procs:
+        p.join(timeout=60)
+        assert p.exitcode == 0
+    ports = [port for _, ps in got for port in ps]
+    assert len(set(ports)) == len(ports) == 100
+    assert not set(ports) & set(held)
+
+
+def test_a_dead_processs_claim_is_taken_over_and_a_live_ones_is_not(tmp_path: Path) -> None:
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    (tmp_path / "20001").write_text(dead.stdout)
+    claim = claim_port(20001, tmp_path)
+    assert claim is not None and (tmp_path / "20001").read_text().strip() == str(os.getpid())
+    (tmp_path / "20002").write_text(f"{os.getppid()}\n")  # alive
+    assert claim_port(20002, tmp_path) is None
+    assert claim_port(20001, tmp_path) is None  # ours, held
+    claim.release()
+    assert not (tmp_path / "20001").exists()
+    assert claim_port(20001, tmp_path) is not None
+
+
+def test_reserved_ports_lie_outside_the_kernels_ephemeral_range(tmp_path: Path) -> None:
+    lo = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    with reserve_port(folder=tmp_path) as claim:
+        assert claim.port < lo and (tmp_path / str(claim.port)).exists()
+    assert not (tmp_path / str(claim.port)).exists()
+
+
+# ---- bounds and the summary -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("k,n", [(0, 300), (3, 100), (0, 1), (5, 5), (1, 1000), (17, 40)])
+def test_binomial_bounds_match_scipys_exact_interval(k: int, n: int) -> None:
+    ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="exact")
+    lo, hi = binomial_interval(k, n)
+    assert lo == pytest.approx(ci.low, abs=1e-9) and hi == pytest.approx(ci.high, abs=1e-9)
+
+
+def test_known_bounds_and_the_flights_still_needed() -> None:
+    assert binomial_interval(0, 300)[1] == pytest.approx(0.0122, abs=1e-4)
+    assert binomial_interval(0, 0) == (0.0, 1.0)
+    # With nothing unsafe, 368 clean flights bring the upper bound under 1 % (1 - 0.025**(1/n)).
+    assert further_clean_flights(0, 0) == 368
+    assert further_clean_flights(0, 300) == 68 and further_clean_flights(0, 400) == 0
+    m = further_clean_flights(3, 100)
+    assert binomial_interval(3, 100 + m)[1] < 0.01 <= binomial_interval(3, 100 + m - 1)[1]
+
+
+def _row(seed: int, outcome: str, *, starved: bool = False, strike: bool = False,
+         clearance: float | None = 4.0, flavour: str = "ardupilot") -> dict[str, Any]:
+    return {"seed": seed, "flavour": flavour, "world": "free_area", "outcome": outcome, "starved": starved,
+            "strike": strike, "clearance_m": clearance, "time_to_touchdown_s": 30.0 + seed,
+            "max_climb_m": 0.1 * seed, "processed_fps": 4.0 if starved else 9.5, "altitude_m": 20.0,
+            "phases": [], "messages": []}
+
+
+def test_starved_flights_are_not_clean_results_and_nothing_is_hidden() -> None:
+    rows = [_row(1, "safe"), _row(2, "handback", strike=True, clearance=1.5), _row(3, "unsafe", clearance=1.0,
+            strike=True), _row(4, "safe", starved=True), _row(5, "unsafe", starved=True, clearance=0.5),
+            _row(6, "timeout", clearance=None)]
+    s = summarise_rows(rows)
+    for key in ("total", "safe", "handbacks", "unsafe", "timeouts", "min_clearance_m",
+                "median_time_to_touchdown_s", "max_climb_m", "unsafe_rate_upper95", "strike_rate_upper95",
+                "starved"):
+        assert key in s
+    assert (s["total"], s["safe"], s["handbacks"], s["unsafe"], s["timeouts"], s["starved"]) == (6, 1, 1, 1, 1, 2)
+    assert s["total"] == s["safe"] + s["handbacks"] + s["unsafe"] + s["timeouts"] + s["starved"]
+    assert s["starved_outcomes"] == {"safe": 1, "unsafe": 1}
+    assert s["clean_flights"] == 4 and s["strikes"] == 2 and s["companion_landings"] == 2
+    assert s["unsafe_rate_upper95"] == pytest.approx(binomial_interval(1, 4)[1], abs=1e-6)
+    assert s["strike_rate_upper95"] == pytest.approx(binomial_interval(2, 4)[1], abs=1e-6)
+    assert s["min_clearance_m"] == 0.5  # the starved unsafe landing's clearance is not hidden
+    assert s["max_climb_m"] == 0.6
+    text = summary_text(s)
+    assert "STARVED" in text and "2 flight(s)" in text
+    assert "starved" in scenarios.flight_line(rows[3]).lower()
+
+
+def test_starvation_is_a_rate_below_70_percent_or_frames_over_half_a_period() -> None:
+    # Measured (docs/scale.md): alone, 8.8-9.8 Hz at 33-38 ms per frame; two at once on 2 cores,
+    # 8.5-9.7 Hz at 82-100 ms; a service slowed to under 4 Hz.
+    assert not starved(9.2, 35.0, 10.0) and not starved(8.8, 38.1, 10.0) and not starved(None, None, 10.0)
+    assert starved(3.6, 35.0, 10.0) and starved(6.9, None, 10.0)
+    assert starved(9.5, 82.0, 10.0) and not starved(9.5, 82.0, 5.0)  # 82 ms is 41 % of a 5 Hz period
+
+
+def test_summarise_keeps_its_figures_for_flight_results() -> None:
+    from sim.flight import FlightResult
+
+    r = FlightResult(FlightSpec(), "safe", touchdown=(0.0, 0.0), clearance_m=1.0, time_to_touchdown_s=20.0,
+                     processed_fps=3.0, starved=True)
+    assert r.struck and r.as_dict()["strike"] and r.as_dict()["starved"]
+    s = summarise([r])
+    assert s["starved"] == 1 and s["safe"] == 0 and s["total"] == 1
+
+
+# ---- results files and resuming -------------------------------------------------------------
+
+
+def test_a_killed_run_resumes_without_flying_its_finished_seeds(tmp_path: Path, monkeypatch, capsys) -> None:
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append(_row(1, "safe"))
+        f.append(_row(2, "handback"))
+        f.append(_row(3, "safe", flavour="px4"))  # another autopilot's flight of seed 3: not ours
+    with open(out, "a") as f:
+        f.write('{"seed": 4, "flavour": "ardu')  # the row being written when the run was killed
+    flown: list[int] = []
+
+    def fake(job: FlightJob) -> dict[str, Any]:
+        flown.append(job.seed)
+        return _row(job.seed, "safe")
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    jobs = [FlightJob(s, "ardupilot") for s in (1, 2, 3, 4)]
+    todo, kept = plan(jobs, read_rows(out)[0])
+    assert [j.seed for j in todo] == [3, 4] and set(kept) == {(1, "ardupilot"), (2, "ardupilot")}
+
+    rc = run_jobs(jobs, workers=1, out=out, as_json=True)
+    assert flown == [3, 4] and rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert [r["seed"] for r in summary["flights"]] == [1, 2, 3, 4]
+    assert (summary["total"], summary["safe"], summary["handbacks"]) == (4, 3, 1)
+    rows, bad = read_rows(out)
+    assert bad == 1 and len(rows) == 5  # the torn line stays unreadable; the new rows are whole
+
+    # Once more: nothing left to fly, the same figures from the file.
+    flown.clear()
+    assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0 and flown == []
+    assert json.loads(capsys.readouterr().out)["total"] == 4
+
+
+def test_a_flight_that_cannot_fly_is_reported_and_left_to_retry(tmp_path: Path, monkeypatch, capsys) -> None:
+    out = tmp_path / "results.jsonl"
+
+    def fake(job: FlightJob) -> dict[str, Any]:
+        if job.seed == 2:
+            raise RuntimeError("the service did not become ready")
+        return _row(job.seed, "safe")
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    rc = run_jobs([FlightJob(1, "ardupilot"), FlightJob(2, "ardupilot")], out=out, as_json=True)
+    captured = capsys.readouterr()
+    assert rc == 3 and "seed 2: could not fly" in captured.err
+    summary = json.loads(captured.out)
+    assert summary["could_not_fly"] == [2] and summary["total"] == 1
+    assert [r["seed"] for r in read_rows(out)[0]] == [1]
+
+
+# ---- flights ---------------------------------------------------------------------------------
+
+SLOW = '''\
+import time
+
+import companion.pipeline.slz as slz
+
+_process = slz.SLZPipeline.process
+
+
+def _slow(self, *args, **kwargs):
+    time.sleep(0.25)  # a service that cannot keep 10 Hz: at most 4 frames a second
+    return _process(self, *args, **kwargs)
+
+
+slz.SLZPipeline.process = _slow
+'''
+
+
+def _uniform(seed: int) -> FlightJob:
+    # Nobody on one-colour ground: a landing under the companion every time (tests/test_sitl.py).
+    return FlightJob(seed, "ardupilot", (("world", "uniform"), ("altitude_m", 18.0)))
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(300)
+def test_a_starved_flight_is_flagged(tmp_path: Path, model_path) -> None:
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(SLOW)
+    pythonpath = os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH", "")) if p)
+    spec = FlightSpec(flavour="ardupilot", world="uniform", seed=6, altitude_m=18.0,
+                      service_set=("controller.max_takeover_s=45",),
+                      service_env=(("PYTHONPATH", pythonpath),))
+    r = asyncio.run(fly(spec))
+    assert r.processed_fps is not None and r.processed_fps < 4.0, (r.processed_fps, r.log_tail)
+    assert r.starved and r.as_dict()["starved"]
+    s = summarise([r])
+    assert s["starved"] == 1 and s["clean_flights"] == 0 and s["safe"] == 0
+    assert STARVED_SHARE * spec.fps > r.processed_fps
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(300)
+def test_a_real_run_resumes_flying_only_what_is_missing(tmp_path: Path, model_path, capsys) -> None:
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append({**_row(6, "safe"), "note": "flown before the crash"})
+    rc = run_jobs([_uniform(6), _uniform(7)], workers=1, out=out, as_json=True)
+    summary = json.loads(capsys.readouterr().out)
+    rows = {r["seed"]: r for r in summary["flights"]}
+    assert set(rows) == {6, 7} and rows[6]["note"] == "flown before the crash"
+    assert summary["run"]["flown"] == 1 and "wall_s" in rows[7] and "note" not in rows[7]
+    assert rows[7]["outcome"] == "safe" and not rows[7]["starved"], rows[7]
+    assert rc == 0 and len(read_rows(out)[0]) == 2
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(600)
+def test_two_workers_give_the_sequential_verdicts(tmp_path: Path, model_path, capsys) -> None:
+    # A landing under the companion (uniform ground) and a dense crowd with no safe zone (seed 1:
+    # the companion hands back to the autopilot's own LAND).
+    jobs = [_uniform(6), FlightJob(1, "ardupilot")]
+    verdicts = {}
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}.jsonl"
+        run_jobs(jobs, workers=workers, out=out, as_json=True)
+        capsys.readouterr()
+        rows = read_rows(out)[0]
+        assert sorted(r["seed"] for r in rows) == [1, 6]
+        verdicts[workers] = {r["seed"]: (r["outcome"], r["starved"], r["processed_fps"]) for r in rows}
+    assert {s: v[0] for s, v in verdicts[1].items()} == {s: v[0] for s, v in verdicts[2].items()}, verdicts
+    assert verdicts[1][6][0] == "safe" and verdicts[1][1][0] == "handback", verdicts
+    assert not any(v[1] for v in verdicts[1].values()), verdicts  # sequential flights keep their rate
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(600)
+def test_ray_auto_flies_seeds_as_ray_tasks(tmp_path: Path, model_path) -> None:
+    pytest.importorskip("ray", reason="--ray needs the 'scale' extra: pip install '.[scale]'")
+    out = tmp_path / "results.jsonl"
+    proc = subprocess.run([sys.executable, "-m", "companion", "sim-scenarios", "--seeds", "1,2",
+                           "--flavour", "ardupilot", "--ray", "auto", "--out", str(out), "--json",
+                           "--no-progress"], capture_output=True, text=True, timeout=560)
+    assert proc.returncode in (0, 1, 3), proc.stderr[-3000:]
+    summary = json.loads(proc.stdout)
+    assert sorted(r["seed"] for r in summary["flights"]) == [1, 2], proc.stderr[-3000:]
+    assert summary["run"]["ray"] == "auto" and summary["could_not_fly"] == []
+    assert all(r["outcome"] in ("safe", "unsafe", "handback", "timeout") for r in summary["flights"])
+    assert len(read_rows(out)[0]) == 2

@@ -429,7 +429,10 @@ async def fly(spec: FlightSpec) -> FlightResult:
         return await _fly(spec, link.port, cam.port)
 
 
-async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
+def build_scene(spec: FlightSpec, link_port: int, cam_port: int
+                ) -> tuple[World, Circle | None, Simulator, CameraServer]:
+    """The scenario's world, its free circle, the simulator (MAVLink out to ``link_port``) and its
+    MJPEG camera (on ``cam_port``), not yet started: what a flight needs besides the service."""
     world, free, start = build_world(spec)
     vp = VehicleParams(land_speed=spec.land_speed)
     sim = Simulator(SimConfig(flavour=spec.flavour, outputs=[f"udpout:127.0.0.1:{link_port}"],
@@ -439,6 +442,11 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     K = Intrinsics.from_fov(640, 480, spec.hfov_deg)
     ground = FlatGround(UNIFORM_GROUND_BGR) if spec.world == "uniform" else None
     camera = CameraServer(sim.pose, world, K, Mount(), fps=spec.fps, port=cam_port, ground=ground)
+    return world, free, sim, camera
+
+
+async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
+    world, free, sim, camera = build_scene(spec, link_port, cam_port)
     result = FlightResult(spec, "timeout",
                           free_circle=None if free is None else (free.north, free.east, free.radius))
     touchdown: dict[str, object] = {}

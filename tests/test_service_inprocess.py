@@ -15,29 +15,23 @@ import pytest
 
 from companion import config
 from companion.control.events import HandedBack, Phase, TargetChosen
-from companion.geometry.camera import Intrinsics, Mount
 from companion.mavlink.link import MavLink
 from companion.service.app import Service, load_model
-from sim.autopilot import AutopilotConfig
-from sim.camera_server import CameraServer
-from sim.flight import UNIFORM_GROUND_BGR, FlightSpec, build_world, free_port
-from sim.ground import FlatGround
-from sim.simulator import SimConfig, Simulator
+from sim.flight import FlightSpec, build_scene, reserve_port
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(180)]
 
 
 async def _fly_in_process(flavour: str) -> tuple[Service, int, dict[str, float]]:
-    spec = FlightSpec(flavour=flavour, world="uniform", seed=6, altitude_m=18.0)
-    world, _, start = build_world(spec)
-    link_port, cam_port = free_port(), free_port(socket.SOCK_STREAM)
-    sim = Simulator(SimConfig(flavour=flavour, outputs=[f"udpout:127.0.0.1:{link_port}"],
-                              start_position=(start[0], start[1], -spec.altitude_m),
-                              autopilot=AutopilotConfig(origin_alt_offset_m=-1.5), seed=spec.seed), world=world)
-    camera = CameraServer(sim.pose, world, Intrinsics.from_fov(640, 480, 70.0), Mount(), fps=10.0,
-                          port=cam_port, ground=FlatGround(UNIFORM_GROUND_BGR))
+    with reserve_port() as link, reserve_port(socket.SOCK_STREAM) as cam:
+        return await _fly_with_ports(flavour, link.port, cam.port)
+
+
+async def _fly_with_ports(flavour: str, link_port: int, cam_port: int) -> tuple[Service, int, dict[str, float]]:
+    spec = FlightSpec(flavour=flavour, world="uniform", seed=6, altitude_m=18.0, home_origin_offset_m=-1.5)
+    world, _, sim, camera = build_scene(spec, link_port, cam_port)
     cfg = config.load(None, {"link.url": f"udpin:127.0.0.1:{link_port}", "link.flavour": flavour,
-                             "camera.source": camera.url, "camera.hfov_deg": 70.0})
+                             "camera.source": camera.url, "camera.hfov_deg": spec.hfov_deg})
     model = load_model(cfg)
     svc = Service(cfg, model, link=MavLink(config.link_config(cfg)))  # a part handed in, typed
     truth: dict[str, float] = {}

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 from pathlib import Path
 
 import pytest
@@ -20,6 +19,7 @@ import pytest
 from companion.pipeline.slz import SLZPipeline
 from companion.recording import RecordingReader
 from sim.flight import FlightSpec, fly
+from tests.patched_service import patched_env
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(300)]
 
@@ -39,13 +39,9 @@ logging.LogRecord.getMessage = _reworded
 
 
 def test_verdicts_do_not_depend_on_the_wording_of_the_log(tmp_path: Path, model_path) -> None:
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "sitecustomize.py").write_text(REWORD)
-    pythonpath = os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH", "")) if p)
     spec = FlightSpec(flavour="ardupilot", world="uniform", seed=6, altitude_m=18.0,
                       record_dir=tmp_path / "rec", service_log=tmp_path / "service.log",
-                      service_env=(("PYTHONPATH", pythonpath),))
+                      service_env=patched_env(tmp_path / "site", REWORD))
     r = asyncio.run(fly(spec))
 
     log = spec.service_log.read_text()  # type: ignore[union-attr]

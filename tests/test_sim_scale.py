@@ -32,6 +32,7 @@ from sim.evidence import (
 )
 from sim.flight import STARVED_SHARE, FlightSpec, claim_port, fly, reserve_port, starved, summarise
 from sim.scenarios import FlightJob, plan, run_jobs
+from tests.patched_service import patched_env
 
 # ---- ports -----------------------------------------------------------------------------------
 
@@ -249,13 +250,9 @@ def _uniform(seed: int) -> FlightJob:
 @pytest.mark.sitl
 @pytest.mark.timeout(300)
 def test_a_starved_flight_is_flagged(tmp_path: Path, model_path) -> None:
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "sitecustomize.py").write_text(SLOW)
-    pythonpath = os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH", "")) if p)
     spec = FlightSpec(flavour="ardupilot", world="uniform", seed=6, altitude_m=18.0,
                       service_set=("controller.max_takeover_s=45",),
-                      service_env=(("PYTHONPATH", pythonpath),))
+                      service_env=patched_env(tmp_path / "site", SLOW))
     r = asyncio.run(fly(spec))
     assert r.processed_fps is not None and r.processed_fps < 4.0, (r.processed_fps, r.log_tail)
     assert r.starved and r.as_dict()["starved"]

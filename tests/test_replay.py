@@ -408,3 +408,20 @@ def test_shipped_model_is_the_default(work: dict[str, Path], tmp_path: Path) -> 
     assert code == 0
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["model"] == str(SHIPPED_MODEL) and s["frames"] == 2
+
+
+@pytest.mark.parametrize("extra, expect", [
+    (["--set", "pipeline.r0_mm=3"], ["settings:", "pipeline.r0_mm"]),
+    (["--set", "pipeline.r0_m=-1"], ["settings:", "pipeline.r0_m"]),
+    (["--config", "{tmp}/absent.toml"], ["settings:", "absent.toml", "does not exist"]),
+    (["--config", "{tmp}/c.toml", "--default-settings"], ["--config and --default-settings"]),
+])
+def test_bad_settings_give_clear_errors(extra: list[str], expect: list[str], work: dict[str, Path],
+                                        tmp_path: Path, capsys) -> None:
+    (tmp_path / "c.toml").write_text("[pipeline]\nr0_m = 1.0\n")
+    args = [work["frames"], "--nadir", "--gsd", GSD, "--model", work["model"],
+            *(a.replace("{tmp}", str(tmp_path)) for a in extra)]
+    code, err = _run(args, capsys)
+    assert code == 2 and err.startswith("companion replay: error:"), err
+    for text in expect:
+        assert text in err, err

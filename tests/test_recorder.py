@@ -44,6 +44,10 @@ def _record(root: Path, n: int, segment_s: float = 1.0, max_mb: float = 100.0, d
     return rec, path
 
 
+def _disk_use(root: Path) -> int:
+    return sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+
+
 def _similar(a: np.ndarray, b: np.ndarray) -> bool:
     return float(np.abs(a.astype(int) - b.astype(int)).mean()) < 8
 
@@ -77,7 +81,7 @@ def test_truncated_last_segment_and_half_written_line_are_tolerated(tmp_path: Pa
     last = sorted(path.glob("seg_*.avi"))[-1]
     data = last.read_bytes()
     last.write_bytes(data[: len(data) // 2])  # power cut mid-segment
-    with open(path / "frames.jsonl", "a") as fh:
+    with open(sorted(path.glob("frames-*.jsonl"))[-1], "a") as fh:
         fh.write('{"i": 50, "t": 10')  # half-written line
     reader = RecordingReader(path)
     frames = list(reader.frames())
@@ -92,15 +96,15 @@ def test_truncated_last_segment_and_half_written_line_are_tolerated(tmp_path: Pa
 def test_disk_budget_deletes_oldest_segments(tmp_path: Path) -> None:
     # Each 160x120 MJPG frame is ~10-20 kB; a 0.1 MiB budget keeps only the newest segments.
     rec, path = _record(tmp_path, 40, segment_s=0.5, max_mb=0.1)
-    segs = sorted(path.glob("seg_*.avi"))
     assert rec.stats.deleted > 0
-    assert sum(p.stat().st_size for p in segs) <= 0.1 * 2**20 or len(segs) == 1
+    assert _disk_use(tmp_path) <= 0.1 * 2**20
     assert not (path / "seg_00000.avi").exists()
     reader = RecordingReader(path)
     frames = list(reader.frames())
     assert frames and reader.stats.missing > 0
     assert frames[-1].index == 78  # the newest survived
-    assert len(frames) + reader.stats.missing == 40
+    # Frames whose index chunk went too are not listed at all.
+    assert len(frames) + reader.stats.missing <= 40
 
 
 def test_bad_recordings_give_clear_errors(tmp_path: Path) -> None:
@@ -115,7 +119,8 @@ def test_bad_recordings_give_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match=r"meta\.json is not valid JSON"):
         RecordingReader(path)
     (path / "meta.json").write_text(json.dumps({"format": "companion-recording", "version": 1}))
-    (path / "frames.jsonl").unlink()
+    for p in path.glob("frames*.jsonl"):
+        p.unlink()
     with pytest.raises(RecordingError, match=r"frames\.jsonl is missing"):
         RecordingReader(path)
 
@@ -130,3 +135,136 @@ def test_full_queue_drops_and_counts(tmp_path: Path) -> None:
     assert results.count(False) == rec.stats.dropped > 0
     assert rec.stats.frames == results.count(True)
     assert len(list(RecordingReader(rec.path).frames())) == rec.stats.frames  # type: ignore[arg-type]
+
+
+def _disk_use_now(root: Path) -> int:
+    """Bytes under root while the recorder may be deleting files."""
+    total = 0
+    for p in root.rglob("*"):
+        try:
+            if p.is_file():
+                total += p.stat().st_size
+        except FileNotFoundError:
+            continue
+    return total
+
+
+# The documented slack over max_mb: the item that completes a piece in each stream. Here one
+# 160x120 MJPG frame (under 20 kB) plus the encoder's buffered bytes and the .avi index, one frame
+# index line (~600 B) and one event line (~300 B): 32 KiB covers them.
+SLACK = 32 * 1024
+
+
+def test_total_within_budget_with_an_event_flood(tmp_path: Path) -> None:
+    budget = 1 * 2**20
+    _record(tmp_path, 5)  # an earlier run: its files are the oldest, deleted first
+    earlier = {p.parent for p in tmp_path.glob("*/meta.json")}
+    rec = FlightRecorder(tmp_path, segment_s=60, max_mb=1, fps=10, queue_size=400)
+    path = rec.start()
+    peak = 0
+    n_events = 0
+    for i in range(300):  # ~4 MiB of video and ~6 MiB of events against a 1 MiB budget
+        t = 200.0 + 0.1 * i
+        rec.add_frame(i, t, _frame(i % 40, 320, 240), _pose(i, t))
+        for _ in range(60):  # kinds that are never downsampled: all of it must be written
+            rec.add_event("zones", t, seq=n_events, frame=i, tracks=[{"id": 1, "r": 3.5, "xy": [1.5, -2.25]}] * 3)
+            n_events += 1
+        if i % 10 == 0:
+            peak = max(peak, _disk_use_now(tmp_path))
+    rec.close()
+    assert rec.stats.frames == 300 and rec.stats.errors == 0 and rec.stats.downsampled == 0
+    assert rec.stats.events == n_events
+    peak = max(peak, _disk_use(tmp_path))
+    assert peak <= budget + SLACK, f"{peak} bytes on disk against a budget of {budget}"
+    assert _disk_use(tmp_path) <= budget  # finished: no room kept for open files
+    assert rec.stats.deleted > 0
+    assert not (earlier & {p.parent for p in tmp_path.glob("*/meta.json")}), "the emptied run was not removed"
+    # The newest events survive, in order, with no gap: the oldest went first.
+    reader = RecordingReader(path)
+    seqs = [e["seq"] for e in reader.events("zones")]
+    assert seqs and seqs[-1] == n_events - 1
+    assert seqs == list(range(seqs[0], n_events))
+    assert seqs[0] > 0  # and some were deleted: the flood was far over budget
+    frames = list(reader.frames())
+    assert frames and frames[-1].index == 299
+    assert _similar(frames[-1].frame_bgr, _frame(299 % 40, 320, 240))
+
+
+def test_telemetry_is_downsampled_and_safety_events_never(tmp_path: Path) -> None:
+    rec = FlightRecorder(tmp_path)
+    path = rec.start()
+    written = {"ATTITUDE": 0, "GLOBAL_POSITION_INT": 0}
+    for i in range(500):  # 10 s of event time: ATTITUDE at 50 Hz, GLOBAL_POSITION_INT at 10 Hz
+        t = 1000.0 + 0.02 * i
+        written["ATTITUDE"] += rec.add_event("telemetry", t, msg="ATTITUDE", roll=0.01 * i)
+        if i % 5 == 0:
+            written["GLOBAL_POSITION_INT"] += rec.add_event("telemetry", t, msg="GLOBAL_POSITION_INT", lat=i)
+        for kind in ("trigger", "phase", "controller", "zones"):
+            assert rec.add_event(kind, t, i=i)
+    # A burst of STATUSTEXT lines at one instant passes whole (two seconds' worth of tokens).
+    burst = [rec.add_event("telemetry", 1005.0, msg="STATUSTEXT", text=f"PreArm: {k}") for k in range(8)]
+    rec.close()
+    assert all(burst)
+    # 5 Hz sustained for 10 s, plus the 2 s burst allowance at the start.
+    assert 50 <= written["ATTITUDE"] <= 5 * 10 + 10 + 1
+    assert 50 <= written["GLOBAL_POSITION_INT"] <= 5 * 10 + 10 + 1
+    assert rec.stats.downsampled == (500 - written["ATTITUDE"]) + (100 - written["GLOBAL_POSITION_INT"])
+    reader = RecordingReader(path)
+    tele = list(reader.events("telemetry"))
+    assert len(tele) == written["ATTITUDE"] + written["GLOBAL_POSITION_INT"] + 8
+    for kind in ("trigger", "phase", "controller", "zones"):
+        assert [e["i"] for e in reader.events(kind)] == list(range(500)), f"{kind} events were dropped"
+    # Kept ATTITUDE lines are spread over the whole 10 s, not bunched at the start.
+    att = [e["t"] for e in tele if e["msg"] == "ATTITUDE"]
+    assert att[-1] > 1009.5
+    with pytest.raises(ValueError, match="never downsampled"):
+        FlightRecorder(tmp_path, event_rates_hz={"trigger": 1.0})
+    every = FlightRecorder(tmp_path / "all", event_rates_hz={})
+    every.start()
+    assert all(every.add_event("telemetry", 0.0, msg="ATTITUDE") for _ in range(100))
+    every.close()
+    assert every.stats.downsampled == 0
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+def test_full_disk_is_counted_logged_once_and_never_raises(tmp_path: Path,
+                                                           caplog: pytest.LogCaptureFixture) -> None:
+    """/dev/full answers every write with ENOSPC: the frame index and the events go there."""
+    rec = FlightRecorder(tmp_path, queue_size=64, event_rates_hz={})
+    path = rec.start()
+    for stem in ("frames", "events"):
+        (path / f"{stem}-00000.jsonl").symlink_to("/dev/full")
+    caplog.set_level("INFO", logger="companion.recording")
+    results = [rec.add_event("zones", 0.01 * i, i=i) for i in range(1000)]
+    for i in range(20):
+        assert rec.add_frame(i, 0.1 * i, _frame(i), None)
+    rec.close()  # must not raise
+    rec.close()  # nor a second time
+    assert not any(results)
+    assert rec.stats.events == 0 and rec.stats.frames == 0
+    assert rec.stats.errors == 1000 + 20
+    lines = [r.getMessage() for r in caplog.records if r.name == "companion.recording"]
+    event_lines = [m for m in lines if "cannot write event" in m]
+    frame_lines = [m for m in lines if "not recorded" in m]
+    # One line at the first failure, one summary at close: not one per failure.
+    assert len(event_lines) == 2 and "No space left on device" in event_lines[0]
+    assert "(998 more like this in the last" in event_lines[1]
+    assert len(frame_lines) == 2 and "(18 more like this in the last" in frame_lines[1]
+    # After close nothing is written and nothing raises.
+    assert not rec.add_event("trigger", 1.0, reason="x")
+    assert not rec.add_frame(99, 9.9, _frame(0), None)
+
+
+def test_format_1_recordings_still_read(tmp_path: Path) -> None:
+    """Recordings made before chunks: one frames.jsonl, one events.jsonl, version 1."""
+    _, path = _record(tmp_path, 12)
+    for stem in ("frames", "events"):
+        chunks = sorted(path.glob(f"{stem}-*.jsonl"))
+        (path / f"{stem}.jsonl").write_text("".join(p.read_text() for p in chunks))
+        for p in chunks:
+            p.unlink()
+    meta = json.loads((path / "meta.json").read_text())
+    (path / "meta.json").write_text(json.dumps({**meta, "version": 1}))
+    reader = RecordingReader(path)
+    assert [f.index for f in reader.frames()] == [2 * i for i in range(12)]
+    assert len(list(reader.events("decision"))) == 12

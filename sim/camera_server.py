@@ -3,8 +3,19 @@
 ``CameraServer`` renders the world from the vehicle's pose at a fixed frame rate and serves the
 frames like many IP cameras do: ``GET /stream.mjpg`` answers ``multipart/x-mixed-replace`` with one
 JPEG part per frame; ``GET /snapshot.jpg`` answers the latest frame. Each part carries
-``X-Frame-Index`` and ``X-Render-Time`` (``time.time()`` seconds when the frame was rendered)
-headers. A slow client is never queued frames: it always gets the newest one.
+``X-Frame-Index``, ``X-Render-Time`` (``time.time()`` seconds when the frame was rendered) and
+``X-Timestamp`` (the capture time: ``time.monotonic()`` seconds when the pose and the world were
+sampled for the frame, the header mjpg-streamer sends with the V4L2 buffer time; the service's
+camera uses it as the capture time, since the two run on the same machine and clock) headers.
+A slow client is never queued frames: it always gets the newest one.
+
+Sensor noise. The renderer is deterministic: a static scene from a hovering (or landed) vehicle
+renders bit-identical frames, which a real sensor never gives and which the service rightly takes
+for a frozen camera. Each served frame gets Gaussian read noise (``noise_sigma`` DN, default 1.5,
+seeded by the world's seed) before JPEG encoding. The noise is a window at a random offset into a
+pre-drawn bank of ``2 x H x W x 3`` samples (an independent realisation per pixel and frame for
+~0.3 ms at 640x480, against ~9 ms to draw fresh normals); consecutive offsets always differ.
+``render_now`` stays noise-free.
 
 The server does not step the world (the simulator does, with its clock) unless
 ``advance_world=True``, for a stand-alone camera.
@@ -37,13 +48,45 @@ RECV_BUFFER = 64 * 1024  # bytes
 
 @dataclass(frozen=True)
 class Frame:
-    """One rendered frame: BGR image, its index, the pose it was rendered from and when."""
+    """One rendered frame: BGR image (with sensor noise), its index, the pose it was rendered from
+    and when."""
 
     image: np.ndarray
     index: int
     pose: Pose
     render_time: float  # time.time() seconds
     jpeg: bytes = b""
+    capture_time: float = 0.0  # time.monotonic() seconds when pose and world were sampled
+
+
+class SensorNoise:
+    """Gaussian read noise of ``sigma`` DN added to uint8 images, seeded: each call adds a window
+    at a new random offset of a pre-drawn bank of int8 samples (saturating at 0 and 255)."""
+
+    def __init__(self, sigma: float, seed: int = 0) -> None:
+        self.sigma = float(sigma)
+        self.rng = np.random.default_rng([seed & 0xFFFFFFFF, 0x5E45])
+        self._bank: np.ndarray | None = None
+        self._last_offset = -1
+
+    def prepare(self, size: int) -> None:
+        """Draw the bank for images of ``size`` values (~60 ms at 640x480x3; done at start)."""
+        if self.sigma > 0 and (self._bank is None or self._bank.size < 2 * size):
+            draw = np.rint(self.rng.standard_normal(2 * size, dtype=np.float32) * self.sigma)
+            self._bank = np.clip(draw, -127, 127).astype(np.int8)
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        if self.sigma <= 0:
+            return image
+        n = image.size
+        self.prepare(n)
+        assert self._bank is not None
+        offset = int(self.rng.integers(0, self._bank.size - n + 1))
+        if offset == self._last_offset:
+            offset = (offset + 1) % (self._bank.size - n + 1)
+        self._last_offset = offset
+        noise = self._bank[offset:offset + n].reshape(image.shape)
+        return cv2.add(image, noise, dtype=cv2.CV_8U)
 
 
 def stamp_index(img: np.ndarray, index: int, bits: int = 16, cell: int = 8) -> None:
@@ -71,12 +114,15 @@ class CameraServer:
         ``url`` after ``start``). ground: a :class:`sim.ground.ProceduralGround` or alike.
     jpeg_quality: 0-100. stamp: write the frame index into the top-left pixels (latency tests).
     advance_world: step the world by the wall-clock time between frames (stand-alone use).
+    noise_sigma: sensor read noise in DN (0 = none: identical frames of a static scene).
+    noise_seed: its seed (default: the world's ``seed``).
     """
 
     def __init__(self, pose_provider: Callable[[], Pose], world: object, intrinsics: Intrinsics,
                  mount: Mount, fps: float = 12.0, port: int = 0, ground: object | None = None,
                  jpeg_quality: int = 85, stamp: bool = False, advance_world: bool = False,
-                 host: str = "127.0.0.1") -> None:
+                 host: str = "127.0.0.1", noise_sigma: float = 1.5,
+                 noise_seed: int | None = None) -> None:
         if not fps > 0:
             raise ValueError(f"fps must be > 0, got {fps!r}")
         if ground is None:
@@ -93,8 +139,10 @@ class CameraServer:
         self.jpeg_quality = int(jpeg_quality)
         self.stamp = stamp
         self.advance_world = advance_world
+        self.noise = SensorNoise(noise_sigma, getattr(world, "seed", 0) if noise_seed is None else noise_seed)
         self.latest: Frame | None = None
         self.render_times: dict[int, float] = {}  # frame index -> time.time() at render end
+        self.capture_times: dict[int, float] = {}  # frame index -> its X-Timestamp (monotonic)
         self.frames_rendered = 0
         self.errors = 0
         self._index = 0
@@ -117,6 +165,7 @@ class CameraServer:
         """Render a first frame (generating the ground tiles in view), bind the port, start."""
         with contextlib.suppress(Exception):  # a bad first pose is the render loop's to count
             await asyncio.to_thread(self.render_now)
+        await asyncio.to_thread(self.noise.prepare, self.intrinsics.width * self.intrinsics.height * 3)
         self._cond = asyncio.Condition()
         self._server = await asyncio.start_server(self._handle, self.host, self.port)
         self.port = self._server.sockets[0].getsockname()[1]
@@ -146,18 +195,19 @@ class CameraServer:
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
 
-    def _render_encode(self, pose: Pose, positions: tuple, index: int) -> Frame:
+    def _render_encode(self, pose: Pose, positions: tuple, index: int, capture_time: float = 0.0) -> Frame:
         from sim.render import looks_for, render
         pos, hd, mv, t, seed, ids = positions
         img = render(pos, pose, self.intrinsics, self.mount, self.ground,  # type: ignore[arg-type]
                      headings=hd, moving=mv, t=t, seed=seed,
                      looks=looks_for(ids, seed) if ids is not None else None)
+        img = self.noise(img)  # the sensor: read noise before the encoder
         if self.stamp:
             stamp_index(img, index)
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
         if not ok:
             raise RuntimeError("JPEG encoding failed")
-        return Frame(img, index, pose, time.time(), buf.tobytes())
+        return Frame(img, index, pose, time.time(), buf.tobytes(), capture_time)
 
     async def _render_loop(self) -> None:
         period = 1.0 / self.fps
@@ -170,21 +220,24 @@ class CameraServer:
                 self.world.step(now_wall - last_wall)  # type: ignore[attr-defined]
             last_wall = now_wall
             try:
+                capture_time = time.monotonic()  # the exposure: the pose and world sampled now
                 pose = self.pose_provider()
                 w = self.world
                 # Snapshot the world on the loop thread; render and encode off it (both release
                 # the GIL in OpenCV) so the simulator's MAVLink tasks keep their timing.
                 snap = (w.positions(), w.headings(), w.moving(), w.t, getattr(w, "seed", 0),  # type: ignore[attr-defined]
                         w.ids() if hasattr(w, "ids") else None)
-                frame = await asyncio.to_thread(self._render_encode, pose, snap, self._index)
+                frame = await asyncio.to_thread(self._render_encode, pose, snap, self._index, capture_time)
             except asyncio.CancelledError:
                 raise
             except Exception:  # a bad pose (NaN, underground) must not kill the camera
                 self.errors += 1
             else:
                 self.render_times[frame.index] = frame.render_time
+                self.capture_times[frame.index] = frame.capture_time
                 if len(self.render_times) > 1000:
                     self.render_times.pop(next(iter(self.render_times)))
+                    self.capture_times.pop(next(iter(self.capture_times)))
                 self.latest = frame
                 self.frames_rendered += 1
                 self._index += 1
@@ -251,7 +304,8 @@ class CameraServer:
             last = frame.index
             writer.write(
                 f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(frame.jpeg)}\r\n"
-                f"X-Frame-Index: {frame.index}\r\nX-Render-Time: {frame.render_time:.6f}\r\n\r\n".encode()
+                f"X-Frame-Index: {frame.index}\r\nX-Render-Time: {frame.render_time:.6f}\r\n"
+                f"X-Timestamp: {frame.capture_time:.6f}\r\n\r\n".encode()
                 + frame.jpeg + b"\r\n")
             # Waiting for the socket to drain is what keeps a slow client from queueing frames:
             # while it waits, newer frames replace older ones in ``latest``.

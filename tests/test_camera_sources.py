@@ -12,7 +12,14 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.service.camera import CameraError, CameraSource, Kind, classify, gstreamer_available
+from companion.service.camera import (
+    CameraError,
+    CameraSource,
+    Kind,
+    classify,
+    gstreamer_available,
+    plausible_capture_time,
+)
 
 
 def _frame(i: int, w: int = 64, h: int = 48) -> np.ndarray:
@@ -212,3 +219,249 @@ def test_lost_camera_retries_with_backoff() -> None:
         assert not cam.delivering() and cam._thread is not None and cam._thread.is_alive()
     finally:
         cam.stop()
+
+
+# ---- freshness: a repeated frame is never fresh (issue 12, item 7) ----------------------------
+
+
+def test_repeated_frames_are_counted_not_delivered(tmp_path: Path) -> None:
+    one_pixel = _frame(2).copy()
+    one_pixel[3, 5] = (7, 7, 7)  # off the fingerprint's subsample grid: the full check decides
+    # frame 1 repeated twice, frame 2 once (a frozen encoder repeating its buffer), then a frame
+    # that differs from frame 2 by a single pixel, which is fresh.
+    images = [_frame(0), _frame(1), _frame(1), _frame(1), _frame(2), _frame(2), one_pixel]
+    for i, img in enumerate(images):
+        cv2.imwrite(str(tmp_path / f"f{i:03d}.png"), img)
+    cam = CameraSource(str(tmp_path), fps=200)
+    got = _collect(cam)
+    cam.start()
+    assert _wait_until(lambda: cam.ended, 5)
+    cam.stop()
+    assert [f.index for f in got] == [0, 1, 2, 3]
+    for f, img in zip(got, [_frame(0), _frame(1), _frame(2), one_pixel]):
+        assert np.array_equal(f.image, img)
+    assert cam.stats.frames == 4
+    assert cam.stats.repeated == 3
+    last = cam.take()
+    assert last is not None and np.array_equal(last.image, one_pixel)
+
+
+class _ScriptedMjpegServer:
+    """A loopback MJPEG server whose ``script(connection)`` gives the parts of each connection
+    (1-based): JPEG bytes, or None to go silent with the socket open (a stalled camera).
+    ``stamp(part_bytes)`` may give an ``X-Timestamp`` header value for a part."""
+
+    def __init__(self, script, period: float = 0.02, stamp=None) -> None:
+        self.connections = 0
+        self.parts_sent = 0
+        self.stop = threading.Event()
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *a: object) -> None:
+                pass
+
+            def do_GET(self) -> None:
+                outer.connections += 1
+                parts = script(outer.connections)
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+                self.end_headers()
+                try:
+                    for data in parts:
+                        if outer.stop.is_set():
+                            return
+                        if data is None:
+                            outer.stop.wait(10)  # silent, connection open
+                            return
+                        extra = "" if stamp is None else f"X-Timestamp: {stamp(data)}\r\n"
+                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\n"
+                                         + f"Content-Length: {len(data)}\r\n{extra}\r\n".encode()
+                                         + data + b"\r\n")
+                        self.wfile.flush()
+                        outer.parts_sent += 1
+                        time.sleep(period)
+                except (BrokenPipeError, ConnectionResetError):
+                    pass
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.httpd.daemon_threads = True
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/stream.mjpg"
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def _jpeg(i: int) -> bytes:
+    return cv2.imencode(".jpg", _frame(i))[1].tobytes()
+
+
+def _decoded(data: bytes) -> bytes:
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR).tobytes()
+
+
+_WHICH = {_decoded(_jpeg(i)): i for i in range(64)}
+
+
+def _which(image: np.ndarray) -> int:
+    """The i of the ``_jpeg(i)`` a delivered image was decoded from."""
+    return _WHICH[image.tobytes()]
+
+
+def test_a_camera_repeating_one_frame_is_not_delivering() -> None:
+    # Three fresh frames, then the encoder freezes and repeats its last buffer at 50 fps, also
+    # after a reconnect.
+    def script(conn: int):
+        if conn == 1:
+            yield from (_jpeg(i) for i in range(3))
+        while True:
+            yield _jpeg(2)
+
+    server = _ScriptedMjpegServer(script)
+    cam = CameraSource(server.url, stall_timeout_s=0.5, max_backoff_s=0.2)
+    got = _collect(cam)
+    try:
+        cam.start()
+        assert _wait_until(lambda: cam.stats.frames >= 3, 5)
+        # Frames keep arriving, all repeats: the camera is not delivering, and it is treated as
+        # stalled (closed and reopened) rather than as a healthy camera.
+        assert _wait_until(lambda: not cam.delivering(), 3)
+        assert cam.stats.frames == 3 and len(got) == 3
+        assert cam.stats.repeated >= 10
+        assert _wait_until(lambda: cam.stats.stalls >= 1, 3)
+        assert _wait_until(lambda: cam.stats.reopens >= 1, 3)
+        n = cam.stats.repeated
+        assert _wait_until(lambda: cam.stats.repeated > n, 3)  # the reopened camera: repeats too
+        assert not cam.delivering()
+        assert cam.stats.frames == 3 and len(got) == 3
+        f = cam.take()
+        assert f is not None and f.index == 2 and cam.take() is None
+    finally:
+        cam.stop()
+        server.close()
+
+
+def test_frozen_camera_reserving_its_last_frame_after_reconnect_is_not_fresh() -> None:
+    # The audit's frozen camera: five frames, a stall, then on every reconnect it serves the last
+    # frame again and goes silent. Old behaviour: one stale frame per reconnect, health ok.
+    def script(conn: int):
+        if conn == 1:
+            yield from (_jpeg(i) for i in range(5))
+        else:
+            yield _jpeg(4)
+        yield None
+
+    server = _ScriptedMjpegServer(script)
+    cam = CameraSource(server.url, stall_timeout_s=0.4, max_backoff_s=0.2)
+    got = _collect(cam)
+    try:
+        cam.start()
+        assert _wait_until(lambda: cam.stats.frames >= 5, 5)
+        assert _wait_until(lambda: cam.stats.reopens >= 2 and server.parts_sent >= 7, 6)
+        assert [_which(f.image) for f in got] == list(range(5))  # no stale frame after a reconnect
+        assert cam.stats.frames == 5
+        assert not cam.delivering()
+        assert cam.stats.repeated >= 2
+    finally:
+        cam.stop()
+        server.close()
+
+
+def test_camera_that_resumes_after_reserving_its_last_frame_delivers_only_new_frames() -> None:
+    # Reconnect: the stale last frame first (not fresh), then live frames again (fresh).
+    def script(conn: int):
+        if conn == 1:
+            yield from (_jpeg(i) for i in range(4))
+            yield None
+        else:
+            yield _jpeg(3)
+            yield from (_jpeg(i) for i in range(10, 40))
+            yield None
+
+    server = _ScriptedMjpegServer(script)
+    cam = CameraSource(server.url, stall_timeout_s=0.4, max_backoff_s=0.2)
+    got = _collect(cam)
+    try:
+        cam.start()
+        assert _wait_until(lambda: cam.stats.frames >= 10, 6)
+        which = [_which(f.image) for f in got]
+        assert which[:4] == [0, 1, 2, 3] and which[4] >= 10
+        assert all(i >= 10 for i in which[4:])
+        assert cam.stats.repeated == 1 and cam.stats.reopens >= 1
+        assert cam.delivering()
+    finally:
+        cam.stop()
+        server.close()
+
+
+# ---- capture timestamps ----------------------------------------------------------------------
+
+
+def test_mjpeg_x_timestamp_on_our_clock_is_the_capture_time() -> None:
+    sent: dict[bytes, float] = {}
+
+    def stamp(data: bytes) -> str:
+        t = time.monotonic() - 0.05  # captured 50 ms before it was sent
+        sent[data] = t
+        return f"{t:.6f}"
+
+    server = _ScriptedMjpegServer(lambda conn: (_jpeg(i) for i in range(8)), stamp=stamp)
+    cam = CameraSource(server.url, stall_timeout_s=2.0)
+    got = _collect(cam)
+    try:
+        cam.start()
+        assert _wait_until(lambda: len(got) >= 8, 5)
+    finally:
+        cam.stop()
+        server.close()
+    for f in got:
+        assert f.t_source == "header"
+        assert f.t == pytest.approx(sent[_jpeg(_which(f.image))], abs=2e-6)
+    assert cam.stats.last_frame_t == got[-1].t
+
+
+def test_mjpeg_timestamp_on_another_clock_falls_back_to_grab_time(caplog: pytest.LogCaptureFixture) -> None:
+    # mjpg-streamer-like servers may stamp wall-clock time (or another machine's clock): unusable.
+    server = _ScriptedMjpegServer(lambda conn: (_jpeg(i) for i in range(6)),
+                                  stamp=lambda data: f"{time.time():.6f}")
+    cam = CameraSource(server.url, stall_timeout_s=2.0)
+    got = _collect(cam)
+    try:
+        with caplog.at_level("WARNING", logger="companion.service.camera"):
+            before = time.monotonic()
+            cam.start()
+            assert _wait_until(lambda: len(got) >= 6, 5)
+    finally:
+        cam.stop()
+        server.close()
+    assert all(f.t_source == "grab" and before <= f.t <= time.monotonic() for f in got)
+    warned = [r for r in caplog.records if "not on this machine's monotonic clock" in r.getMessage()]
+    assert len(warned) == 1  # said once, not per frame
+
+
+def test_sources_without_timestamps_use_grab_time(tmp_path: Path) -> None:
+    path = tmp_path / "clip.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+    for i in range(4):
+        vw.write(_frame(i))
+    vw.release()
+    cam = CameraSource(str(path), fps=100)  # a file's position is media time, never a capture time
+    got = _collect(cam)
+    before = time.monotonic()
+    cam.start()
+    assert _wait_until(lambda: cam.ended, 5)
+    cam.stop()
+    assert len(got) == 4 and all(f.t_source == "grab" and f.t >= before for f in got)
+
+
+def test_plausible_capture_time() -> None:
+    now = 1000.0
+    assert plausible_capture_time(now - 0.02, now, None)
+    assert plausible_capture_time(now - 0.02, now, now - 0.1)
+    assert not plausible_capture_time(now + 0.5, now, None)  # in the future
+    assert not plausible_capture_time(now - 1.5, now, None)  # too old (or another clock)
+    assert not plausible_capture_time(1.7e9, now, None)  # wall-clock time
+    assert not plausible_capture_time(now - 0.02, now, now - 0.01)  # not after the previous frame

@@ -133,3 +133,61 @@ def test_render_now_is_the_in_process_path() -> None:
     assert img.shape == (480, 640, 3)
     other = srv.render_now(Pose(0.0, 5.0, 0.0, -40.0, 0.0, 0.0, 0.0))
     assert not np.array_equal(img, other)
+
+
+async def _read_frames(url: str, n: int) -> list:
+    def read() -> list:
+        out = []
+        for f in read_mjpeg(url):
+            out.append(f)
+            if len(out) == n:
+                break
+        return out
+
+    return await asyncio.to_thread(read)
+
+
+async def test_static_scene_frames_differ_by_sensor_noise_only() -> None:
+    # Nothing moves (the world is not stepped, the pose is fixed): the renderer alone gives
+    # bit-identical frames, which a real sensor never does; the served frames carry read noise.
+    async with _server(fps=20, noise_sigma=0.0) as srv:
+        clean = await _read_frames(srv.url, 3)
+    assert all(np.array_equal(clean[0].image, f.image) for f in clean[1:])
+    async with _server(fps=20) as srv:
+        noisy = await _read_frames(srv.url, 4)
+    for a, b in zip(noisy, noisy[1:]):
+        assert not np.array_equal(a.image, b.image)
+        d = np.abs(a.image.astype(int) - b.image.astype(int))
+        assert d.mean() < 3.0  # noise of a couple of DN, not a different picture
+    raw = srv.latest
+    assert raw is not None
+    ref = render_world(srv.world, POSE, K, Mount(), srv.ground)
+    assert 1.0 < np.std(raw.image.astype(float) - ref) < 2.0  # sigma 1.5 DN before JPEG
+
+
+async def test_service_camera_takes_every_noisy_frame_with_its_capture_timestamp() -> None:
+    from companion.service.camera import CameraSource
+
+    def collect(url: str, enough) -> tuple[CameraSource, list]:
+        cam = CameraSource(url, stall_timeout_s=2.0)
+        got: list = []
+        cam.add_listener(got.append)
+        cam.start()
+        deadline = time.monotonic() + 5.0
+        while not enough(cam, got) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(0.2)
+        cam.stop()
+        return cam, got
+
+    async with _server(fps=20, stamp=True) as srv:
+        cam, got = await asyncio.to_thread(collect, srv.url, lambda cam, got: len(got) >= 8)
+    assert len(got) >= 8 and cam.stats.repeated == 0 and cam.stats.frames == len(got)
+    for f in got:
+        assert f.t_source == "header"
+        # The capture time is when the server sampled pose and world, not when the grab returned.
+        assert f.t == pytest.approx(srv.capture_times[read_stamp(f.image)], abs=2e-6)
+    # Without the sensor noise, the same static scene starves the service: all repeats.
+    async with _server(fps=20, noise_sigma=0.0) as srv:
+        cam, got = await asyncio.to_thread(collect, srv.url, lambda cam, got: cam.stats.repeated >= 3)
+    assert len(got) == 1 and cam.stats.repeated >= 3

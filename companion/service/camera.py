@@ -11,10 +11,38 @@ Sources (``camera.source`` in the config):
 * a GStreamer pipeline, ``gst:v4l2src ! ... ! appsink`` (or any text with `` ! ``), when OpenCV was
   built with GStreamer; otherwise a clear :class:`CameraError` at start.
 
-Each frame is stamped with ``time.monotonic()`` right after the grab returns: the same clock as the
-vehicle-state receive times, so ``state.pose_at(frame.t)`` pairs it with the pose at capture.
+Capture time. ``Frame.t`` is the capture time on ``time.monotonic()`` (CLOCK_MONOTONIC), the clock
+of the vehicle state, so ``state.pose_at(frame.t)`` pairs the frame with the pose at capture;
+``Frame.t_source`` says where it came from:
+
+* ``"device"``: a V4L2 device's buffer timestamp, which OpenCV's V4L2 backend gives as
+  ``CAP_PROP_POS_MSEC`` (the driver's ``v4l2_buffer.timestamp``; CLOCK_MONOTONIC for drivers that
+  set ``V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC``, i.e. nearly all of them in recent kernels; OpenCV does
+  not expose the flag, hence the plausibility check below);
+* ``"header"``: an MJPEG part's ``X-Timestamp`` header (seconds), which mjpg-streamer-like servers
+  and the simulator's camera (``sim.camera_server``) send; it is on our clock only when the server
+  runs on this machine and stamps with CLOCK_MONOTONIC;
+* ``"grab"``: ``time.monotonic()`` right after the grab returned, for every other source (files,
+  folders, RTSP/FFmpeg and GStreamer, whose positions are media time) and as the fallback.
+
+A source timestamp is used only when it is plausibly on our clock: not in the future, at most
+``MAX_SOURCE_AGE_S`` old, and after the previous frame's time; otherwise the frame gets its grab
+time and the first such fallback is logged once (a camera stamping wall-clock time or another
+machine's clock ends up there).
+
+Freshness. A frame whose pixels are identical to the previous delivered frame is not fresh: a
+camera that re-serves its last frame after a reconnect, or a frozen driver or encoder that repeats
+a buffer. It is counted in ``repeated`` and dropped: not delivered, not recorded, and it does not
+count as a frame for ``delivering()`` or the stall timeout (only repeats for ``stall_timeout_s`` =
+a stalled camera, reopened). The previous delivered frame is kept across reconnects, so the last
+frame before a stall served again after it is caught too. The check is a 128-bit BLAKE2b digest of
+a strided subsample (every 8th row and column, ~0.1 ms at 1280x720), with a full pixel comparison
+only when the digests match. A real sensor never gives two bit-identical frames (read noise);
+a looped single-image folder or a renderer over a static scene without noise does, and is
+treated as frozen (the simulator's camera adds sensor noise for that reason).
+
 A frame that cannot be decoded or is not an HxWx3 uint8 image is counted in ``corrupt`` and
-dropped. No frame for ``stall_timeout_s`` means the camera stalled or was lost: it is closed and
+dropped. No new frame for ``stall_timeout_s`` means the camera stalled or was lost: it is closed and
 reopened with exponential back-off (0.5 s doubling up to ``max_backoff_s``). A frame replaced by a
 newer one before anyone took it is counted in ``dropped``: the consumer always gets the newest
 frame and nothing queues up behind a slow pipeline.
@@ -23,8 +51,10 @@ frame and nothing queues up behind a slow pipeline.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import http.client
 import logging
+import math
 import threading
 import time
 import urllib.parse
@@ -32,6 +62,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -40,6 +71,13 @@ from companion.frames import IMAGE_SUFFIXES, image_files, read_image, read_video
 
 log = logging.getLogger(__name__)
 
+#: Oldest source timestamp taken as a capture time (s before the grab returned); older, or in the
+#: future, means the source stamps on another clock (or is badly late): the grab time is used.
+MAX_SOURCE_AGE_S = 1.0
+#: Rows and columns between the pixels hashed for the repeated-frame check.
+FINGERPRINT_STRIDE = 8
+
+TimeSource = Literal["grab", "device", "header"]
 
 
 class CameraError(RuntimeError):
@@ -51,25 +89,31 @@ class Frame:
     """One camera frame.
 
     index: sequence number of the frame among those the source delivered (0-based, counts only
-        good frames, so gaps mean frames the consumer never saw).
-    t: ``time.monotonic()`` seconds when the grab returned (capture time for pose pairing).
+        good fresh frames, so gaps mean frames the consumer never saw).
+    t: capture time, ``time.monotonic()`` seconds (for pose pairing).
     image: BGR uint8 array (H, W, 3).
+    t_source: where ``t`` came from: ``"device"`` (V4L2 buffer timestamp), ``"header"`` (the MJPEG
+        part's ``X-Timestamp``) or ``"grab"`` (when the grab returned); see the module docstring.
     """
 
     index: int
     t: float
     image: np.ndarray
+    t_source: TimeSource = "grab"
 
 
 @dataclass
 class CameraStats:
-    """Counters since start. frames: good frames delivered by the device; corrupt: frames
-    counted and dropped as undecodable/malformed; dropped: good frames replaced by a newer one
-    before the consumer took them; stalls: times no frame came for ``stall_timeout_s``;
-    reopens: successful opens after the first; last_frame_t: monotonic time of the newest frame."""
+    """Counters since start. frames: good fresh frames delivered by the device; corrupt: frames
+    counted and dropped as undecodable/malformed; repeated: frames identical to the previous
+    delivered one (a frozen camera), counted and dropped; dropped: good frames replaced by a newer
+    one before the consumer took them; stalls: times no new frame came for ``stall_timeout_s``;
+    reopens: successful opens after the first; last_frame_t: capture time (monotonic) of the
+    newest fresh frame."""
 
     frames: int = 0
     corrupt: int = 0
+    repeated: int = 0
     dropped: int = 0
     stalls: int = 0
     reopens: int = 0
@@ -128,7 +172,12 @@ class _Status(Enum):
 
 
 class _Reader:
-    """One open camera; ``read`` returns a status and the image (only with OK)."""
+    """One open camera; ``read`` returns a status and the image (only with OK). ``stamp``: the
+    source's capture timestamp of the frame ``read`` last returned (seconds, on the source's
+    clock), or None when it gives none; ``stamp_source`` names it for ``Frame.t_source``."""
+
+    stamp: float | None = None
+    stamp_source: TimeSource = "grab"
 
     def read(self) -> tuple[_Status, np.ndarray | None]:
         raise NotImplementedError
@@ -155,15 +204,26 @@ class _Pacer:
 
 
 class _CvReader(_Reader):
-    def __init__(self, cap: cv2.VideoCapture, live: bool, pacer: _Pacer | None) -> None:
+    """An OpenCV capture. device_stamps: read ``CAP_PROP_POS_MSEC`` as the capture timestamp
+    (only for V4L2, where it is the driver's buffer timestamp; elsewhere it is media time)."""
+
+    stamp_source: TimeSource = "device"
+
+    def __init__(self, cap: cv2.VideoCapture, live: bool, pacer: _Pacer | None,
+                 device_stamps: bool = False) -> None:
         self.cap, self.live, self.pacer = cap, live, pacer
+        self.device_stamps = device_stamps
 
     def read(self) -> tuple[_Status, np.ndarray | None]:
         if self.pacer is not None:
             self.pacer.wait()
+        self.stamp = None
         ok, bgr = read_video_frame(self.cap)
         if not ok:
             return (_Status.FAIL if self.live else _Status.END), None
+        if self.device_stamps:
+            ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+            self.stamp = ms / 1000.0 if ms > 0 else None  # 0 = none yet (OpenCV's first capture)
         return (_Status.OK, bgr) if bgr is not None else (_Status.CORRUPT, None)
 
     def close(self) -> None:
@@ -208,7 +268,10 @@ class _FolderReader(_Reader):
 
 class _MjpegReader(_Reader):
     """``multipart/x-mixed-replace`` JPEG parts over HTTP, with a socket timeout so a silent
-    server is noticed as a stall rather than blocking the reader thread forever."""
+    server is noticed as a stall rather than blocking the reader thread forever. A part's
+    ``X-Timestamp`` header (seconds) is its capture timestamp."""
+
+    stamp_source: TimeSource = "header"
 
     def __init__(self, url: str, timeout: float) -> None:
         u = urllib.parse.urlsplit(url)
@@ -232,6 +295,7 @@ class _MjpegReader(_Reader):
         return line
 
     def read(self) -> tuple[_Status, np.ndarray | None]:
+        self.stamp = None
         try:
             line = self._readline()
             skipped = 0
@@ -261,7 +325,10 @@ class _MjpegReader(_Reader):
             log.debug("MJPEG read failed: %s", exc)
             return _Status.LOST, None
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
-        return (_Status.OK, image) if image is not None else (_Status.CORRUPT, None)
+        if image is None:
+            return _Status.CORRUPT, None
+        self.stamp = _parse_stamp(headers.get("x-timestamp"))
+        return _Status.OK, image
 
     def _read_to_boundary(self) -> bytes:
         chunks = []
@@ -281,6 +348,34 @@ class _MjpegReader(_Reader):
 
 class _NotMjpeg(Exception):
     pass
+
+
+def _parse_stamp(text: str | None) -> float | None:
+    """A header's timestamp in seconds, or None when absent or not a finite number."""
+    if not text:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def plausible_capture_time(stamp: float, now: float, previous: float | None) -> bool:
+    """A source timestamp can be taken as the capture time on ``time.monotonic()`` taken at
+    ``now`` (just after the grab): not in the future (1 ms for rounding), at most
+    ``MAX_SOURCE_AGE_S`` old, and after the ``previous`` frame's capture time."""
+    return (now - MAX_SOURCE_AGE_S <= stamp <= now + 1e-3
+            and (previous is None or stamp > previous))
+
+
+def fingerprint(image: np.ndarray) -> bytes:
+    """A 128-bit digest of a strided subsample of ``image`` (and its shape): equal for
+    identical images; when it is equal, compare the pixels to be sure."""
+    h = hashlib.blake2b(repr(image.shape).encode(), digest_size=16)
+    sub = image[::FINGERPRINT_STRIDE, ::FINGERPRINT_STRIDE]
+    h.update(np.ascontiguousarray(sub).data)
+    return h.digest()
 
 
 FrameCallback = Callable[[Frame], None]
@@ -317,6 +412,11 @@ class CameraSource:
         self._anew: asyncio.Event | None = None
         self._next_index = 0
         self._listeners: list[FrameCallback] = []
+        # The previous delivered frame, kept across reopens: a repeat of it is not fresh.
+        self._prev_key: bytes | None = None
+        self._prev_image: np.ndarray | None = None
+        self._prev_t: float | None = None
+        self._warned_stamp = False
         if self.kind is Kind.FOLDER:
             # Fail at start on an empty folder rather than retrying forever.
             _FolderReader(Path(self.source), _Pacer(0, self._stop))
@@ -345,7 +445,7 @@ class CameraSource:
         return self._ended
 
     def delivering(self, now: float | None = None) -> bool:
-        """A good frame arrived within ``stall_timeout_s``."""
+        """A fresh frame (not a repeat) was captured within ``stall_timeout_s``."""
         last = self.stats.last_frame_t
         now = time.monotonic() if now is None else now
         return last is not None and now - last < self.stall_timeout_s
@@ -424,10 +524,36 @@ class CameraSource:
             cap.release()
             raise OSError(f"OpenCV cannot open {self.source!r}")
         live = self.kind is not Kind.FILE
-        return _CvReader(cap, live=live, pacer=None if live else pacer)
+        return _CvReader(cap, live=live, pacer=None if live else pacer,
+                         device_stamps=self.kind is Kind.V4L2)
 
-    def _publish(self, image: np.ndarray, t: float) -> None:
-        frame = Frame(self._next_index, t, image)
+    def _is_repeat(self, image: np.ndarray) -> bool:
+        """``image`` is identical to the previous delivered frame; remembers it when it is not."""
+        key = fingerprint(image)
+        prev = self._prev_image
+        if key == self._prev_key and prev is not None and np.array_equal(image, prev):
+            return True
+        self._prev_key, self._prev_image = key, image
+        return False
+
+    def _capture_time(self, reader: _Reader, now: float) -> tuple[float, TimeSource]:
+        """The frame's capture time and its source: the reader's timestamp when plausible."""
+        stamp = reader.stamp
+        if stamp is None:
+            return now, "grab"
+        if plausible_capture_time(stamp, now, self._prev_t):
+            return min(stamp, now), reader.stamp_source
+        if not self._warned_stamp:
+            self._warned_stamp = True
+            log.warning("camera %s: %s timestamp %.6f is not on this machine's monotonic clock "
+                        "(now %.6f, previous frame %s); using grab time for such frames (logged once)",
+                        self.source, reader.stamp_source, stamp, now,
+                        "none" if self._prev_t is None else f"{self._prev_t:.6f}")
+        return now, "grab"
+
+    def _publish(self, image: np.ndarray, t: float, t_source: TimeSource = "grab") -> None:
+        frame = Frame(self._next_index, t, image, t_source)
+        self._prev_t = t
         self._next_index += 1
         with self._lock:
             if self._latest is not None and self._latest.index > self._taken_index:
@@ -471,11 +597,17 @@ class CameraSource:
             now = time.monotonic()
             if status is _Status.OK:
                 assert image is not None
-                self._publish(image, now)
-                last_good = now
-                backoff = 0.5
-                continue
-            if status is _Status.CORRUPT:
+                if not self._is_repeat(image):
+                    self._publish(image, *self._capture_time(reader, now))
+                    last_good = now
+                    backoff = 0.5
+                    continue
+                # Not fresh: a frozen source, or one re-serving its last frame after a reconnect.
+                self.stats.repeated += 1
+                if self.stats.repeated <= 3 or self.stats.repeated % 100 == 0:
+                    log.warning("camera %s: frame identical to the previous one ignored (%d so far)",
+                                self.source, self.stats.repeated)
+            elif status is _Status.CORRUPT:
                 self.stats.corrupt += 1
                 if self.stats.corrupt <= 10 or self.stats.corrupt % 100 == 0:
                     log.warning("camera %s: corrupt frame dropped (%d so far)", self.source, self.stats.corrupt)
@@ -499,7 +631,8 @@ class CameraSource:
                 self._stop.wait(0.01)  # a failing device returns at once: don't spin
             if now - last_good > self.stall_timeout_s:
                 self.stats.stalls += 1
-                log.warning("camera %s: no frame for %.1f s; reopening", self.source, now - last_good)
+                log.warning("camera %s: no new frame for %.1f s (%d repeated so far); reopening",
+                            self.source, now - last_good, self.stats.repeated)
                 reader.close()
                 reader = None
                 self._stop.wait(backoff)

@@ -67,7 +67,7 @@ def test_unit_file_has_what_integrators_expect() -> None:
     assert lines["Type"] == "notify"
     assert int(lines["WatchdogSec"]) > 0
     assert lines["WatchdogSignal"] == "SIGTERM"  # graceful: hands the vehicle back first
-    assert lines["Restart"] == "on-failure"
+    assert lines["Restart"] == "always"  # never left dead; the full policy: tests/test_systemd_unit.py
     assert lines["User"] == "companion"
     assert lines["ExecStart"].endswith("companion run --config /etc/companion/companion.toml")
     assert lines["ProtectSystem"] == "strict" and lines["NoNewPrivileges"] == "yes"

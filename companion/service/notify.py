@@ -5,9 +5,12 @@ often to feed the watchdog. Without ``NOTIFY_SOCKET`` (not under systemd) every 
 so the same code runs from a shell, in tests and as a daemon.
 
 The service sends ``READY=1`` once the model is loaded and the first autopilot heartbeat arrived,
-``WATCHDOG=1`` from its main loop only while healthy (so a stuck pipeline, a dead camera or a
-silent link gets the process restarted by systemd), ``STATUS=...`` lines for ``systemctl status``,
-and ``STOPPING=1`` when it begins to shut down.
+``WATCHDOG=1`` from its main loop unless it has an internal fault (a pipeline call stuck, or an
+event loop too blocked to send them: a restart may cure those), ``STATUS=...`` lines for
+``systemctl status`` (external faults, a camera not delivering or no autopilot heartbeat, show up
+there as ``degraded: ...`` while the pings go on: restarting cannot fix them and the service
+reconnects by itself; see :mod:`companion.service.health`), and ``STOPPING=1`` when it begins to
+shut down.
 """
 
 from __future__ import annotations

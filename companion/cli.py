@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("companion.bench", "measure per-stage latency of the pipeline"),
     "sim": ("sim.cli", "run the simulated vehicle and camera on their own"),
     "sim-scenarios": ("sim.scenarios", "fly N seeded random scenarios and report safety figures"),
+    "signing-key": ("companion.mavlink.keygen", "make a MAVLink signing key file for the link"),
 }
 
 

@@ -26,9 +26,10 @@ from companion.control.landing import LandingConfig
 from companion.control.obedience import ObedienceConfig
 from companion.control.planner import PlannerConfig
 from companion.geometry.camera import Intrinsics, Mount
+from companion.mavlink.clock import AutopilotClock
 from companion.mavlink.failsafe import FailsafeConfig
 from companion.mavlink.link import LinkConfig, message_rates
-from companion.mavlink.transports import TransportError, parse_url
+from companion.mavlink.transports import TransportError, parse_peers, parse_url
 from companion.pipeline.density import DensitySpec, resolve_threshold
 from companion.pipeline.headplane import GridParams
 from companion.pipeline.occupancy import OccupancyParams
@@ -65,14 +66,26 @@ class LinkSettings:
     url: str = _f("udpin:127.0.0.1:14550", "udpin:HOST:PORT, udpout:, tcp:, tcpin:, serial:/dev/ttyX:BAUD")
     system_id: int = _f(1, "our MAVLink system id (normally the vehicle's)", min=1, max=255)
     component_id: int = _f(191, "our component id (191 = onboard computer)", min=1, max=255)
-    target_system: int = _f(0, "autopilot system id; 0 = first autopilot heard", min=0, max=255)
+    target_system: int = _f(1, "autopilot system id (SYSID_THISMAV / MAV_SYS_ID); 0 = the first autopilot "
+                               "heard, which anyone on the link could be", min=0, max=255)
     target_component: int = _f(1, "autopilot component id", min=0, max=255)
     flavour: str = _f("auto", "autopilot dialect", choices=FLAVOURS)
     signing_key: str = _f("", "MAVLink 2 signing secret as 64 hex characters; empty = unsigned")
     signing_key_file: str = _f("", "file holding the 64-hex signing secret (wins over signing_key)", path=True)
+    require_signing: bool = _f(False, "refuse to start without a signing key (docs/signing.md); unsigned, "
+                                      "the service warns at start and at every link-up")
+    peers: list[str] = _f([], "UDP links: IP addresses or CIDR networks allowed to talk to the companion "
+                              "(a ground station sharing the port); empty = any until the autopilot is "
+                              "heard, then its address alone")
     heartbeat_timeout_s: float = _f(3.0, "link declared lost after this long without a heartbeat",
                                     min=0.5, max=60.0)
     telemetry_rate_hz: float = _f(20.0, "rate asked for ATTITUDE / GLOBAL_POSITION_INT", min=1.0, max=100.0)
+    max_telemetry_lag_s: float = _f(0.5, "pose telemetry arriving later than this after the autopilot sampled "
+                                         "it (its time_boot_ms) is dropped; frames wait this long for it (s)",
+                                    min=0.05, max=5.0)
+    timesync_period_s: float = _f(1.0, "TIMESYNC request period to measure the link latency and the "
+                                       "autopilot's clock (s); 0 = off (arrival times bound the clock)",
+                                  min=0.0, max=60.0)
 
 
 @dataclass(frozen=True)
@@ -194,7 +207,8 @@ class RecorderSettings:
     enabled: bool = _f(False, "record frames, poses, telemetry and decisions")
     dir: str = _f("/var/lib/companion/recordings", "where recordings go (one folder per run)", path=True)
     segment_s: float = _f(60.0, "length of one video segment (s)", min=1.0, max=3600.0)
-    max_mb: float = _f(2048.0, "disk budget for all segments in dir; oldest deleted first (MiB)", min=1.0)
+    max_mb: float = _f(2048.0, "disk budget for everything recorded in dir (video, frame index, events); "
+                       "oldest files deleted first (MiB)", min=1.0)
     codec: str = _f("MJPG", "video codec: MJPG (.avi) or mp4v (.mp4)", choices=("MJPG", "mp4v"))
 
 
@@ -356,6 +370,13 @@ def _cross_checks(cfg: Config) -> None:
         # A port above 65535 (or no host) used to pass here and crash the start (exit 1, a
         # traceback, systemd restarting it): say what is wrong, exit 2.
         raise ConfigError(f"link.url: {exc}") from None
+    try:
+        parse_peers(cfg.link.peers)
+    except TransportError as exc:
+        raise ConfigError(f"link.peers: {exc}") from None
+    if cfg.link.require_signing and not (cfg.link.signing_key or cfg.link.signing_key_file):
+        raise ConfigError("link.require_signing is on but neither link.signing_key nor "
+                          "link.signing_key_file is set (docs/signing.md)")
 
 
 def from_dict(raw: Mapping[str, Any], source: Path | None = None) -> Config:
@@ -523,8 +544,13 @@ def link_config(cfg: Config) -> LinkConfig:
         url=c.url, system_id=c.system_id, component_id=c.component_id,
         target_system=c.target_system or None, target_component=c.target_component,
         heartbeat_timeout_s=c.heartbeat_timeout_s, signing_key=signing_key(cfg),
-        message_rates_hz=message_rates(c.telemetry_rate_hz),
+        message_rates_hz=message_rates(c.telemetry_rate_hz), peers=tuple(c.peers),
     )
+
+
+def autopilot_clock(cfg: Config) -> AutopilotClock:
+    """The clock that places telemetry in time, with the configured lag limit."""
+    return AutopilotClock(max_lag_s=cfg.link.max_telemetry_lag_s)
 
 
 def failsafe_config(cfg: Config) -> FailsafeConfig:

@@ -85,6 +85,7 @@ class FlightSpec:
     watch_s: seconds the service watches before the failsafe is raised.
     failsafe: the simulator failsafe raised (battery_critical, rc_loss, gcs_loss, battery_low).
     packet_loss: share of MAVLink datagrams dropped each way.
+    latency_ms: one-way MAVLink latency added each way (ms), from the moment the service is ready.
     intrusion_after_s: for ``intrusion``, seconds after the failsafe when walkers reach the circle.
     land_speed: final-descent speed of the autopilot's LAND (m/s; ArduPilot LAND_SPEED).
     home_origin_offset_m: the simulated PX4's home altitude minus its estimator origin's altitude
@@ -104,6 +105,7 @@ class FlightSpec:
     watch_s: float = 4.0
     failsafe: str = "battery_critical"
     packet_loss: float = 0.0
+    latency_ms: float = 0.0
     intrusion_after_s: float = 7.0
     timeout_s: float = 150.0
     r0_m: float = 2.0
@@ -488,8 +490,8 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             result.log_tail = "\n".join(lines[-30:])
             raise RuntimeError("the service did not become ready:\n" + result.log_tail)
         window["ready"] = time.monotonic()
-        if spec.packet_loss > 0:
-            sim.set_link_faults(loss=spec.packet_loss)
+        if spec.packet_loss > 0 or spec.latency_ms > 0:
+            sim.set_link_faults(loss=spec.packet_loss, latency_s=spec.latency_ms / 1000.0)
         await asyncio.sleep(spec.watch_s)
         t_trigger = time.monotonic()
         climb["trigger_alt"] = sim.vehicle.altitude

@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
+import time
 
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
 
+from companion.control.landing import LandingConfig, LandingController, Phase, VehicleStatus
+from companion.control.planner import PlannerConfig
+from companion.control.trigger import Trigger, TriggerSource
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.mavlink.link import LinkConfig, MavLink
 from companion.mavlink.state import VehicleState
+from companion.pipeline.tracker import Track
 from tests.mavpeer import MavPeer
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)
@@ -200,3 +206,73 @@ def test_finite_but_absurd_telemetry_is_counted_and_dropped():
     assert s.attitude is good_att and s.position is good_pos
     pose = s.pose_at(1.0)
     assert pose is not None and pose.roll == pytest.approx(0.1) and -pose.down == pytest.approx(20.0, abs=0.01)
+
+
+async def test_a_late_time_boot_ms_sample_is_rejected_over_a_real_link():
+    """Issue 12, item 1: a packet held 3 s (a stalled link, a buffer) must not become the pose."""
+    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.1))
+    await link.start()
+    peer = MavPeer(autopilot=m.MAV_AUTOPILOT_ARDUPILOTMEGA, custom_mode=4)
+    state = VehicleState()
+    state.attach(link)
+    boot0 = time.monotonic()
+
+    def boot_ms() -> int:
+        return int((time.monotonic() - boot0) * 1000) + 1000
+
+    async def until(pred) -> None:
+        for _ in range(200):
+            if pred():
+                return
+            await asyncio.sleep(0.01)
+        raise AssertionError("condition not reached")
+
+    try:
+        await peer.connect_udp(link.local_address)
+        peer.heartbeat()
+        await link.wait_connected(2.0)
+        peer.mav.send(home_msg())
+        for _ in range(10):  # live telemetry at 25 Hz: the clock learns the offset
+            peer.mav.send(gpi(boot_ms(), 0.0, 0.0, 20.0))
+            peer.mav.send(att(boot_ms(), 0.0, 0.0, 0.0))
+            await asyncio.sleep(0.04)
+        await until(lambda: state.clock.stats.stamped >= 20)
+        good = state.position
+        sampled = boot_ms()
+        await asyncio.sleep(1.5)  # the sample waits in a buffer
+        peer.mav.send(gpi(sampled, 50.0, 0.0, 20.0))  # where the vehicle was 1.5 s ago, 50 m off
+        peer.mav.send(gpi(sampled - 500, 50.0, 0.0, 20.0))  # and one older than the last: backwards
+        await until(lambda: state.rejected >= 2)
+        assert state.position is good
+        assert state.clock.stats.late == 1 and state.clock.stats.backwards == 1
+        now_ms = boot_ms()
+        peer.mav.send(gpi(now_ms, 1.0, 0.0, 20.0))  # the live stream goes on and is taken
+        await until(lambda: state.position is not good)
+        assert state.position.time_boot_ms == now_ms
+    finally:
+        await peer.close()
+        await link.close()
+
+
+def test_a_held_pose_reports_its_true_age_and_the_controller_refuses_it():
+    """pose_at used to hold the last sample and label it with the time asked for, so the
+    controller's pose-age check could never reject anything (1.26 m off at 5 m/s)."""
+    s = VehicleState(max_extrapolation_s=0.5)
+    s.update(home_msg(), 0.0)
+    for k in range(5):  # telemetry up to t = 10.4, moving north at 5 m/s
+        s.update(att(10_000 + 100 * k, 0, 0, 0), 10.0 + 0.1 * k)
+        s.update(gpi(10_000 + 100 * k, 0.5 * k, 0.0, 20.0), 10.0 + 0.1 * k)
+    fresh = s.pose_at(10.35)
+    held = s.pose_at(10.7)  # 0.3 s past the newest sample: held, not invented
+    assert fresh.t == pytest.approx(10.35) and fresh.north == pytest.approx(1.75, abs=0.01)
+    assert held.t == pytest.approx(10.4) and held.north == pytest.approx(2.0, abs=0.01)
+    assert s.covers(10.35) and not s.covers(10.7)
+    ctl = LandingController(LandingConfig(max_pose_age_s=0.25, planner=PlannerConfig(
+        min_track_age_s=1.0, min_track_hits=3, zone_max_age_s=1.0)))
+    ctl.on_state(VehicleStatus(10.4, 2.0, 0.0, -20.0, HOME, mode="LOITER"))
+    ctl.on_trigger(Trigger("battery critical", TriggerSource.BATTERY, 10.7))
+    zone = Track(id=3, x=12.0, y=1.0, r=5.0, r_filtered=5.0, age=30, hits=30, misses=0, born_t=5.0, last_t=10.7)
+    assert ctl.on_frame(10.7, [zone], held) == []  # 0.3 s old: no decision on it
+    assert ctl.phase is Phase.SELECT
+    fresh_now = dataclasses.replace(held, t=10.7)
+    assert [type(c).__name__ for c in ctl.on_frame(10.7, [zone], fresh_now)] == ["Goto"]

@@ -5,6 +5,7 @@ over real MAVLink on loopback, a real MJPEG camera, the real ONNX model and a re
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import signal
 import socket
@@ -140,10 +141,11 @@ def _env(notify: NotifySocket | None, watchdog_usec: int | None = None) -> dict[
     return env
 
 
-def _write_config(tmp_path: Path, port: int, cam_url: str, extra: str = "", model: Path | None = None) -> Path:
+def _write_config(tmp_path: Path, port: int, cam_url: str, extra: str = "", model: Path | None = None,
+                  link_extra: str = "") -> Path:
     cfg = tmp_path / "companion.toml"
     cfg.write_text(
-        f'[link]\nurl = "udpin:127.0.0.1:{port}"\n'
+        f'[link]\nurl = "udpin:127.0.0.1:{port}"\n{link_extra}'
         f'[camera]\nsource = "{cam_url}"\nwidth = 640\nheight = 480\nfps = 8.0\nhfov_deg = 90.0\n'
         f'stall_timeout_s = 1.0\nreopen_max_backoff_s = 1.0\n'
         f'[model]\npath = "{model or _model()}"\nthreads = 1\n'
@@ -201,16 +203,73 @@ def test_bad_link_urls_and_an_empty_frames_folder_exit_2_with_a_message(tmp_path
 
 # ---- running against the simulator -------------------------------------------------------------
 
-async def test_ready_watchdog_stall_and_clean_sigterm(tmp_path: Path) -> None:
-    """READY after the first heartbeat, WATCHDOG while healthy, no WATCHDOG while the camera is
-    stalled (and again once it is back), SIGTERM -> STOPPING and exit 0 within 2 s; the
-    recording it made reads back frame by frame with poses."""
+#: Runs in the service process (``sitecustomize``): the pipeline call after the file named by
+#: $COMPANION_TEST_STUCK_FLAG appears hangs for 7 s (a stuck pipeline, an internal fault).
+STUCK_PIPELINE = '''\
+import os
+import time
+
+import companion.pipeline.slz as slz
+
+_process = slz.SLZPipeline.process
+_flag = os.environ["COMPANION_TEST_STUCK_FLAG"]
+
+
+def _maybe_stuck(self, *args, **kwargs):
+    try:
+        os.unlink(_flag)
+    except FileNotFoundError:
+        pass
+    else:
+        time.sleep(7.0)
+    return _process(self, *args, **kwargs)
+
+
+slz.SLZPipeline.process = _maybe_stuck
+'''
+
+
+async def test_ready_watchdog_status_on_faults_and_clean_sigterm(tmp_path: Path) -> None:
+    """READY after the first heartbeat; external faults (camera stopped, autopilot silent) are
+    told as STATUS=degraded while WATCHDOG=1 goes on (a restart cannot fix them; the service
+    reconnects), and STATUS is back to normal when they end; an internal fault (a pipeline call
+    stuck beyond 5 s) stops the pings until it ends. SIGTERM -> STOPPING and exit 0 within 2 s;
+    the recording it made reads back frame by frame with poses."""
+    from tests.patched_service import patched_env
+
     port = _free_udp_port()
     notify = NotifySocket(tmp_path / "notify.sock")
     rec_dir = tmp_path / "rec"
+    stuck_flag = tmp_path / "stuck"
+    env = {**_env(notify, 1_000_000), **dict(patched_env(tmp_path / "site", STUCK_PIPELINE)),
+           "COMPANION_TEST_STUCK_FLAG": str(stuck_flag)}
+
+    def statuses_since(t: float) -> list[str]:
+        return [line for when, m in notify.drain() if when > t for line in m.split("\n")
+                if line.startswith("STATUS=")]
+
+    def pings_between(t0: float, t1: float) -> int:
+        return sum(t0 < t < t1 for t in notify.times("WATCHDOG=1"))
+
+    async def external_fault(what: str, start, end) -> None:
+        t0 = time.monotonic()
+        await start()
+        await _until(lambda: f"STATUS=degraded: {what}; MONITOR" in "\n".join(statuses_since(t0)), 10,
+                     f"STATUS=degraded: {what}", svc)
+        t_degraded = time.monotonic()
+        await asyncio.sleep(2.5)
+        pings = pings_between(t_degraded, time.monotonic())
+        assert pings >= 3, f"only {pings} WATCHDOG=1 in 2.5 s while {what} (an external fault)"
+        assert t_degraded - t0 < 6
+        t_back = time.monotonic()
+        await end()
+        await _until(lambda: any(s.startswith("STATUS=MONITOR") for s in statuses_since(t_back)), 15,
+                     f"STATUS back to normal after {what}", svc)
+
     async with simulated_vehicle(port) as (sim, cam, _world):
         cfg = _write_config(tmp_path, port, cam.url)
-        svc = Service(["--config", str(cfg), "--record", str(rec_dir)], _env(notify, 1_000_000), tmp_path / "svc.log")
+        svc = Service(["--config", str(cfg), "--record", str(rec_dir), "--set", "link.heartbeat_timeout_s=1.5"],
+                      env, tmp_path / "svc.log")
         try:
             await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
             await _until(lambda: len(notify.times("WATCHDOG=1")) >= 3, 10, "WATCHDOG=1 pings", svc)
@@ -218,23 +277,41 @@ async def test_ready_watchdog_stall_and_clean_sigterm(tmp_path: Path) -> None:
             await _until(lambda: "frames camera=" in svc.log() and "processed=0 " not in svc.log().splitlines()[-1]
                          or svc.log().count("processed=") >= 2, 20, "health log", svc)
 
-            # Camera stalls: the service stops feeding the watchdog.
-            await cam.stop()
-            t_stall = time.monotonic()
-            await _until(lambda: notify.has("STATUS=unhealthy: camera not delivering"), 10,
-                         "unhealthy status", svc)
-            t_unhealthy = time.monotonic()
-            await asyncio.sleep(2.0)
-            late = [t for t in notify.times("WATCHDOG=1") if t > t_unhealthy + 0.3]
-            assert late == [], f"WATCHDOG=1 sent while the camera was stalled ({len(late)} pings)"
-            assert t_unhealthy - t_stall < 5
-
-            # Camera back (same port): the source reopens and the watchdog resumes.
-            await cam.start()
-            t_back = time.monotonic()
-            await _until(lambda: any(t > t_back for t in notify.times("WATCHDOG=1")), 15,
-                         "WATCHDOG=1 after the camera came back", svc)
+            # The camera stops (an external fault): reported, pings go on; back (same port): the
+            # source reopens and STATUS is normal again.
+            await external_fault("camera not delivering", cam.stop, cam.start)
             assert "reopened" in svc.log()
+            assert "health: camera not delivering (external fault" in svc.log()
+            assert "health: camera ok again" in svc.log()
+
+            # The autopilot goes silent (every datagram from the vehicle lost): the same.
+            silence: list[float] = []
+
+            async def silent() -> None:
+                silence.append(time.monotonic())
+                sim.set_link_faults(loss_tx=1.0)
+
+            async def heard() -> None:
+                sim.set_link_faults()
+                silence.append(time.monotonic() + 1.0)  # the first poses to arrive again
+            await external_fault("no autopilot heartbeat", silent, heard)
+            assert "health: link ok again" in svc.log()
+
+            # A pipeline call stuck for 7 s (an internal fault): the pings stop once it has been
+            # stuck 5 s, and resume when it returns.
+            t_stuck = time.monotonic()
+            stuck_flag.touch()
+            await _until(lambda: any(s.startswith("STATUS=unhealthy: pipeline stuck") for s in statuses_since(t_stuck)),
+                         10, "STATUS=unhealthy: pipeline stuck", svc)
+            t_unhealthy = time.monotonic()
+            assert t_unhealthy - t_stuck > 4.5
+            await _until(lambda: not stuck_flag.exists() and "health: pipeline ok again" in svc.log(), 10,
+                         "the stuck pipeline call to return", svc)
+            t_ok = time.monotonic()
+            late = pings_between(t_unhealthy + 0.3, t_ok - 0.3)
+            assert late == 0, f"{late} WATCHDOG=1 sent while the pipeline was stuck"
+            await _until(lambda: pings_between(t_ok, math.inf) >= 1, 5, "WATCHDOG=1 after the pipeline recovered", svc)
+            assert "pipeline stuck for" in svc.log() and "internal fault: watchdog no longer fed" in svc.log()
 
             # SIGTERM: STOPPING=1, exit 0, within 2 s.
             t0 = time.monotonic()
@@ -256,12 +333,15 @@ async def test_ready_watchdog_stall_and_clean_sigterm(tmp_path: Path) -> None:
     frames = list(reader.frames())
     assert len(frames) >= 10, svc.log()[-2000:]
     with_pose = [f for f in frames if f.pose is not None]
-    assert len(with_pose) >= 0.8 * len(frames)
+    heard = [f for f in frames if not silence[0] < f.t < silence[1]]  # not while the autopilot was silent
+    assert len(with_pose) >= 0.8 * len(heard)
     ts = [f.t for f in frames]
     assert ts == sorted(ts) and len({f.index for f in frames}) == len(frames)
     for f in with_pose:
         assert f.frame_bgr.shape == (480, 640, 3)
-        assert f.pose.t == pytest.approx(f.t)  # the pose is the one at the frame's capture time
+        # The pose is the one at the frame's capture time, or a held one that says its true age
+        # (never older than pipeline.max_pose_age_s, 0.25 s).
+        assert f.t - 0.25 - 1e-6 <= f.pose.t <= f.t + 1e-6
         assert -40 < f.pose.down < 0  # airborne, above home
     # The hover altitude the recorded poses show is the simulator's (25 m).
     assert abs(with_pose[-1].pose.down + 25.0) < 2.0
@@ -447,8 +527,11 @@ async def test_configured_ground_station_ids_and_the_local_trigger_socket(tmp_pa
     notify = NotifySocket(tmp_path / "notify.sock")
     sock_path = tmp_path / "trigger.sock"
     async with simulated_vehicle(port, altitude=20.0) as (sim, cam, _world):
+        # The ground station shares the companion's port here (in the field its commands come
+        # through the autopilot): it must be in link.peers, or it is dropped by address.
         cfg = _write_config(tmp_path, port, cam.url,
-                            f'[failsafe]\ngcs_system_ids = [42]\nlocal_socket = "{sock_path}"\n')
+                            f'[failsafe]\ngcs_system_ids = [42]\nlocal_socket = "{sock_path}"\n',
+                            link_extra='peers = ["127.0.0.1"]\n')
         svc = Service(["--config", str(cfg)], _env(notify), tmp_path / "svc.log")
         gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         gcs.bind(("127.0.0.1", 0))
@@ -483,5 +566,91 @@ async def test_configured_ground_station_ids_and_the_local_trigger_socket(tmp_pa
             assert not sock_path.exists()  # removed at shutdown
         finally:
             gcs.close()
+            svc.stop()
+            notify.close()
+
+
+# ---- a full disk at shutdown ---------------------------------------------------------------------
+
+#: Runs in the service process (``sitecustomize``): every file the recorder opens for writing
+#: besides meta.json is ``/dev/full`` (each write fails with ENOSPC, as on a disk that filled up
+#: mid-flight), and every part that shutdown stops raises after doing its work (the worst a part
+#: could do on the way out).
+FULL_DISK = '''\
+import builtins
+import errno
+import inspect
+import io
+import os
+
+_open = builtins.open
+
+
+def _full(file, mode="r", *args, **kwargs):
+    name = os.fspath(file) if isinstance(file, (str, bytes, os.PathLike)) else ""
+    if isinstance(name, str) and ("w" in mode or "a" in mode) and "/rec/" in name and not name.endswith("meta.json"):
+        return _open("/dev/full", mode, *args, **kwargs)
+    return _open(file, mode, *args, **kwargs)
+
+
+builtins.open = io.open = _full
+
+
+def _then_enospc(cls, name):
+    real = getattr(cls, name)
+    error = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), f"patched {cls.__name__}.{name}")
+
+    def wrapper(self, *args, **kwargs):
+        real(self, *args, **kwargs)
+        raise error
+
+    async def async_wrapper(self, *args, **kwargs):
+        await real(self, *args, **kwargs)
+        raise error
+
+    setattr(cls, name, async_wrapper if inspect.iscoroutinefunction(real) else wrapper)
+
+
+import companion.mavlink.link as _link  # noqa: E402
+import companion.recording as _recording  # noqa: E402
+import companion.service.camera as _camera  # noqa: E402
+
+_then_enospc(_recording.FlightRecorder, "close")
+_then_enospc(_camera.CameraSource, "stop")
+_then_enospc(_link.MavLink, "close")
+'''
+
+
+async def test_sigterm_with_a_full_disk_exits_0_within_2_s_without_a_traceback(tmp_path: Path) -> None:
+    """The recording's writes fail with ENOSPC and every part shutdown stops raises OSError on the
+    way out: each failure is logged, the remaining steps still run, and SIGTERM still means
+    STOPPING=1 and exit 0 within 2 s, with no traceback."""
+    from tests.patched_service import patched_env
+
+    port = _free_udp_port()
+    notify = NotifySocket(tmp_path / "notify.sock")
+    rec_dir = tmp_path / "rec"
+    async with simulated_vehicle(port) as (sim, cam, _world):
+        cfg = _write_config(tmp_path, port, cam.url)
+        env = {**_env(notify), **dict(patched_env(tmp_path / "site", FULL_DISK))}
+        svc = Service(["--config", str(cfg), "--record", str(rec_dir)], env, tmp_path / "svc.log")
+        try:
+            await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
+            await _until(lambda: "No space left on device" in svc.log(), 20, "a write to fail with ENOSPC", svc)
+            await asyncio.sleep(1.0)  # frames and events keep failing to be written meanwhile
+            t0 = time.monotonic()
+            svc.proc.send_signal(signal.SIGTERM)
+            rc = await asyncio.to_thread(svc.proc.wait, 5)
+            elapsed = time.monotonic() - t0
+            log = svc.log()
+            assert rc == 0, log[-3000:]
+            assert "Traceback" not in log, log[-3000:]
+            assert elapsed < 2.0, f"shutdown took {elapsed:.2f} s"
+            print(f"shutdown with a full disk: {elapsed:.2f} s")
+            for part in ("recorder", "camera", "link"):
+                assert f"shutdown: {part} failed" in log, (part, log[-3000:])
+            assert "companion.service: stopped" in log, log[-2000:]  # the last step ran
+            assert notify.has("STOPPING=1")
+        finally:
             svc.stop()
             notify.close()

@@ -123,11 +123,13 @@ class LandingConfig:
 
 @dataclass(frozen=True)
 class VehicleStatus:
-    """The vehicle now: ``t`` receive time (s) of its position; NED metres from home; ``home`` WGS84.
+    """The vehicle now: ``t`` when its position was sampled (our monotonic s); NED metres from
+    home; ``home`` WGS84.
 
     ``mode`` is the flavour's mode name; ``on_ground``/``armed`` None when unknown; ``agl`` metres
     above ground from a fresh rangefinder, None without one (then heights are above home);
-    ``vn``/``ve``/``vd`` velocity in NED m/s.
+    ``vn``/``ve``/``vd`` velocity in NED m/s; ``latency_s`` the link's one-way latency as measured
+    (TIMESYNC), 0 when not measured.
     """
 
     t: float
@@ -142,6 +144,7 @@ class VehicleStatus:
     vn: float = 0.0
     ve: float = 0.0
     vd: float = 0.0
+    latency_s: float = 0.0
 
     @property
     def alt(self) -> float:
@@ -482,7 +485,10 @@ class LandingController:
         cmd = Goto(PositionTarget(point.lat_deg, point.lon_deg, alt, point.alt_m), zone_id, north, east)
         self._last_goto, self._last_goto_t = cmd, self.now
         s = self.status
-        self.obedience.target(north, east, alt, Sample(s.north, s.east, s.alt, s.vn, s.ve, s.vd, s.t))
+        # The vehicle flies on with its old target from the status's sample time until this one
+        # reaches it: the status's age plus the link's latency out.
+        unheard = max(0.0, self.now - s.t) + max(0.0, s.latency_s)
+        self.obedience.target(north, east, alt, Sample(s.north, s.east, s.alt, s.vn, s.ve, s.vd, s.t), unheard)
         return [cmd]
 
     def _handback(self, why: str, action: str | None = None) -> list[Command]:

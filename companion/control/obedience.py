@@ -79,8 +79,15 @@ class ObedienceMonitor:
         """The autopilot flies by itself (its LAND, a mode change): nothing to judge."""
         self.engaged = False
 
-    def target(self, north: float, east: float, alt: float, now: Sample | None = None) -> None:
-        """A new position target was commanded (metres; alt above home); ``now`` the vehicle then."""
+    def target(self, north: float, east: float, alt: float, now: Sample | None = None,
+               unheard_s: float = 0.0) -> None:
+        """A new position target was commanded (metres; alt above home); ``now`` the vehicle then.
+
+        ``unheard_s``: how long the vehicle goes on with its old target before it can act on this
+        one (the age of ``now`` plus the link's one-way latency, s). It keeps its velocity that
+        long, so the best error it can reach grows by its speed times that: with 200 ms of link
+        latency a vehicle re-targeted mid-flight otherwise looked like one moving away.
+        """
         if self._target is not None:
             n0, e0, a0 = self._target
             # The best error reachable grows by at most what the target moved.
@@ -91,6 +98,11 @@ class ObedienceMonitor:
         self._target = (north, east, alt)
         if now is not None and self.engaged:
             self._update_best(now)  # and is at most what the vehicle can reach from where it is
+            if math.isfinite(unheard_s) and unheard_s > 0:
+                speed_xy = math.hypot(now.vn, now.ve)
+                if math.isfinite(speed_xy) and math.isfinite(now.vd):
+                    self._best_xy += speed_xy * unheard_s
+                    self._best_z += abs(now.vd) * unheard_s
 
     def engage(self, s: Sample) -> None:
         """The vehicle is now in the mode that follows our targets: judge from here on."""

@@ -35,7 +35,13 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from companion.mavlink.transports import TcpServerTransport, Transport, UdpTransport, make_transport
+from companion.mavlink.transports import (
+    TcpServerTransport,
+    Transport,
+    UdpTransport,
+    make_transport,
+    parse_peers,
+)
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +131,9 @@ def parse_signing_key(text: str) -> bytes:
 class LinkConfig:
     """How to reach the flight controller and how to present ourselves.
 
-    ``url``: see ``transports.parse_url``. ``target_system`` None (or 0) = the first autopilot heard.
+    ``url``: see ``transports.parse_url``; ``peers`` its UDP allow-list of addresses or networks
+    (empty: any address until the autopilot is heard, then its address alone).
+    ``target_system`` None (or 0) = the first autopilot heard.
     ``signing_key``: 32 bytes (see ``parse_signing_key``) or None for no signing; with a key,
     outgoing packets are signed and unsigned incoming packets are rejected (counted as bad) unless
     ``accept_unsigned`` is True.
@@ -144,6 +152,7 @@ class LinkConfig:
     signing_key: bytes | None = None
     signing_link_id: int = 0
     accept_unsigned: bool = False
+    peers: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.target_system == 0:
@@ -164,6 +173,7 @@ class LinkConfig:
                 raise ValueError(f"mavlink {name} must be a positive number of seconds, not {value!r}")
         if self.command_retries < 0:
             raise ValueError("mavlink command_retries must be >= 0")
+        parse_peers(self.peers)  # raises TransportError (a ValueError) naming the bad entry
         for name, hz in self.message_rates_hz.items():
             if f"MAVLINK_MSG_ID_{name}" not in vars(mavlink2):
                 raise ValueError(f"mavlink message_rates_hz: unknown message {name!r}")
@@ -173,7 +183,8 @@ class LinkConfig:
 
 @dataclass
 class LinkStats:
-    """Counters since start. ``bad`` includes ``unsigned_rejected``; ``dropped`` = sequence gaps."""
+    """Counters since start. ``received`` counts decoded packets of known messages only; ``bad``
+    includes ``unsigned_rejected``; ``dropped`` = sequence gaps of known messages."""
 
     received: int = 0
     bad: int = 0
@@ -182,6 +193,8 @@ class LinkStats:
     unsigned_rejected: int = 0
     handler_errors: int = 0
     link_losses: int = 0
+    unknown: int = 0  # well-framed packets of message ids this dialect lacks (CRC not checkable)
+    foreign: int = 0  # UDP datagrams dropped for their source address (see transports)
 
 
 class _Writer:
@@ -241,7 +254,7 @@ class MavLink:
             signing.timestamp = int((time.time() - _SIGNING_EPOCH) * 1e5)
             if config.accept_unsigned:
                 signing.allow_unsigned_callback = lambda _mav, _msgid: True
-        self._transport: Transport = make_transport(config.url, self._on_data)
+        self._transport: Transport = make_transport(config.url, self._on_data, parse_peers(config.peers))
         self._subs: dict[str, list[MessageCallback]] = defaultdict(list)
         self._any_source_subs: dict[str, list[MessageCallback]] = defaultdict(list)
         self._seq: dict[tuple[int, int], int] = {}
@@ -478,6 +491,12 @@ class MavLink:
                 self.stats.unsigned_rejected += 1
             log.debug("bad MAVLink data: %s", getattr(msg, "reason", "?"))
             return
+        if msg_type.startswith("UNKNOWN_"):
+            # A message id this dialect lacks: its CRC cannot be checked (no CRC_EXTRA), so it
+            # may be random bytes that framed by chance. Not received, and its sequence number
+            # must not count as a gap in the sender's stream.
+            self.stats.unknown += 1
+            return
         self.stats.received += 1
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         seq = msg.get_seq()
@@ -521,6 +540,8 @@ class MavLink:
         self.vehicle_type = msg.type
         self.last_heartbeat_t = t
         self.last_heartbeat = msg
+        if isinstance(self._transport, UdpTransport):
+            self._transport.pin_current()  # from now on its address alone is heard
         if not self.connected:
             self.connected = True
             log.info("autopilot heartbeat: link up (system %d)", self.vehicle_system)
@@ -561,10 +582,13 @@ class MavLink:
         period = min(0.1, self.config.heartbeat_timeout_s / 4)
         while True:
             await asyncio.sleep(period)
+            self.stats.foreign = getattr(self._transport, "foreign", 0)
             if self.connected and self.last_heartbeat_t is not None:
                 if time.monotonic() - self.last_heartbeat_t > self.config.heartbeat_timeout_s:
                     self.connected = False
                     self.stats.link_losses += 1
+                    if isinstance(self._transport, UdpTransport):
+                        self._transport.unpin()  # a restarted autopilot or router may come back elsewhere
                     if self._interval_task is not None:
                         self._interval_task.cancel()
                     log.warning(

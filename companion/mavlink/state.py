@@ -1,16 +1,24 @@
-"""Vehicle state from MAVLink telemetry, each part with its receive time, and the pose at any instant.
+"""Vehicle state from MAVLink telemetry, each part with its time, and the pose at any instant.
 
 ``VehicleState.update(msg, t)`` takes one message and its receive time (``time.monotonic()``
-seconds); ``attach(link)`` subscribes it to a ``MavLink``. Frames: local NED metres from home
+seconds); ``attach(link)`` subscribes it to a ``MavLink``. ATTITUDE and GLOBAL_POSITION_INT are
+placed in time by the autopilot's own ``time_boot_ms``, mapped onto our clock by
+``clock.AutopilotClock`` (TIMESYNC where answered): their ``t`` is when the autopilot sampled them,
+not when they arrived. A sample that arrives too late, or is not newer than the last of its stream,
+is counted and dropped (``rejected``; ``clock.stats`` says why). Frames: local NED metres from home
 (HOME_POSITION, through geographiclib), ground at ``z = 0``; angles in radians as in ATTITUDE
 (aerospace Z-Y-X, yaw from north). Messages with NaN or out-of-range values (angles past +-pi,
 altitudes past 20 km, speeds past 100 m/s, latitudes past +-90) are counted in ``rejected`` and
 dropped so they never reach the pose.
 
-``pose_at(t)`` interpolates between the two ATTITUDE samples and the two GLOBAL_POSITION_INT
-samples around ``t`` (attitude by quaternion slerp, so yaw wraps correctly across +-pi). It returns
-None when ``t`` is outside the buffered samples (beyond a small extrapolation allowance), when home
-or position is unknown, or when the samples around ``t`` are too far apart to trust.
+``pose_at(t)`` interpolates, on the autopilot's clock, between the two ATTITUDE samples and the
+two GLOBAL_POSITION_INT samples around ``t`` (attitude by quaternion slerp, so yaw wraps correctly
+across +-pi). Past the newest sample it holds that sample for at most ``max_extrapolation_s`` and
+then says so: the pose's ``t`` is the newest sample's time, its true age, never the time asked for.
+``covers(t)`` tells a caller whether the samples after ``t`` have arrived, so that it can wait for
+them rather than hold. It returns None when ``t`` is outside the buffered samples (beyond the
+extrapolation allowance), when home or position is unknown, or when the samples around ``t`` are
+too far apart to trust.
 """
 
 from __future__ import annotations
@@ -19,7 +27,6 @@ import bisect
 import logging
 import math
 from collections import deque
-from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,6 +36,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from companion.geometry.camera import Pose, rotation_from_euler, rotation_from_quaternion
 from companion.geometry.geodesy import GeodesyError, GeoPoint, ned_from_geo
+from companion.logs import warn_every
+from companion.mavlink.clock import AutopilotClock, Verdict
 
 log = logging.getLogger(__name__)
 
@@ -39,18 +48,22 @@ class StateError(ValueError):
 
 @dataclass(frozen=True)
 class Attitude:
-    """ATTITUDE: radians, yaw from north (-pi..pi); ``t`` receive time (s); ``time_boot_ms`` as sent."""
+    """ATTITUDE: radians, yaw from north (-pi..pi); ``t`` sample time on our clock (s);
+    ``time_boot_ms`` as sent; ``boot_s`` the autopilot's time (s, unwrapped); ``arrival`` receive time."""
 
     t: float
     time_boot_ms: int
     roll: float
     pitch: float
     yaw: float
+    boot_s: float = math.nan
+    arrival: float = math.nan
 
 
 @dataclass(frozen=True)
 class GlobalPosition:
-    """GLOBAL_POSITION_INT: WGS84 degrees, AMSL and above-home metres, NED velocity m/s, heading rad."""
+    """GLOBAL_POSITION_INT: WGS84 degrees, AMSL and above-home metres, NED velocity m/s, heading rad;
+    times as in ``Attitude``."""
 
     t: float
     time_boot_ms: int
@@ -62,6 +75,8 @@ class GlobalPosition:
     ve: float
     vd: float
     heading: float | None  # None when the autopilot does not know it (UINT16_MAX)
+    boot_s: float = math.nan
+    arrival: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -164,7 +179,8 @@ class VehicleState:
 
     ``history_s`` of ATTITUDE and position samples are kept; ``max_gap_s`` is the widest gap
     between two samples that ``pose_at`` interpolates across; ``max_extrapolation_s`` is how far
-    past the newest sample ``pose_at`` may still answer (with the newest sample).
+    past the newest sample ``pose_at`` may still answer (with the newest sample, and its age).
+    ``clock`` places samples in time (a default ``AutopilotClock`` when not given).
     """
 
     def __init__(
@@ -174,11 +190,13 @@ class VehicleState:
         max_gap_s: float = 0.5,
         max_extrapolation_s: float = 0.1,
         autopilot_component: int = m.MAV_COMP_ID_AUTOPILOT1,
+        clock: AutopilotClock | None = None,
     ) -> None:
         self.history_s = history_s
         self.max_gap_s = max_gap_s
         self.max_extrapolation_s = max_extrapolation_s
         self.autopilot_component = autopilot_component
+        self.clock = clock if clock is not None else AutopilotClock()
         self.attitude: Attitude | None = None
         self.position: GlobalPosition | None = None
         self.home: Home | None = None
@@ -210,6 +228,7 @@ class VehicleState:
         "BATTERY_STATUS",
         "DISTANCE_SENSOR",
         "GIMBAL_DEVICE_ATTITUDE_STATUS",
+        "TIMESYNC",
     )
 
     def update(self, msg: Any, t: float) -> None:
@@ -221,7 +240,9 @@ class VehicleState:
             handler(msg, t)
         except (StateError, GeodesyError) as exc:
             self.rejected += 1
-            log.warning("dropped %s: %s", msg.get_type(), exc)
+            # One line per kind and 10 s, with the count: a flood of bad telemetry must not
+            # push the trigger's lines out of journald's rate limit.
+            warn_every(log, f"dropped {msg.get_type()}", 10.0, "dropped %s: %s", msg.get_type(), exc)
 
     def _on_heartbeat(self, msg: Any, t: float) -> None:
         if msg.get_srcComponent() != self.autopilot_component or msg.autopilot == m.MAV_AUTOPILOT_INVALID:
@@ -235,7 +256,8 @@ class VehicleState:
         # yaw, which some autopilots send 0..2 pi).
         if abs(msg.roll) > math.pi + 1e-3 or abs(msg.pitch) > math.pi / 2 + 1e-3 or abs(msg.yaw) > 2 * math.pi + 1e-3:
             raise StateError(f"ATTITUDE out of range: roll={msg.roll} pitch={msg.pitch} yaw={msg.yaw}")
-        att = Attitude(t, msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw)
+        t_sample, boot_s = self._stamp("ATTITUDE", msg.time_boot_ms, t)
+        att = Attitude(t_sample, msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, boot_s, t)
         self.attitude = att
         self._append(self._att, att)
 
@@ -250,9 +272,10 @@ class VehicleState:
             raise StateError(f"GLOBAL_POSITION_INT out of range: alt={msg.alt} mm "
                              f"relative_alt={msg.relative_alt} mm v=({msg.vx}, {msg.vy}, {msg.vz}) cm/s")
         hdg = None if msg.hdg == 65535 else math.radians(msg.hdg / 100.0)
+        t_sample, boot_s = self._stamp("GLOBAL_POSITION_INT", msg.time_boot_ms, t)
         pos = GlobalPosition(
-            t, msg.time_boot_ms, point.lat_deg, point.lon_deg, point.alt_m, msg.relative_alt * 1e-3,
-            msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0, hdg,
+            t_sample, msg.time_boot_ms, point.lat_deg, point.lon_deg, point.alt_m, msg.relative_alt * 1e-3,
+            msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0, hdg, boot_s, t,
         )
         self.position = pos
         self._append(self._pos, pos)
@@ -293,11 +316,30 @@ class VehicleState:
             raise StateError(f"gimbal quaternion {q} is not a unit quaternion")
         self.gimbal = GimbalAttitude(t, q, msg.flags)  # type: ignore[arg-type]
 
+    def _on_timesync(self, msg: Any, t: float) -> None:
+        if msg.tc1 != 0:  # an answer to our request (tc1 = 0 is the autopilot asking us)
+            self.clock.on_timesync(msg.tc1, msg.ts1, t)
+
+    def _stamp(self, stream: str, time_boot_ms: int, arrival: float) -> tuple[float, float]:
+        """(sample time on our clock, autopilot time) of a pose sample, or StateError if it is
+        late or not newer than its stream's last one. A confirmed autopilot reboot clears the
+        history: its samples are on a clock that no longer exists."""
+        stamp = self.clock.stamp(stream, time_boot_ms / 1000.0, arrival)
+        if stamp.verdict is Verdict.LATE:
+            raise StateError(f"{stream} arrived {stamp.lag_s:.2f} s after it was sampled "
+                             f"(limit {self.clock.max_lag_s:g} s)")
+        if stamp.verdict is Verdict.BACKWARDS:
+            raise StateError(f"{stream} time_boot_ms {time_boot_ms} is not newer than the last sample")
+        if stamp.verdict is Verdict.REBOOT:
+            log.warning("autopilot clock restarted (reboot?): pose history cleared")
+            self._att.clear()
+            self._pos.clear()
+        return stamp.t, stamp.boot_s
+
     def _append(self, buf: deque[Any], sample: Any) -> None:
-        if buf and sample.t < buf[-1].t:
-            buf.clear()  # receive times never go back; if they do, the old history is unusable
+        # The clock only lets through samples newer than their stream's last: boot_s increases.
         buf.append(sample)
-        while buf and sample.t - buf[0].t > self.history_s:
+        while buf and sample.boot_s - buf[0].boot_s > self.history_s:
             buf.popleft()
 
     # -- derived -----------------------------------------------------------------------------
@@ -341,23 +383,41 @@ class VehicleState:
             and now - self.position.t <= max_age_s
         )
 
+    def covers(self, t: float) -> bool:
+        """True when an ATTITUDE and a position sample at or after our time ``t`` have arrived:
+        ``pose_at(t)`` then interpolates rather than holds, and waiting longer cannot improve it."""
+        b = self.clock.to_boot(t) if math.isfinite(t) else None
+        return (b is not None and bool(self._att) and bool(self._pos)
+                and self._att[-1].boot_s >= b and self._pos[-1].boot_s >= b)
+
     def pose_at(self, t: float) -> Pose | None:
-        """The pose at monotonic time ``t`` (s) by interpolation, or None if it cannot be trusted."""
+        """The pose at our monotonic time ``t`` (s), or None if it cannot be trusted.
+
+        Interpolated on the autopilot's clock. Past the newest sample (within
+        ``max_extrapolation_s``) the newest sample is held and the pose's ``t`` is that sample's
+        time, so that its age shows.
+        """
         if self.home is None or not math.isfinite(t):
             return None
-        att = self._bracket(self._att, t)
-        pos = self._bracket(self._pos, t)
+        b = self.clock.to_boot(t)
+        if b is None:
+            return None
+        att = self._bracket(self._att, b)
+        pos = self._bracket(self._pos, b)
         if att is None or pos is None:
             return None
-        roll, pitch, yaw = self._interp_attitude(att, t)
+        roll, pitch, yaw = self._interp_attitude(att, b)
         n0, e0, d0 = self.local_ned(pos[0])  # type: ignore[misc]
         n1, e1, d1 = self.local_ned(pos[1])  # type: ignore[misc]
-        f = self._fraction(pos[0].t, pos[1].t, t)
+        f = self._fraction(pos[0].boot_s, pos[1].boot_s, b)
+        # The time the pose truly describes: t when both are bracketed, else the older held sample.
+        held = [pair[1].boot_s for pair in (att, pos) if pair[1].boot_s < b]
+        t_pose = t if not held else t - (b - min(held))
         gimbal = None
         if self.gimbal is not None and abs(self.gimbal.t - t) <= self.max_gap_s:
             gimbal = R_body_from_gimbal(self.gimbal, roll, pitch, yaw)
-        pose = Pose(
-            t,
+        return Pose(
+            t_pose,
             n0 + f * (n1 - n0),
             e0 + f * (e1 - e0),
             d0 + f * (d1 - d0),
@@ -366,30 +426,28 @@ class VehicleState:
             yaw,
             gimbal,
         )
-        return pose
 
-    def _bracket(self, buf: Iterable[Any], t: float) -> tuple[Any, Any] | None:
-        samples = list(buf)
-        if not samples or t < samples[0].t:
+    def _bracket(self, buf: deque[Any], b: float) -> tuple[Any, Any] | None:
+        """The samples around autopilot time ``b`` (s), the newest twice when ``b`` is past it."""
+        if not buf or b < buf[0].boot_s:
             return None
-        times = [s.t for s in samples]
-        i = bisect.bisect_right(times, t)
-        if i == len(samples):
-            last = samples[-1]
-            return (last, last) if t - last.t <= self.max_extrapolation_s else None
-        a, b = samples[i - 1], samples[i]
-        if b.t - a.t > self.max_gap_s:
+        i = bisect.bisect_right(buf, b, key=lambda s: s.boot_s)
+        if i == len(buf):
+            last = buf[-1]
+            return (last, last) if b - last.boot_s <= self.max_extrapolation_s else None
+        a, c = buf[i - 1], buf[i]
+        if c.boot_s - a.boot_s > self.max_gap_s:
             return None  # a telemetry gap: do not invent what happened in between
-        return a, b
+        return a, c
 
     @staticmethod
     def _fraction(t0: float, t1: float, t: float) -> float:
         return 0.0 if t1 <= t0 else min(1.0, max(0.0, (t - t0) / (t1 - t0)))
 
-    def _interp_attitude(self, pair: tuple[Attitude, Attitude], t: float) -> tuple[float, float, float]:
-        a, b = pair
-        if a is b or b.t <= a.t:
+    def _interp_attitude(self, pair: tuple[Attitude, Attitude], b: float) -> tuple[float, float, float]:
+        a, c = pair
+        if a is c or c.boot_s <= a.boot_s:
             return a.roll, a.pitch, a.yaw
-        rots = Rotation.from_euler("ZYX", [[a.yaw, a.pitch, a.roll], [b.yaw, b.pitch, b.roll]])
-        yaw, pitch, roll = Slerp([a.t, b.t], rots)([t]).as_euler("ZYX")[0]
+        rots = Rotation.from_euler("ZYX", [[a.yaw, a.pitch, a.roll], [c.yaw, c.pitch, c.roll]])
+        yaw, pitch, roll = Slerp([a.boot_s, c.boot_s], rots)([b]).as_euler("ZYX")[0]
         return float(roll), float(pitch), float(yaw)

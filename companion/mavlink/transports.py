@@ -7,9 +7,16 @@ the start of the next datagram.
 
 URLs (the same spelling as MAVProxy / mavlink-router / MAVSDK):
 
-- ``udpin:HOST:PORT``   listen; packets go to every address heard from in the last 10 s (the
-  autopilot, or a router, and possibly a ground station sharing the port).
-- ``udpout:HOST:PORT``  send to HOST:PORT (the flight controller or a router listens there).
+- ``udpin:HOST:PORT``   listen. Until the autopilot is heard, packets go to every address heard
+  from in the last 10 s; once its heartbeat pins its address (``pin_current``), datagrams from
+  any other address are dropped before parsing (counted in ``foreign``) and packets go to it
+  alone, besides the configured ``peers`` (a ground station sharing the port). A lost link unpins.
+- ``udpout:HOST:PORT``  send to HOST:PORT (the flight controller or a router listens there);
+  datagrams from any other address or port are dropped.
+
+``peers`` (IP addresses or CIDR networks) is an allow-list for UDP: when given, datagrams from
+addresses outside it are dropped at all times. Anyone who can reach an open port could otherwise
+claim the autopilot's system id, feed a pose, or take over the link by being heard first.
 - ``tcp:HOST:PORT``     TCP client; reconnects every ``reconnect_s`` seconds after a loss.
 - ``tcpin:HOST:PORT``   TCP server; talks to the most recent client (a router or SITL connecting in).
 - ``serial:/dev/ttyX:BAUD``  a serial port (UART, USB CDC), raw 8N1 through termios; no pyserial.
@@ -18,17 +25,31 @@ URLs (the same spelling as MAVProxy / mavlink-router / MAVSDK):
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import logging
 import os
+import socket
 import termios
 import time
 import tty
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 log = logging.getLogger(__name__)
 
 DataCallback = Callable[[bytes], None]
+Network = ipaddress.IPv4Network | ipaddress.IPv6Network
+
+
+def parse_peers(peers: Sequence[str]) -> tuple[Network, ...]:
+    """IP addresses or CIDR networks (``192.168.1.10``, ``10.0.0.0/24``); TransportError if not."""
+    out = []
+    for p in peers:
+        try:
+            out.append(ipaddress.ip_network(p.strip(), strict=False))
+        except ValueError as exc:
+            raise TransportError(f"link peer {p!r} is not an IP address or network: {exc}") from exc
+    return tuple(out)
 
 
 class TransportError(ValueError):
@@ -117,12 +138,22 @@ class UdpTransport(Transport):
 
     PEER_TIMEOUT_S = 10.0
 
-    def __init__(self, endpoint: Endpoint, on_data: DataCallback) -> None:
+    #: Receive buffer asked of the kernel: a burst (or a flood) queues rather than drops the
+    #: autopilot's packets while the loop is busy. Linux caps it at net.core.rmem_max.
+    RCVBUF_BYTES = 4 * 1024 * 1024
+
+    def __init__(self, endpoint: Endpoint, on_data: DataCallback, peers: Sequence[Network] = ()) -> None:
         super().__init__(endpoint, on_data)
         self._transport: asyncio.DatagramTransport | None = None
         # udpout: the one fixed destination. udpin: address -> monotonic time last heard from.
         self._fixed: tuple[str, int] | None = (endpoint.host, endpoint.port) if endpoint.kind == "udpout" else None
+        self._fixed_ip: str | None = None  # udpout: the destination's address, resolved at start
         self._peers: dict[tuple[str, int], float] = {}
+        self._allowed = tuple(peers)
+        self._allowed_cache: dict[str, bool] = {}
+        self._pinned: tuple[str, int] | None = None
+        self._current: tuple[str, int] | None = None  # the datagram being handed to on_data
+        self.foreign = 0  # datagrams dropped for their source address
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -132,11 +163,24 @@ class UdpTransport(Transport):
                     lambda: _UdpProtocol(self), local_addr=(self.endpoint.host, self.endpoint.port)
                 )
             else:
+                infos = await loop.getaddrinfo(self.endpoint.host, self.endpoint.port, type=socket.SOCK_DGRAM)
+                family, _, _, _, sockaddr = infos[0]
+                self._fixed_ip = str(sockaddr[0])
+                # Bound to loopback when the destination is (nothing else can reach the port).
+                local = "127.0.0.1" if ipaddress.ip_address(self._fixed_ip).is_loopback else "0.0.0.0"
+                if family == socket.AF_INET6:
+                    local = "::1" if local == "127.0.0.1" else "::"
                 self._transport, _ = await loop.create_datagram_endpoint(
-                    lambda: _UdpProtocol(self), local_addr=("0.0.0.0", 0)
+                    lambda: _UdpProtocol(self), local_addr=(local, 0)
                 )
         except OSError as exc:
             raise TransportOpenError(f"cannot open {self.endpoint}: {exc}") from exc
+        sock = self._transport.get_extra_info("socket")
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.RCVBUF_BYTES)
+            except OSError as exc:
+                log.debug("SO_RCVBUF not set: %s", exc)
 
     @property
     def local_address(self) -> tuple[str, int]:
@@ -144,10 +188,55 @@ class UdpTransport(Transport):
         assert self._transport is not None
         return self._transport.get_extra_info("sockname")[:2]
 
+    def _is_allowed(self, ip: str) -> bool:
+        """In the ``peers`` allow-list (cached: the check runs for every datagram of a flood)."""
+        ok = self._allowed_cache.get(ip)
+        if ok is None:
+            try:
+                address = ipaddress.ip_address(ip.split("%")[0])
+                ok = any(address in net for net in self._allowed)
+            except ValueError:
+                ok = False
+            if len(self._allowed_cache) > 1024:
+                self._allowed_cache.clear()  # addresses from a flood must not grow memory
+            self._allowed_cache[ip] = ok
+        return ok
+
+    def _accepts(self, addr: tuple[str, int]) -> bool:
+        if self._fixed is not None:
+            # The autopilot or router listens at HOST:PORT and answers from that socket.
+            return addr[0] == self._fixed_ip and addr[1] == self._fixed[1]
+        if self._allowed and not self._is_allowed(addr[0]):
+            return False
+        return self._pinned is None or addr == self._pinned or bool(self._allowed)
+
     def _received(self, data: bytes, addr: tuple[str, int]) -> None:
+        addr = (addr[0], addr[1])  # IPv6 addresses come with flow info and scope
+        if not self._accepts(addr):
+            self.foreign += 1
+            return
         if self._fixed is None:
             self._peers[addr] = time.monotonic()
-        self._on_data(data)
+        self._current = addr
+        try:
+            self._on_data(data)
+        finally:
+            self._current = None
+
+    def pin_current(self) -> None:
+        """The datagram being handled came from the autopilot: talk to its address alone from now
+        on (and to the allowed ``peers``). No effect on ``udpout``, whose peer is fixed."""
+        if self._fixed is None and self._current is not None and self._pinned != self._current:
+            self._pinned = self._current
+            log.info("udp: autopilot at %s:%d; other senders are dropped", *self._pinned)
+
+    def unpin(self) -> None:
+        """The autopilot went silent: hear from any (allowed) address again."""
+        self._pinned = None
+
+    @property
+    def pinned(self) -> tuple[str, int] | None:
+        return self._pinned
 
     def _destinations(self) -> list[tuple[str, int]]:
         if self._fixed is not None:
@@ -155,6 +244,8 @@ class UdpTransport(Transport):
         now = time.monotonic()
         for addr in [a for a, t in self._peers.items() if now - t > self.PEER_TIMEOUT_S]:
             del self._peers[addr]
+        if self._pinned is not None:
+            return [self._pinned, *(a for a in self._peers if a != self._pinned and self._allowed)]
         return list(self._peers)
 
     @property
@@ -366,11 +457,11 @@ class SerialTransport(Transport):
             self._fd = None
 
 
-def make_transport(url: str, on_data: DataCallback) -> Transport:
-    """The transport for a connection URL (not started yet)."""
+def make_transport(url: str, on_data: DataCallback, peers: Sequence[Network] = ()) -> Transport:
+    """The transport for a connection URL (not started yet); ``peers`` the UDP allow-list."""
     ep = parse_url(url)
     if ep.kind in ("udpin", "udpout"):
-        return UdpTransport(ep, on_data)
+        return UdpTransport(ep, on_data, peers)
     if ep.kind == "tcp":
         return TcpTransport(ep, on_data)
     if ep.kind == "tcpin":

@@ -4,15 +4,21 @@ Start-up: load the density model (a bad file stops start-up, naming it), open th
 start the camera, wait for the first autopilot heartbeat, then tell systemd READY=1. From then on:
 
 - the frame loop takes the newest camera frame (older ones are dropped and counted, never
-  queued), pairs it with the pose at its capture time, records it, runs the pipeline in a worker
+  queued), pairs it with the pose at its capture time (placed on the autopilot's clock, and
+  waiting up to ``link.max_telemetry_lag_s`` for the telemetry sampled after it rather than
+  holding an older pose), records it, runs the pipeline in a worker
   thread (onnxruntime and OpenCV release the GIL) and hands the zones to the landing controller.
   A frame without a fresh pose is recorded but never used for decisions;
 - the failsafe monitor turns telemetry into a trigger for the controller; SIGUSR1 is a local
   trigger;
 - the health loop logs per-stage timings, frame counters and link/camera state every
-  ``log.health_interval_s`` and feeds the systemd watchdog only while the link is alive, the
-  camera delivers and the pipeline is not stuck;
-- SIGTERM/SIGINT stop everything within about a second (STOPPING=1 first).
+  ``log.health_interval_s``, reports external faults (no autopilot heartbeat, camera not
+  delivering) as ``STATUS=degraded: ...`` while it keeps feeding the systemd watchdog (a restart
+  cannot fix an unplugged camera; the service reconnects by itself), and stops feeding it only on
+  an internal fault, a pipeline call stuck beyond ``PIPELINE_STUCK_S`` (see ``health.assess``);
+- SIGTERM/SIGINT stop everything within 2 s (STOPPING=1 first); every shutdown step is guarded,
+  so a failing one (a full disk, anything) is logged and the others still run, and the exit
+  status is still 0.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import asyncio
 import logging
 import signal
 import time
+from collections import deque
 from dataclasses import asdict
 from typing import Any
 
@@ -40,21 +47,26 @@ from companion.mavlink.flavours import select_flavour
 from companion.mavlink.link import MavLink
 from companion.mavlink.state import VehicleState
 from companion.mavlink.statustext import send_statustext
+from companion.mavlink.timesync import run_timesync
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
 from companion.pipeline.slz import SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
-from companion.service.camera import CameraSource
-from companion.service.health import FrameCounters, StageTimings
+from companion.service.camera import CameraSource, Frame
+from companion.service.health import PIPELINE_STUCK_S, FaultLog, FrameCounters, Health, StageTimings, assess
 from companion.service.landing_runner import LandingRunner
 from companion.service.notify import Notifier
 
 log = logging.getLogger("companion.service")
 
-#: A pipeline call running longer than this counts as stuck (the watchdog stops being fed).
-PIPELINE_STUCK_S = 5.0
 #: Main-loop tick for watchdog and health checks (s).
 TICK_S = 0.25
+#: How often a frame waiting for its telemetry checks again (s).
+POSE_POLL_S = 0.01
+#: SIGTERM to exit (s): the promise is 2 s (the unit's TimeoutStopSec=5 is the backstop). Every
+#: shutdown step gets at most what is left of it (and at least SHUTDOWN_STEP_MIN_S).
+SHUTDOWN_BUDGET_S = 1.8
+SHUTDOWN_STEP_MIN_S = 0.05
 
 
 def load_model(cfg: Config) -> DensityModel:
@@ -93,7 +105,10 @@ class Service:
         self.mount = settings.mount(cfg)
         self.pipeline = pipeline or build_pipeline(cfg, model)
         self.link = link or MavLink(settings.link_config(cfg))
-        self.state = VehicleState(max_extrapolation_s=cfg.pipeline.max_pose_age_s)
+        # Telemetry placed in time by the autopilot's clock; a frame may still be paired with a
+        # held pose up to max_pose_age_s old, which then carries its true age to the controller.
+        self.state = VehicleState(max_extrapolation_s=cfg.pipeline.max_pose_age_s,
+                                  clock=settings.autopilot_clock(cfg))
         self.camera = camera or build_camera(cfg)
         self.timings = StageTimings()
         self.counters = FrameCounters()
@@ -130,10 +145,19 @@ class Service:
             return
         self.monitor.trigger_local("SIGUSR1 to the service")
 
+    def _warn_unsigned(self, connected: bool = True) -> None:
+        """Loud, at start and at every link-up: an unsigned link trusts whoever claims the ids."""
+        if connected and self.link.config.signing_key is None:
+            log.warning("MAVLink link %s is UNSIGNED: anyone who reaches it can feed the companion a pose "
+                        "or a fake heartbeat and be flown to. Set link.signing_key_file and "
+                        "link.require_signing (docs/signing.md).", self.cfg.link.url)
+
     async def run(self) -> int:
         self._install_signals()
         c = self.cfg
         self.state.attach(self.link)
+        self._warn_unsigned()
+        self.link.on_link_change(self._warn_unsigned)
         try:
             await self.link.start()
         except OSError as exc:
@@ -164,6 +188,9 @@ class Service:
                 asyncio.create_task(self._frame_loop(), name="frames"),
                 asyncio.create_task(self._health_loop(), name="health"),
             ]
+            if c.link.timesync_period_s > 0:
+                tasks.append(asyncio.create_task(
+                    run_timesync(self.link, self.state.clock, c.link.timesync_period_s), name="timesync"))
             if self.runner is not None:
                 tasks.append(asyncio.create_task(self.runner.run(), name="controller"))
             stop = asyncio.create_task(self.stop_event.wait())
@@ -290,28 +317,52 @@ class Service:
             log.error("handback on exit failed: %r", exc)
 
     async def _shutdown(self, tasks: list[asyncio.Task[Any]]) -> None:
+        """Stop every part, in order, within SHUTDOWN_BUDGET_S. Each step is guarded: one that
+        fails (OSError on a full disk, anything) or overruns is logged and the rest still run,
+        so a stop always ends with the link closed and exit status 0."""
+        deadline = time.monotonic() + SHUTDOWN_BUDGET_S
+
+        def left(most: float) -> float:
+            return max(min(most, deadline - time.monotonic()), SHUTDOWN_STEP_MIN_S)
+
         if self.runner is not None:
-            await self._handback_on_exit()
+            await self._shutdown_step("handback", self._handback_on_exit(), left(1.4))
         if self.monitor is not None:
-            try:
-                await asyncio.wait_for(self.monitor.stop_local_socket(), 0.5)
-            except (TimeoutError, OSError):
-                pass
+            await self._shutdown_step("local trigger socket", self.monitor.stop_local_socket(), left(0.5))
         for task in tasks:
             task.cancel()
+        await self._shutdown_step("tasks", self._reap(tasks), left(0.5))
+        budget = left(1.0)
+        await self._shutdown_step("camera", asyncio.to_thread(self.camera.stop, budget), budget + 0.1)
+        if self.recorder is not None:
+            budget = left(1.0)
+            await self._shutdown_step("recorder", asyncio.to_thread(self.recorder.close, budget), budget + 0.1)
+        await self._shutdown_step("link", self.link.close(), left(1.0))
+        log.info("stopped")
+
+    @staticmethod
+    async def _reap(tasks: list[asyncio.Task[Any]]) -> None:
+        """Wait for cancelled tasks; how they ended does not matter any more."""
         for task in tasks:
             try:
                 await task
             except (asyncio.CancelledError, Exception):
                 pass
-        await asyncio.to_thread(self.camera.stop, 1.0)
-        if self.recorder is not None:
-            await asyncio.to_thread(self.recorder.close, 1.0)
+
+    @staticmethod
+    async def _shutdown_step(name: str, step: Any, timeout: float) -> None:
+        """Await one shutdown step for at most ``timeout`` s; log, never raise, when it fails."""
         try:
-            await asyncio.wait_for(self.link.close(), 1.0)
-        except (TimeoutError, OSError):
-            pass
-        log.info("stopped")
+            await asyncio.wait_for(step, timeout)
+        except TimeoutError:
+            log.error("shutdown: %s did not finish within %.2f s; going on", name, timeout)
+        except asyncio.CancelledError:
+            me = asyncio.current_task()
+            if me is not None and me.cancelling():
+                raise  # this task itself is being cancelled: let it go
+            log.error("shutdown: %s failed: cancelled", name)
+        except Exception as exc:  # a full disk (OSError), a part's bug: log it and go on
+            log.error("shutdown: %s failed: %s: %s", name, type(exc).__name__, exc)
 
     # ---- frames ------------------------------------------------------------------------------
     def _prepare(self, image: np.ndarray) -> np.ndarray:
@@ -321,9 +372,27 @@ class Service:
             image = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
         return image
 
+    async def _next_paired_frame(self, pending: deque[Frame]) -> Frame | None:
+        """The newest frame whose pose can be judged: the telemetry sampled after its capture
+        has arrived (so the pose is interpolated, not held), or it waited ``max_telemetry_lag_s``
+        for it. Frames wait in ``pending`` meanwhile; older ready ones are superseded (counted).
+        With a 200 ms link the frames are used 200 ms late rather than paired with old poses."""
+        frame = await self.camera.next_frame(timeout=POSE_POLL_S if pending else 0.5)
+        if frame is not None:
+            pending.append(frame)
+        now = time.monotonic()
+        wait = self.cfg.link.max_telemetry_lag_s
+        ready: Frame | None = None
+        while pending and (self.state.covers(pending[0].t) or now - pending[0].t > wait):
+            if ready is not None:
+                self.counters.superseded += 1
+            ready = pending.popleft()
+        return ready
+
     async def _frame_loop(self) -> None:
+        pending: deque[Frame] = deque(maxlen=64)
         while not self.stop_event.is_set():
-            frame = await self.camera.next_frame(timeout=0.5)
+            frame = await self._next_paired_frame(pending)
             if frame is None:
                 continue
             image = self._prepare(frame.image)
@@ -371,15 +440,17 @@ class Service:
             self.recorder.add_event(kind, t, **data)
 
     # ---- health ------------------------------------------------------------------------------
+    def health(self, now: float) -> Health:
+        """The verdict: internal faults (pipeline stuck) stop the watchdog, external ones (link,
+        camera) are only reported."""
+        busy = self.busy_since
+        return assess(link_connected=self.link.connected, camera_delivering=self.camera.delivering(now),
+                      busy_s=None if busy is None else now - busy, stuck_after_s=PIPELINE_STUCK_S)
+
     def healthy(self, now: float) -> tuple[bool, str]:
         """Link alive, camera delivering, pipeline not stuck; with the reason when not."""
-        if not self.link.connected:
-            return False, "no autopilot heartbeat"
-        if not self.camera.delivering(now):
-            return False, "camera not delivering"
-        if self.busy_since is not None and now - self.busy_since > PIPELINE_STUCK_S:
-            return False, f"pipeline stuck for {now - self.busy_since:.1f} s"
-        return True, "ok"
+        h = self.health(now)
+        return h.ok, h.reason
 
     def _status_line(self) -> str:
         target = None if self.controller is None else self.controller.zone_target()
@@ -389,21 +460,22 @@ class Service:
     async def _health_loop(self) -> None:
         interval = self.notifier.watchdog_interval
         next_log = time.monotonic() + self.cfg.log.health_interval_s
-        was_healthy = True
+        faults = FaultLog()  # a few lines per fault, however long it lasts or often it flaps
         last_ping = 0.0
         while not self.stop_event.is_set():
             now = time.monotonic()
-            ok, why = self.healthy(now)
-            if ok and interval is not None and now - last_ping >= min(interval, 1.0):
+            health = self.health(now)
+            # External faults keep the pings going (restarting cannot fix them); an internal one
+            # stops them, and systemd restarts the process after WatchdogSec.
+            if health.feed_watchdog and interval is not None and now - last_ping >= min(interval, 1.0):
                 self.notifier.watchdog()
                 last_ping = now
-            if ok != was_healthy:
-                (log.info if ok else log.warning)("health: %s", why)
-                was_healthy = ok
-            self.notifier.status(self._status_line() if ok else f"unhealthy: {why}")
+            for level, line in faults.update(health, now):
+                log.log(level, "health: %s", line)
+            self.notifier.status(health.status(self._status_line()))
             if now >= next_log:
                 next_log = now + self.cfg.log.health_interval_s
-                self._log_health(ok, why)
+                self._log_health(health.ok, health.reason)
             try:
                 await asyncio.wait_for(self.stop_event.wait(), TICK_S)
             except TimeoutError:
@@ -411,12 +483,18 @@ class Service:
 
     def _log_health(self, ok: bool, why: str) -> None:
         cs, fc, ls = self.camera.stats, self.counters, self.link.stats
+        ck, clock = self.state.clock.stats, self.state.clock
+        latency = clock.latency_s
         log.info(
-            "health %s: frames camera=%d processed=%d dropped=%d corrupt=%d no_pose=%d bad=%d "
-            "errors=%d stalls=%d | link rx=%d bad=%d lost=%d | timings %s%s",
-            "ok" if ok else f"BAD ({why})", cs.frames, fc.processed, cs.dropped, cs.corrupt, fc.no_pose,
-            fc.bad, fc.errors, cs.stalls, ls.received, ls.bad, ls.link_losses, self.timings.format() or "-",
+            "health %s: frames camera=%d processed=%d dropped=%d repeated=%d corrupt=%d no_pose=%d "
+            "superseded=%d bad=%d errors=%d stalls=%d | link rx=%d bad=%d unknown=%d foreign=%d lost=%d "
+            "| telemetry late=%d backwards=%d rejected=%d clock=%s latency=%s | timings %s%s",
+            "ok" if ok else f"BAD ({why})", cs.frames, fc.processed, cs.dropped, cs.repeated, cs.corrupt,
+            fc.no_pose, fc.superseded, fc.bad, fc.errors, cs.stalls, ls.received, ls.bad, ls.unknown,
+            ls.foreign, ls.link_losses, ck.late, ck.backwards, self.state.rejected, clock.source,
+            "-" if latency is None else f"{latency * 1000:.0f}ms", self.timings.format() or "-",
             "" if self.recorder is None else
-            f" | recorder frames={self.recorder.stats.frames} dropped={self.recorder.stats.dropped}",
+            f" | recorder frames={self.recorder.stats.frames} dropped={self.recorder.stats.dropped}"
+            f" errors={self.recorder.stats.errors} downsampled={self.recorder.stats.downsampled}",
         )
 

@@ -1,7 +1,14 @@
-"""Per-stage timings and the health summary the service logs and reports to systemd."""
+"""Per-stage timings, frame counters and the health verdict the service logs and reports to systemd.
+
+:func:`assess` tells internal faults (the process is broken: stop feeding the watchdog, let
+systemd restart it) from external ones (camera, autopilot link: report them, keep feeding the
+watchdog, the service reconnects by itself); :class:`FaultLog` keeps the log lines about them few.
+"""
 
 from __future__ import annotations
 
+import logging
+import math
 from collections import defaultdict, deque
 from dataclasses import dataclass, field
 
@@ -46,5 +53,114 @@ class FrameCounters:
 
     processed: int = 0
     no_pose: int = 0
+    superseded: int = 0  # paired with a pose, but a newer frame was ready at the same moment
     bad: int = 0
     errors: int = 0
+
+
+# ---- health verdict: what is wrong, and whether a restart could cure it ------------------------
+
+#: A pipeline call running longer than this counts as stuck: an internal fault.
+PIPELINE_STUCK_S = 5.0
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One thing wrong. key: what (``link``, ``camera``, ``pipeline``), stable while it lasts;
+    text: for people; internal: the process itself is broken, so a restart may cure it."""
+
+    key: str
+    text: str
+    internal: bool
+
+
+@dataclass(frozen=True)
+class Health:
+    """The service's health at one moment, and what it tells systemd.
+
+    External faults (no autopilot heartbeat, camera not delivering) are outside the process: a
+    restart cannot plug a camera back in, and the service reconnects both by itself, so they are
+    reported (``STATUS=``, log) while the watchdog keeps being fed. Only an internal fault (the
+    pipeline stuck beyond :data:`PIPELINE_STUCK_S`; an event loop too blocked to run the health
+    loop stops the pings by itself) stops the watchdog, and systemd restarts the process.
+    """
+
+    faults: tuple[Fault, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return not self.faults
+
+    @property
+    def feed_watchdog(self) -> bool:
+        return not any(f.internal for f in self.faults)
+
+    @property
+    def reason(self) -> str:
+        return "; ".join(f.text for f in self.faults) or "ok"
+
+    def status(self, normal: str) -> str:
+        """The ``STATUS=`` line: ``normal`` when healthy, ``degraded: <external faults>; normal``
+        while only external faults hold, ``unhealthy: <faults>`` on an internal one."""
+        if self.ok:
+            return normal
+        if self.feed_watchdog:
+            return f"degraded: {self.reason}; {normal}"
+        return f"unhealthy: {self.reason}"
+
+
+def assess(*, link_connected: bool, camera_delivering: bool, busy_s: float | None,
+           stuck_after_s: float = PIPELINE_STUCK_S) -> Health:
+    """The health verdict from the service's state. busy_s: how long the pipeline call now
+    running has been running (None when idle). Internal faults first."""
+    faults: list[Fault] = []
+    if busy_s is not None and busy_s > stuck_after_s:
+        faults.append(Fault("pipeline", f"pipeline stuck for {busy_s:.1f} s", internal=True))
+    if not link_connected:
+        faults.append(Fault("link", "no autopilot heartbeat", internal=False))
+    if not camera_delivering:
+        faults.append(Fault("camera", "camera not delivering", internal=False))
+    return Health(tuple(faults))
+
+
+@dataclass
+class FaultLog:
+    """Turns successive :class:`Health` verdicts into a few log lines, however long a fault lasts
+    or however often it comes and goes: a line when a fault begins and when it clears, a reminder
+    every ``remind_s`` while it lasts, and for a fault that flaps, at most one begin line per
+    ``min_gap_s`` (the flaps in between are counted and told with the next one). Internal faults
+    are errors, external ones warnings, recoveries info.
+    """
+
+    remind_s: float = 60.0
+    min_gap_s: float = 10.0
+    _since: dict[str, float] = field(default_factory=dict)   # active fault -> when it began
+    _told: dict[str, float] = field(default_factory=dict)    # fault -> last line about it
+    _flaps: dict[str, int] = field(default_factory=dict)     # begins not told since the last line
+
+    def update(self, health: Health, now: float) -> list[tuple[int, str]]:
+        """(logging level, message) lines for this verdict; usually none."""
+        out: list[tuple[int, str]] = []
+        current = {f.key: f for f in health.faults}
+        for key, since in list(self._since.items()):
+            if key not in current:
+                del self._since[key]
+                if not self._flaps.get(key):  # its beginning was told: so is its end
+                    out.append((logging.INFO, f"{key} ok again after {now - since:.1f} s"))
+        for key, fault in current.items():
+            if key not in self._since:
+                self._since[key] = now
+                self._flaps[key] = self._flaps.get(key, 0) + 1
+            level = logging.ERROR if fault.internal else logging.WARNING
+            kind = ("internal fault: watchdog no longer fed" if fault.internal
+                    else "external fault: reported, watchdog still fed")
+            last = self._told.get(key, -math.inf)
+            if self._flaps.get(key) and now - last >= self.min_gap_s:
+                began = self._flaps.pop(key)
+                again = f"; began {began} times since the last line" if began > 1 else ""
+                out.append((level, f"{fault.text} ({kind}{again})"))
+                self._told[key] = now
+            elif not self._flaps.get(key) and now - last >= self.remind_s:
+                out.append((level, f"{fault.text} for {now - self._since[key]:.0f} s ({kind})"))
+                self._told[key] = now
+        return out

@@ -65,6 +65,7 @@ def vehicle_status(
         vn=state.position.vn,
         ve=state.position.ve,
         vd=state.position.vd,
+        latency_s=state.clock.latency_s or 0.0,
     )
 
 

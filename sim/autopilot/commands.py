@@ -43,6 +43,7 @@ class CommandsMixin(ABC, MixinBase):
     config: AutopilotConfig
     geo: GeoFrame
     now: float
+    start_time: float
     counters: dict[str, int]
 
     def handle_message(self, msg: MAVMessage, channel: Channel) -> None:
@@ -71,6 +72,13 @@ class CommandsMixin(ABC, MixinBase):
                 self.request_mode(int(msg.custom_mode))
         elif t in ("HEARTBEAT",):
             self.on_peer_heartbeat(msg)
+        elif t == "TIMESYNC":
+            # As ArduPilot's and PX4's handlers: a request (tc1 = 0) is answered at once with
+            # our boot time in ns and the sender's ts1 echoed; answers to requests we never
+            # sent are ignored.
+            if msg.tc1 == 0:
+                self.counters["timesync"] += 1
+                channel.send(mav.MAVLink_timesync_message(int((self.now - self.start_time) * 1e9), msg.ts1))
         elif t in ("PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"):
             self._handle_param(msg, channel)
         else:

@@ -35,7 +35,7 @@ class Autopilot(ModesMixin, CommandsMixin, ParamsMixin, TelemetryMixin, Failsafe
         self.failsafes: set[Failsafe] = set()
         self.counters: dict[str, int] = {
             "commands": 0, "commands_unsupported": 0, "setpoints": 0,
-            "setpoints_ignored": 0, "setpoints_invalid": 0, "messages_ignored": 0,
+            "setpoints_ignored": 0, "setpoints_invalid": 0, "messages_ignored": 0, "timesync": 0,
         }
         self._rtl_phase = ""
         self._armed_on_ground_since: float | None = None

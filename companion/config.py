@@ -288,6 +288,10 @@ def _check_value(key: str, tp: Any, meta: Mapping[str, Any], value: Any) -> Any:
     elif tp is str:
         if not isinstance(value, str):
             raise bad
+    elif origin is list and typing.get_args(tp) == (str,):
+        if not isinstance(value, list) or any(not isinstance(v, str) for v in value):
+            raise ConfigError(f"{key} must be a list of strings, got {value!r}")
+        value = list(value)
     elif origin is list and typing.get_args(tp) == (int,):
         if not isinstance(value, list) or any(isinstance(v, bool) or not isinstance(v, int) for v in value):
             raise ConfigError(f"{key} must be a list of integers, got {value!r}")
@@ -550,7 +554,10 @@ def link_config(cfg: Config) -> LinkConfig:
 
 def autopilot_clock(cfg: Config) -> AutopilotClock:
     """The clock that places telemetry in time, with the configured lag limit."""
-    return AutopilotClock(max_lag_s=cfg.link.max_telemetry_lag_s)
+    lag = cfg.link.max_telemetry_lag_s
+    # A TIMESYNC round trip is two one-way trips: one slower than twice the lag allowed would
+    # only say that every sample is late.
+    return AutopilotClock(max_lag_s=lag, max_rtt_s=2.0 * lag)
 
 
 def failsafe_config(cfg: Config) -> FailsafeConfig:

@@ -186,3 +186,13 @@ def test_require_signing_without_a_key_is_a_config_error():
     cfg = config.load(None)
     assert cfg.link.target_system == 1  # pinned by default, not "the first autopilot heard"
     assert config.link_config(cfg).target_system == 1
+
+
+def test_peers_from_a_config_file(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('[link]\npeers = ["127.0.0.1", "192.168.144.0/24"]\n')
+    cfg = config.load(f)
+    assert config.link_config(cfg).peers == ("127.0.0.1", "192.168.144.0/24")
+    f.write_text("[link]\npeers = [1, 2]\n")
+    with pytest.raises(config.ConfigError, match="list of strings"):
+        config.load(f)

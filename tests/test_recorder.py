@@ -268,3 +268,27 @@ def test_format_1_recordings_still_read(tmp_path: Path) -> None:
     reader = RecordingReader(path)
     assert [f.index for f in reader.frames()] == [2 * i for i in range(12)]
     assert len(list(reader.events("decision"))) == 12
+
+
+def test_a_recording_holds_no_signing_secret(tmp_path: Path) -> None:
+    """Issue 12, item 8: the secret was written in clear into every recording's meta.json. The
+    service records ``cfg.to_dict()``; nothing the recorder writes may hold the key, in hex or raw."""
+    from companion import config
+
+    key_file = tmp_path / "signing.key"
+    key_hex = "5e" * 16 + "a7" * 16
+    key_file.write_text(key_hex + "\n")
+    for source in ({"link.signing_key": key_hex}, {"link.signing_key_file": str(key_file)}):
+        cfg = config.load(None, source)
+        assert config.signing_key(cfg) == bytes.fromhex(key_hex)
+        root = tmp_path / f"rec-{len(source)}-{'file' if 'link.signing_key_file' in source else 'key'}"
+        rec = FlightRecorder(root, fps=10, meta={"config": cfg.to_dict()})
+        rec.start()
+        rec.add_frame(0, 100.0, _frame(0), _pose(0, 100.0))
+        rec.add_event("telemetry", 100.0, msg="HEARTBEAT", data={"type": 2})
+        rec.close()
+        files = [p for p in root.rglob("*") if p.is_file()]
+        assert any(p.name == "meta.json" for p in files)
+        for p in files:
+            data = p.read_bytes()
+            assert key_hex.encode() not in data and bytes.fromhex(key_hex) not in data, p

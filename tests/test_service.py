@@ -389,9 +389,9 @@ async def _fly_once(tmp_path: Path) -> tuple[str, Any, list[str], Any]:
 
 async def test_service_lands_the_vehicle_away_from_people(tmp_path: Path) -> None:
     """The whole loop: hover over a crowd, the autopilot's battery failsafe fires, the service
-    takes over and the vehicle lands, either in the zone the service flew to (LANDED) or, when
-    zones kept being lost, after a clean handback to the autopilot's own LAND (HANDBACK; see the
-    README's known limitation); the ground station hears STATUSTEXTs, and nobody is hit."""
+    takes over and the vehicle lands, either in the zone the service flew to (LANDED, nobody
+    within r_0) or, when zones kept being lost, after a clean handback to the autopilot's own LAND
+    (HANDBACK; see the README's known limitation); the ground station hears STATUSTEXTs."""
     if not SHIPPED_MODEL.is_file():
         # The stand-in peer model (MCNN, ShanghaiTech B) sees the simulator's people poorly: zones
         # keep shrinking and the controller (rightly) holds instead of landing.
@@ -400,9 +400,19 @@ async def test_service_lands_the_vehicle_away_from_people(tmp_path: Path) -> Non
     where = (float(truth.position[0]), float(truth.position[1]))
     clearance = world.nearest_person_distance(where)
     assert truth.landed or (truth.on_ground and not truth.armed)
-    assert clearance > 1.0, f"landed {clearance:.2f} m from a person at {where}"
+    story = "\n".join(line for line in log.splitlines() if "SLZ:" in line)
     after = log.split("-> APPROACH", 1)[1]
     assert "-> LAND" in after or "-> HANDBACK" in after, log[-3000:]
+    if "-> HANDBACK" in after:
+        # Handed back: the autopilot's own LAND touched down wherever the vehicle was, which the
+        # companion does not choose (the README's known limitation; issue 11 is the fix). Such a
+        # touchdown is a strike to count over many flights (companion sim-scenarios), not a
+        # guarantee one flight can check; the handback itself must have been clean.
+        assert "handing back to the autopilot (LAND)" in story, story
+        print(f"handed back; the autopilot landed {clearance:.1f} m from the nearest person")
+    else:
+        # The companion chose the touchdown: nobody within r_0 (2 m), ever.
+        assert clearance >= 2.0, f"landed {clearance:.2f} m from a person at {where}:\n{story}"
     assert any(h.startswith("SLZ") or "zone" in h for h in heard), heard
     print(f"landed at {where}, {clearance:.1f} m from the nearest person; STATUSTEXT: {heard}")
 

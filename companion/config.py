@@ -33,7 +33,8 @@ from companion.mavlink.transports import TransportError, parse_peers, parse_url
 from companion.pipeline.density import DensitySpec, resolve_threshold
 from companion.pipeline.headplane import GridParams
 from companion.pipeline.occupancy import OccupancyParams
-from companion.pipeline.slz import PipelineConfig
+from companion.pipeline.riskmap import MAX_HALF_CELLS, RiskMapConfig
+from companion.pipeline.slz import FUSIONS, PipelineConfig
 from companion.pipeline.tracker import TrackerParams
 
 #: The shipped density model, in ``models/`` of a source checkout or an editable install: the one
@@ -150,6 +151,16 @@ class PipelineSettings:
     r0_m: float = _f(2.0, "smallest useful landing-zone radius (m)", min=0.1, max=100.0)
     max_pose_age_s: float = _f(0.25, "a frame whose pose is further than this from its capture time "
                                      "is not used for decisions (s)", min=0.0, max=5.0, min_exclusive=True)
+    fusion: str = _f("frame", "proposals from each frame alone, as in the paper (frame), or from the ground "
+                              "risk map fused over frames (map; docs/design.md: it costs landings until the "
+                              "controller judges zones at touchdown)", choices=FUSIONS)
+    walk_speed_mps: float = _f(1.5, "how fast a person may walk (m/s): risk grows this fast from where "
+                                    "someone was seen (1.34 m/s is the mean, Weidmann 1993)",
+                               min=0.1, max=15.0)
+    occupied_hold_s: float = _f(1.0, "ground seen occupied stays occupied this long although now seen free "
+                                     "(s; a person the network misses in a few frames)", min=0.0, max=30.0)
+    map_memory_s: float = _f(10.0, "ground not seen for longer than this is unknown again (s)", min=0.1, max=600.0)
+    map_half_extent_m: float = _f(60.0, "the risk map covers this far around the vehicle (m)", min=5.0, max=400.0)
     tracker: TrackerSettings = field(default_factory=TrackerSettings)
 
 
@@ -374,6 +385,13 @@ def _cross_checks(cfg: Config) -> None:
         # A port above 65535 (or no host) used to pass here and crash the start (exit 1, a
         # traceback, systemd restarting it): say what is wrong, exit 2.
         raise ConfigError(f"link.url: {exc}") from None
+    p = cfg.pipeline
+    if p.occupied_hold_s > p.map_memory_s:
+        raise ConfigError(f"pipeline.occupied_hold_s ({p.occupied_hold_s} s) must not exceed "
+                          f"pipeline.map_memory_s ({p.map_memory_s} s)")
+    if p.map_half_extent_m / p.cell_size_m > MAX_HALF_CELLS:
+        raise ConfigError(f"pipeline.map_half_extent_m / pipeline.cell_size_m must be at most {MAX_HALF_CELLS} "
+                          f"cells (memory), got {p.map_half_extent_m / p.cell_size_m:.0f}")
     try:
         parse_peers(cfg.link.peers)
     except TransportError as exc:
@@ -500,6 +518,10 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
                               min_iou=t.min_iou, mu_1=t.mu_1, mu_2=t.mu_2, max_tracks=p.n_proposals),
         head_height_m=p.head_height_m,
         r0_m=p.r0_m,
+        fusion=p.fusion,
+        risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,
+                           walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,
+                           memory_s=p.map_memory_s),
     )
 
 

@@ -21,26 +21,39 @@ from companion.pipeline.density import resolve_threshold
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
 from companion.pipeline.proposals import clearance_at, distance_cells, propose
+from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
 DensityFn = Callable[[np.ndarray], np.ndarray]
 
-STAGES = ("density", "occupancy", "projection", "proposals", "tracking")
+STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking")
+
+#: Where proposals come from: the paper's single frame (the default until the controller judges
+#: zones at touchdown), or the ground risk map fused over frames.
+FUSIONS = ("map", "frame")
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
     """head_height_m: h_h, metres of the head plane above the ground. r0_m: smallest landing
     radius in metres (proposals below it are not made). Which zone is the target is not the
-    pipeline's to say: ``companion.control.planner`` decides that, in flight and in replay."""
+    pipeline's to say: ``companion.control.planner`` decides that, in flight and in replay.
+    fusion: "map" (proposals on the ground risk map's fused grid, ``riskmap``; frames with a pose
+    only) or "frame" (on each frame alone, as in the paper, and every frame without a pose). risk: the risk map's settings (its cell is the grid's)."""
 
     occupancy: OccupancyParams = field(default_factory=OccupancyParams)
     grid: GridParams = field(default_factory=GridParams)
     tracker: TrackerParams = field(default_factory=TrackerParams)
     head_height_m: float = 1.7
     r0_m: float = 2.0
+    fusion: str = "frame"
+    risk: RiskMapConfig = field(default_factory=RiskMapConfig)
 
     def __post_init__(self) -> None:
+        if self.fusion not in FUSIONS:
+            raise ValueError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
+        if abs(self.risk.cell_m - self.grid.cell) > 1e-9:
+            raise ValueError(f"the risk map's cell ({self.risk.cell_m} m) must be the grid's ({self.grid.cell} m)")
         if not (math.isfinite(self.head_height_m) and 0 <= self.head_height_m < 5):
             raise ValueError(f"head_height_m must be in [0, 5) m, got {self.head_height_m!r}")
         if not (math.isfinite(self.r0_m) and self.r0_m > 0):
@@ -55,7 +68,8 @@ class PipelineConfig:
 class FrameResult:
     """What one frame produced. Circles and tracks are in head-plane metres; ``occupancy`` is the
     image-sized free map (255 free, 0 occupied); ``free_grid`` the head-plane grid described by
-    ``grid``; ``timings_ms`` per stage plus ``post_density`` and ``total``."""
+    ``grid``; ``fused_grid`` the risk map's fused free grid over the same cells (fusion "map");
+    ``timings_ms`` per stage plus ``post_density`` and ``total``."""
 
     t: float
     proposals: list[Circle]
@@ -66,6 +80,7 @@ class FrameResult:
     grid: GridSpec
     free_grid: np.ndarray
     density: np.ndarray
+    fused_grid: np.ndarray | None = None  # the grid proposals were made on, with fusion "map"
 
 
 class SLZPipeline:
@@ -88,6 +103,7 @@ class SLZPipeline:
         self.mount = mount or Mount()
         self.fixed_projection = projection
         self.tracker = ZoneTracker(config.tracker)
+        self.risk = GroundRiskMap(config.risk) if config.fusion == "map" else None
         self._undistort = (intrinsics.undistort_maps()
                            if intrinsics is not None and intrinsics.has_distortion else None)
 
@@ -126,19 +142,33 @@ class SLZPipeline:
         seen: list[np.ndarray] = []
         free_grid = sample_to_grid(free, proj, grid, seen)
         t3 = time.perf_counter()
-        dist = distance_cells(free_grid)
-        proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r0_m, dist)
+        # Only posed frames are in the world frame: under a fixed projection (a video without
+        # poses) plane coordinates move with the camera, and a map would smear people across it.
+        risk = self.risk if pose is not None else None
+        fused = free_grid
+        if risk is not None:
+            # Raises RiskMapError (a GeometryError: the frame is counted and dropped) on a pose
+            # jump or time going back, before any zone is made from the frame.
+            risk.update(grid, free_grid, seen[0], t, proj.camera_xy)
+            fused = risk.fused_free(grid, free_grid, t)
         t4 = time.perf_counter()
+        dist = distance_cells(fused)
+        proposals = propose(fused, grid, self.config.n_proposals, self.config.r0_m, dist)
+        t5 = time.perf_counter()
         view_dist = distance_cells(seen[0])
 
         def clearance(x: float, y: float) -> tuple[float, float]:
-            return clearance_at(dist, grid, x, y), clearance_at(view_dist, grid, x, y)
+            c = clearance_at(dist, grid, x, y)
+            if risk is not None and c > 0:
+                # Walkers seen a moment ago may have moved since: the clearance now.
+                c = max(0.0, risk.clearance_now(x, y, t, c))
+            return c, clearance_at(view_dist, grid, x, y)
 
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
-        t5 = time.perf_counter()
-        for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4), (t1, t2, t3, t4, t5)):
+        t6 = time.perf_counter()
+        for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4, t5), (t1, t2, t3, t4, t5, t6), strict=True):
             timings[name] = (b - a) * 1e3
-        timings["post_density"] = (t5 - t1) * 1e3
-        timings["total"] = (t5 - t0) * 1e3
+        timings["post_density"] = (t6 - t1) * 1e3
+        timings["total"] = (t6 - t0) * 1e3
         return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
-                           density)
+                           density, fused if risk is not None else None)

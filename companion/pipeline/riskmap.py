@@ -1,0 +1,282 @@
+"""The ground risk map: where people were seen, in the world, over time (issue 11, items 1 and 2).
+
+Every frame's head-plane grid is written into one grid fixed to the world (local NED metres from
+home; rows follow plane y = east, columns plane x = north, as in ``headplane``), so evidence
+outlives the frame it came from. Per cell the map keeps
+
+- ``last_seen``: when the camera last saw the cell (free or occupied), and
+- ``last_occ``: when it last saw it occupied,
+
+in seconds on the capture-time clock. From these, for a frame:
+
+- **fused free grid** (what proposals are made on): a cell is free only if the camera sees it
+  free now *and* it was not seen occupied within ``hold_s``. A person the network misses in a few
+  frames (up to ``hold_s`` of them) stays occupied, and a gap a walker has just left is not free.
+  Cells the camera does not see now are not free (unknown), as in the per-frame pipeline.
+- **clearance now** at a point, ``C0``: the distance to the nearest place a person may be *now*,
+  where a person last seen ``a`` seconds ago (``a <= hold_s``) may have walked ``walk_speed * a``
+  metres since, and anybody outside the view may be at its edge. At a later time ``now + tau``
+  (touchdown, say) the clearance is ``C0 - walk_speed * tau``: nobody reaches a point sooner than
+  walking lets them. That subtraction is the controller's: it knows ``tau``.
+- **unknown**: a cell never seen, or not seen for longer than ``memory_s``, is unknown and never
+  free (``known_free`` answers for ground outside the current view, for the search).
+
+Walking speed: 1.5 m/s by default, above the 1.34 m/s mean free walking speed of pedestrians
+(Weidmann, "Transporttechnik der Fussgaenger", ETH Zurich, 1993), so that brisk walkers are
+covered; faster movers (runners, cyclists) need a higher setting.
+
+Memory and cost are bounded: the map is a square of ``2 * half_extent_m`` metres at the pipeline's
+cell size around the vehicle, recentred (shifting what stays in it) when a frame's grid would
+leave it. An update touches only the frame grid's cells. Pure numpy/OpenCV, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.geometry.camera import GeometryError
+from companion.pipeline.headplane import GridSpec
+
+NEVER = -np.inf
+#: At most this many cells from the centre to an edge: 2,049 cells a side, 32 MiB of float32 times.
+MAX_HALF_CELLS = 1024
+
+
+class RiskMapError(GeometryError):
+    """A frame the map cannot take (a non-finite time, time going back, a grid of another cell
+    size, or a pose jump); the frame is dropped and counted, the map stays as it was."""
+
+
+@dataclass(frozen=True)
+class RiskMapConfig:
+    """cell_m: side of a map cell (m), equal to the pipeline's grid cell. half_extent_m: the map
+    covers this far (m) each way around its centre. walk_speed_mps: how fast a person may walk
+    (m/s). hold_s: how long a cell seen occupied stays occupied although the camera now sees it
+    free (s; covers the network missing a person for that long). memory_s: ground not seen for
+    longer than this is unknown again (s). max_jump_m: a frame whose grid moved further than this
+    from the previous one within ``max_jump_s`` is a pose jump, not flight (dropped)."""
+
+    cell_m: float = 0.1
+    half_extent_m: float = 60.0
+    walk_speed_mps: float = 1.5
+    hold_s: float = 1.0
+    memory_s: float = 10.0
+    max_jump_m: float = 15.0
+    max_jump_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("cell_m", "half_extent_m", "walk_speed_mps", "memory_s", "max_jump_m", "max_jump_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"risk map {name} must be a positive number, got {v!r}")
+        if not (math.isfinite(self.hold_s) and 0 <= self.hold_s <= self.memory_s):
+            raise ValueError(f"risk map hold_s must be in [0, memory_s], got {self.hold_s!r}")
+        if self.half_extent_m / self.cell_m > MAX_HALF_CELLS:
+            raise ValueError(f"risk map of {self.half_extent_m} m at {self.cell_m} m cells is too large "
+                             f"(more than {2 * MAX_HALF_CELLS + 1} cells a side)")
+
+
+@dataclass
+class RiskMapStats:
+    """Counters since start: frames fused, recentrings, frames dropped (``RiskMapError``), and
+    frames whose grid reached past the map and was clipped to it."""
+
+    updates: int = 0
+    recentred: int = 0
+    dropped: int = 0
+    clipped: int = 0
+
+
+@dataclass
+class _Window:
+    """The part of a frame grid that lies in the map: slices into both."""
+
+    map_rows: slice
+    map_cols: slice
+    grid_rows: slice
+    grid_cols: slice
+
+
+class GroundRiskMap:
+    """See the module docstring. ``update`` a frame, then ``fused_free`` and ``clearance_now``."""
+
+    def __init__(self, config: RiskMapConfig | None = None) -> None:
+        self.config = config or RiskMapConfig()
+        n = 2 * int(math.ceil(self.config.half_extent_m / self.config.cell_m)) + 1
+        self.size = n
+        # Times are float32 seconds since the first frame (``epoch``): a millisecond's resolution
+        # for hours, half the memory of float64 (a 1,201-cell square is 11 MiB for both).
+        self.last_seen = np.full((n, n), NEVER, np.float32)
+        self.last_occ = np.full((n, n), NEVER, np.float32)
+        self.epoch: float | None = None
+        self._origin: tuple[int, int] | None = None  # world cell (row, col) of array [0, 0]
+        self._last: tuple[float, float, float] | None = None  # (t, x, y) of the previous grid centre
+        self.stats = RiskMapStats()
+        self.t: float | None = None  # capture time of the newest frame taken
+
+    # -- geometry ----------------------------------------------------------------------------
+
+    def _grid_cell0(self, grid: GridSpec) -> tuple[int, int]:
+        """World cell (row, col) of the grid's cell [0, 0]; grids are snapped to whole cells."""
+        c = self.config.cell_m
+        if abs(grid.cell - c) > 1e-9:
+            raise RiskMapError(f"grid cell {grid.cell} m is not the map's {c} m")
+        return int(round(grid.y0 / c)), int(round(grid.x0 / c))
+
+    def _recentre(self, row: int, col: int) -> None:
+        """Put world cell (row, col) at the middle of the arrays, keeping what stays inside."""
+        half = self.size // 2
+        new = (row - half, col - half)
+        if self._origin is not None:
+            dr, dc = new[0] - self._origin[0], new[1] - self._origin[1]
+            for a in (self.last_seen, self.last_occ):
+                shifted = np.full_like(a, NEVER)
+                n = self.size
+                src_r = slice(max(0, dr), min(n, n + dr))
+                dst_r = slice(max(0, -dr), min(n, n - dr))
+                src_c = slice(max(0, dc), min(n, n + dc))
+                dst_c = slice(max(0, -dc), min(n, n - dc))
+                if src_r.start < src_r.stop and src_c.start < src_c.stop:
+                    shifted[dst_r, dst_c] = a[src_r, src_c]
+                a[...] = shifted
+            self.stats.recentred += 1
+        self._origin = new
+
+    def _window(self, grid: GridSpec) -> _Window | None:
+        """Where ``grid`` lies in the arrays (clipped to them), or None when it misses them."""
+        assert self._origin is not None
+        r0, c0 = self._grid_cell0(grid)
+        mr0, mc0 = r0 - self._origin[0], c0 - self._origin[1]
+        n = self.size
+        rr0, rr1 = max(0, mr0), min(n, mr0 + grid.rows)
+        cc0, cc1 = max(0, mc0), min(n, mc0 + grid.cols)
+        if rr0 >= rr1 or cc0 >= cc1:
+            return None
+        return _Window(slice(rr0, rr1), slice(cc0, cc1),
+                       slice(rr0 - mr0, rr1 - mr0), slice(cc0 - mc0, cc1 - mc0))
+
+    def _fits(self, grid: GridSpec) -> bool:
+        assert self._origin is not None
+        r0, c0 = self._grid_cell0(grid)
+        mr0, mc0 = r0 - self._origin[0], c0 - self._origin[1]
+        return mr0 >= 0 and mc0 >= 0 and mr0 + grid.rows <= self.size and mc0 + grid.cols <= self.size
+
+    # -- input -------------------------------------------------------------------------------
+
+    def update(self, grid: GridSpec, free_grid: np.ndarray, seen_grid: np.ndarray, t: float,
+               camera_xy: tuple[float, float] | None = None) -> None:
+        """Take one frame's head-plane grids (uint8: ``free_grid`` > 0 free, ``seen_grid`` > 0 seen)
+        captured at ``t`` seconds from a camera above plane point ``camera_xy`` (m; the grid's
+        centre when not given). Raises ``RiskMapError`` (and counts it) for a frame it must not
+        take; the map is then unchanged."""
+        if camera_xy is None:
+            camera_xy = (grid.x0 + grid.cell * (grid.cols - 1) / 2, grid.y0 + grid.cell * (grid.rows - 1) / 2)
+        cx, cy = float(camera_xy[0]), float(camera_xy[1])
+        try:
+            self._check(grid, free_grid, seen_grid, t, cx, cy)
+        except RiskMapError:
+            self.stats.dropped += 1
+            raise
+        r0, c0 = self._grid_cell0(grid)
+        if self._origin is None or not self._fits(grid):
+            self._recentre(r0 + grid.rows // 2, c0 + grid.cols // 2)
+        w = self._window(grid)
+        if w is None or (w.grid_rows.stop - w.grid_rows.start, w.grid_cols.stop - w.grid_cols.start) != grid.shape:
+            self.stats.clipped += 1  # a grid larger than the map: the part outside is not kept
+        if self.epoch is None:
+            self.epoch = t
+        if w is not None:
+            seen = seen_grid[w.grid_rows, w.grid_cols] > 0
+            occupied = seen & (free_grid[w.grid_rows, w.grid_cols] == 0)
+            rel = np.float32(t - self.epoch)
+            self.last_seen[w.map_rows, w.map_cols][seen] = rel
+            self.last_occ[w.map_rows, w.map_cols][occupied] = rel
+        self._last = (t, cx, cy)
+        self.t = t
+        self.stats.updates += 1
+
+    def _check(self, grid: GridSpec, free_grid: np.ndarray, seen_grid: np.ndarray, t: float,
+               cx: float, cy: float) -> None:
+        if not math.isfinite(t):
+            raise RiskMapError(f"frame time {t!r} is not finite")
+        if self.t is not None and t < self.t:
+            raise RiskMapError(f"frame time {t:.3f} s is before the map's newest {self.t:.3f} s")
+        if free_grid.shape != grid.shape or seen_grid.shape != grid.shape:
+            raise RiskMapError(f"grids of shape {free_grid.shape}/{seen_grid.shape} for a {grid.shape} grid")
+        if not all(math.isfinite(v) for v in (grid.x0, grid.y0, cx, cy)):
+            raise RiskMapError("grid or camera position is not finite")
+        self._grid_cell0(grid)
+        if self._last is not None:
+            t1, x1, y1 = self._last
+            jump = math.hypot(cx - x1, cy - y1)
+            if t - t1 <= self.config.max_jump_s and jump > self.config.max_jump_m:
+                raise RiskMapError(f"the camera moved {jump:.1f} m in {t - t1:.2f} s: a pose jump, not flight")
+
+    # -- output ------------------------------------------------------------------------------
+
+    def _rel(self, t: float) -> float:
+        """``t`` in the arrays' time base (seconds since the first frame)."""
+        return t - (self.epoch if self.epoch is not None else t)
+
+    def fused_free(self, grid: GridSpec, free_grid: np.ndarray, t: float) -> np.ndarray:
+        """This frame's free grid less every cell seen occupied within ``hold_s`` of ``t``
+        (uint8, 255 free, 0 not free). Call after ``update`` with the same frame."""
+        out = np.zeros(grid.shape, np.uint8)
+        if self._origin is None:
+            return out
+        w = self._window(grid)
+        if w is None:
+            return out
+        recent = self.last_occ[w.map_rows, w.map_cols] >= self._rel(t) - self.config.hold_s
+        sub = free_grid[w.grid_rows, w.grid_cols]
+        out[w.grid_rows, w.grid_cols] = np.where(recent, 0, sub)
+        return out
+
+    def clearance_now(self, x: float, y: float, t: float, bound_m: float) -> float:
+        """``C0`` at plane point (x, y) at time ``t`` (m): the least ``|p - c| - v * (t - last_occ)``
+        over cells seen occupied within ``hold_s``, and never more than ``bound_m`` (the clearance
+        on the fused free grid, which already counts the edge of the view and the cells seen
+        occupied as if now). Negative when a person seen a moment ago may already be at (x, y)."""
+        cfg = self.config
+        if self._origin is None or not math.isfinite(bound_m) or bound_m <= 0:
+            return min(bound_m, 0.0) if math.isfinite(bound_m) else 0.0
+        v, c = cfg.walk_speed_mps, cfg.cell_m
+        reach = bound_m + v * cfg.hold_s + c
+        row = int(round(y / c)) - self._origin[0]
+        col = int(round(x / c)) - self._origin[1]
+        k = int(math.ceil(reach / c))
+        r0, r1 = max(0, row - k), min(self.size, row + k + 1)
+        c0, c1 = max(0, col - k), min(self.size, col + k + 1)
+        if r0 >= r1 or c0 >= c1:
+            return bound_m
+        occ = self.last_occ[r0:r1, c0:c1]
+        now = self._rel(t)
+        ii, jj = np.nonzero(occ >= now - cfg.hold_s)
+        if ii.size == 0:
+            return bound_m
+        ages = np.maximum(now - occ[ii, jj].astype(np.float64), 0.0)
+        cy = (ii + r0 + self._origin[0]) * c
+        cx = (jj + c0 + self._origin[1]) * c
+        # A cell is a square: its nearest point may be half a diagonal closer than its centre.
+        d = np.hypot(cx - x, cy - y) - c * math.sqrt(0.5)
+        return float(min(bound_m, float(np.min(d - v * ages))))
+
+    def known_free(self, grid: GridSpec, t: float) -> np.ndarray:
+        """uint8 over ``grid``: 255 where the map's last look at the ground, within ``memory_s``,
+        saw it free and nobody stood there within ``hold_s``; else 0 (unknown or occupied). For
+        ground outside the current view."""
+        out = np.zeros(grid.shape, np.uint8)
+        if self._origin is None:
+            return out
+        w = self._window(grid)
+        if w is None:
+            return out
+        seen = self.last_seen[w.map_rows, w.map_cols]
+        occ = self.last_occ[w.map_rows, w.map_cols]
+        now = self._rel(t)
+        free = (seen >= now - self.config.memory_s) & (occ < seen) & (occ < now - self.config.hold_s)
+        out[w.grid_rows, w.grid_cols] = np.where(free, 255, 0)
+        return out

@@ -1,0 +1,174 @@
+"""The ground risk map (issue 11): memory of people over frames, walking growth, unknown ground."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.geometry.camera import GeometryError, Intrinsics, Mount, Pose
+from companion.pipeline.headplane import GridSpec
+from companion.pipeline.proposals import clearance_at, distance_cells, propose
+from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError
+from companion.pipeline.slz import PipelineConfig, SLZPipeline
+
+CELL = 0.1
+GRID = GridSpec(x0=-10.0, y0=-10.0, cell=CELL, rows=201, cols=201)  # 20 m square around (0, 0)
+
+
+def frame_grids(people: list[tuple[float, float]], grid: GridSpec = GRID, radius: float = 0.4,
+                seen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(free, seen) uint8 grids: everything seen and free but disks of ``radius`` m at ``people``."""
+    ys, xs = np.mgrid[0:grid.rows, 0:grid.cols]
+    x, y = grid.x0 + xs * grid.cell, grid.y0 + ys * grid.cell
+    free = np.full(grid.shape, 255, np.uint8)
+    for px, py in people:
+        free[np.hypot(x - px, y - py) <= radius] = 0
+    seen_grid = np.full(grid.shape, 255, np.uint8) if seen is None else seen
+    free[seen_grid == 0] = 0
+    return free, seen_grid
+
+
+def test_a_person_missed_for_k_frames_stays_occupied_until_the_hold_runs_out():
+    risk = GroundRiskMap(RiskMapConfig(hold_s=1.0))
+    free, seen = frame_grids([(2.0, 3.0)])
+    risk.update(GRID, free, seen, 0.0)
+    empty, _ = frame_grids([])
+    for k in range(1, 10):  # the network misses the person in 9 frames at 10 fps
+        t = 0.1 * k
+        risk.update(GRID, empty, seen, t)
+        fused = risk.fused_free(GRID, empty, t)
+        assert fused[130, 120] == 0, f"frame {k}: the missed person must stay occupied"
+        assert fused[0, 0] == 255
+    t = 1.2
+    risk.update(GRID, empty, seen, t)
+    assert risk.fused_free(GRID, empty, t)[130, 120] == 255  # seen free for longer than the hold
+
+
+def test_a_walkers_risk_reaches_a_point_no_later_than_walking_could():
+    """A person seen 1.0 m from p and then not any more: the clearance now shrinks by the walking
+    speed for the time since, and at a later time by the walking speed times that time too."""
+    v = 1.5
+    risk = GroundRiskMap(RiskMapConfig(walk_speed_mps=v, hold_s=1.0))
+    person, p = (3.0, 0.0), (0.0, 0.0)
+    free, seen = frame_grids([person], radius=0.05)
+    risk.update(GRID, free, seen, 10.0)
+    empty, _ = frame_grids([])
+    for t in (10.0, 10.3, 10.6, 10.9):
+        if t > 10.0:
+            risk.update(GRID, empty, seen, t)
+        fused = risk.fused_free(GRID, empty if t > 10.0 else free, t)
+        bound = clearance_at(distance_cells(fused), GRID, *p)
+        c0 = risk.clearance_now(*p, t, bound)
+        where_could_be = 3.0 - v * (t - 10.0)  # the nearest the person can be to p now
+        assert c0 <= where_could_be + 1e-9
+        assert c0 >= where_could_be - 0.2  # and not far more conservative than the physics
+        for tau in (0.5, 2.0):  # at touchdown tau seconds later
+            assert c0 - v * tau <= 3.0 - v * (t - 10.0 + tau) + 1e-9
+
+
+def test_ground_never_seen_or_not_seen_for_longer_than_the_memory_is_never_free():
+    risk = GroundRiskMap(RiskMapConfig(memory_s=5.0, hold_s=1.0))
+    half_seen = np.zeros(GRID.shape, np.uint8)
+    half_seen[:, :100] = 255  # the camera sees only the west half
+    free, seen = frame_grids([], seen=half_seen)
+    risk.update(GRID, free, seen, 0.0)
+    fused = risk.fused_free(GRID, free, 0.0)
+    assert (fused[:, 100:] == 0).all() and (fused[:, :100] == 255).all()
+    assert (risk.known_free(GRID, 2.0)[:, 100:] == 0).all()  # never seen: unknown
+    assert (risk.known_free(GRID, 2.0)[:, :100] == 255).all()  # seen free 2 s ago
+    assert (risk.known_free(GRID, 6.0) == 0).all()  # not seen for longer than the memory
+    # Seen occupied at its last look: not known free, however long ago the hold ran out.
+    occ_free, occ_seen = frame_grids([(-5.0, 0.0)], seen=half_seen)
+    risk.update(GRID, occ_free, occ_seen, 3.0)
+    assert risk.known_free(GRID, 4.5)[100, 50] == 0
+
+
+def test_bad_frames_are_refused_and_counted_and_the_map_is_unchanged():
+    risk = GroundRiskMap()
+    free, seen = frame_grids([(1.0, 1.0)])
+    risk.update(GRID, free, seen, 5.0, camera_xy=(0.0, 0.0))
+    before = risk.last_occ.copy()
+    empty, _ = frame_grids([(-4.0, -4.0)])
+    bad = [
+        dict(t=float("nan")),
+        dict(t=4.0),  # time going back
+        dict(t=5.1, camera_xy=(40.0, 0.0)),  # 40 m in 0.1 s: a pose jump
+        dict(t=5.2, camera_xy=(float("nan"), 0.0)),
+        dict(t=5.3, grid=GridSpec(-10.0, -10.0, 0.2, 101, 101)),  # another cell size
+    ]
+    for case in bad:
+        grid = case.get("grid", GRID)
+        f, s = (empty, seen) if grid is GRID else frame_grids([], grid=grid)
+        with pytest.raises(RiskMapError):
+            risk.update(grid, f, s, case["t"], camera_xy=case.get("camera_xy"))
+    assert risk.stats.dropped == len(bad)
+    assert np.array_equal(risk.last_occ, before)
+    assert isinstance(RiskMapError("x"), GeometryError)  # the service counts it as a bad frame
+
+
+def test_the_map_is_bounded_and_follows_the_vehicle():
+    cfg = RiskMapConfig(half_extent_m=15.0)
+    risk = GroundRiskMap(cfg)
+    n = risk.size
+    free, seen = frame_grids([(0.0, 0.0)])
+    risk.update(GRID, free, seen, 0.0)
+    # Fly 12 m north in steps: the map recentres, keeps what is still inside, stays the same size.
+    for k in range(1, 13):
+        g = GridSpec(GRID.x0 + k, GRID.y0, CELL, GRID.rows, GRID.cols)
+        f, s = frame_grids([], grid=g)
+        risk.update(g, f, s, 0.1 * k, camera_xy=(float(k), 0.0))
+    assert risk.size == n and risk.last_seen.shape == (n, n)
+    assert risk.stats.recentred >= 1
+    far = GridSpec(GRID.x0 + 12, GRID.y0, CELL, GRID.rows, GRID.cols)
+    assert risk.fused_free(far, frame_grids([], grid=far)[0], 1.2).any()
+    # A grid larger than the whole map is clipped to it, counted, and never an exception.
+    huge = GridSpec(-40.0, -40.0, CELL, 801, 801)
+    f, s = frame_grids([], grid=huge)
+    risk.update(huge, f, s, 2.0, camera_xy=(12.0, 0.0))
+    assert risk.stats.clipped == 1
+
+
+def _pipeline(fusion: str, density):
+    K = Intrinsics.from_fov(320, 240, 70.0)
+    return SLZPipeline(density, PipelineConfig(fusion=fusion), intrinsics=K, mount=Mount())
+
+
+def test_fused_proposals_never_cover_a_person_the_network_missed_in_a_few_frames():
+    """The paper's per-frame rule puts a landing circle on a person the network misses once; the
+    fused map keeps that person occupied."""
+    base = np.zeros((240, 320), np.float32)
+    seen_person = base.copy()
+    seen_person[100:110, 150:160] = 1.0  # a person under the camera
+
+    def density_for(k: int):
+        return lambda _f: seen_person if k < 5 else base  # missed from frame 5 on
+
+    frame = np.zeros((240, 320, 3), np.uint8)
+    results = {}
+    for fusion in ("frame", "map"):
+        pipe = _pipeline(fusion, density_for(0))
+        for k in range(8):
+            pipe.density = density_for(k)
+            t = 0.1 * k
+            results[fusion] = pipe.process(frame, t, Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    person_xy = results["map"].projection.image_to_plane(np.array([[155.0, 105.0]]))[0]
+
+    def covers(res) -> bool:
+        return any(math.hypot(c.x - person_xy[0], c.y - person_xy[1]) < c.r for c in res.proposals)
+
+    assert covers(results["frame"])  # the memory-less rule would land on them
+    assert not covers(results["map"])
+    assert results["map"].fused_grid is not None and results["frame"].fused_grid is None
+    assert "fusion" in results["map"].timings_ms
+
+
+def test_fused_free_grid_feeds_the_same_proposal_rule():
+    risk = GroundRiskMap()
+    free, seen = frame_grids([(0.0, 0.0), (5.0, 5.0)])
+    risk.update(GRID, free, seen, 0.0)
+    fused = risk.fused_free(GRID, free, 0.0)
+    assert np.array_equal(fused, free)  # nothing older than this frame: the frame's own grid
+    circles = propose(fused, GRID, 3, 2.0)
+    assert circles and all(math.hypot(c.x, c.y) >= c.r for c in circles)

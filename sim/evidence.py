@@ -19,7 +19,13 @@ Counting (docs/scale.md says why):
   two-sided 95 % binomial interval (Clopper-Pearson);
 - ``min_clearance_m`` and ``max_climb_m`` are safety figures and take every flight, starved ones
   included (a bad number never disappears); ``median_time_to_touchdown_s`` is a performance
-  figure and takes the clean flights.
+  figure and takes the clean flights, and so do ``median_phase_changes`` and
+  ``max_phase_changes`` (a flight's phase changes: the controller's recorded phase-change events,
+  ``len(row["phases"])``; the controller changes phase only by emitting one).
+
+**Baseline** rows (``baseline: true``: the same scene flown with the autopilot's own failsafe
+alone, no companion) have their own key in a results file (``row_key``) and their own summary
+(``summarise_baseline``): touchdowns and strikes on the same truth, the strike rate and its bounds.
 """
 
 from __future__ import annotations
@@ -35,6 +41,10 @@ import numpy as np
 from scipy.stats import beta
 
 CONFIDENCE = 0.95
+#: The last element of a baseline flight's key in a results file.
+BASELINE = "baseline"
+#: A flight's key in a results file: ``(seed, flavour)``, or ``(seed, flavour, "baseline")``.
+RowKey = tuple[Any, ...]
 #: The unsafe-rate upper bound the runner reports the distance to (further clean flights needed).
 TARGET_UPPER = 0.01
 
@@ -95,6 +105,7 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     clear = [r["clearance_m"] for r in landed_any if r.get("clearance_m") is not None]
     times = [r["time_to_touchdown_s"] for r in clean if r.get("time_to_touchdown_s") is not None]
     climbs = [r["max_climb_m"] for r in rows if r.get("max_climb_m") is not None]
+    changes = [phase_changes(r) for r in clean]
     u, s, c = _proportion(unsafe, n), _proportion(strikes, n), _proportion(landings, n)
     return {
         "total": len(rows), "safe": count(clean, "safe"), "handbacks": count(clean, "handback"),
@@ -102,6 +113,8 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
         "min_clearance_m": round(min(clear), 3) if clear else None,
         "median_time_to_touchdown_s": round(float(np.median(times)), 2) if times else None,
         "max_climb_m": round(max(climbs), 2) if climbs else None,
+        "median_phase_changes": float(np.median(changes)) if changes else None,
+        "max_phase_changes": max(changes) if changes else None,
         "starved": len(starved),
         "starved_outcomes": {o: count(starved, o) for o in ("safe", "unsafe", "handback", "timeout")
                              if count(starved, o)},
@@ -114,6 +127,25 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
         "companion_landing_rate": c["rate"], "companion_landing_rate_ci95": c["ci95"],
         "clean_flights_to_unsafe_upper95_below_1pct": further_clean_flights(unsafe, n),
     }
+
+
+def phase_changes(row: dict[str, Any]) -> int:
+    """How many times the flight's landing controller changed phase (its recorded phase-change
+    events: ``FlightResult.phases`` lists the phase each entered)."""
+    return len(row.get("phases") or [])
+
+
+def summarise_baseline(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
+    """The baseline's figures (flights with the autopilot's own failsafe alone): every touchdown
+    judged on the truth like the companion's. ``strikes`` and their rate (with its exact 95 %
+    interval) per clean flight, the minimum clearance over every touchdown, the median time from
+    trigger to touchdown, the flights that did not touch down in time."""
+    rows = list(rows)
+    s = summarise_rows(rows)
+    clear = [r["clearance_m"] for r in rows if r.get("clearance_m") is not None]
+    keys = ("total", "clean_flights", "starved", "timeouts", "strikes", "strike_rate", "strike_rate_ci95",
+            "strike_rate_upper95", "median_time_to_touchdown_s", "max_climb_m")
+    return {**{k: s[k] for k in keys}, "min_clearance_m": round(min(clear), 3) if clear else None}
 
 
 def _pct(x: float | None) -> str:
@@ -141,17 +173,38 @@ def summary_text(summary: dict[str, Any]) -> str:
         lo, hi = summary[f"{key}_ci95"]
         lines.append(f"{label}: {count}/{n} clean flights = {_pct(summary[key])} "
                      f"(95 % exact interval {_pct(lo)} to {_pct(hi)})")
+    lines.append(f"phase changes per flight: median {summary['median_phase_changes']}, "
+                 f"most {summary['max_phase_changes']}")
     m = summary["clean_flights_to_unsafe_upper95_below_1pct"]
     lines.append("the unsafe rate's upper 95 % bound is under 1 %" if m == 0 else
                  f"{m} further clean flights would bring the unsafe rate's upper 95 % bound under 1 %")
     return "\n".join(lines)
 
 
+def baseline_text(summary: dict[str, Any]) -> str:
+    """The companion's strikes beside the baseline's (``summary["baseline"]``), for people."""
+    b = summary["baseline"]
+    lines = []
+    for label, s in (("companion", summary), ("baseline (autopilot's failsafe alone, no companion)", b)):
+        lo, hi = s["strike_rate_ci95"]
+        lines.append(f"strikes, {label}: {s['strikes']}/{s['clean_flights']} clean flights = "
+                     f"{_pct(s['strike_rate'])} (95 % exact interval {_pct(lo)} to {_pct(hi)})")
+    lines[-1] += (f"; minimum clearance at touchdown {b['min_clearance_m']} m, median time to touchdown "
+                  f"{b['median_time_to_touchdown_s']} s, no touchdown {b['timeouts']}")
+    ratio = summary.get("strikes_vs_baseline")
+    none = "- (the baseline struck nobody)" if b["strikes"] == 0 else "-"
+    lines.append("companion strike rate / baseline strike rate: "
+                 + (none if ratio is None else f"{ratio:.2f}"))
+    return "\n".join(lines)
+
+
 # ---- the results file ------------------------------------------------------------------------
 
-def row_key(row: dict[str, Any]) -> tuple[int, str]:
-    """What identifies a flight in a results file: its seed and the autopilot it flew with."""
-    return int(row["seed"]), str(row["flavour"])
+def row_key(row: dict[str, Any]) -> RowKey:
+    """What identifies a flight in a results file: its seed and the autopilot it flew with, and
+    ``"baseline"`` for a baseline flight (so neither kind ever stands for the other on resume)."""
+    key = (int(row["seed"]), str(row["flavour"]))
+    return (*key, BASELINE) if row.get("baseline") else key
 
 
 def read_rows(path: Path) -> tuple[list[dict[str, Any]], int]:

@@ -17,6 +17,12 @@ systemd sees it:
   it), and the autopilot landed where it was; counted apart, neither safe nor unsafe;
 - ``timeout``: no touchdown within the time limit.
 
+A **baseline** flight (``FlightSpec.companion = False``) flies the same scene with no service at
+all: the simulator raises the same failsafe ``watch_s`` after it starts and the autopilot's own
+LAND (PX4: after its COM_FAIL_ACT_T hold) brings the vehicle down where it was. It is judged on
+the same truth (where it touched down, who stood within ``r_0``) and, the companion never having
+taken control, its outcome is ``handback``; its row says ``baseline: true``.
+
 Frames: world NED metres from home, ground z = 0; times in seconds.
 """
 
@@ -51,11 +57,11 @@ from sim.ground import FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
 from sim.walkers import Circle
-from sim.world import World, crowd_with_free_area, dense_crowd, dronecrowd_world
+from sim.world import World, add_crossing_walkers, crowd_with_free_area, dense_crowd, dronecrowd_world
 
 log = logging.getLogger("sim.flight")
 
-WORLDS = ("free_area", "dense", "intrusion", "dronecrowd", "uniform")
+WORLDS = ("free_area", "dense", "intrusion", "crossing", "dronecrowd", "uniform")
 OUTCOMES = ("safe", "unsafe", "handback", "timeout")
 UNIFORM_GROUND_BGR = (70, 140, 95)  # mown grass
 #: A flight is **starved** (its CPU, not the software under test, decided it) when its service
@@ -77,7 +83,9 @@ class FlightSpec:
     """What to fly.
 
     world: ``free_area`` (a crowd with one free circle in view), ``dense`` (people everywhere:
-    no safe zone), ``intrusion`` (the free circle is entered by walkers during the descent) or
+    no safe zone), ``intrusion`` (the free circle is entered by walkers during the descent, who
+    stay), ``crossing`` (the free area's crowd, and walkers who cross the free circle during the
+    descent and leave it: ``sim.world.add_crossing_walkers``) or
     ``dronecrowd`` (real DroneCrowd motion, needs ../shared) or ``uniform`` (nobody, and a ground
     of one colour: every frame the same, the largest free circle bounded by the edge of the view).
     start_offset_m: where the vehicle hovers relative to the free circle's centre (north, east);
@@ -94,6 +102,7 @@ class FlightSpec:
         reads the controller's events from the recording either way).
     service_env: extra environment variables for the service process (tests use it to prove the
         verdict does not depend on the log's wording).
+    companion: False flies the **baseline**: no service, the autopilot's own failsafe alone.
     """
 
     flavour: str = "ardupilot"
@@ -117,6 +126,7 @@ class FlightSpec:
     service_set: tuple[str, ...] = ()
     home_origin_offset_m: float = 0.0
     service_env: tuple[tuple[str, str], ...] = ()
+    companion: bool = True
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
@@ -176,6 +186,7 @@ class FlightResult:
             "starved": self.starved,
             "frame_ms_p95": None if self.frame_ms_p95 is None else round(self.frame_ms_p95, 1),
             "phases": self.phases, "messages": self.messages,
+            "baseline": not self.spec.companion,
         }
 
 
@@ -473,6 +484,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     lines: list[str] = []
     sink = open(spec.service_log, "w") if spec.service_log is not None else None
     proc = None
+    pump: asyncio.Task[None] | None = None
     scratch = tempfile.TemporaryDirectory(prefix="companion-flight-")
     record_dir = spec.record_dir if spec.record_dir is not None else Path(scratch.name) / "recording"
     notify = NotifySocket(Path(scratch.name))
@@ -480,16 +492,17 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
                               **dict(spec.service_env)}
     try:
         await sim.start()
-        await camera.start()
-        proc = await asyncio.create_subprocess_exec(
-            *service_command(spec, link_port, camera.url, record_dir), stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=dict(env))
-        pump = asyncio.create_task(_pump(proc.stderr, lines, sink))  # type: ignore[arg-type]
-        if not await notify.wait_ready(proc, timeout=60.0):
-            result.outcome = "timeout"
-            result.log_tail = "\n".join(lines[-30:])
-            raise RuntimeError("the service did not become ready:\n" + result.log_tail)
-        window["ready"] = time.monotonic()
+        if spec.companion:  # the baseline flies without camera or service
+            await camera.start()
+            proc = await asyncio.create_subprocess_exec(
+                *service_command(spec, link_port, camera.url, record_dir), stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=dict(env))
+            pump = asyncio.create_task(_pump(proc.stderr, lines, sink))  # type: ignore[arg-type]
+            if not await notify.wait_ready(proc, timeout=60.0):
+                result.outcome = "timeout"
+                result.log_tail = "\n".join(lines[-30:])
+                raise RuntimeError("the service did not become ready:\n" + result.log_tail)
+            window["ready"] = time.monotonic()
         if spec.packet_loss > 0 or spec.latency_ms > 0:
             sim.set_link_faults(loss=spec.packet_loss, latency_s=spec.latency_ms / 1000.0)
         await asyncio.sleep(spec.watch_s)
@@ -500,9 +513,12 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             # Walkers reach the free circle while the companion approaches or descends into it.
             world.add_intrusion(free, t_enter=world.t + spec.intrusion_after_s, count=4,
                                 speed=1.4)
+        elif spec.world == "crossing" and free is not None:
+            # Walkers cross the free circle (the zone the companion lands in) during the descent.
+            add_crossing_walkers(world, free, world.t, spec.seed)
         end = t_trigger + spec.timeout_s
         while "t" not in touchdown and time.monotonic() < end:
-            if proc.returncode is not None:
+            if proc is not None and proc.returncode is not None:
                 break
             await asyncio.sleep(0.1)
         window["end"] = float(touchdown["t"]) if "t" in touchdown else time.monotonic()  # type: ignore[arg-type]
@@ -522,8 +538,9 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
                 result.service_exit = await proc.wait()
         elif proc is not None:
             result.service_exit = proc.returncode
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(pump, 2.0)
+        if pump is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(pump, 2.0)
         await camera.stop()
         await sim.stop()
         if sink is not None:

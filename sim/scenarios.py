@@ -1,13 +1,36 @@
 """``companion sim-scenarios``: fly N seeded random scenarios and report the safety figures.
 
-Each seed draws a scenario: autopilot flavour, hover altitude, where the one free circle lies in
-view and how large it is, the failsafe that fires, and, for one seed in six, a dense crowd with no
-safe zone at all (the right answer there is a handback). Every flight is judged on the simulator's
-truth (see ``sim.flight``). Prints safe landings / total, the minimum clearance at touchdown, the
-median time from trigger to touchdown and the handbacks; ``--json`` prints one JSON object with
-``total, safe, handbacks, unsafe, min_clearance_m, median_time_to_touchdown_s, max_climb_m`` (and
-more; ``max_climb_m`` is the most any flight rose above its altitude at the trigger, on the truth),
-with the rates and their exact 95 % bounds of ``sim.evidence``.
+Each seed draws a scenario (``scenario``): autopilot flavour, hover altitude, where the one free
+circle lies in view and how large it is, the failsafe that fires, PX4's home-origin offset, and
+the world. The mix of worlds:
+
+- ``dense`` (one seed in six): people everywhere, no safe zone at all (the right answer there is a
+  handback);
+- ``crossing`` (a third of the others, about 28 % of seeds): the free area's crowd, and 2-4
+  walkers at 1.0-1.5 m/s who cross the free circle, the zone the companion lands in, 4-24 s
+  after the failsafe, that is during the descent, and walk on out of it
+  (``sim.world.add_crossing_walkers``);
+- ``free_area`` (the rest, about 55 %): a crowd around one free circle in view.
+
+Every draw added later is drawn after the earlier ones, so every seed keeps the scene it had:
+the ``crossing`` draw came last and only adds walkers to a ``free_area`` seed's scene. The
+``intrusion`` world (walkers who walk into the free circle and stay) is flown by the SITL tests,
+not drawn here.
+
+Every flight is judged on the simulator's truth (see ``sim.flight``), handbacks included. Prints
+safe landings / total, the minimum clearance at touchdown, the median time from trigger to
+touchdown and the handbacks; ``--json`` prints one JSON object with ``total, safe, handbacks,
+unsafe, min_clearance_m, median_time_to_touchdown_s, max_climb_m`` (and more; ``max_climb_m`` is
+the most any flight rose above its altitude at the trigger, on the truth; ``strikes``, touchdowns
+with somebody within r_0 whoever landed; ``median_phase_changes``, ``max_phase_changes``), with
+the rates and their exact 95 % bounds of ``sim.evidence``.
+
+``--baseline`` flies every seed twice: with the companion, and with the autopilot's own failsafe
+alone (no service: ``FlightSpec.companion = False``), judged the same way. The JSON then adds
+``baseline`` (the baseline's ``total``, ``strikes``, strike rate and bounds, ...) and
+``strikes_vs_baseline`` (the companion's strike rate over the baseline's); the companion's keys
+stay the companion's alone. Baseline rows say ``baseline: true`` in a results file and are
+resumed apart from the companion's.
 
 At scale (docs/scale.md): ``--workers N`` flies N seeds at once on this machine, ``--ray ADDRESS``
 sends each flight to a Ray cluster as a task (``--ray auto``: a local Ray), each flight with its
@@ -39,7 +62,17 @@ import numpy as np
 from tqdm import tqdm
 
 from companion.parallel import ParallelError, default_workers, fan_out
-from sim.evidence import ResultsFile, read_rows, row_key, summarise_rows, summary_text
+from sim.evidence import (
+    BASELINE,
+    ResultsFile,
+    RowKey,
+    baseline_text,
+    read_rows,
+    row_key,
+    summarise_baseline,
+    summarise_rows,
+    summary_text,
+)
 from sim.flight import FlightSpec, fly
 
 
@@ -75,12 +108,20 @@ def scenario(seed: int, flavour: str | None = None) -> FlightSpec:
     radius = float(rng.uniform(5.0, 8.0))
     failsafe = ("battery_critical", "rc_loss", "gcs_loss")[int(rng.integers(3))]
     # The simulated PX4's home sits 0-3 m above or below its estimator's origin, as on a real
-    # one (1.48 m in PX4's SIH): frame-6 targets would be read wrongly. Drawn last, so the
-    # earlier draws (and every seed's scene) stay what they were.
+    # one (1.48 m in PX4's SIH): frame-6 targets would be read wrongly. Drawn after the scene, so
+    # the earlier draws (and every seed's scene) stay what they were.
     offset_m = float(rng.uniform(0.0, 3.0)) * (1.0 if rng.random() < 0.5 else -1.0)
+    # Walkers crossing the free circle during the descent, in a third of the free-area seeds:
+    # drawn last (for every seed), so everything drawn before stays; such a seed keeps its crowd,
+    # circle and vehicle, and gains the walkers (drawn from the seed in sim.world).
+    if rng.random() < CROSSING_SHARE and world == "free_area":
+        world = "crossing"
     return FlightSpec(flavour=fl, world=world, seed=seed, altitude_m=alt, start_offset_m=offset,
                       free_radius_m=radius, failsafe=failsafe, home_origin_offset_m=offset_m)
 
+
+#: The share of free-area seeds whose free circle walkers cross during the descent (``crossing``).
+CROSSING_SHARE = 1 / 3
 
 #: CPUs one flight is given by default. A flight averages 0.8-0.9 of a CPU (the service and this
 #: simulator together), but its service runs the density model on ``model.threads`` = 2 threads:
@@ -91,20 +132,25 @@ CPUS_PER_FLIGHT = 2.0
 
 @dataclasses.dataclass(frozen=True)
 class FlightJob:
-    """One flight to fly: a seed's scenario, its autopilot forced or drawn, and (for tests) fields
-    of its :class:`FlightSpec` replaced."""
+    """One flight to fly: a seed's scenario, its autopilot forced or drawn, with the companion or
+    the baseline (the autopilot's own failsafe alone), and (for tests) fields of its
+    :class:`FlightSpec` replaced."""
 
     seed: int
     flavour: str | None = None
     overrides: tuple[tuple[str, Any], ...] = ()
+    baseline: bool = False
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
+        if self.baseline:
+            spec = dataclasses.replace(spec, companion=False)
         return dataclasses.replace(spec, **dict(self.overrides)) if self.overrides else spec
 
-    def key(self) -> tuple[int, str]:
-        """Its key in a results file (``sim.evidence.row_key``)."""
-        return self.seed, self.spec().flavour
+    def key(self) -> RowKey:
+        """Its key in a results file (``sim.evidence.row_key``): a baseline flight's is its own."""
+        base = (self.seed, self.spec().flavour)
+        return (*base, BASELINE) if self.baseline else base
 
 
 def _cpu_s() -> float:
@@ -126,9 +172,9 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     return row
 
 
-def plan(jobs: list[FlightJob], done_rows: list[dict[str, Any]]) -> tuple[list[FlightJob], dict[tuple[int, str], dict]]:
+def plan(jobs: list[FlightJob], done_rows: list[dict[str, Any]]) -> tuple[list[FlightJob], dict[RowKey, dict]]:
     """The jobs still to fly, and the rows of the others already in a results file (by key; the
-    last row of a key wins)."""
+    last row of a key wins; a baseline row never stands for a companion flight, nor the reverse)."""
     done = {row_key(r): r for r in done_rows}
     wanted = {job.key() for job in jobs}
     kept = {k: r for k, r in done.items() if k in wanted}
@@ -142,8 +188,11 @@ def flight_line(row: dict[str, Any]) -> str:
         return "-" if v is None else form.format(v)
 
     starved = "  STARVED" if row.get("starved") else ""
-    return (f"seed {row['seed']:>3} {row['flavour']:<9} {row['world']:<9} alt {fmt('altitude_m', '{:4.1f}')} m "
-            f"-> {row['outcome']:<8} clearance {fmt('clearance_m', '{:.1f} m'):>7}  "
+    baseline = bool(row.get("baseline"))
+    outcome = ("STRIKE" if row.get("strike") else "landed") if baseline else row["outcome"]
+    return (f"{'baseline ' if baseline else ''}seed {row['seed']:>3} {row['flavour']:<9} {row['world']:<9} "
+            f"alt {fmt('altitude_m', '{:4.1f}')} m "
+            f"-> {outcome:<8} clearance {fmt('clearance_m', '{:.1f} m'):>7}  "
             f"to touchdown {fmt('time_to_touchdown_s', '{:.0f} s'):>5}  climb {fmt('max_climb_m', '{:.1f} m'):>6}  "
             f"{fmt('processed_fps', '{:.1f} Hz'):>7}  frame p95 {fmt('frame_ms_p95', '{:.0f} ms'):>6}{starved}")
 
@@ -167,6 +216,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="fly every scenario with this autopilot (default: drawn per seed)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--verbose", action="store_true", help="print each flight's messages")
+    parser.add_argument("--baseline", action="store_true",
+                        help="also fly every seed with the autopilot's own failsafe alone (no companion) "
+                             "and report its strikes beside the companion's")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -196,7 +248,9 @@ def run(args: argparse.Namespace) -> int:
     if workers < 1:
         print("companion sim-scenarios: --workers must be >= 1", file=sys.stderr)
         return 2
-    jobs = [FlightJob(seed, args.flavour) for seed in dict.fromkeys(seeds)]
+    jobs = [job for seed in dict.fromkeys(seeds)
+            for job in ([FlightJob(seed, args.flavour)]
+                        + ([FlightJob(seed, args.flavour, baseline=True)] if args.baseline else []))]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress)
 
@@ -216,8 +270,8 @@ def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None
     if kept:
         print(f"{out}: {len(kept)} of {len(jobs)} flights already there; flying the other {len(todo)}",
               file=sys.stderr)
-    rows: dict[tuple[int, str], dict[str, Any]] = dict(kept)
-    failed: dict[int, str] = {}
+    rows: dict[RowKey, dict[str, Any]] = dict(kept)
+    failed: dict[RowKey, str] = {}
     results = ResultsFile(out) if out is not None else None
     unsafe = sum(r.get("outcome") == "unsafe" for r in kept.values())
     starved = sum(bool(r.get("starved")) for r in kept.values())
@@ -231,8 +285,9 @@ def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None
         for job, res in fan_out(fly_seed, todo, workers=workers, ray_address=ray_address,
                                 cpus_per_task=cpus_per_flight):
             if isinstance(res, BaseException):
-                failed[job.seed] = f"{type(res).__name__}: {res}"
-                tqdm.write(f"seed {job.seed}: could not fly: {failed[job.seed]}", file=sys.stderr)
+                failed[job.key()] = f"{type(res).__name__}: {res}"
+                tqdm.write(f"{'baseline ' if job.baseline else ''}seed {job.seed}: could not fly: "
+                           f"{failed[job.key()]}", file=sys.stderr)
             else:
                 if results is not None:
                     results.append(res)
@@ -258,21 +313,34 @@ def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None
     wall = time.monotonic() - t0
     if out is not None:  # the figures are the file's: every flight of every run that wrote it
         rows.update(plan(jobs, read_rows(out)[0])[1])
-    asked = [rows[job.key()] for job in jobs if job.key() in rows]
+    asked = [rows[job.key()] for job in jobs if job.key() in rows and not job.baseline]
+    base_rows = [rows[job.key()] for job in jobs if job.key() in rows and job.baseline]
     summary = summarise_rows(asked)
-    summary["could_not_fly"] = sorted(failed)
+    summary["could_not_fly"] = sorted({k[0] for k in failed if len(k) == 2})
     summary["run"] = {"flown": len(todo) - len(failed), "wall_s": round(wall, 1),
                       "workers": None if ray_address else workers, "ray": ray_address,
                       "cpus_per_flight": cpus_per_flight}
     summary["flights"] = asked
+    if any(job.baseline for job in jobs):
+        base = summarise_baseline(base_rows)
+        base["could_not_fly"] = sorted({k[0] for k in failed if len(k) == 3})
+        base["flights"] = base_rows
+        summary["baseline"] = base
+        rate, base_rate = summary["strike_rate"], base["strike_rate"]
+        summary["strikes_vs_baseline"] = (None if rate is None or not base_rate
+                                          else round(rate / base_rate, 4))
     if as_json:
         print(json.dumps(summary))
     else:
         print()
         print(summary_text(summary))
+        if "baseline" in summary:
+            print(baseline_text(summary))
         if failed:
-            print(f"could not fly: seeds {sorted(failed)} (run again with the same --out to retry them)")
+            print(f"could not fly: seeds {sorted({k[0] for k in failed})} "
+                  "(run again with the same --out to retry them)")
     any_unsafe = any(r.get("outcome") == "unsafe" for r in asked)
     if any_unsafe:
         return 1
-    return 3 if summary["starved"] or failed or len(asked) < len(jobs) else 0
+    incomplete = summary["starved"] or failed or len(asked) + len(base_rows) < len(jobs)
+    return 3 if incomplete else 0

@@ -1,4 +1,5 @@
-"""Generated people motion for the simulator: walkers, groups, standing people, scripted intruders.
+"""Generated people motion for the simulator: walkers, groups, standing people, scripted intruders
+and crossers.
 
 Everything is on the ground in world NED metres (``north``, ``east``; origin at home). Headings are
 radians from north toward east (the yaw convention of the vehicle). Speeds are in m/s, times in
@@ -342,8 +343,46 @@ class Intrusion:
     stop_fraction: float = 0.2
 
 
+@dataclass(frozen=True)
+class Crossing:
+    """One person scripted to walk straight across ``circle`` and out of it again.
+
+    They walk along the chord at ``offset_m`` from the centre (to the right of their direction
+    of travel; ``|offset_m| < radius``), heading ``bearing`` (radians from north toward east), at
+    ``speed`` m/s: from ``approach_m`` metres before the edge, crossing it at ``t_enter``, to
+    ``approach_m`` metres beyond the far edge, where they stop. Before they start walking they
+    stand at their start point.
+    """
+
+    circle: Circle
+    t_enter: float
+    speed: float = 1.3
+    bearing: float = 0.0
+    offset_m: float = 0.0
+    approach_m: float = 8.0
+
+    def __post_init__(self) -> None:
+        if not abs(self.offset_m) < self.circle.radius:
+            raise ValueError(f"a crossing's offset must be within the radius {self.circle.radius} m, "
+                             f"got {self.offset_m}")
+        if not (self.speed > 0 and math.isfinite(self.speed)):
+            raise ValueError(f"a crossing's speed must be > 0 m/s, got {self.speed}")
+
+    def path(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Start and end (north, east) of the walk, and the time it starts."""
+        c = self.circle
+        d = np.array([math.cos(self.bearing), math.sin(self.bearing)])
+        right = np.array([-d[1], d[0]])
+        half = math.sqrt(c.radius ** 2 - self.offset_m ** 2)
+        mid = c.centre + self.offset_m * right
+        start = mid - (half + self.approach_m) * d
+        end = mid + (half + self.approach_m) * d
+        return start, end, self.t_enter - self.approach_m / self.speed
+
+
 class ScriptedWalkers:
-    """Motion source for :class:`Intrusion` scripts: positions are a pure function of time."""
+    """Motion source for :class:`Intrusion` and :class:`Crossing` scripts: positions are a pure
+    function of time."""
 
     def __init__(self, intrusions: list[Intrusion] | None = None) -> None:
         self.t = 0.0
@@ -354,7 +393,14 @@ class ScriptedWalkers:
         for it in intrusions or []:
             self.add(it)
 
-    def add(self, it: Intrusion) -> None:
+    def add(self, it: Intrusion | Crossing) -> None:
+        if isinstance(it, Crossing):
+            start, end, t0 = it.path()
+            self.starts = np.vstack([self.starts, start[None]])
+            self.ends = np.vstack([self.ends, end[None]])
+            self.t_start = np.append(self.t_start, t0)
+            self.speed = np.append(self.speed, it.speed)
+            return
         c = it.circle
         b = it.bearing + 2 * math.pi * np.arange(it.count) / max(it.count, 1)
         u = np.column_stack([np.cos(b), np.sin(b)])

@@ -11,7 +11,10 @@ Scenario builders for the SITL tests:
 - :func:`crowd_with_free_area`: the same, with a circle that nobody ever enters
   (``world.free_areas``).
 - :func:`dense_crowd`: people everywhere in a square around a point, no landing circle anywhere.
-- :meth:`World.add_intrusion`: people that walk into a circle at a given time.
+- :meth:`World.add_intrusion`: people that walk into a circle at a given time (and stay).
+- :meth:`World.add_crossing` / :func:`add_crossing_walkers`: people that walk across a circle and
+  out again, at walking speed, at given times (the ``crossing`` scenario: a landing zone crossed
+  during the descent).
 - :func:`dronecrowd_world`: real trajectories from DroneCrowd (needs ``../shared``).
 """
 
@@ -26,6 +29,7 @@ import numpy as np
 from sim.walkers import (
     Bounds,
     Circle,
+    Crossing,
     CrowdParams,
     GeneratedCrowd,
     Intrusion,
@@ -34,8 +38,18 @@ from sim.walkers import (
     ScriptedWalkers,
 )
 
-__all__ = ["World", "Bounds", "Circle", "Intrusion", "default_world", "crowd_with_free_area",
-           "dense_crowd", "dronecrowd_world", "largest_free_circle"]
+__all__ = ["World", "Bounds", "Circle", "Crossing", "Intrusion", "default_world", "crowd_with_free_area",
+           "dense_crowd", "dronecrowd_world", "largest_free_circle", "add_crossing_walkers",
+           "CROSSING_SPEEDS", "CROSSING_WINDOW_S"]
+
+#: Walking speeds of the ``crossing`` world's walkers, m/s, drawn uniformly: adults' preferred
+#: speeds are about 1.2-1.5 m/s (Bohannon 1997, Mohler et al. 2007), slower in a crowd.
+CROSSING_SPEEDS = (1.0, 1.5)
+#: When they cross the circle's edge, seconds after the failsafe, drawn uniformly: the companion
+#: descends into its zone from about 5 s after the trigger to touchdown at 21-34 s when it lands
+#: without holding (seeds 1-8 of docs/scale.md, "Measured"), and a walker at these speeds is
+#: inside a 5-8 m circle for up to 7-16 s.
+CROSSING_WINDOW_S = (4.0, 24.0)
 
 
 @dataclass
@@ -111,13 +125,21 @@ class World:
         world time ``t_enter`` (s), all stop near its centre. Returns the script."""
         c = circle if isinstance(circle, Circle) else Circle(*map(float, circle))
         it = Intrusion(c, float(t_enter), int(count), float(speed), float(approach_m), float(bearing))
+        self._scripted().add(it)
+        return it
+
+    def add_crossing(self, crossing: Crossing) -> Crossing:
+        """A person who walks across a circle and out again (see :class:`sim.walkers.Crossing`)."""
+        self._scripted().add(crossing)
+        return crossing
+
+    def _scripted(self) -> ScriptedWalkers:
         scripted = next((s for s in self.sources if isinstance(s, ScriptedWalkers)), None)
         if scripted is None:
             scripted = ScriptedWalkers()
             scripted.t = self.t
             self.sources.append(scripted)
-        scripted.add(it)
-        return it
+        return scripted
 
     def largest_free_circle(self, centre: tuple[float, float], half_size: float,
                             cell: float = 0.1, body_radius: float = 0.0
@@ -155,6 +177,25 @@ def largest_free_circle(positions: np.ndarray, centre: tuple[float, float], half
     r = float(dist[a, b]) * cell - body_radius
     return (centre[0] - half_size + (a + 0.5) * cell, centre[1] - half_size + (b + 0.5) * cell,
             max(r, 0.0))
+
+
+def add_crossing_walkers(world: World, circle: Circle, t_from: float, seed: int,
+                         count: int | None = None) -> list[Crossing]:
+    """Walkers who cross ``circle`` (a landing zone) during the descent: ``count`` of them (2-4
+    drawn when None), each at a speed drawn from :data:`CROSSING_SPEEDS`, from a bearing drawn
+    all round, along a chord within half the radius of the centre, crossing the edge at world
+    time ``t_from`` plus a delay drawn from :data:`CROSSING_WINDOW_S`, then walking on out of it.
+    Drawn from ``seed`` alone (its own stream: the scene's other draws are not touched)."""
+    rng = np.random.default_rng([int(seed), 0xC405])
+    n = int(rng.integers(2, 5)) if count is None else int(count)
+    out = []
+    for _ in range(n):
+        speed = float(rng.uniform(*CROSSING_SPEEDS))
+        bearing = float(rng.uniform(0.0, 2 * math.pi))
+        offset = float(rng.uniform(-0.5, 0.5)) * circle.radius
+        t_enter = t_from + float(rng.uniform(*CROSSING_WINDOW_S))
+        out.append(world.add_crossing(Crossing(circle, t_enter, speed, bearing, offset)))
+    return out
 
 
 def default_world(seed: int = 0, half_size: float = 60.0, centre: tuple[float, float] = (0.0, 0.0),

@@ -6,12 +6,16 @@ reworded (a ``sitecustomize`` module rewrites ``LogRecord.getMessage`` in the se
 The verdict must still be "safe", with every phase of the landing; the reworded log must really
 hold none of the original wording, so a judge matching log lines (as this one once did) would have
 seen no phase at all and called the flight a handback.
+
+A baseline flight (no companion, the autopilot's own failsafe alone) is judged on the same truth.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -87,3 +91,31 @@ def _replay_target_is_the_planners_choice(run: Path, jsonl_path: Path) -> None:
     assert len(records) == summary["frames"] == len(chosen) > 50
     assert {rec["frame"]: rec["target"] for rec in records} == chosen
     assert summary["frames_with_target"] > 0  # over free ground the planner picks zones
+
+
+@pytest.mark.timeout(90)
+def test_the_baseline_lands_where_the_autopilot_is_and_is_judged_the_same_way(tmp_path: Path) -> None:
+    # `companion sim-scenarios --baseline`: a free-area seed (ArduPilot) flown with the
+    # autopilot's own failsafe alone. No service starts; the same failsafe comes watch_s after the
+    # start and ArduPilot's LAND brings the vehicle down where it hovered; the touchdown is judged
+    # on the simulator's truth exactly as a companion flight's.
+    from sim.flight import build_world
+    from sim.scenarios import FlightJob
+
+    job = FlightJob(6, "ardupilot", baseline=True)
+    spec = job.spec()
+    assert spec.world == "free_area" and not spec.companion
+    spec = dataclasses.replace(spec, record_dir=tmp_path / "rec", service_log=tmp_path / "service.log")
+    r = asyncio.run(fly(spec))
+
+    assert r.service_exit is None and not (tmp_path / "rec").exists()  # no companion started
+    assert r.events == [] and r.phases == [] and r.processed_fps is None and not r.starved
+    assert r.touchdown is not None and r.time_to_touchdown_s is not None and r.time_to_touchdown_s < 40
+    assert r.outcome == "handback"  # the companion never took control: the autopilot landed
+    start = build_world(spec)[2]
+    assert math.dist(r.touchdown, start) < 3.0, (r.touchdown, start)  # where it was at the failsafe
+    assert r.clearance_m is not None and 0.0 <= r.clearance_m < 60.0
+    assert r.struck == (r.clearance_m < spec.r0_m)
+    row = r.as_dict()
+    assert row["baseline"] is True and row["strike"] == r.struck and row["clearance_m"] is not None
+    assert r.max_climb_m is not None and r.max_climb_m < 0.5

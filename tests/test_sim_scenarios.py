@@ -1,13 +1,27 @@
-"""The scenario runner's seeded draws (no flights here: `companion sim-scenarios` flies them)."""
+"""The scenario runner's seeded draws, its summary and the baseline's (no flights here: `companion
+sim-scenarios` flies them)."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+from typing import Any
 
+import numpy as np
 import pytest
 
+from sim import scenarios
+from sim.evidence import (
+    ResultsFile,
+    phase_changes,
+    read_rows,
+    row_key,
+    summarise_baseline,
+    summarise_rows,
+    summary_text,
+)
 from sim.flight import FlightResult, FlightSpec, summarise
-from sim.scenarios import parse_seeds, scenario
+from sim.scenarios import FlightJob, parse_seeds, plan, run_jobs, scenario
 
 
 def test_a_seed_is_the_same_scene_whatever_the_flavour():
@@ -41,3 +55,167 @@ def test_seed_lists_parse_and_bad_ones_are_refused():
     assert parse_seeds("1-3,7") == [1, 2, 3, 7]
     with pytest.raises(ValueError):
         parse_seeds("5-2")
+
+
+# ---- the mix of worlds -----------------------------------------------------------------------
+
+#: What seeds 1-12 drew before the ``crossing`` world was added (flavour, world, altitude, free
+#: radius, failsafe, PX4 home-origin offset): the crossing draw came last, so they must stay.
+BEFORE_CROSSING = {
+    1: ("ardupilot", "dense", 24.5046, 6.2700, "rc_loss", 2.4831),
+    2: ("px4", "free_area", 17.9849, 7.1857, "battery_critical", 0.5637),
+    3: ("px4", "free_area", 17.3681, 6.2994, "battery_critical", 1.4372),
+    4: ("px4", "free_area", 20.1133, 6.1295, "gcs_loss", 2.4057),
+    5: ("px4", "free_area", 23.0794, 6.1501, "gcs_loss", 1.2254),
+    6: ("ardupilot", "free_area", 18.4327, 6.8983, "rc_loss", 2.0230),
+    7: ("px4", "free_area", 23.9721, 7.6207, "rc_loss", -0.0158),
+    8: ("px4", "free_area", 24.8728, 6.1733, "battery_critical", 1.3136),
+    9: ("ardupilot", "free_area", 17.8682, 7.7461, "gcs_loss", -2.5812),
+    10: ("px4", "free_area", 17.0768, 5.4078, "gcs_loss", -2.0671),
+    11: ("ardupilot", "free_area", 19.9928, 7.7846, "battery_critical", 0.2113),
+    12: ("px4", "free_area", 24.4675, 5.6916, "battery_critical", 2.0113),
+}
+
+
+def test_every_seed_keeps_its_scene_and_some_free_areas_gain_crossing_walkers():
+    for seed, (flavour, world, alt, radius, failsafe, offset) in BEFORE_CROSSING.items():
+        s = scenario(seed)
+        assert (s.flavour, s.failsafe) == (flavour, failsafe)
+        assert s.altitude_m == pytest.approx(alt, abs=1e-4) and s.free_radius_m == pytest.approx(radius, abs=1e-4)
+        assert s.home_origin_offset_m == pytest.approx(offset, abs=1e-4)
+        # A free area may have become a crossing (the same scene, walkers added); nothing else changes.
+        assert s.world == world or (world, s.world) == ("free_area", "crossing"), (seed, s.world)
+    worlds = [scenario(seed).world for seed in range(1, 301)]
+    assert set(worlds) == {"free_area", "dense", "crossing"}
+    free_kinds = [w for w in worlds if w != "dense"]
+    assert 0.25 < free_kinds.count("crossing") / len(free_kinds) < 0.42  # a third, drawn
+    assert any(scenario(seed).world == "crossing" for seed in range(1, 7))
+
+
+def test_crossing_walkers_cross_the_zone_during_the_descent_at_walking_speed():
+    from sim.walkers import Circle, Crossing
+    from sim.world import CROSSING_WINDOW_S, World, add_crossing_walkers
+
+    circle = Circle(10.0, -4.0, 6.0)
+    for seed in range(1, 30):
+        world = World(seed=seed)
+        world.step(3.0)  # the failsafe comes at world time 3 s
+        walkers = add_crossing_walkers(world, circle, world.t, seed)
+        assert 2 <= len(walkers) <= 4
+        assert all(1.0 <= w.speed <= 1.5 for w in walkers)
+        inside_at: list[list[float]] = [[] for _ in walkers]
+        last = world.positions()
+        t_end = 3.0 + CROSSING_WINDOW_S[1] + 30.0
+        while world.t < t_end:
+            world.step(0.1)
+            p = world.positions()
+            assert (np.hypot(*(p - last).T) <= 1.5 * 0.1 + 1e-9).all()  # never faster than walking
+            last = p
+            for i, d in enumerate(circle.distance(p)):
+                if d < circle.radius:
+                    inside_at[i].append(world.t)
+        for w, times in zip(walkers, inside_at):
+            assert times, "every walker crosses the zone"
+            assert times[0] == pytest.approx(w.t_enter, abs=0.11)
+            assert 3.0 + CROSSING_WINDOW_S[0] - 0.11 <= times[0] <= 3.0 + CROSSING_WINDOW_S[1] + 0.11
+            assert times[-1] - times[0] < 2 * circle.radius / w.speed + 0.2  # and leaves it
+        assert (circle.distance(world.positions()) > circle.radius).all()
+    assert add_crossing_walkers(World(), circle, 0.0, 5) == add_crossing_walkers(World(), circle, 0.0, 5)
+    with pytest.raises(ValueError):
+        Crossing(circle, 1.0, offset_m=6.0)
+
+
+def test_a_crossing_flight_is_a_free_area_scene_and_a_baseline_has_no_companion():
+    from sim.flight import build_world
+
+    spec = scenario(2)
+    assert spec.world == "crossing" and spec.companion
+    free_area = dataclasses.replace(spec, world="free_area")
+    w1, free1, start1 = build_world(spec)
+    w2, free2, start2 = build_world(free_area)
+    assert free1 == free2 and start1 == start2 and (w1.positions() == w2.positions()).all()
+    base = FlightJob(2, baseline=True)
+    assert not base.spec().companion and dataclasses.replace(base.spec(), companion=True) == spec
+    assert FlightResult(base.spec(), "handback").as_dict()["baseline"] is True
+    assert FlightResult(spec, "safe").as_dict()["baseline"] is False
+
+
+# ---- the summary's new figures, and the baseline kept apart ----------------------------------
+
+
+def _row(seed: int, outcome: str, *, phases: int = 5, strike: bool = False, baseline: bool = False,
+         clearance: float | None = 4.0, starved: bool = False) -> dict[str, Any]:
+    return {"seed": seed, "flavour": "ardupilot", "world": "free_area", "outcome": outcome,
+            "starved": starved, "strike": strike, "clearance_m": clearance, "time_to_touchdown_s": 20.0 + seed,
+            "max_climb_m": 0.0, "altitude_m": 20.0, "phases": ["SELECT"] * phases, "messages": [],
+            "baseline": baseline}
+
+
+def test_the_summary_counts_phase_changes_and_strikes_from_rows():
+    rows = [_row(1, "safe", phases=5), _row(2, "safe", phases=9), _row(3, "handback", phases=2, strike=True,
+            clearance=0.5), _row(4, "unsafe", phases=35, strike=True, clearance=1.0),
+            _row(5, "safe", phases=80, starved=True)]
+    s = summarise_rows(rows)
+    assert s["median_phase_changes"] == 7.0 and s["max_phase_changes"] == 35  # the clean flights'
+    assert s["strikes"] == 2 and s["companion_landings"] == 3
+    assert summarise_rows([])["median_phase_changes"] is None
+    assert "phase changes per flight: median 7.0, most 35" in summary_text(s)
+    # A flight's phase changes are its recorded phase-change events (FlightResult.phases).
+    assert phase_changes({"phases": ["SELECT", "APPROACH", "DESCEND", "HOLD"]}) == 4
+    assert phase_changes({}) == 0
+
+    base = summarise_baseline([_row(1, "handback", phases=0, baseline=True, strike=True, clearance=0.3),
+                               _row(2, "handback", phases=0, baseline=True, clearance=6.0),
+                               _row(3, "handback", phases=0, baseline=True, strike=True, clearance=1.1),
+                               _row(4, "timeout", phases=0, baseline=True, clearance=None)])
+    assert (base["total"], base["clean_flights"], base["strikes"], base["timeouts"]) == (4, 4, 2, 1)
+    assert base["strike_rate"] == 0.5 and base["min_clearance_m"] == 0.3
+    assert base["strike_rate_ci95"][0] < 0.5 < base["strike_rate_upper95"]
+
+
+def test_baseline_rows_are_kept_apart_from_the_companions_on_resume(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append(_row(1, "safe"))                                  # companion, seed 1
+        f.append(_row(2, "handback", baseline=True, strike=True, clearance=0.8))  # baseline, seed 2
+    assert row_key(_row(2, "handback", baseline=True)) == (2, "ardupilot", "baseline")
+    assert row_key(_row(2, "handback")) == (2, "ardupilot")
+    flown: list[tuple[int, bool]] = []
+
+    def fake(job: FlightJob) -> dict[str, Any]:
+        flown.append((job.seed, job.baseline))
+        assert job.spec().companion is not job.baseline
+        strike = job.baseline and job.seed == 1
+        return _row(job.seed, "handback" if job.baseline else "safe", baseline=job.baseline, strike=strike,
+                    phases=0 if job.baseline else 6, clearance=1.5 if strike else 5.0)
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    jobs = [FlightJob(s, "ardupilot", baseline=b) for s in (1, 2) for b in (False, True)]
+    todo, kept = plan(jobs, read_rows(out)[0])
+    assert [(j.seed, j.baseline) for j in todo] == [(1, True), (2, False)]
+    assert set(kept) == {(1, "ardupilot"), (2, "ardupilot", "baseline")}
+
+    assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0
+    assert flown == [(1, True), (2, False)]
+    s = json.loads(capsys.readouterr().out)
+    assert [(r["seed"], r["baseline"]) for r in s["flights"]] == [(1, False), (2, False)]
+    assert (s["total"], s["safe"], s["strikes"]) == (2, 2, 0)  # baseline rows never counted here
+    b = s["baseline"]
+    assert [(r["seed"], r["baseline"]) for r in b["flights"]] == [(1, True), (2, True)]
+    assert (b["total"], b["strikes"], b["strike_rate"]) == (2, 2, 1.0) and b["strike_rate_upper95"] == 1.0
+    assert s["strikes_vs_baseline"] == 0.0
+    assert len(read_rows(out)[0]) == 4
+
+    # Again: nothing left to fly; without --baseline, the baseline rows stay out of the figures.
+    flown.clear()
+    assert run_jobs(jobs, workers=1, out=out) == 0 and flown == []
+    text = capsys.readouterr().out
+    assert "strikes, companion: 0/2 clean flights" in text
+    assert "strikes, baseline (autopilot's failsafe alone, no companion): 2/2 clean flights" in text
+    assert "companion strike rate / baseline strike rate: 0.00" in text
+    line = scenarios.flight_line(_row(1, "handback", baseline=True, strike=True))
+    assert line.startswith("baseline seed   1") and "STRIKE" in line
+    companion_only = [FlightJob(s, "ardupilot") for s in (1, 2)]
+    assert run_jobs(companion_only, workers=1, out=out, as_json=True) == 0 and flown == []
+    s = json.loads(capsys.readouterr().out)
+    assert "baseline" not in s and "strikes_vs_baseline" not in s and s["total"] == 2

@@ -190,10 +190,12 @@ class GroundRiskMap:
             self.epoch = t
         if w is not None:
             seen = seen_grid[w.grid_rows, w.grid_cols] > 0
-            occupied = seen & (free_grid[w.grid_rows, w.grid_cols] == 0)
+            occupied = free_grid[w.grid_rows, w.grid_cols] == 0
+            occupied &= seen
             rel = np.float32(t - self.epoch)
-            self.last_seen[w.map_rows, w.map_cols][seen] = rel
-            self.last_occ[w.map_rows, w.map_cols][occupied] = rel
+            # copyto with a mask writes in place without building index arrays (the hot path).
+            np.copyto(self.last_seen[w.map_rows, w.map_cols], rel, where=seen)
+            np.copyto(self.last_occ[w.map_rows, w.map_cols], rel, where=occupied)
         self._last = (t, cx, cy)
         self.t = t
         self.stats.updates += 1
@@ -230,9 +232,10 @@ class GroundRiskMap:
         w = self._window(grid)
         if w is None:
             return out
-        recent = self.last_occ[w.map_rows, w.map_cols] >= self._rel(t) - self.config.hold_s
-        sub = free_grid[w.grid_rows, w.grid_cols]
-        out[w.grid_rows, w.grid_cols] = np.where(recent, 0, sub)
+        recent = self.last_occ[w.map_rows, w.map_cols] >= np.float32(self._rel(t) - self.config.hold_s)
+        view = out[w.grid_rows, w.grid_cols]
+        np.copyto(view, free_grid[w.grid_rows, w.grid_cols])
+        np.copyto(view, 0, where=recent)
         return out
 
     def clearance_now(self, x: float, y: float, t: float, bound_m: float) -> float:

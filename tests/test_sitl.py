@@ -68,7 +68,8 @@ def test_people_walking_into_the_target_make_it_retarget_or_hold(flavour, model_
         assert r.clearance_m >= r.spec.r0_m
 
 
-@pytest.mark.parametrize("flavour", FLAVOURS)
+# One autopilot: the link faults are the same for both, and the latency test below flies the other.
+@pytest.mark.parametrize("flavour", ["px4"])
 def test_twenty_percent_packet_loss_still_lands_safely_or_hands_back(flavour, model_path):
     r = _fly(FlightSpec(flavour=flavour, world="free_area", seed=5, altitude_m=18.0,
                         packet_loss=0.2, service_set=FAST_BUDGET))

@@ -196,3 +196,18 @@ def test_peers_from_a_config_file(tmp_path):
     f.write_text("[link]\npeers = [1, 2]\n")
     with pytest.raises(config.ConfigError, match="list of strings"):
         config.load(f)
+
+
+async def test_an_autopilot_with_another_system_id_is_ignored_and_named(caplog):
+    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, target_system=1))
+    await link.start()
+    other = MavPeer(system_id=7)
+    try:
+        await other.connect_udp(link.local_address)
+        other.heartbeat()
+        await until(lambda: "system 7" in caplog.text)
+        assert not link.connected
+        assert "link.target_system is 1" in caplog.text
+    finally:
+        await other.close()
+        await link.close()

@@ -35,6 +35,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from companion.logs import warn_every
 from companion.mavlink.transports import (
     TcpServerTransport,
     Transport,
@@ -532,6 +533,14 @@ class MavLink:
 
     def _on_heartbeat(self, msg: Message, t: float) -> None:
         if not self.is_autopilot_heartbeat(msg):
+            if (msg.autopilot != mavlink2.MAV_AUTOPILOT_INVALID and self.vehicle_system is not None
+                    and msg.get_srcComponent() == self.config.target_component):
+                # Most often a vehicle whose SYSID_THISMAV / MAV_SYS_ID is not the configured one:
+                # say so rather than wait in silence (and never take it: it may be an impostor).
+                warn_every(log, ("other autopilot", msg.get_srcSystem()), 30.0,
+                           "ignored an autopilot heartbeat from system %d: link.target_system is %d "
+                           "(set it to the vehicle's SYSID_THISMAV / MAV_SYS_ID)",
+                           msg.get_srcSystem(), self.vehicle_system)
             return
         if self.vehicle_system is None:
             self.vehicle_system = msg.get_srcSystem()

@@ -25,6 +25,7 @@ from typing import Any, cast
 from companion.control.landing import LandingConfig
 from companion.control.obedience import ObedienceConfig
 from companion.control.planner import PlannerConfig
+from companion.control.touchdown import DescentProfile
 from companion.geometry.camera import Intrinsics, Mount
 from companion.mavlink.clock import AutopilotClock
 from companion.mavlink.failsafe import FailsafeConfig
@@ -191,6 +192,10 @@ class ControllerSettings:
     arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",
                                 min=0.1, max=20.0)
     descend_alt_m: float = _f(10.0, "altitude above home at which LAND is commanded (m)", min=1.0, max=200.0)
+    descend_speed_mps: float = _f(1.5, "how fast the stepped descent comes down (m/s; ArduPilot WPNAV_SPEED_DN, "
+                                       "PX4 MPC_Z_VEL_MAX_DN): the time to touchdown", min=0.1, max=10.0)
+    land_speed_mps: float = _f(0.5, "the autopilot's LAND descent speed (m/s; ArduPilot LAND_SPEED 50 cm/s, "
+                                    "PX4 MPC_LAND_SPEED 0.7): the time to touchdown", min=0.1, max=5.0)
     descend_step_m: float = _f(3.0, "the descent plan goes down in steps of this, one step once the "
                                "vehicle has reached the last (m)",
                                min=0.5, max=50.0)
@@ -523,6 +528,13 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
                            walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,
                            memory_s=p.map_memory_s),
     )
+
+
+def descent_profile(cfg: Config) -> DescentProfile:
+    """How long a descent from a height takes, and how far a walker gets meanwhile."""
+    c = cfg.controller
+    return DescentProfile(descend_speed_mps=c.descend_speed_mps, land_alt_m=c.descend_alt_m,
+                          land_speed_mps=c.land_speed_mps, walk_speed_mps=cfg.pipeline.walk_speed_mps)
 
 
 def planner_config(cfg: Config) -> PlannerConfig:

@@ -254,7 +254,8 @@ def replay_input(args: argparse.Namespace, path: Path, out: OutputPaths,
             raise _Fail(f"--masks: {out.masks} exists and is not a folder")
         try:
             summary = replay(source, pipe, ReplayOutputs(jsonl, out.masks, video), use_pose,
-                             max_frames=args.max_frames, progress=progress, planner=planner)
+                             max_frames=args.max_frames, progress=progress, planner=planner,
+                             descent=settings.descent_profile(cfg))
         except ReplayOutputError as exc:
             raise _Fail(str(exc)) from None
     finally:

@@ -19,12 +19,13 @@ from typing import Any
 import numpy as np
 
 from companion.control.planner import ZoneCheck, ZonePlanner
+from companion.control.touchdown import DescentProfile
 from companion.geometry.camera import PlaneProjection
 from companion.pipeline.circles import Circle
 from companion.pipeline.slz import FrameResult
 from companion.pipeline.tracker import Track
 
-TIMING_KEYS = ("density", "occupancy", "projection", "proposals", "tracking", "total")
+TIMING_KEYS = ("density", "occupancy", "projection", "fusion", "proposals", "tracking", "total")
 
 
 def finite_or_none(value: float) -> float | None:
@@ -81,12 +82,18 @@ def proposal_record(proj: PlaneProjection, c: Circle) -> dict[str, Any]:
     return _circle_fields(proj, c.x, c.y, c.r)
 
 
-def track_record(proj: PlaneProjection, tr: Track, planner: ZonePlanner, now: float) -> dict[str, Any]:
+def track_record(proj: PlaneProjection, tr: Track, planner: ZonePlanner, now: float,
+                 height_m: float | None = None, descent: DescentProfile | None = None) -> dict[str, Any]:
+    """One track's record. ``clearance_m``: the least clearance it can have at touchdown if the
+    vehicle committed now from ``height_m`` (its radius less what a walker covers during the
+    descent, ``DescentProfile``); null without a pose or a profile."""
     rec: dict[str, Any] = {"id": int(tr.id), "age": int(tr.age), "hits": int(tr.hits),
                            "stable": is_stable(tr, planner, now)}
     rec.update(_circle_fields(proj, tr.x, tr.y, tr.r))
     rec["misses"] = int(tr.misses)
     rec["r_filtered"] = finite_or_none(tr.r_filtered)
+    rec["clearance_m"] = (None if height_m is None or descent is None
+                          else finite_or_none(descent.clearance_at_touchdown(tr.r, height_m)))
     return rec
 
 
@@ -97,8 +104,11 @@ def frame_target(result: FrameResult, planner: ZonePlanner) -> Track | None:
     return planner.choose(result.tracks, result.t)
 
 
-def frame_record(index: int, result: FrameResult, planner: ZonePlanner) -> dict[str, Any]:
-    """The JSON Lines record of one processed frame (``index`` is its position in the input)."""
+def frame_record(index: int, result: FrameResult, planner: ZonePlanner, height_m: float | None = None,
+                 descent: DescentProfile | None = None) -> dict[str, Any]:
+    """The JSON Lines record of one processed frame (``index`` is its position in the input);
+    ``height_m`` (metres above the ground, from the frame's pose) and ``descent`` give each
+    track's ``clearance_m`` at touchdown."""
     proj = result.projection
     target = frame_target(result, planner)
     timing = {k: finite_or_none(result.timings_ms.get(k, float("nan"))) for k in TIMING_KEYS}
@@ -106,7 +116,7 @@ def frame_record(index: int, result: FrameResult, planner: ZonePlanner) -> dict[
         "frame": int(index),
         "t": finite_or_none(result.t),
         "proposals": [proposal_record(proj, c) for c in result.proposals],
-        "tracks": [track_record(proj, tr, planner, result.t) for tr in result.tracks],
+        "tracks": [track_record(proj, tr, planner, result.t, height_m, descent) for tr in result.tracks],
         "target": None if target is None else int(target.id),
         "timing_ms": timing,
     }

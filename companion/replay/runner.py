@@ -22,6 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from companion.control.planner import PlannerConfig, ZonePlanner
+from companion.control.touchdown import DescentProfile
 from companion.geometry.camera import GeometryError
 from companion.pipeline.density import DensityModelError
 from companion.pipeline.slz import FrameResult, SLZPipeline
@@ -128,8 +129,11 @@ def _log_skip(counts: dict[str, int], reason: str, index: int, why: str) -> None
 def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_pose: bool,
            max_frames: int | None = None, progress: bool | None = None,
            on_result: Callable[[ReplayFrame, FrameResult], None] | None = None,
-           planner: ZonePlanner | None = None) -> dict[str, Any]:
+           planner: ZonePlanner | None = None, descent: DescentProfile | None = None) -> dict[str, Any]:
     """Run ``pipe`` over ``source``; returns the summary (see summary.SummaryBuilder.build).
+
+    descent: the time to touchdown from a frame's height, for each track's ``clearance_m`` in the
+    JSONL (frames with a pose only); default ``DescentProfile()``.
 
     planner: picks the target of each frame (the JSONL ``target``, the video's highlighted zone,
     the summary's switches) by the landing controller's rule; default: the default settings with
@@ -165,7 +169,9 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
             target_id = None if target is None else target.id
             summary.add_frame(frame.t, result.timings_ms, target_id)
             if outputs.jsonl is not None:
-                outputs.jsonl.write(dumps_record(frame_record(frame.index, result, planner)) + "\n")
+                height = -frame.pose.down if use_pose and frame.pose is not None else None
+                outputs.jsonl.write(dumps_record(frame_record(frame.index, result, planner, height,
+                                                              descent or DescentProfile())) + "\n")
             if outputs.masks is not None:
                 path = outputs.masks / mask_name(frame.index)
                 if not cv2.imwrite(str(path), occupied_mask_image(result.occupancy)):

@@ -1,0 +1,47 @@
+"""How long until touchdown, and how clear a zone will be then: walking speed x blind time.
+
+Once the companion commits to a zone, the vehicle comes down in two parts: the companion's own
+stepped descent (GUIDED/OFFBOARD, about ``descend_speed_mps``) to ``land_alt_m``, then the
+autopilot's LAND at ``land_speed_mps`` (ArduPilot's ``LAND_SPEED``, 50 cm/s by default; PX4's
+``MPC_LAND_SPEED``, 0.7 m/s). Nobody walks faster than ``walk_speed_mps`` (1.5 m/s by default,
+``pipeline.walk_speed_mps``), so a zone whose clearance is ``c`` metres now has at least
+``c - walk_speed * t`` at touchdown ``t`` seconds later, and no margin can do better than that
+floor: from 10 m at 0.5 m/s, 20 s of LAND let a walker cover 30 m. Pure: heights in metres above
+the ground under the zone (above home when nothing better is known), speeds in m/s, times in s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class DescentProfile:
+    """See the module docstring."""
+
+    descend_speed_mps: float = 1.5
+    land_alt_m: float = 10.0
+    land_speed_mps: float = 0.5
+    walk_speed_mps: float = 1.5
+
+    def __post_init__(self) -> None:
+        for name in ("descend_speed_mps", "land_speed_mps", "walk_speed_mps"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"descent {name} must be a positive speed, got {v!r}")
+        if not (math.isfinite(self.land_alt_m) and self.land_alt_m >= 0):
+            raise ValueError(f"descent land_alt_m must be >= 0 m, got {self.land_alt_m!r}")
+
+    def time_to_touchdown(self, height_m: float) -> float:
+        """Seconds from ``height_m`` above the ground to touchdown (NaN for a NaN height)."""
+        if not math.isfinite(height_m):
+            return math.nan
+        h = max(0.0, height_m)
+        upper = max(0.0, h - self.land_alt_m)
+        return upper / self.descend_speed_mps + min(h, self.land_alt_m) / self.land_speed_mps
+
+    def clearance_at_touchdown(self, clearance_now_m: float, height_m: float) -> float:
+        """The least clearance (m) a zone of ``clearance_now_m`` can have at touchdown from
+        ``height_m``: less the distance a walker covers meanwhile (negative: somebody may be there)."""
+        return clearance_now_m - self.walk_speed_mps * self.time_to_touchdown(height_m)

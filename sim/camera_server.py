@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import socket
 import threading
 import time
@@ -220,8 +221,12 @@ class CameraServer:
                 self.world.step(now_wall - last_wall)  # type: ignore[attr-defined]
             last_wall = now_wall
             try:
-                capture_time = time.monotonic()  # the exposure: the pose and world sampled now
                 pose = self.pose_provider()
+                # The exposure: the time of the state the pose describes (the simulator's last
+                # physics step, the clock of the autopilot's telemetry), when the provider gives a
+                # recent one; a fixed test pose gives none, and then it is now.
+                now = time.monotonic()
+                capture_time = pose.t if math.isfinite(pose.t) and 0.0 <= now - pose.t <= 1.0 else now
                 w = self.world
                 # Snapshot the world on the loop thread; render and encode off it (both release
                 # the GIL in OpenCV) so the simulator's MAVLink tasks keep their timing.

@@ -197,7 +197,10 @@ class Simulator:
             failsafes=frozenset(ap.failsafes))
 
     def pose(self) -> Pose:
-        """The true pose for the camera renderer (``t`` on ``time.monotonic()``)."""
+        """The true pose for the camera renderer: the vehicle's state as of the last physics step,
+        and that step's time (``time.monotonic()`` seconds, the clock the telemetry's
+        ``time_boot_ms`` counts on). Stamping it with the render time instead put the camera up to
+        a starved tick ahead of the telemetry that describes the same state."""
         s = self.vehicle.state
         gimbal = None
         if self.config.autopilot.gimbal_pitch is not None:
@@ -205,7 +208,8 @@ class Simulator:
             r_wb = rotation_from_euler(s.roll, s.pitch, s.yaw)
             r_wc = rotation_from_euler(0.0, self.config.autopilot.gimbal_pitch, s.yaw)
             gimbal = r_wb.T @ r_wc
-        return Pose(time.monotonic(), float(s.position[0]), float(s.position[1]),
+        t = self._last if self._last is not None else time.monotonic()
+        return Pose(t, float(s.position[0]), float(s.position[1]),
                     float(s.position[2]), s.roll, s.pitch, s.yaw, gimbal)
 
     @property

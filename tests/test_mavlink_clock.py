@@ -103,3 +103,14 @@ def test_time_boot_ms_wrapping_after_49_days_is_not_a_step_back() -> None:
     feed(clock, "ATTITUDE", [top - 0.08, top - 0.04], latency=0.01)
     s = clock.stamp("ATTITUDE", 0.0, BOOT_AT + top + 0.01)
     assert s.verdict is Verdict.OK and s.boot_s == pytest.approx(top)
+
+
+def test_the_latency_follows_the_link_while_the_offset_keeps_the_best_exchange() -> None:
+    clock = AutopilotClock()
+    feed(clock, "ATTITUDE", [1.0, 1.04], latency=0.001)
+    for k, latency in enumerate([0.001, 0.001, 0.2, 0.2, 0.2]):  # the link slows down
+        sent = BOOT_AT + 2.0 + k
+        ts1 = clock.request(sent)
+        assert clock.on_timesync(int((sent + latency - BOOT_AT) * 1e9), ts1, sent + 2 * latency)
+    assert clock.latency_s == pytest.approx(0.2)
+    assert clock.to_local(3.0) == pytest.approx(BOOT_AT + 3.0, abs=1e-6)

@@ -113,8 +113,12 @@ class AutopilotClock:
 
     @property
     def latency_s(self) -> float | None:
-        """Half the best recent TIMESYNC round trip (s): the measured one-way latency, or None."""
-        return None if not self._syncs else min(s[1] for s in self._syncs) / 2.0
+        """Half the best of the last three TIMESYNC round trips (s): the one-way latency now, or
+        None. The offset keeps the best exchange of the whole window (the clocks do not change
+        when the link slows down); the latency must follow the link."""
+        if not self._syncs:
+            return None
+        return min(s[1] for s in list(self._syncs)[-3:]) / 2.0
 
     @property
     def source(self) -> str:

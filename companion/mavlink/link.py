@@ -195,7 +195,6 @@ class LinkStats:
     handler_errors: int = 0
     link_losses: int = 0
     unknown: int = 0  # well-framed packets of message ids this dialect lacks (CRC not checkable)
-    foreign: int = 0  # UDP datagrams dropped for their source address (see transports)
 
 
 class _Writer:
@@ -591,7 +590,6 @@ class MavLink:
         period = min(0.1, self.config.heartbeat_timeout_s / 4)
         while True:
             await asyncio.sleep(period)
-            self.stats.foreign = getattr(self._transport, "foreign", 0)
             if self.connected and self.last_heartbeat_t is not None:
                 if time.monotonic() - self.last_heartbeat_t > self.config.heartbeat_timeout_s:
                     self.connected = False

@@ -103,6 +103,7 @@ class Transport:
         self._on_data = on_data
         self.bytes_sent = 0
         self.send_errors = 0
+        self.foreign = 0  # datagrams dropped for their source address (UDP only)
 
     async def start(self) -> None:  # pragma: no cover - overridden
         raise NotImplementedError
@@ -153,7 +154,6 @@ class UdpTransport(Transport):
         self._allowed_cache: dict[str, bool] = {}
         self._pinned: tuple[str, int] | None = None
         self._current: tuple[str, int] | None = None  # the datagram being handed to on_data
-        self.foreign = 0  # datagrams dropped for their source address
 
     async def start(self) -> None:
         loop = asyncio.get_running_loop()

@@ -99,6 +99,10 @@ class _Window:
     grid_rows: slice
     grid_cols: slice
 
+    def covers(self, grid: GridSpec) -> bool:
+        """The whole grid lies in the map (nothing was clipped)."""
+        return (self.grid_rows.stop - self.grid_rows.start, self.grid_cols.stop - self.grid_cols.start) == grid.shape
+
 
 class GroundRiskMap:
     """See the module docstring. ``update`` a frame, then ``fused_free`` and ``clearance_now``."""
@@ -146,8 +150,10 @@ class GroundRiskMap:
         self._origin = new
 
     def _window(self, grid: GridSpec) -> _Window | None:
-        """Where ``grid`` lies in the arrays (clipped to them), or None when it misses them."""
-        assert self._origin is not None
+        """Where ``grid`` lies in the arrays (clipped to them), or None when it misses them or
+        the map has no frame yet."""
+        if self._origin is None:
+            return None
         r0, c0 = self._grid_cell0(grid)
         mr0, mc0 = r0 - self._origin[0], c0 - self._origin[1]
         n = self.size
@@ -157,12 +163,6 @@ class GroundRiskMap:
             return None
         return _Window(slice(rr0, rr1), slice(cc0, cc1),
                        slice(rr0 - mr0, rr1 - mr0), slice(cc0 - mc0, cc1 - mc0))
-
-    def _fits(self, grid: GridSpec) -> bool:
-        assert self._origin is not None
-        r0, c0 = self._grid_cell0(grid)
-        mr0, mc0 = r0 - self._origin[0], c0 - self._origin[1]
-        return mr0 >= 0 and mc0 >= 0 and mr0 + grid.rows <= self.size and mc0 + grid.cols <= self.size
 
     # -- input -------------------------------------------------------------------------------
 
@@ -180,12 +180,13 @@ class GroundRiskMap:
         except RiskMapError:
             self.stats.dropped += 1
             raise
-        r0, c0 = self._grid_cell0(grid)
-        if self._origin is None or not self._fits(grid):
-            self._recentre(r0 + grid.rows // 2, c0 + grid.cols // 2)
         w = self._window(grid)
-        if w is None or (w.grid_rows.stop - w.grid_rows.start, w.grid_cols.stop - w.grid_cols.start) != grid.shape:
-            self.stats.clipped += 1  # a grid larger than the map: the part outside is not kept
+        if w is None or not w.covers(grid):
+            r0, c0 = self._grid_cell0(grid)
+            self._recentre(r0 + grid.rows // 2, c0 + grid.cols // 2)
+            w = self._window(grid)
+            if w is None or not w.covers(grid):
+                self.stats.clipped += 1  # a grid larger than the map: the part outside is not kept
         if self.epoch is None:
             self.epoch = t
         if w is not None:
@@ -227,8 +228,6 @@ class GroundRiskMap:
         """This frame's free grid less every cell seen occupied within ``hold_s`` of ``t``
         (uint8, 255 free, 0 not free). Call after ``update`` with the same frame."""
         out = np.zeros(grid.shape, np.uint8)
-        if self._origin is None:
-            return out
         w = self._window(grid)
         if w is None:
             return out
@@ -272,8 +271,6 @@ class GroundRiskMap:
         saw it free and nobody stood there within ``hold_s``; else 0 (unknown or occupied). For
         ground outside the current view."""
         out = np.zeros(grid.shape, np.uint8)
-        if self._origin is None:
-            return out
         w = self._window(grid)
         if w is None:
             return out

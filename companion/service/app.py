@@ -491,7 +491,7 @@ class Service:
             "| telemetry late=%d backwards=%d rejected=%d clock=%s latency=%s | timings %s%s",
             "ok" if ok else f"BAD ({why})", cs.frames, fc.processed, cs.dropped, cs.repeated, cs.corrupt,
             fc.no_pose, fc.superseded, fc.bad, fc.errors, cs.stalls, ls.received, ls.bad, ls.unknown,
-            ls.foreign, ls.link_losses, ck.late, ck.backwards, self.state.rejected, clock.source,
+            self.link.transport.foreign, ls.link_losses, ck.late, ck.backwards, self.state.rejected, clock.source,
             "-" if latency is None else f"{latency * 1000:.0f}ms", self.timings.format() or "-",
             "" if self.recorder is None else
             f" | recorder frames={self.recorder.stats.frames} dropped={self.recorder.stats.dropped}"

@@ -201,6 +201,9 @@ class ControllerSettings:
                                min=0.5, max=50.0)
     land_abort_above_m: float = _f(3.5, "during LAND, a lost zone above this height sends the vehicle "
                                         "back to HOLD; below it the landing is committed (m)", min=0.0, max=100.0)
+    lose_after_frames: int = _f(2, "a zone seen with less than r0 free is dropped only after this many "
+                                "frames in a row (one frame's false detection must not throw a landing "
+                                "back to HOLD; a person walking in is seen on every frame)", min=1, max=10)
     hold_height_m: float = _f(15.0, "on a lost zone the vehicle holds at least this high above the "
                               "ground, where the camera sees enough to confirm a zone again", min=2.0, max=120.0)
     max_takeover_s: float = _f(90.0, "not landed this long after the trigger: hand back to the "
@@ -553,7 +556,7 @@ def landing_config(cfg: Config) -> LandingConfig:
         select_timeout_s=c.select_timeout_s, hold_timeout_s=c.hold_timeout_s,
         arrive_radius_m=c.arrive_radius_m, descend_alt_m=c.descend_alt_m,
         descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
-        hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
+        lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),

@@ -560,6 +560,7 @@ def landing_config(cfg: Config) -> LandingConfig:
         max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
+        descent=descent_profile(cfg),
     )
 
 

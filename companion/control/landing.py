@@ -55,12 +55,13 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from companion.control.commands import Command, Goto, Handback, Land, PositionTarget
 from companion.control.events import Event, HandedBack, Holding, Note, Phase, PhaseChanged, TargetChosen
 from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
 from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
+from companion.control.touchdown import DescentProfile
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
@@ -103,6 +104,9 @@ class LandingConfig:
     max_alt_m: float = 120.0
     ceiling_margin_m: float = 1.0
     obedience: ObedienceConfig = field(default_factory=ObedienceConfig)
+    #: How fast the vehicle will come down (the configured speeds until the autopilot's own
+    #: parameters are read, ``LandingController.use_autopilot_speeds``).
+    descent: DescentProfile = field(default_factory=DescentProfile)
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -188,6 +192,7 @@ class LandingController:
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.obedience = ObedienceMonitor(self.config.obedience)
+        self.descent = self.config.descent
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -296,6 +301,26 @@ class LandingController:
             self._last_goto = None  # re-send at the next frame
         return []
 
+    def use_autopilot_speeds(self, speeds: dict[str, float], source: str) -> None:
+        """Take the autopilot's own descent speeds (m/s by ``DescentProfile`` field, read from its
+        parameters) for the time to touchdown; a value that is not a positive number is ignored."""
+        known = {k: v for k, v in speeds.items()
+                 if k in ("descend_speed_mps", "land_speed_mps") and math.isfinite(v) and v > 0}
+        if not known:
+            return
+        self.descent = replace(self.descent, **known)
+        d = self.descent
+        self._event(f"descent {d.descend_speed_mps:.1f} m/s, LAND {d.land_speed_mps:.1f} m/s ({source})")
+
+    def touchdown_clearance(self, track: Track) -> float | None:
+        """The least clearance (m) ``track`` can have at touchdown if the vehicle came down over it
+        now from its present height, with every walker heading for it (``DescentProfile``); None
+        without a vehicle position."""
+        if self.status is None:
+            return None
+        value = self.descent.clearance_at_touchdown(track.r, self.status.height)
+        return round(value, 2) if math.isfinite(value) else None
+
     def zone_target(self) -> Track | None:
         """The zone the vehicle flies to (after a trigger), or would fly to now (before one): what
         the flight recording, the status line and the ground station call "the target". After
@@ -381,7 +406,7 @@ class LandingController:
         dist = math.hypot(zone.x - s.north, zone.y - s.east)
         self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m",
                         event=TargetChosen, zone_id=zone.id, north=zone.x, east=zone.y, r=zone.r,
-                        lost_zone_id=lost_id)
+                        lost_zone_id=lost_id, touchdown_clearance_m=self.touchdown_clearance(zone))
         self._last_goto = None
         return self._goto(zone.x, zone.y, self._level, zone.id)
 
@@ -437,7 +462,7 @@ class LandingController:
             if (dist <= c.arrive_radius_m and low) or s.on_ground:
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",
-                                zone_id=track.id)
+                                zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track))
                 return [Land()]
             # The plan's next step: one step down once the vehicle has reached the current level
             # over the zone, so a lost zone never leaves the vehicle committed to a long descent.

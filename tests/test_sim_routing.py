@@ -24,7 +24,9 @@ from companion.mavlink.failsafe import FailsafeConfig, FailsafeMonitor
 from companion.mavlink.gcs_commands import CameraInfo, CommandServer
 from companion.mavlink.link import LinkConfig, MavLink
 from companion.mavlink.statustext import send_statustext
+from sim.demo import ground_station_line
 from sim.endpoint import parse_link
+from sim.flight import FlightSpec, build_scene, reserve_port
 from sim.simulator import SimConfig, Simulator
 from tests.mavpeer import MavPeer
 
@@ -279,3 +281,28 @@ async def test_link_faults_apply_to_forwarded_traffic():
         await settle()
         assert not [msg for msg, t in a.received[mark:] if t >= t0 and from_(msg, 1, 191)]
         assert sim.links[1].faults.dropped_tx > dropped
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+async def test_the_demo_scene_lets_a_ground_station_watch_the_companion(flavour):
+    """``companion demo``'s simulator (``build_scene`` with ``gcs_port``) binds the port its
+    printed line names, and forwards the companion's link to it (PX4: forwarding on both)."""
+    with reserve_port() as link_port, reserve_port() as gcs_port:
+        spec = FlightSpec(flavour=flavour, gcs_port=gcs_port.port)
+        _world, _free, sim, _camera = build_scene(spec, link_port.port, 1)
+        comp = MavPeer(system_id=1, component_id=191, autopilot=m.MAV_AUTOPILOT_INVALID)
+        comp.default_ack = None
+        await comp.listen_udp(link_port.port)
+        gcs = gcs_peer()
+        await sim.start()
+        try:
+            assert f"127.0.0.1:{gcs_port.port}" in ground_station_line(gcs_port.port)
+            await comp.wait_for("HEARTBEAT", lambda h: from_(h, 1, 1), timeout=5.0)
+            comp.start_heartbeats(0.2)
+            await gcs.connect_udp(("127.0.0.1", gcs_port.port))
+            gcs.start_heartbeats(0.2)
+            await gcs.wait_for("HEARTBEAT", lambda h: from_(h, 1, 191), timeout=3.0)
+        finally:
+            await gcs.close()
+            await comp.close()
+            await sim.stop()

@@ -146,9 +146,10 @@ async def _main(args: argparse.Namespace) -> int:
                     sim.inject_failsafe(args.failsafe)
                     raised = True
                 t = sim.truth
-                log.info("mode %s %s alt %.1f m pos N %.1f E %.1f battery %.0f%% bad packets %d",
-                         t.mode, "armed" if t.armed else "disarmed", t.altitude, t.position[0],
-                         t.position[1], 100 * t.battery_remaining, sim.bad_packets)
+                log.info("mode %s %s alt %.1f m pos N %.1f E %.1f battery %.0f%% bad packets %d "
+                         "forwarded %d", t.mode, "armed" if t.armed else "disarmed", t.altitude,
+                         t.position[0], t.position[1], 100 * t.battery_remaining, sim.bad_packets,
+                         sim.routing.stats.forwarded)
         finally:
             if camera is not None:
                 await camera.stop()

@@ -504,11 +504,14 @@ class Service:
         log.info(
             "health %s: frames camera=%d processed=%d dropped=%d repeated=%d corrupt=%d no_pose=%d "
             "superseded=%d bad=%d errors=%d stalls=%d | link rx=%d bad=%d unknown=%d foreign=%d lost=%d "
-            "| telemetry late=%d backwards=%d rejected=%d clock=%s latency=%s | timings %s%s",
+            "| telemetry late=%d backwards=%d rejected=%d clock=%s latency=%s "
+            "| gcs commands=%d refused=%d malformed=%d | timings %s%s",
             "ok" if ok else f"BAD ({why})", cs.frames, fc.processed, cs.dropped, cs.repeated, cs.corrupt,
             fc.no_pose, fc.superseded, fc.bad, fc.errors, cs.stalls, ls.received, ls.bad, ls.unknown,
             self.link.transport.foreign, ls.link_losses, ck.late, ck.backwards, self.state.rejected, clock.source,
-            "-" if latency is None else f"{latency * 1000:.0f}ms", self.timings.format() or "-",
+            "-" if latency is None else f"{latency * 1000:.0f}ms",
+            self.commands.stats.answered, self.commands.stats.refused, self.commands.stats.malformed,
+            self.timings.format() or "-",
             "" if self.recorder is None else
             f" | recorder frames={self.recorder.stats.frames} dropped={self.recorder.stats.dropped}"
             f" errors={self.recorder.stats.errors} downsampled={self.recorder.stats.downsampled}",

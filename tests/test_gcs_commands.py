@@ -242,3 +242,18 @@ async def test_the_service_answers_camera_and_video_requests(tmp_path: Path, mod
         svc.request_stop("test over")
         assert await asyncio.wait_for(task, 10.0) == 0
         await peer.close()
+
+
+def test_camera_information_settings_are_checked_and_unknowns_stay_nan():
+    with pytest.raises(config.ConfigError, match="camera.vendor_name must be at most 32 bytes"):
+        config.load(None, {"camera.vendor_name": "x" * 33})
+    with pytest.raises(config.ConfigError, match="camera.sensor_width_mm"):
+        config.load(None, {"camera.sensor_width_mm": -1.0})
+    info = config.camera_info(config.load(None, {}))
+    assert (info.width, info.height) == (640, 480)
+    assert math.isnan(info.focal_length_mm) and math.isnan(info.sensor_width_mm)
+    # Non-square pixels: the vertical pitch follows fy (f_mm = fx * pitch_x = fy * pitch_y).
+    cfg = config.load(None, {"camera.fx": 500.0, "camera.fy": 400.0, "camera.sensor_width_mm": 6.4})
+    info = config.camera_info(cfg)
+    assert info.focal_length_mm == pytest.approx(5.0)
+    assert info.sensor_height_mm == pytest.approx(480 * 5.0 / 400.0)

@@ -29,6 +29,7 @@ from companion.control.touchdown import DescentProfile
 from companion.geometry.camera import Intrinsics, Mount
 from companion.mavlink.clock import AutopilotClock
 from companion.mavlink.failsafe import FailsafeConfig
+from companion.mavlink.gcs_commands import CameraInfo
 from companion.mavlink.link import LinkConfig, message_rates
 from companion.mavlink.transports import TransportError, parse_peers, parse_url
 from companion.pipeline.density import DensitySpec, resolve_threshold
@@ -114,6 +115,10 @@ class CameraSettings:
     stall_timeout_s: float = _f(2.0, "no frame for this long = camera stalled, reopen", min=0.1, max=60.0)
     reopen_max_backoff_s: float = _f(10.0, "longest wait between reopen attempts", min=0.1, max=300.0)
     loop: bool = _f(False, "restart a video file or folder at its end (bench tests)")
+    sensor_width_mm: float = _f(0.0, "image sensor width (mm), for the focal length in mm a ground station "
+                                     "is told (CAMERA_INFORMATION); 0 = unknown", min=0.0, max=100.0)
+    vendor_name: str = _f("companion-slz", "camera vendor a ground station is told (32 bytes at most)")
+    model_name: str = _f("SLZ downward camera", "camera model a ground station is told (32 bytes at most)")
 
 
 @dataclass(frozen=True)
@@ -378,6 +383,10 @@ def _cross_checks(cfg: Config) -> None:
     for name in ("r_std",):
         if any(v <= 0 for v in getattr(cfg.pipeline.tracker, name)):
             raise ConfigError(f"pipeline.tracker.{name} values must be > 0")
+    for name in ("vendor_name", "model_name"):
+        if len(getattr(cfg.camera, name).encode()) > 32:
+            raise ConfigError(f"camera.{name} must be at most 32 bytes (MAVLink's CAMERA_INFORMATION), "
+                              f"got {getattr(cfg.camera, name)!r}")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")
@@ -577,6 +586,22 @@ def signing_key(cfg: Config) -> bytes | None:
             raise ConfigError(f"link.signing_key_file {cfg.link.signing_key_file} must hold 64 "
                               "hexadecimal characters")
     return bytes.fromhex(text) if text else None
+
+
+def camera_info(cfg: Config) -> CameraInfo:
+    """What CAMERA_INFORMATION tells a ground station of the camera: the calibrated resolution,
+    and, when ``camera.sensor_width_mm`` is set, the focal length and sensor size in millimetres
+    from the intrinsics (pixel pitch = sensor width / width; fy sets the vertical pitch)."""
+    c = cfg.camera
+    k = intrinsics(cfg)
+    focal = sensor_w = sensor_h = math.nan
+    if c.sensor_width_mm > 0:
+        pitch_x = c.sensor_width_mm / k.width
+        focal = k.fx * pitch_x
+        sensor_w = c.sensor_width_mm
+        sensor_h = k.height * focal / k.fy
+    return CameraInfo(width=k.width, height=k.height, focal_length_mm=focal, sensor_width_mm=sensor_w,
+                      sensor_height_mm=sensor_h, vendor=c.vendor_name, model=c.model_name)
 
 
 def link_config(cfg: Config) -> LinkConfig:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, cast
 
-from companion.control.landing import LandingConfig
+from companion.control.landing import LandingConfig, person_trust_height
 from companion.control.obedience import ObedienceConfig
 from companion.control.planner import PlannerConfig
 from companion.control.touchdown import DescentProfile
@@ -206,6 +206,11 @@ class ControllerSettings:
                                min=0.5, max=50.0)
     land_abort_above_m: float = _f(3.5, "during LAND, a lost zone above this height sends the vehicle "
                                         "back to HOLD; below it the landing is committed (m)", min=0.0, max=100.0)
+    min_person_px: float = _f(0.0, "people must look at least this many pixels across (the longer side of "
+                              "their box from above) for the model's free to be trusted: above the height "
+                              "where a 0.4 m person looks smaller, the vehicle approaches no higher and "
+                              "judges the zone only below it; 0 = the model's own (metadata "
+                              "companion.min_person_px), or no limit when it has none", min=0.0, max=1000.0)
     lose_after_frames: int = _f(2, "a zone seen with less than r0 free is dropped only after this many "
                                 "frames in a row (one frame's false detection must not throw a landing "
                                 "back to HOLD; a person walking in is seen on every frame)", min=1, max=10)
@@ -214,6 +219,14 @@ class ControllerSettings:
     max_takeover_s: float = _f(90.0, "not landed this long after the trigger: hand back to the "
                                "autopilot's own failsafe", min=10.0, max=600.0)
     handback_action: str = _f("LAND", "what the autopilot is asked to do on handback", choices=("LAND", "RTL"))
+    search_s: float = _f(45.0, "with no zone in view at the SELECT or HOLD timeout, search this long (s) "
+                         "before handing back: climb to the ceiling, then fly an expanding square; 0 = "
+                         "hand back at once, as before", min=0.0, max=600.0)
+    search_radius_m: float = _f(40.0, "the search goes no further than this from where it starts (m)",
+                                min=0.0, max=500.0)
+    search_reserve_s: float = _f(30.0, "stop searching (hand back) when the battery's time left, as the "
+                                 "autopilot reports it, is less than the landing needs plus this (s)",
+                                 min=0.0, max=600.0)
     search_climb_m: float = _f(5.0, "the ceiling: the vehicle is never sent more than this above its "
                                "altitude at the trigger (m); above it, control goes back to LAND",
                                min=1.0, max=50.0)
@@ -557,9 +570,12 @@ def planner_config(cfg: Config) -> PlannerConfig:
                          zone_max_age_s=c.zone_max_age_s)
 
 
-def landing_config(cfg: Config) -> LandingConfig:
-    """The landing controller's ``LandingConfig``."""
+def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> LandingConfig:
+    """The landing controller's ``LandingConfig``; ``model_spec`` gives the model's smallest
+    reliably seen person (``min_person_px``) when ``controller.min_person_px`` is 0."""
     c = cfg.controller
+    min_px = c.min_person_px or (model_spec.min_person_px if model_spec is not None else None)
+    k = intrinsics(cfg)
     return LandingConfig(
         planner=planner_config(cfg),
         select_timeout_s=c.select_timeout_s, hold_timeout_s=c.hold_timeout_s,
@@ -570,6 +586,9 @@ def landing_config(cfg: Config) -> LandingConfig:
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),
+        search_s=c.search_s, search_radius_m=c.search_radius_m, search_reserve_s=c.search_reserve_s,
+        view_ratio=min(k.cx / k.fx, k.cy / k.fy),
+        trust_height_m=person_trust_height(min(k.fx, k.fy), min_px or None, head_m=cfg.pipeline.head_height_m),
     )
 
 

@@ -61,7 +61,7 @@ from sim.world import World, add_crossing_walkers, crowd_with_free_area, dense_c
 
 log = logging.getLogger("sim.flight")
 
-WORLDS = ("free_area", "dense", "intrusion", "crossing", "dronecrowd", "uniform")
+WORLDS = ("free_area", "dense", "dense_beyond", "intrusion", "crossing", "dronecrowd", "uniform")
 OUTCOMES = ("safe", "unsafe", "handback", "timeout")
 UNIFORM_GROUND_BGR = (70, 140, 95)  # mown grass
 #: A flight is **starved** (its CPU, not the software under test, decided it) when its service
@@ -339,6 +339,11 @@ def build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, fl
         return World(seed=spec.seed), None, start
     if spec.world == "dense":
         return dense_crowd(seed=spec.seed, centre=start, half_size=45.0, spacing=2.0), None, start
+    if spec.world == "dense_beyond":
+        # A dense crowd with one free circle, start_offset_m away: out of the first view, for
+        # the search to find.
+        free = Circle(cn, ce, spec.free_radius_m)
+        return dense_crowd(seed=spec.seed, centre=start, half_size=45.0, spacing=2.0, free=free), free, start
     if spec.world == "dronecrowd":
         return dronecrowd_world(centre=start, seed=spec.seed), None, start
     free = Circle(cn, ce, spec.free_radius_m)

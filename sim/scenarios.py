@@ -4,8 +4,10 @@ Each seed draws a scenario (``scenario``): autopilot flavour, hover altitude, wh
 circle lies in view and how large it is, the failsafe that fires, PX4's home-origin offset, and
 the world. The mix of worlds:
 
-- ``dense`` (one seed in six): people everywhere, no safe zone at all (the right answer there is a
-  handback);
+- ``dense`` (one seed in six, half of them): people everywhere, no safe zone at all (the right
+  answer there is a handback, after the search found nothing);
+- ``dense_beyond`` (the other half of the dense seeds): the same crowd with one free circle
+  (radius 6-8 m) 22-30 m away, out of the first view: the search must find it;
 - ``crossing`` (a third of the others, about 28 % of seeds): the free area's crowd, and 2-4
   walkers at 1.0-1.5 m/s who cross the free circle, the zone the companion lands in, 4-24 s
   after the failsafe, that is during the descent, and walk on out of it
@@ -116,12 +118,23 @@ def scenario(seed: int, flavour: str | None = None) -> FlightSpec:
     # circle and vehicle, and gains the walkers (drawn from the seed in sim.world).
     if rng.random() < CROSSING_SHARE and world == "free_area":
         world = "crossing"
+    # Half the dense crowds gain one free circle out of the first view, 22-30 m away, for the
+    # search to find (issue 11, item 4); the other half keep no free ground anywhere, where the
+    # right answer is still the handback. Drawn last, for every seed, so every earlier draw stays.
+    beyond = rng.random() < BEYOND_SHARE
+    far, far_bearing, far_radius = rng.uniform(22.0, 30.0), rng.uniform(0, 2 * math.pi), rng.uniform(6.0, 8.0)
+    if beyond and world == "dense":
+        world = "dense_beyond"
+        offset = (-far * math.cos(far_bearing), -far * math.sin(far_bearing))
+        radius = float(far_radius)
     return FlightSpec(flavour=fl, world=world, seed=seed, altitude_m=alt, start_offset_m=offset,
                       free_radius_m=radius, failsafe=failsafe, home_origin_offset_m=offset_m)
 
 
 #: The share of free-area seeds whose free circle walkers cross during the descent (``crossing``).
 CROSSING_SHARE = 1 / 3
+#: The share of dense-crowd seeds with one free circle out of the first view (``dense_beyond``).
+BEYOND_SHARE = 1 / 2
 
 #: CPUs one flight is given by default. A flight averages 0.8-0.9 of a CPU (the service and this
 #: simulator together), but its service runs the density model on ``model.threads`` = 2 threads:

@@ -280,7 +280,8 @@ class MillingCrowd:
     """
 
     def __init__(self, bounds: Bounds, spacing: float = 2.0, jitter: float = 0.4,
-                 wander: float = 0.3, seed: int = 0) -> None:
+                 wander: float = 0.3, seed: int = 0, keep_out: list[Circle] | None = None,
+                 keep_out_margin: float = 0.3) -> None:
         if spacing <= 0:
             raise ValueError(f"spacing must be > 0 m, got {spacing}")
         self.bounds = bounds
@@ -290,7 +291,12 @@ class MillingCrowd:
         e_ = np.arange(bounds.east_min + spacing / 2, bounds.east_max, spacing)
         gn, ge = np.meshgrid(n_, e_, indexing="ij")
         home = np.column_stack([gn.ravel(), ge.ravel()])
-        self.home = bounds.clip(home + self.rng.uniform(-jitter, jitter, home.shape))
+        home = bounds.clip(home + self.rng.uniform(-jitter, jitter, home.shape))
+        # Nobody's home, nor where they shuffle to, lies in a keep-out circle (free ground).
+        for c in keep_out or ():
+            d = np.hypot(home[:, 0] - c.north, home[:, 1] - c.east)
+            home = home[d > c.radius + keep_out_margin + wander]
+        self.home = home
         self.pos = self.home.copy()
         self.target = self.home.copy()
         self.heading = self.rng.uniform(-math.pi, math.pi, len(self.home))

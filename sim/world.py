@@ -223,17 +223,19 @@ def crowd_with_free_area(seed: int = 0, free: Circle | None = None, half_size: f
 
 
 def dense_crowd(seed: int = 0, centre: tuple[float, float] = (0.0, 0.0), half_size: float = 40.0,
-                spacing: float = 2.0, n_walkers: int = 20) -> World:
+                spacing: float = 2.0, n_walkers: int = 20, free: Circle | None = None) -> World:
     """People everywhere in a square of side ``2 * half_size`` m around ``centre``: a milling
     crowd on a ``spacing``-metre jittered grid plus some walkers crossing it. No circle of radius
     above about ``spacing`` metres is free anywhere inside (check with
-    :meth:`World.largest_free_circle`)."""
+    :meth:`World.largest_free_circle`), except ``free`` when given: a circle nobody enters
+    (``world.free_areas[0]``), for a search to find."""
     bounds = Bounds.around(centre, half_size)
-    sources: list[MotionSource] = [MillingCrowd(bounds, spacing=spacing, seed=seed)]
+    keep_out = [] if free is None else [free]
+    sources: list[MotionSource] = [MillingCrowd(bounds, spacing=spacing, seed=seed, keep_out=keep_out)]
     if n_walkers:
         sources.append(GeneratedCrowd(bounds, CrowdParams(n_walkers=n_walkers, n_groups=0,
-                                                          n_standing=0), seed + 1))
-    return World(sources, seed=seed)
+                                                          n_standing=0, keep_out=keep_out), seed + 1))
+    return World(sources, keep_out, seed=seed)
 
 
 def dronecrowd_world(sequence: int = 112, centre: tuple[float, float] = (0.0, 0.0),

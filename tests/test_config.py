@@ -80,6 +80,8 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[link]\nurl = 'http://x'\n", r"link\.url must start with udpin:"),
         ("camera = 3\n", r"camera must be a table"),
         ("[camera]\nfps = nan\n", r"camera\.fps must be a finite number"),
+        ("[controller]\nmin_person_px = -3\n", r"controller\.min_person_px must be >= 0"),
+        ("[controller]\nlose_after_frames = 0\n", r"controller\.lose_after_frames must be >= 1"),
     ],
 )
 def test_bad_values_name_the_key(tmp_path: Path, text: str, pattern: str) -> None:
@@ -139,3 +141,19 @@ def test_the_signing_key_never_leaves_in_the_config_dict(tmp_path: Path) -> None
     assert cfg.link.signing_key == key  # the service still has it
     dumped = repr(cfg.to_dict())  # what the recorder writes into meta.json
     assert key not in dumped and "<redacted>" in dumped
+
+
+def test_the_trust_height_comes_from_the_setting_or_else_the_model() -> None:
+    import dataclasses
+    import math
+
+    from companion.pipeline.density import DensitySpec
+
+    spec = DensitySpec("bgr", 1 / 255, (0.0,) * 3, (1.0,) * 3, 4, 4, 0.01, 1.0, min_person_px=10.0)
+    fx = 320.0 / math.tan(math.radians(35.0))  # the default camera: 640 px, 70 degrees
+    assert config.landing_config(config.load()).trust_height_m == math.inf  # nobody says
+    assert config.landing_config(config.load(), spec).trust_height_m == pytest.approx(1.7 + fx * 0.4 / 10.0)
+    mine = config.load(overrides={"controller.min_person_px": 8})
+    assert config.landing_config(mine, spec).trust_height_m == pytest.approx(1.7 + fx * 0.4 / 8.0)
+    assert config.landing_config(mine, dataclasses.replace(spec, min_person_px=None)).trust_height_m == \
+        pytest.approx(1.7 + fx * 0.4 / 8.0)

@@ -16,6 +16,7 @@ from companion.control.landing import (
     LandingController,
     Phase,
     VehicleStatus,
+    person_trust_height,
 )
 from companion.control.planner import PlannerConfig, ZonePlanner
 from companion.control.trigger import Trigger, TriggerSource
@@ -36,6 +37,7 @@ CFG = LandingConfig(
     max_pose_age_s=0.25,
     pose_timeout_s=2.0,
     max_refusals=3,
+    search_s=0.0,  # the search has tests of its own (test_landing_search.py)
 )
 
 
@@ -497,3 +499,43 @@ def test_disarmed_by_landing_in_offboard_is_landed_and_disarmed_in_the_air_stops
     assert ctl.on_state(status(0.2, 10, 0, 11.0, mode="GUIDED", armed=False, on_ground=False)) == []
     assert ctl.phase == Phase.HANDBACK  # nothing to command to a vehicle with its motors off
     assert any("disarmed in the air" in x for x in texts(ctl))
+
+
+def test_the_height_where_people_look_large_enough_to_trust_free():
+    fx = 320.0 / math.tan(math.radians(35.0))  # the simulator's 640 px, 70 degree camera: 457 px
+    assert person_trust_height(fx, 8.0) == pytest.approx(1.7 + fx * 0.4 / 8.0)  # 24.6 m
+    assert person_trust_height(fx, None) == math.inf
+    with pytest.raises(ValueError, match="min_person_px"):
+        person_trust_height(fx, 0.0)
+    with pytest.raises(ValueError, match="trust_height_m"):
+        LandingConfig(trust_height_m=math.nan)
+
+
+def _fly_down(ctl: LandingController, trigger_alt: float) -> tuple[list[float], float]:
+    """Trigger at ``trigger_alt`` over zone 3 (12 m north); follow every target. Returns the
+    target altitudes and the height at which LAND was commanded."""
+    ctl.on_state(status(0.0, alt=trigger_alt, mode="RTL"))
+    ctl.on_trigger(trigger(0.0))
+    t, alt, north, alts = 0.1, trigger_alt, 0.0, []
+    while ctl.phase != Phase.LAND:
+        ctl.on_state(status(t, north, 0.9, alt, mode="GUIDED"))
+        for c in ctl.on_frame(t, [zone(3, 12.0, 0.9, t, born=-9.0)], pose(t, north, 0.9, alt)):
+            if isinstance(c, Goto):
+                alts.append(c.target.rel_alt_m)
+                alt, north = c.target.rel_alt_m, c.north  # the vehicle gets there
+        t += 0.1
+        assert t < 10.0, ctl.phase
+    return alts, alt
+
+
+def test_above_the_trust_height_the_candidate_is_approached_at_it_and_judged_below_it():
+    # No limit: level approach at 30 m, LAND at descend_alt_m (10 m).
+    alts, land_alt = _fly_down(LandingController(CFG), 30.0)
+    assert alts[0] == pytest.approx(30.0) and land_alt == pytest.approx(10.0)
+    # People look large enough only below 18 m: the approach itself comes down to 18 m.
+    alts, land_alt = _fly_down(LandingController(dataclasses.replace(CFG, trust_height_m=18.0)), 30.0)
+    assert alts[0] == pytest.approx(18.0) and max(alts) <= 18.0 and land_alt == pytest.approx(10.0)
+    # Only below 6 m: the descent goes on past descend_alt_m, and LAND waits until 6 m.
+    alts, land_alt = _fly_down(LandingController(dataclasses.replace(CFG, trust_height_m=6.0)), 30.0)
+    assert alts[0] == pytest.approx(10.0)  # never below descend_alt_m before it is over the zone
+    assert land_alt == pytest.approx(6.0) and min(alts) == pytest.approx(6.0)

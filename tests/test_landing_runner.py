@@ -37,6 +37,7 @@ CFG = LandingConfig(
     descend_alt_m=10.0,
     descend_step_m=3.0,
     max_pose_age_s=0.15,
+    search_s=0.0,
 )
 
 
@@ -187,7 +188,7 @@ async def test_no_zone_hands_back_with_the_autopilots_land():
 
 
 async def test_no_zone_hands_back_with_rtl_when_configured():
-    cfg = LandingConfig(planner=CFG.planner, select_timeout_s=0.4, handback_action="RTL")
+    cfg = LandingConfig(planner=CFG.planner, select_timeout_s=0.4, handback_action="RTL", search_s=0.0)
     async with rig(config=cfg) as (runner, vehicle, peer, state):
         runner.on_trigger(Trigger("battery", TriggerSource.BATTERY, time.monotonic()))
         await feed(runner, state, lambda t: [], lambda: runner.controller.phase == Phase.HANDBACK)

@@ -127,3 +127,18 @@ def test_largest_free_circle_ground_truth() -> None:
     n, e, r = largest_free_circle(pts, (5.0, 5.0), 5.0, cell=0.05)
     assert (n, e) == pytest.approx((5.0, 5.0), abs=0.1)
     assert r == pytest.approx(math.sqrt(50), abs=0.1)
+
+
+def test_a_dense_crowd_can_keep_one_free_circle_out_of_the_first_view() -> None:
+    """The search scenarios (``dense_beyond``): people everywhere but one circle nobody enters,
+    for minutes, with the crowd packed right up to its edge."""
+    free = Circle(35.0, 10.0, 6.5)
+    world = dense_crowd(seed=4, centre=(10.0, 0.0), half_size=45.0, spacing=2.0, free=free)
+    assert world.free_areas == [free]
+    for _ in range(600):  # a minute
+        world.step(DT)
+        assert world.people_within(free) == 0
+    d = free.distance(world.positions())
+    assert np.count_nonzero(d < free.radius + 3.0) >= 20
+    # Nowhere else within 20 m of the start is there room to land.
+    assert world.largest_free_circle((10.0, 0.0), 18.0)[2] < 2.5

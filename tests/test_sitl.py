@@ -48,12 +48,28 @@ def test_failsafe_over_a_free_area_takes_over_and_never_lands_near_anyone(flavou
 
 @pytest.mark.parametrize("flavour", FLAVOURS)
 def test_no_safe_zone_hands_back_and_the_autopilot_lands(flavour, model_path):
+    # No free ground anywhere: the search (cut short here) finds nothing, and the companion never
+    # flies toward a zone; the autopilot's own LAND takes over when the search gives up.
     r = _fly(FlightSpec(flavour=flavour, world="dense", seed=3, altitude_m=16.0,
-                        service_set=("controller.select_timeout_s=6",)))
-    # The companion never flew toward a zone: the autopilot's own LAND stayed in charge.
+                        service_set=("controller.select_timeout_s=6", "controller.search_s=8")))
     assert not r.took_control, _explain(r)
     assert r.outcome == "handback", _explain(r)
-    assert "APPROACH" not in r.phases
+    assert "APPROACH" not in r.phases and "SEARCH" in r.phases, _explain(r)
+
+
+def test_the_search_finds_free_ground_out_of_the_first_view_and_lands_there(model_path):
+    # A dense crowd under the vehicle and one free circle 24 m away, outside the first view
+    # (at 18 m the camera sees 11.3 x 8.5 m each way): the companion climbs, flies its expanding
+    # square, finds the circle and lands in it (issue 11, item 4). One autopilot: the search is
+    # the controller's, the same for both.
+    r = _fly(FlightSpec(flavour="ardupilot", world="dense_beyond", seed=23, altitude_m=18.0,
+                        start_offset_m=(-24.0, 0.0), free_radius_m=7.0,
+                        service_set=("controller.select_timeout_s=4",)))
+    assert "SEARCH" in r.phases, _explain(r)
+    assert r.outcome == "safe" and not r.handed_back, _explain(r)
+    assert r.clearance_m >= r.spec.r0_m, _explain(r)
+    n, e, _ = r.free_circle
+    assert ((r.touchdown[0] - n) ** 2 + (r.touchdown[1] - e) ** 2) ** 0.5 < 7.0, _explain(r)
 
 
 @pytest.mark.parametrize("flavour", FLAVOURS)

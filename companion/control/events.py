@@ -24,6 +24,7 @@ class Phase(str, enum.Enum):
     DESCEND = "DESCEND"
     LAND = "LAND"
     HOLD = "HOLD"
+    SEARCH = "SEARCH"
     LANDED = "LANDED"
     HANDBACK = "HANDBACK"
 

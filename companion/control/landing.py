@@ -73,8 +73,8 @@ log = logging.getLogger(__name__)
 #: A view radius (m) under which a zone that drops out of view during LAND commits the landing.
 BLIND_VIEW_M = 2 * MIN_VIEW_M
 
-ACTIVE = frozenset({Phase.SELECT, Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD})
-FLYING = frozenset({Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD})
+ACTIVE = frozenset({Phase.SELECT, Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD, Phase.SEARCH})
+FLYING = frozenset({Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD, Phase.SEARCH})
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,19 @@ class LandingConfig:
     #: How fast the vehicle will come down (the configured speeds until the autopilot's own
     #: parameters are read, ``LandingController.use_autopilot_speeds``).
     descent: DescentProfile = field(default_factory=DescentProfile)
+    #: Above this height over the ground (m) people would look smaller than the density model
+    #: reliably sees (``person_trust_height``): there the vehicle approaches its candidate at this
+    #: height at most, and judges it (LAND) only below it. inf: no limit known.
+    trust_height_m: float = math.inf
+    #: Search (see the module docstring): at most this long (s; 0 = no search, hand back at the
+    #: SELECT/HOLD timeouts), no further than ``search_radius_m`` from where it starts, and only
+    #: while the battery (when it says) has ``search_reserve_s`` more than the landing needs.
+    search_s: float = 45.0
+    search_radius_m: float = 40.0
+    search_reserve_s: float = 30.0
+    #: Ground radius the camera sees per metre of height above the head plane (the tangent of half
+    #: its narrower field of view): the search's legs are spaced so that their views overlap.
+    view_ratio: float = 0.5
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -117,6 +130,14 @@ class LandingConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
+        for name in ("search_s", "search_radius_m", "search_reserve_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
+        if not (math.isfinite(self.view_ratio) and self.view_ratio > 0):
+            raise ValueError(f"controller view_ratio must be > 0, not {self.view_ratio!r}")
+        if not (self.trust_height_m > 0):  # NaN too
+            raise ValueError(f"controller trust_height_m must be > 0 m (inf: no limit), not {self.trust_height_m!r}")
         if self.max_refusals < 1:
             raise ValueError("controller max_refusals must be >= 1")
         if self.lose_after_frames < 1:
@@ -136,7 +157,8 @@ class VehicleStatus:
     ``mode`` is the flavour's mode name; ``on_ground``/``armed`` None when unknown; ``agl`` metres
     above ground from a fresh rangefinder, None without one (then heights are above home);
     ``vn``/``ve``/``vd`` velocity in NED m/s; ``latency_s`` the link's one-way latency as measured
-    (TIMESYNC), 0 when not measured.
+    (TIMESYNC), 0 when not measured; ``battery_s`` the flight time the battery has left as the
+    autopilot estimates it (s), None when it does not say.
     """
 
     t: float
@@ -152,6 +174,7 @@ class VehicleStatus:
     ve: float = 0.0
     vd: float = 0.0
     latency_s: float = 0.0
+    battery_s: float | None = None
 
     @property
     def alt(self) -> float:
@@ -189,6 +212,11 @@ class LandingController:
         self._level = math.nan  # the planned altitude (m above home)
         self._aim: tuple[float, float] | None = None  # landing point, north/east metres
         self._blind = False  # in LAND, the zone went out of view: committed
+        self._search: list[tuple[float, float]] = []  # waypoints left (north, east)
+        self._search_t = math.nan  # when the search started
+        self._dwell_until = -math.inf  # hovering at a reached waypoint or lead until then
+        self._investigated: set[int] = set()  # zones the search flew over that never qualified
+        self._lead_id: int | None = None  # the zone the search hovers over now
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.obedience = ObedienceMonitor(self.config.obedience)
@@ -257,8 +285,11 @@ class LandingController:
             return []
         self.last_valid_frame_t = t
         self.tracks = list(tracks)
-        if self.phase == Phase.SELECT or self.phase == Phase.HOLD:
-            return self._select()
+        if self.phase in (Phase.SELECT, Phase.HOLD, Phase.SEARCH):
+            found = self._select()
+            if found or self.phase != Phase.SEARCH:
+                return found
+            return self._search_step()
         if self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.LAND):
             return self._follow()
         return []
@@ -269,9 +300,13 @@ class LandingController:
         if self.phase not in ACTIVE:
             return []
         if self.phase == Phase.SELECT and self.now - self._phase_t > c.select_timeout_s:
-            return self._handback(f"no safe zone confirmed within {c.select_timeout_s:g} s")
+            return self._start_search(f"no safe zone confirmed within {c.select_timeout_s:g} s")
         if self.phase == Phase.HOLD and self.now - self._phase_t > c.hold_timeout_s:
-            return self._handback(f"held {c.hold_timeout_s:g} s without a safe zone")
+            return self._start_search(f"held {c.hold_timeout_s:g} s without a safe zone")
+        if self.phase == Phase.SEARCH:
+            why = self._search_over()
+            if why is not None:
+                return self._handback(why)
         # Zones that keep being lost and re-targeted must not keep a vehicle with a failing
         # battery in the air: past this budget the autopilot's own failsafe lands it. In LAND the
         # autopilot is already landing over a confirmed zone; handing back would change nothing
@@ -363,7 +398,7 @@ class LandingController:
 
     def _check_obedience(self, status: VehicleStatus) -> list[Command]:
         """Hand back to LAND when the vehicle does not follow our targets (see ``obedience``)."""
-        ours = (self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.HOLD)
+        ours = (self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.HOLD, Phase.SEARCH)
                 and status.mode in self.config.external_modes and self._last_goto is not None)
         if not ours:
             self.obedience.disengage()
@@ -401,6 +436,9 @@ class LandingController:
         self._aim = (zone.x, zone.y)
         if s.alt < self._level - c.alt_tolerance_m:
             self._level = s.alt  # it came down before we took over: do not climb back for nothing
+        # Above the height where people look as large as the model reliably sees them, what it
+        # calls free is not trusted: approach the candidate no higher than that, and judge it there.
+        self._level = min(self._level, s.alt - s.height + c.trust_height_m)
         # Level flight, but never lower than descend_alt_m above the ground below.
         self._raise_level(s.alt - s.height + c.descend_alt_m)
         dist = math.hypot(zone.x - s.north, zone.y - s.east)
@@ -458,7 +496,7 @@ class LandingController:
                 return self._goto(aim[0], aim[1], self._level, track.id)
             self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m", zone_id=track.id)
         if self.phase == Phase.DESCEND:
-            low = s.height <= c.descend_alt_m + c.alt_tolerance_m
+            low = s.height <= min(c.descend_alt_m, c.trust_height_m) + c.alt_tolerance_m
             if (dist <= c.arrive_radius_m and low) or s.on_ground:
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",
@@ -468,7 +506,7 @@ class LandingController:
             # over the zone, so a lost zone never leaves the vehicle committed to a long descent.
             # Never below descend_alt_m above the ground under the vehicle (a rangefinder may show
             # the ground rising): the plan's floor, from terrain, not from the vehicle's altitude.
-            floor = s.alt - s.height + c.descend_alt_m
+            floor = s.alt - s.height + min(c.descend_alt_m, c.trust_height_m)
             self._raise_level(floor)
             if dist <= 2 * c.arrive_radius_m and s.alt <= self._level + c.alt_tolerance_m:
                 self._level = max(self._level - c.descend_step_m, floor)
@@ -513,6 +551,92 @@ class LandingController:
         self._aim = None
         self._raise_level(s.alt - s.height + self.config.hold_height_m)
         return self._goto(s.north, s.east, self._level, None)
+
+    # -- search ------------------------------------------------------------------------------
+
+    def _start_search(self, why: str) -> list[Command]:
+        """No zone in view for the SELECT/HOLD timeout: search, or hand back when searching is off
+        or there is no time left for it."""
+        c, s = self.config, self.status
+        if c.search_s <= 0 or s is None or not self._status_fresh() or self.ceiling_m is None:
+            return self._handback(why)
+        self._search_t = self.now
+        over = self._search_over()
+        if over is not None:
+            return self._handback(f"{why}; {over}")
+        # Climb to the ceiling first, over where the vehicle is: a wider view for free.
+        self._raise_level(self._cap())
+        self._search = expanding_square((s.north, s.east), self._search_spacing(), c.search_radius_m)
+        self._aim = None
+        self._last_goto = None
+        self._set_phase(Phase.SEARCH, f"{why}; searching {c.search_radius_m:g} m around for "
+                        f"{c.search_s:g} s", warning=True)
+        return self._goto(s.north, s.east, self._level, None)
+
+    def _search_spacing(self) -> float:
+        """Metres between the search's legs: the ground radius the camera sees at the planned level
+        along its narrower side, so that a free circle between two legs is seen whole from one
+        of them (at least 4 m)."""
+        s, c = self.status, self.config
+        assert s is not None
+        height = self._level - (s.alt - s.height)
+        return max(4.0, c.view_ratio * max(0.0, height - 1.7))
+
+    def _search_over(self) -> str | None:
+        """Why the search must stop now, or None: its time, or the battery's."""
+        c, s = self.config, self.status
+        if self.now - self._search_t > c.search_s:
+            return f"searched {c.search_s:g} s without a safe zone"
+        if s is not None and s.battery_s is not None and math.isfinite(s.battery_s):
+            need = self.descent.time_to_touchdown(s.height) + c.search_reserve_s
+            if s.battery_s < need:
+                return f"battery {s.battery_s:.0f} s left, landing needs {need:.0f} s with the reserve"
+        return None
+
+    def _search_step(self) -> list[Command]:
+        """Fly the search on (every frame re-checks the zones first, in ``on_frame``): toward free
+        ground glimpsed at the edge of the view, else to the square's next waypoint."""
+        s, c = self.status, self.config
+        if s is None or not self._status_fresh():
+            return []
+        lead = self._search_lead()
+        if lead is not None:
+            # Free ground seen, too little of it to choose (cut by the edge of the view, or too
+            # young): fly over it so the camera sees it whole, and let the tracker confirm it.
+            if math.hypot(lead.x - s.north, lead.y - s.east) <= 2 * c.arrive_radius_m:
+                if self._dwell_until < self.now - 1e-9 and self._lead_id != lead.id:
+                    self._lead_id = lead.id
+                    self._dwell_until = self.now + self._search_dwell_s()
+                if self.now >= self._dwell_until:
+                    self._investigated.add(lead.id)  # looked at it long enough: not a zone
+                return []
+            self._lead_id = None
+            return self._goto(lead.x, lead.y, self._level, None)
+        if self._search and math.hypot(self._search[0][0] - s.north,
+                                        self._search[0][1] - s.east) <= 2 * c.arrive_radius_m:
+            # Hover there long enough for a zone in view to become a track and be old enough to
+            # choose (mu_2 frames, then min_track_age_s): flying on, the view slides past a
+            # zone before the tracker can confirm it.
+            self._dwell_until = self.now + self._search_dwell_s()
+            self._search.pop(0)
+        if self.now < self._dwell_until:
+            return []
+        if not self._search:
+            return self._handback(f"searched {c.search_radius_m:g} m around without a safe zone")
+        north, east = self._search[0]
+        return self._goto(north, east, self._level, None)
+
+    def _search_lead(self) -> Track | None:
+        """The largest zone the latest frame confirmed that may not be chosen yet (smaller than
+        ``r0_m + radius_margin_m``, or young) and has not been looked at already, or None."""
+        leads = [t for t in self.tracks if t.misses == 0 and t.id not in self._investigated
+                 and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.planner.r0_m]
+        return max(leads, key=lambda t: t.r, default=None)
+
+    def _search_dwell_s(self) -> float:
+        """Seconds to hover at each search waypoint: a zone's track must be born and grow old
+        enough to be chosen (``min_track_age_s``), plus a second for the tracker's first frames."""
+        return self.config.planner.min_track_age_s + 1.0
 
     def _goto(self, north: float, east: float, alt: float, zone_id: int | None) -> list[Command]:
         assert self.status is not None
@@ -572,9 +696,45 @@ class LandingController:
         self._events.append(event)
 
 
+def expanding_square(centre: tuple[float, float], spacing_m: float, radius_m: float) -> list[tuple[float, float]]:
+    """The waypoints (north, east metres) of an expanding-square search around ``centre``: legs
+    north, east, south, west of 1, 1, 2, 2, 3, 3, ... times ``spacing_m``, as far as
+    ``radius_m`` from the centre (the last leg is cut there). The square visits the ground nearest
+    the vehicle first and never crosses itself (IAMSAR's expanding square)."""
+    if not (math.isfinite(spacing_m) and spacing_m > 0 and math.isfinite(radius_m) and radius_m >= 0):
+        raise ValueError(f"expanding_square needs spacing > 0 and radius >= 0, not {spacing_m!r}, {radius_m!r}")
+    n, e = centre
+    points: list[tuple[float, float]] = []
+    heading = ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))
+    k = 0
+    while True:
+        length = (k // 2 + 1) * spacing_m
+        dn, de = heading[k % 4]
+        nn, ne = n + dn * length, e + de * length
+        if max(abs(nn - centre[0]), abs(ne - centre[1])) > radius_m:
+            return points
+        points.append((nn, ne))
+        n, e = nn, ne
+        k += 1
+
+
+def person_trust_height(fx_px: float, min_person_px: float | None, person_m: float = 0.4,
+                        head_m: float = 1.7) -> float:
+    """The height above the ground (m) below which a person of ``person_m`` across (seen from
+    above: 0.4 m, a little under an adult's shoulder breadth, so children count too) appears at
+    least ``min_person_px`` pixels wide to a camera of focal length ``fx_px`` looking straight down
+    at the head plane ``head_m`` above the ground; inf when ``min_person_px`` is None."""
+    if min_person_px is None:
+        return math.inf
+    if not (math.isfinite(fx_px) and fx_px > 0 and math.isfinite(min_person_px) and min_person_px > 0):
+        raise ValueError(f"person_trust_height needs fx > 0 and min_person_px > 0, not {fx_px!r}, {min_person_px!r}")
+    return head_m + fx_px * person_m / min_person_px
+
+
 # The commands the controller returns and its phases are re-exported: a runner drives the
 # controller with this module alone.
 __all__ = [
     "ACTIVE", "BLIND_VIEW_M", "FLYING", "LandingConfig", "LandingController", "VehicleStatus",
+    "expanding_square", "person_trust_height",
     "Command", "Goto", "Handback", "Land", "Phase",
 ]

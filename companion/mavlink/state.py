@@ -114,6 +114,7 @@ class Battery:
     remaining_pct: float | None
     voltage_v: float | None
     charge_state: int | None
+    time_remaining_s: float | None = None  # BATTERY_STATUS.time_remaining; None when 0 (not given)
 
 
 @dataclass(frozen=True)
@@ -298,7 +299,9 @@ class VehicleState:
         remaining = None if msg.battery_remaining < 0 else float(msg.battery_remaining)
         cells = [v for v in msg.voltages if v != 65535]
         voltage = sum(cells) / 1000.0 if cells else None
-        self.battery_status = Battery(t, "BATTERY_STATUS", msg.id, remaining, voltage, msg.charge_state)
+        left = float(getattr(msg, "time_remaining", 0) or 0)
+        self.battery_status = Battery(t, "BATTERY_STATUS", msg.id, remaining, voltage, msg.charge_state,
+                                      left if left > 0 else None)
         self.battery = self.battery_status
 
     def _on_distance_sensor(self, msg: Any, t: float) -> None:

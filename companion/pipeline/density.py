@@ -79,6 +79,7 @@ class DensitySpec:
     input_multiple: int
     occupancy_threshold: float | None
     count_scale: float = 1.0
+    min_person_px: float | None = None
 
 
 def _floats(value: object, key: str) -> tuple[float, ...]:

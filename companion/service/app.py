@@ -250,7 +250,7 @@ class Service:
         self.monitor.attach(self.commands)
         # The landing controller behind its async runner: commands through the autopilot
         # flavour, events recorded here and sent to the ground station as STATUSTEXT.
-        self.runner = LandingRunner(LandingController(settings.landing_config(c)), self.autopilot,
+        self.runner = LandingRunner(LandingController(settings.landing_config(c, self.model.spec)), self.autopilot,
                                     self.state, self.link)
         self.runner.subscribe(self._on_controller_event)
         self.monitor.subscribe(self._on_trigger)
@@ -318,7 +318,7 @@ class Service:
         """Stopping while the companion has the vehicle (GUIDED/OFFBOARD toward a zone, or
         holding) must not leave it hovering with nobody in charge: give it back to the
         autopilot's own failsafe first. In LAND the autopilot is already landing by itself."""
-        if self.phase not in ("SELECT", "APPROACH", "DESCEND", "HOLD") or self.autopilot is None:
+        if self.phase not in ("SELECT", "APPROACH", "DESCEND", "HOLD", "SEARCH") or self.autopilot is None:
             return
         action = self.cfg.controller.handback_action
         log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)

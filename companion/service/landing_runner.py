@@ -66,7 +66,16 @@ def vehicle_status(
         ve=state.position.ve,
         vd=state.position.vd,
         latency_s=state.clock.latency_s or 0.0,
+        battery_s=_battery_s(state, time.monotonic() if now is None else now),
     )
+
+
+def _battery_s(state: VehicleState, now: float) -> float | None:
+    """The flight time the autopilot says its battery has left, counted down to ``now`` (s)."""
+    b = state.battery_status  # SYS_STATUS has no time remaining
+    if b is None or b.time_remaining_s is None:
+        return None
+    return max(0.0, b.time_remaining_s - max(0.0, now - b.t))
 
 
 class LandingRunner:

@@ -147,7 +147,7 @@ class TelemetryMixin(MixinBase):
             return mav.MAVLink_battery_status_message(
                 0, R.MAV_BATTERY_FUNCTION_ALL, R.MAV_BATTERY_TYPE_LIPO, 32767, cells,
                 int(s.current_a * 100), int(s.consumed_mah), -1,
-                int(round(v.battery_remaining * 100)), 0, self.charge_state())
+                int(round(v.battery_remaining * 100)), self.battery_time_remaining_s(), self.charge_state())
         if msg_id == mav.MAVLINK_MSG_ID_DISTANCE_SENSOR:
             tilt = max(math.cos(s.roll) * math.cos(s.pitch), 0.2)
             rng = v.altitude / tilt
@@ -188,6 +188,19 @@ class TelemetryMixin(MixinBase):
         if not s.armed or s.land_complete:
             return R.MAV_STATE_STANDBY
         return R.MAV_STATE_ACTIVE
+
+    def battery_time_remaining_s(self) -> int:
+        """BATTERY_STATUS.time_remaining (s): the charge left at the hover current. An injected
+        LOW or CRITICAL failsafe counts as the charge at that level, so the time agrees with the
+        charge state (a "critical" battery with 15 minutes left would be no failsafe at all)."""
+        v = self.vehicle
+        remaining = v.battery_remaining
+        if Failsafe.BATTERY_CRITICAL in self.failsafes:
+            remaining = min(remaining, self.config.battery_critical)
+        elif Failsafe.BATTERY_LOW in self.failsafes:
+            remaining = min(remaining, self.config.battery_low)
+        amps = max(v.state.current_a, v.params.hover_current_a)
+        return max(1, int(remaining * v.params.battery_capacity_mah / 1000.0 / amps * 3600.0))
 
     def charge_state(self) -> int:
         remaining = self.vehicle.battery_remaining

@@ -198,6 +198,9 @@ class WebServer:
             self._streams.add(task)
         try:
             await self._handle(reader, writer)
+        except asyncio.CancelledError:
+            writer.close()  # the server is closing: end quietly (a cancelled handler is logged as an error)
+            return
         except (ConnectionError, TimeoutError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, ValueError):
             self.bad_requests += 1
         except Exception:  # a bug in one request must not take the server down
@@ -205,9 +208,9 @@ class WebServer:
         finally:
             if task is not None:
                 self._streams.discard(task)
-            writer.close()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(writer.wait_closed(), 0.5)
+        writer.close()
+        with contextlib.suppress(Exception, asyncio.CancelledError):
+            await asyncio.wait_for(writer.wait_closed(), 0.5)
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), REQUEST_TIMEOUT_S)

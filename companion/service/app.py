@@ -59,12 +59,13 @@ from companion.pipeline.density import DensityModel, DensityModelError, FrameErr
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
+from companion.replay.live_figure import CAPTION_PX
 from companion.service.camera import CameraSource, Frame
 from companion.service.gcs import PHASE_CODES, GroundStation
 from companion.service.health import PIPELINE_STUCK_S, FaultLog, FrameCounters, Health, StageTimings, assess
 from companion.service.landing_runner import LandingRunner
 from companion.service.notify import Notifier
-from companion.service.web import LiveView, Snapshot, WebServer, stream_uri
+from companion.service.web import LiveView, Snapshot, WebServer, stream_uri, video_stream_information
 
 log = logging.getLogger("companion.service")
 
@@ -542,6 +543,15 @@ class Service:
             return
         self.web = web
         log.info("status page on http://%s:%d/, live view %s", live.address, web.port, stream_uri(live))
+
+    def video_stream_information(self) -> Any | None:
+        """The VIDEO_STREAM_INFORMATION announcing the live view (None when it is off or could not
+        start): for the camera-protocol handler's provider hook (MAV_CMD_REQUEST_MESSAGE 269)."""
+        if self.live is None or self.web is None:
+            return None
+        w, h = self.intrinsics.width, self.intrinsics.height
+        # The figure: the frame and its square head-plane view side by side, under the caption.
+        return video_stream_information(self.link, self.cfg.live, w + 4 + h, h + CAPTION_PX)
 
     def _target_numbers(self) -> tuple[Track | None, float | None]:
         """The target (flown to, or the one it would fly to now) and its least clearance at

@@ -154,3 +154,12 @@ def test_the_controllers_events_have_the_severities_ground_stations_rank_them_by
     assert event_severity(Note(5.0, A, A, "SLZ: landing committed")) == m.MAV_SEVERITY_INFO
     assert event_severity(Note(5.0, A, A, "SLZ: command Goto failed", True)) == m.MAV_SEVERITY_WARNING
     assert shadow_text("SLZ: landing at zone 3") == "SHADOW: landing at zone 3"
+
+
+def test_the_docs_table_lists_every_named_value_as_sent():
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "ground-station-values.md").read_text()
+    rows = [line.split("|")[1:4] for line in doc.splitlines() if line.startswith("| `SLZ_")]
+    assert [(n.strip().strip("`"), k.strip()) for n, k, _ in rows] == \
+        [(name, f"NAMED_VALUE_{kind}") for name, kind, _, _ in VALUE_NAMES]

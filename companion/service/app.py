@@ -43,7 +43,7 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion import config as settings
 from companion.config import Config
-from companion.control.commands import Command, Goto, Handback, Land
+from companion.control.commands import Command, Goto, Handback
 from companion.control.events import Event, Phase
 from companion.control.landing import LandingController
 from companion.control.trigger import Trigger
@@ -301,8 +301,6 @@ class Service:
             data.update(zone_id=cmd.zone_id, north=cmd.north, east=cmd.east, rel_alt_m=cmd.target.rel_alt_m)
         elif isinstance(cmd, Handback):
             data.update(action=cmd.action, reason=cmd.reason)
-        elif isinstance(cmd, Land):
-            pass
         self._record_event("shadow_command", time.monotonic(), **data)
 
     def _on_trigger(self, trigger: Trigger) -> None:

@@ -29,6 +29,7 @@ from companion.control.touchdown import DescentProfile
 from companion.geometry.camera import Intrinsics, Mount
 from companion.mavlink.clock import AutopilotClock
 from companion.mavlink.failsafe import FailsafeConfig
+from companion.mavlink.gcs_commands import CameraInfo
 from companion.mavlink.link import LinkConfig, message_rates
 from companion.mavlink.transports import TransportError, parse_peers, parse_url
 from companion.pipeline.density import DensitySpec, resolve_threshold
@@ -114,6 +115,10 @@ class CameraSettings:
     stall_timeout_s: float = _f(2.0, "no frame for this long = camera stalled, reopen", min=0.1, max=60.0)
     reopen_max_backoff_s: float = _f(10.0, "longest wait between reopen attempts", min=0.1, max=300.0)
     loop: bool = _f(False, "restart a video file or folder at its end (bench tests)")
+    sensor_width_mm: float = _f(0.0, "image sensor width (mm), for the focal length in mm a ground station "
+                                     "is told (CAMERA_INFORMATION); 0 = unknown", min=0.0, max=100.0)
+    vendor_name: str = _f("companion-slz", "camera vendor a ground station is told (32 bytes at most)")
+    model_name: str = _f("SLZ downward camera", "camera model a ground station is told (32 bytes at most)")
 
 
 @dataclass(frozen=True)
@@ -201,6 +206,9 @@ class ControllerSettings:
                                min=0.5, max=50.0)
     land_abort_above_m: float = _f(3.5, "during LAND, a lost zone above this height sends the vehicle "
                                         "back to HOLD; below it the landing is committed (m)", min=0.0, max=100.0)
+    lose_after_frames: int = _f(2, "a zone seen with less than r0 free is dropped only after this many "
+                                "frames in a row (one frame's false detection must not throw a landing "
+                                "back to HOLD; a person walking in is seen on every frame)", min=1, max=10)
     hold_height_m: float = _f(15.0, "on a lost zone the vehicle holds at least this high above the "
                               "ground, where the camera sees enough to confirm a zone again", min=2.0, max=120.0)
     max_takeover_s: float = _f(90.0, "not landed this long after the trigger: hand back to the "
@@ -404,6 +412,10 @@ def _cross_checks(cfg: Config) -> None:
     for name in ("r_std",):
         if any(v <= 0 for v in getattr(cfg.pipeline.tracker, name)):
             raise ConfigError(f"pipeline.tracker.{name} values must be > 0")
+    for name in ("vendor_name", "model_name"):
+        if len(getattr(cfg.camera, name).encode()) > 32:
+            raise ConfigError(f"camera.{name} must be at most 32 bytes (MAVLink's CAMERA_INFORMATION), "
+                              f"got {getattr(cfg.camera, name)!r}")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")
@@ -584,10 +596,11 @@ def landing_config(cfg: Config) -> LandingConfig:
         select_timeout_s=c.select_timeout_s, hold_timeout_s=c.hold_timeout_s,
         arrive_radius_m=c.arrive_radius_m, descend_alt_m=c.descend_alt_m,
         descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
-        hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
+        lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
+        descent=descent_profile(cfg),
     )
 
 
@@ -604,6 +617,22 @@ def signing_key(cfg: Config) -> bytes | None:
             raise ConfigError(f"link.signing_key_file {cfg.link.signing_key_file} must hold 64 "
                               "hexadecimal characters")
     return bytes.fromhex(text) if text else None
+
+
+def camera_info(cfg: Config) -> CameraInfo:
+    """What CAMERA_INFORMATION tells a ground station of the camera: the calibrated resolution,
+    and, when ``camera.sensor_width_mm`` is set, the focal length and sensor size in millimetres
+    from the intrinsics (pixel pitch = sensor width / width; fy sets the vertical pitch)."""
+    c = cfg.camera
+    k = intrinsics(cfg)
+    focal = sensor_w = sensor_h = math.nan
+    if c.sensor_width_mm > 0:
+        pitch_x = c.sensor_width_mm / k.width
+        focal = k.fx * pitch_x
+        sensor_w = c.sensor_width_mm
+        sensor_h = k.height * focal / k.fy
+    return CameraInfo(width=k.width, height=k.height, focal_length_mm=focal, sensor_width_mm=sensor_w,
+                      sensor_height_mm=sensor_h, vendor=c.vendor_name, model=c.model_name)
 
 
 def link_config(cfg: Config) -> LinkConfig:

@@ -5,6 +5,13 @@
 
 Like SITL's ``--out``, each ``--out`` is a UDP address the vehicle streams telemetry to and whose
 replies it obeys; ``udpin:HOST:PORT`` binds a port instead and answers whoever sends to it.
+
+The vehicle forwards MAVLink between its links as the real autopilot does (``sim.routing``), so a
+ground station on one ``--out`` sees the companion on another: ArduPilot on every link, PX4 only
+between links marked ``?forward=1`` (its ``MAV_X_FORWARD``):
+
+    companion sim --flavour px4 --out "udpout:127.0.0.1:14540?forward=1" \
+        --out "udpin:127.0.0.1:14560?forward=1"
 """
 
 from __future__ import annotations
@@ -46,8 +53,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flavour", choices=FLAVOURS, default="ardupilot",
                         help="which autopilot to behave like (default ardupilot)")
     parser.add_argument("--out", action="append", type=_out, metavar="URL",
-                        help="MAVLink output, udpout:HOST:PORT (alias udp:) or udpin:HOST:PORT; "
-                             "repeatable; default udpout:127.0.0.1:14550")
+                        help="MAVLink output, udpout:HOST:PORT (alias udp:) or udpin:HOST:PORT, "
+                             "optionally ?forward=1 (PX4's MAV_X_FORWARD on that link: PX4 forwards "
+                             "only between such links; ArduPilot routes on all); repeatable; "
+                             "default udpout:127.0.0.1:14550")
     parser.add_argument("--start-alt", type=float, default=0.0,
                         help="start airborne this many metres above home (0 = on the ground)")
     parser.add_argument("--start-north", type=float, default=0.0, help="start position, m north of home")
@@ -137,9 +146,10 @@ async def _main(args: argparse.Namespace) -> int:
                     sim.inject_failsafe(args.failsafe)
                     raised = True
                 t = sim.truth
-                log.info("mode %s %s alt %.1f m pos N %.1f E %.1f battery %.0f%% bad packets %d",
-                         t.mode, "armed" if t.armed else "disarmed", t.altitude, t.position[0],
-                         t.position[1], 100 * t.battery_remaining, sim.bad_packets)
+                log.info("mode %s %s alt %.1f m pos N %.1f E %.1f battery %.0f%% bad packets %d "
+                         "forwarded %d", t.mode, "armed" if t.armed else "disarmed", t.altitude,
+                         t.position[0], t.position[1], 100 * t.battery_remaining, sim.bad_packets,
+                         sim.routing.stats.forwarded)
         finally:
             if camera is not None:
                 await camera.stop()

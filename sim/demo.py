@@ -16,7 +16,14 @@ import json
 import sys
 from pathlib import Path
 
-from sim.flight import FlightSpec, fly
+from sim.flight import FlightSpec, fly, reserve_port
+
+
+def ground_station_line(port: int) -> str:
+    """The one line that tells a pilot where to watch the demo with a ground station."""
+    return (f"demo: watch it live with a ground station on udp 127.0.0.1:{port}, e.g. "
+            f"mavproxy.py --master=udpout:127.0.0.1:{port} (then: set target_component 0) "
+            "[docs/ground-station.md]")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -38,17 +45,21 @@ def run(args: argparse.Namespace) -> int:
     rec = out / "recording"
     # A PX4 flies with its home 1.48 m below its estimator's origin, as PX4's own SIH did.
     offset = -1.48 if args.flavour == "px4" else 0.0
-    spec = FlightSpec(flavour=args.flavour, seed=args.seed, altitude_m=args.altitude,
-                      home_origin_offset_m=offset,
-                      record_dir=rec, service_log=out / "service.log",
-                      service_set=() if args.model is None else (f"model.path={args.model}",))
-    print(f"demo: {args.flavour} vehicle hovering {args.altitude:.0f} m over a crowd; the service "
-          f"watches for {spec.watch_s:.0f} s, then the battery failsafe fires", flush=True)
-    try:
-        result = asyncio.run(fly(spec))
-    except RuntimeError as exc:
-        print(f"demo: {exc}", file=sys.stderr)
-        return 1
+    # A port for a ground station, claimed node-wide like the flight's own (sim.flight.reserve_port).
+    with reserve_port() as gcs:
+        spec = FlightSpec(flavour=args.flavour, seed=args.seed, altitude_m=args.altitude,
+                          home_origin_offset_m=offset,
+                          record_dir=rec, service_log=out / "service.log",
+                          service_set=() if args.model is None else (f"model.path={args.model}",),
+                          gcs_port=gcs.port)
+        print(f"demo: {args.flavour} vehicle hovering {args.altitude:.0f} m over a crowd; the service "
+              f"watches for {spec.watch_s:.0f} s, then the battery failsafe fires", flush=True)
+        print(ground_station_line(gcs.port), flush=True)
+        try:
+            result = asyncio.run(fly(spec))
+        except RuntimeError as exc:
+            print(f"demo: {exc}", file=sys.stderr)
+            return 1
     for msg in result.messages:
         print(f"  {msg}")
     summary = result.as_dict()

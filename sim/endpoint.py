@@ -8,6 +8,10 @@ fault injector. Two kinds:
   peer sends back (SITL ``--out``; the companion and MAVSDK listen on 14550 / 14540);
 - ``udpin:HOST:PORT`` binds and answers every peer that has sent to it (a GCS "connects").
 
+A URL may end in ``?forward=1`` (or ``?forward=0``): whether the link forwards MAVLink between
+itself and the other links, PX4's per-link ``MAV_X_FORWARD`` (``sim.routing``; the PX4 flavour
+forwards only between links marked so, the ArduPilot flavour routes on every link).
+
 Bad input is counted and dropped: a datagram that does not decode to valid MAVLink increments
 ``bad_packets``, never raises.
 """
@@ -42,8 +46,25 @@ class _Writer:
 
 def parse_url(url: str) -> tuple[str, Address]:
     """``udpout:127.0.0.1:14550`` / ``udp:...`` (= udpout) / ``udpin:0.0.0.0:14560`` -> (kind, addr)."""
+    kind, address, _forward = parse_link(url)
+    return kind, address
+
+
+def parse_link(url: str) -> tuple[str, Address, bool | None]:
+    """(kind, address, forward) of a link URL; ``forward`` is None when the URL does not say.
+
+    ``udpin:127.0.0.1:14560?forward=1``: the options after ``?`` are ``forward=0|1`` only.
+    """
+    base, _, query = url.partition("?")
+    forward: bool | None = None
+    if query:
+        for item in query.split("&"):
+            key, _, value = item.partition("=")
+            if key != "forward" or value not in ("0", "1"):
+                raise ValueError(f"link {url!r}: the only option is forward=0 or forward=1, got {item!r}")
+            forward = value == "1"
     try:
-        kind, host, port_s = url.split(":")
+        kind, host, port_s = base.split(":")
         port = int(port_s)
     except ValueError:
         raise ValueError(f"link {url!r} is not KIND:HOST:PORT (udpout:127.0.0.1:14550)") from None
@@ -52,7 +73,7 @@ def parse_url(url: str) -> tuple[str, Address]:
         raise ValueError(f"link {url!r}: kind must be udpout (or udp) or udpin")
     if not 0 <= port <= 65535:
         raise ValueError(f"link {url!r}: port {port} out of range")
-    return kind, (host, port)
+    return kind, (host, port), forward
 
 
 @dataclass
@@ -61,6 +82,7 @@ class LinkStats:
     rx_messages: int = 0
     bad_packets: int = 0
     tx_messages: int = 0
+    forwarded_tx: int = 0  # packets another link received that this one sent on (sim.routing)
 
 
 class UdpLink(asyncio.DatagramProtocol):
@@ -73,7 +95,7 @@ class UdpLink(asyncio.DatagramProtocol):
                  on_message: Callable[[mav.MAVLink_message, UdpLink], None],
                  faults: LinkFaults | None = None, seed: int | None = None) -> None:
         self.url = url
-        self.kind, self.address = parse_url(url)
+        self.kind, self.address, self.forward = parse_link(url)
         self.streams = streams
         self.stats = LinkStats()
         self.faults = FaultInjector(faults, seed)
@@ -157,6 +179,13 @@ class UdpLink(asyncio.DatagramProtocol):
             return
         self.stats.tx_messages += 1
         self._mav.send(msg)
+
+    def send_raw(self, data: bytes) -> None:
+        """Send a packet another link received, byte for byte (routing: a signature stays valid)."""
+        if self._transport is None or not self.peers:
+            return
+        self.stats.forwarded_tx += 1
+        self._write(data)
 
     def _write(self, data: bytes) -> None:
         for peer in list(self.peers):

@@ -103,6 +103,9 @@ class FlightSpec:
     service_env: extra environment variables for the service process (tests use it to prove the
         verdict does not depend on the log's wording).
     companion: False flies the **baseline**: no service, the autopilot's own failsafe alone.
+    gcs_port: when set, the simulator also binds ``udpin:127.0.0.1:<gcs_port>`` for a ground
+        station to watch the flight, and forwards between it and the companion's link as the
+        autopilot does (PX4: both links with forwarding on, ``MAV_X_FORWARD``).
     """
 
     flavour: str = "ardupilot"
@@ -127,6 +130,7 @@ class FlightSpec:
     home_origin_offset_m: float = 0.0
     service_env: tuple[tuple[str, str], ...] = ()
     companion: bool = True
+    gcs_port: int | None = None
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
@@ -448,7 +452,11 @@ def build_scene(spec: FlightSpec, link_port: int, cam_port: int
     MJPEG camera (on ``cam_port``), not yet started: what a flight needs besides the service."""
     world, free, start = build_world(spec)
     vp = VehicleParams(land_speed=spec.land_speed)
-    sim = Simulator(SimConfig(flavour=spec.flavour, outputs=[f"udpout:127.0.0.1:{link_port}"],
+    outputs = [f"udpout:127.0.0.1:{link_port}"]
+    if spec.gcs_port is not None:
+        forward = "?forward=1" if spec.flavour == "px4" else ""
+        outputs = [outputs[0] + forward, f"udpin:127.0.0.1:{spec.gcs_port}{forward}"]
+    sim = Simulator(SimConfig(flavour=spec.flavour, outputs=outputs,
                               start_position=(start[0], start[1], -spec.altitude_m), vehicle=vp,
                               autopilot=AutopilotConfig(origin_alt_offset_m=spec.home_origin_offset_m),
                               seed=spec.seed), world=world)

@@ -23,9 +23,10 @@ import numpy as np
 from companion.geometry.camera import Pose, rotation_from_euler
 from sim.ardupilot import ArduPilotCopter
 from sim.autopilot import Autopilot, AutopilotConfig, Behaviour
-from sim.endpoint import Endpoint, UdpLink
+from sim.endpoint import Endpoint, UdpLink, parse_link
 from sim.faults import Failsafe, LinkFaults
 from sim.px4 import OffboardConfig, Px4FailsafeConfig, Px4Multicopter
+from sim.routing import Routing, routing_for
 from sim.vehicle import Vehicle, VehicleParams
 
 log = logging.getLogger(__name__)
@@ -43,6 +44,10 @@ class SimConfig:
 
     ``offboard`` and ``px4_failsafe`` apply to the PX4 flavour only; ``seed`` makes the link
     faults and PX4's pre-arming HOME_POSITION wander repeatable (None: fresh entropy).
+
+    ``outputs`` are link URLs (``sim.endpoint``); the vehicle forwards MAVLink between them as its
+    firmware does (``sim.routing``): ArduPilot on every link, PX4 only between links whose URL
+    ends in ``?forward=1`` (``MAV_X_FORWARD``).
     """
 
     flavour: str = "ardupilot"
@@ -62,6 +67,11 @@ class SimConfig:
             raise ValueError(f"flavour must be one of {FLAVOURS}, got {self.flavour!r}")
         if not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
             raise ValueError(f"rate_hz must be > 0, got {self.rate_hz!r}")
+        for url in self.outputs:
+            _kind, _addr, forward = parse_link(url)
+            if forward is False and self.flavour == "ardupilot":
+                raise ValueError(f"link {url!r}: ArduPilot routes MAVLink on every link; "
+                                 "forward= is PX4's MAV_X_FORWARD")
 
 
 @dataclass(frozen=True)
@@ -109,6 +119,8 @@ class Simulator:
                     self.autopilot.new_streams(), self._on_message,
                     seed=None if c.seed is None else c.seed + i)
             for i, url in enumerate(c.outputs)])
+        self.routing: Routing = routing_for(c.flavour, self.endpoint.links,
+                                            c.autopilot.system_id, c.autopilot.component_id)
         self._task: asyncio.Task[None] | None = None
         self._last: float | None = None
         self.steps = 0
@@ -180,6 +192,8 @@ class Simulator:
         self.steps += 1
 
     def _on_message(self, msg: Any, link: UdpLink) -> None:
+        # Forward first, then act, as ArduPilot's check_and_forward and PX4's receiver do.
+        self.routing.on_message(msg, link)
         self.autopilot.now = asyncio.get_running_loop().time()
         self.autopilot.handle_message(msg, link)
 

@@ -75,8 +75,9 @@ class MavPeer:
         assert self._udp is not None
         return self._udp.get_extra_info("sockname")[:2]
 
-    async def listen_udp(self) -> tuple[str, int]:
-        """Bind a UDP socket for a link in ``udpout`` mode; replies go to whoever wrote last."""
+    async def listen_udp(self, port: int = 0) -> tuple[str, int]:
+        """Bind a UDP socket (127.0.0.1:``port``, 0 = any) for a link in ``udpout`` mode; replies
+        go to whoever wrote last."""
         peer = self
 
         class Proto(asyncio.DatagramProtocol):
@@ -85,7 +86,7 @@ class MavPeer:
                 peer._feed(data)
 
         loop = asyncio.get_running_loop()
-        self._udp, _ = await loop.create_datagram_endpoint(Proto, local_addr=("127.0.0.1", 0))
+        self._udp, _ = await loop.create_datagram_endpoint(Proto, local_addr=("127.0.0.1", port))
         return self.udp_address
 
     async def serve_tcp(self) -> tuple[str, int]:

@@ -38,9 +38,9 @@ def test_a_lost_target_holds_and_a_timeout_hands_back_each_as_its_own_event():
     ctl.on_frame(0.0, [zone(3, 12.0, 5.0, 0.0)], pose(0.0))
     ctl.on_trigger(trigger(0.0))
     ctl.pop_events()
-    t = 0.1
-    ctl.on_state(status(t))
-    ctl.on_frame(t, [zone(3, 12.0, 5.0, t, r=1.0)], pose(t))  # shrank below r0: lost, nothing else
+    for t in (0.1, 0.2):  # shrank below r0 on two frames in a row: lost, nothing else
+        ctl.on_state(status(t))
+        ctl.on_frame(t, [zone(3, 12.0, 5.0, t, r=1.0)], pose(t))
     hold = ctl.pop_events()
     assert _changes(hold) == [("APPROACH", "HOLD")]
     assert isinstance(hold[0], Holding) and hold[0].lost_zone_id == 3 and "shrank" in hold[0].reason

@@ -243,9 +243,9 @@ def test_the_recording_labels_every_decision_shadow(flight):
 def test_the_status_page_in_headless_chromium_shows_the_phase_the_zones_and_the_live_view(flight):
     assert flight.mjpeg_part.startswith(b"HTTP/1.1 200 OK") and b"--slzframe\r\nContent-Type: image/jpeg" \
         in flight.mjpeg_part
-    info = flight.svc.video_stream_information()  # what a ground station asking for it is told
-    assert info.uri == f"http://127.0.0.1:{flight.svc.cfg.live.port}/stream.mjpg"
-    assert (info.resolution_h, info.resolution_v) == (640 + 4 + 480, 480 + 28)
+    info = flight.svc.commands.video()  # what a ground station asking for it is told
+    assert info is not None and info.uri == f"http://127.0.0.1:{flight.svc.cfg.live.port}/stream.mjpg"
+    assert (info.width, info.height) == (640 + 4 + 480, 480 + 28)
     if flight.dom is None:
         pytest.skip(f"no headless browser: {flight.dom_error}")
     from html.parser import HTMLParser

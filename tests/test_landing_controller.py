@@ -178,6 +178,11 @@ def test_zone_lost_during_descent_retargets_to_another_stable_zone():
 def test_zone_shrinking_below_r0_with_no_alternative_holds_then_hands_back():
     ctl = LandingController(CFG)
     start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    t = 0.1
+    ctl.on_state(status(t, 10, 0, 17, mode="GUIDED"))
+    # One frame that sees it too small is not enough (lose_after_frames = 2): no command, no hold.
+    assert ctl.on_frame(t, [zone(1, 10, 0, t, r=1.5, born=-8)], pose(t, 10, 0, 17)) == []
+    assert ctl.phase == Phase.DESCEND
     t = 0.2
     ctl.on_state(status(t, 10, 0, 17, mode="GUIDED"))
     cmds = ctl.on_frame(t, [zone(1, 10, 0, t, r=1.5, born=-8)], pose(t, 10, 0, 17))
@@ -203,6 +208,47 @@ def test_hold_resumes_when_a_stable_zone_appears():
     assert ctl.phase == Phase.HOLD
     cmds = ctl.on_frame(0.3, [zone(4, 0, 30, 0.3)], pose(0.3, 10, 0, 17))
     assert ctl.phase == Phase.APPROACH and cmds[0].zone_id == 4
+
+
+def test_one_frame_that_sees_the_zone_too_small_pauses_commands_and_loses_nothing():
+    """The network's one-frame false detections used to throw a landing back to HOLD: a single
+    frame that sees less than r0 free around the vehicle now sends nothing and changes nothing,
+    and a good frame after it starts the count again. Two in a row lose the zone."""
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    texts(ctl)
+    t = 0.2
+    for k in range(6):  # bad, good, bad, good, ...: never two bad frames in a row
+        r = 1.2 if k % 2 == 0 else 4.1
+        ctl.on_state(status(t, 10, 0, 17, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, r=r, born=-8)], pose(t, 10, 0, 17))
+        if r < 2.0:
+            assert cmds == []  # nothing toward a zone this frame saw too small
+        assert ctl.phase == Phase.DESCEND
+        t += 0.1
+    assert ctl.failures_tolerated == 3 and texts(ctl) == []
+    for _ in range(2):
+        ctl.on_state(status(t, 10, 0, 17, mode="GUIDED"))
+        ctl.on_frame(t, [zone(1, 10, 0, t, r=1.2, born=-8)], pose(t, 10, 0, 17))
+        t += 0.1
+    assert ctl.phase == Phase.HOLD
+    assert any("zone 1 lost (shrank to r 1.2 m < r0 2 m); holding" in x for x in texts(ctl))
+
+
+def test_lose_after_one_frame_reacts_to_the_first_frame_as_before():
+    ctl = LandingController(dataclasses.replace(CFG, lose_after_frames=1))
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    ctl.on_state(status(0.2, 10, 0, 17, mode="GUIDED"))
+    cmds = ctl.on_frame(0.2, [zone(1, 10, 0, 0.2, r=1.5, born=-8)], pose(0.2, 10, 0, 17))
+    assert ctl.phase == Phase.HOLD and cmds[0].zone_id is None
+
+
+def test_a_zone_gone_from_the_tracks_is_lost_at_once_whatever_lose_after_frames_says():
+    ctl = LandingController(dataclasses.replace(CFG, lose_after_frames=5))
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
+    ctl.on_state(status(0.2, 10, 0, 17, mode="GUIDED"))
+    ctl.on_frame(0.2, [], pose(0.2, 10, 0, 17))  # the tracker dropped it: that took mu_1 frames already
+    assert ctl.phase == Phase.HOLD
 
 
 def test_a_briefly_unconfirmed_zone_pauses_commands_then_is_lost():
@@ -313,6 +359,8 @@ def test_config_errors_name_the_key():
         LandingConfig(descend_step_m=0)
     with pytest.raises(ValueError, match="min_track_hits"):
         PlannerConfig(min_track_hits=0)
+    with pytest.raises(ValueError, match="lose_after_frames"):
+        LandingConfig(lose_after_frames=0)
 
 
 def test_a_rangefinder_height_decides_when_to_land_over_raised_ground():
@@ -338,9 +386,9 @@ def test_touching_down_early_during_the_descent_hands_to_land():
 def test_hold_low_over_a_lost_zone_climbs_back_to_see():
     ctl = LandingController(dataclasses.replace(CFG, hold_height_m=15.0))
     start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
-    t = 0.2
-    ctl.on_state(status(t, 10, 0, 8, mode="GUIDED"))
-    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, r=1.0, born=-8)], pose(t, 10, 0, 8))
+    for t in (0.1, 0.2):  # seen too small on two frames in a row: lost
+        ctl.on_state(status(t, 10, 0, 8, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, r=1.0, born=-8)], pose(t, 10, 0, 8))
     assert ctl.phase == Phase.HOLD
     assert cmds[0].zone_id is None and cmds[0].target.rel_alt_m == pytest.approx(15.0)
 
@@ -385,10 +433,11 @@ def test_the_takeover_budget_does_not_interrupt_a_landing_under_way():
 def test_descent_needs_r0_free_around_the_vehicle_not_only_around_the_zone_centre():
     ctl = LandingController(CFG)
     start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)])
-    t = 0.2
-    # The vehicle is 0.9 m off the zone's centre; the zone is 2.5 m: only 1.6 m free around it.
-    ctl.on_state(status(t, 10.9, 0, 17, mode="GUIDED"))
-    ctl.on_frame(t, [zone(1, 10, 0, t, r=2.5, born=-8)], pose(t, 10.9, 0, 17))
+    # The vehicle is 0.9 m off the zone's centre; the zone is 2.5 m: only 1.6 m free around it,
+    # on two frames in a row.
+    for t in (0.1, 0.2):
+        ctl.on_state(status(t, 10.9, 0, 17, mode="GUIDED"))
+        ctl.on_frame(t, [zone(1, 10, 0, t, r=2.5, born=-8)], pose(t, 10.9, 0, 17))
     assert ctl.phase == Phase.HOLD
     assert any("1.6 m free around the vehicle < r0 2 m" in x for x in texts(ctl))
 
@@ -429,8 +478,9 @@ def test_a_zone_seen_occupied_or_lost_from_a_large_view_in_land_still_sends_it_t
     assert ctl.phase == Phase.HOLD
     ctl = LandingController(CFG)
     t = _in_land(ctl, r_view=1.1)
-    ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
-    ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, r=0.4)], pose(t, 10, 0, 5.9))  # someone walked in
+    for k in range(2):  # someone walked in, seen on two frames in a row
+        ctl.on_state(status(t + 0.1 * k, 10, 0, 5.9, mode="LAND"))
+        ctl.on_frame(t + 0.1 * k, [zone(1, 10, 0, t + 0.1 * k, born=-8, r=0.4)], pose(t + 0.1 * k, 10, 0, 5.9))
     assert ctl.phase == Phase.HOLD
 
 

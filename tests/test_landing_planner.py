@@ -15,7 +15,7 @@ def _track(r, view_limited=False, r_view=20.0, misses=0):
 def test_small_zone_is_lost_when_something_is_seen_inside_r0():
     p = ZonePlanner(PlannerConfig(r0_m=2.0))
     verdict, _, why = p.check_target(7, [_track(1.5)], now=10.1)
-    assert verdict is ZoneCheck.LOST and "shrank" in why
+    assert verdict is ZoneCheck.SMALL and "shrank" in why
 
 
 def test_low_over_the_zone_a_small_view_that_is_all_free_still_holds():
@@ -24,7 +24,7 @@ def test_low_over_the_zone_a_small_view_that_is_all_free_still_holds():
     assert verdict is ZoneCheck.OK
     # ... but not a view too small to tell anything.
     verdict, _, _ = p.check_target(7, [_track(0.6, view_limited=True, r_view=0.6)], now=10.1)
-    assert verdict is ZoneCheck.LOST
+    assert verdict is ZoneCheck.SMALL
 
 
 def test_a_view_limited_zone_is_still_never_chosen_below_r0_plus_margin():

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from companion.control.touchdown import DescentProfile
+from companion.control.touchdown import DescentProfile, guaranteed_clearance
 
 
 def test_time_to_touchdown_is_the_two_descents():
@@ -27,3 +27,36 @@ def test_a_walker_reaches_the_zone_no_later_than_walking_allows():
 def test_bad_profiles_are_refused(field):
     with pytest.raises(ValueError, match=field):
         DescentProfile(**{field: -1.0})
+
+
+K_SIM = 0.75 * math.tan(math.radians(35.0))  # the simulator's 70 degree 4:3 camera: 0.525
+
+
+def test_the_guarantee_is_what_was_last_seen_less_the_walk_since():
+    still = DescentProfile(walk_speed_mps=1e-9, land_alt_m=10.0)
+    # Nobody walks: the widest look (from the top) is what is guaranteed.
+    assert guaranteed_clearance(still, 21.7, K_SIM) == pytest.approx(K_SIM * 20.0, abs=1e-6)
+    # One height only (head plane): nothing seen, and the walk from there.
+    p = DescentProfile(walk_speed_mps=1.5, land_alt_m=10.0, land_speed_mps=0.5)
+    assert guaranteed_clearance(p, 1.7, K_SIM) == pytest.approx(-1.5 * 1.7 / 0.5)
+
+
+def test_with_the_simulators_camera_no_descent_guarantees_r0_against_walkers():
+    """The physics of docs/design.md: at the descent speeds multicopters fly (ArduPilot's default
+    WPNAV_SPEED_DN 1.5 m/s, even 3 m/s) the camera's view shrinks about as fast as a walker closes
+    in, so no worst-case promise comes from the vehicle's own camera."""
+    for descend, land, land_alt in ((1.5, 0.5, 10.0), (1.5, 0.5, 2.0), (3.0, 1.0, 1.0)):
+        p = DescentProfile(descend_speed_mps=descend, land_speed_mps=land, land_alt_m=land_alt, walk_speed_mps=1.5)
+        for height in (10.0, 20.0, 25.0, 40.0):
+            assert guaranteed_clearance(p, height, K_SIM) < 2.0, (descend, land, land_alt, height)
+    # Only a dive well above walk_speed / k (2.9 m/s here) nearly to the ground would: 5 m/s to
+    # 0.5 m and a 2 m/s touchdown, from 20 m, into the vortex-ring regime of a multicopter.
+    dive = DescentProfile(descend_speed_mps=5.0, land_speed_mps=2.0, land_alt_m=0.5, walk_speed_mps=1.5)
+    assert guaranteed_clearance(dive, 20.0, K_SIM) > 2.0
+
+
+def test_guaranteed_clearance_refuses_nonsense():
+    with pytest.raises(ValueError):
+        guaranteed_clearance(DescentProfile(), math.nan, K_SIM)
+    with pytest.raises(ValueError):
+        guaranteed_clearance(DescentProfile(), 10.0, -1.0)

@@ -23,7 +23,7 @@ from companion.pipeline.density import DensityModel
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 from companion.replay.live_figure import CAPTION_PX
 from companion.service import web
-from companion.service.web import LiveView, Snapshot, WebServer, stream_uri, video_stream_information
+from companion.service.web import LiveView, Snapshot, WebServer, live_video_stream, stream_uri
 
 
 @pytest.fixture(scope="module")
@@ -162,17 +162,31 @@ async def test_a_port_in_use_leaves_the_service_running_without_the_page(model_p
         assert texts[-1].startswith("SLZ: status page off: 127.0.0.1:") and len(texts[-1]) <= 50
 
 
-def test_the_stream_is_announced_only_when_on():
-    class FakeLink:  # only the encoder is needed: a real pymavlink encoder
-        from pymavlink.dialects.v20 import ardupilotmega as m
-        mav = m.MAVLink(None, 1, 191)
+async def test_the_stream_is_announced_only_while_served(model_path):
+    from companion.service.app import Service, load_model
 
     on = LiveSettings(enabled=True, address="127.0.0.1", port=8090)
-    msg = video_stream_information(FakeLink, on, 1124, 508)
-    assert msg.uri == "http://127.0.0.1:8090/stream.mjpg" and (msg.resolution_h, msg.resolution_v) == (1124, 508)
-    assert math.isclose(msg.framerate, 5.0)
-    assert video_stream_information(FakeLink, LiveSettings(), 1124, 508) is None
+    stream = live_video_stream(on, 1124, 508)
+    assert stream.uri == "http://127.0.0.1:8090/stream.mjpg" and (stream.width, stream.height) == (1124, 508)
+    assert math.isclose(stream.framerate_hz, 5.0)
     assert stream_uri(LiveSettings(address="0.0.0.0", port=9000)).endswith(":9000/stream.mjpg")
+    # The service's provider for the camera protocol: None until the page is served.
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = config.load(None, {"live.enabled": True, "live.port": port})
+    svc = Service(cfg, load_model(cfg))
+    assert svc.commands.video() is None
+    await svc._start_web()
+    try:
+        got = svc.commands.video()
+        assert got is not None and got.uri == f"http://127.0.0.1:{port}/stream.mjpg"
+        assert (got.width, got.height) == (640 + 4 + 480, 480 + CAPTION_PX)
+    finally:
+        assert svc.web is not None
+        await svc.web.close()
+    off = Service(config.load(None, {}), svc.model)
+    assert off.commands.video() is None
 
 
 @pytest.mark.parametrize("key, value, says", [

@@ -63,6 +63,7 @@ class PhaseChanged(Event):
 
     kind: ClassVar[str] = "phase"
     zone_id: int | None = None
+    touchdown_clearance_m: float | None = None  # see TargetChosen
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,10 @@ class TargetChosen(Event):
     east: float = 0.0
     r: float = 0.0
     lost_zone_id: int | None = None
+    #: The least clearance (m) the zone can have at touchdown if the vehicle came down now, with
+    #: every walker heading for it (``companion.control.touchdown``): the zone's radius less the
+    #: walking speed times the time to touchdown. Negative: a walker could be there by then.
+    touchdown_clearance_m: float | None = None
 
 
 @dataclass(frozen=True)

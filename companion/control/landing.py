@@ -55,12 +55,13 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from companion.control.commands import Command, Goto, Handback, Land, PositionTarget
 from companion.control.events import Event, HandedBack, Holding, Note, Phase, PhaseChanged, TargetChosen
 from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
 from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
+from companion.control.touchdown import DescentProfile
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
@@ -94,6 +95,7 @@ class LandingConfig:
     state_timeout_s: float = 1.0
     pose_timeout_s: float = 2.0
     max_refusals: int = 3
+    lose_after_frames: int = 2
     handback_action: str = "LAND"
     external_modes: tuple[str, ...] = ("GUIDED", "OFFBOARD")
     retarget_min_move_m: float = 0.3
@@ -102,6 +104,9 @@ class LandingConfig:
     max_alt_m: float = 120.0
     ceiling_margin_m: float = 1.0
     obedience: ObedienceConfig = field(default_factory=ObedienceConfig)
+    #: How fast the vehicle will come down (the configured speeds until the autopilot's own
+    #: parameters are read, ``LandingController.use_autopilot_speeds``).
+    descent: DescentProfile = field(default_factory=DescentProfile)
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -114,6 +119,8 @@ class LandingConfig:
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
         if self.max_refusals < 1:
             raise ValueError("controller max_refusals must be >= 1")
+        if self.lose_after_frames < 1:
+            raise ValueError(f"controller lose_after_frames must be >= 1, not {self.lose_after_frames!r}")
         if not (math.isfinite(self.ceiling_margin_m) and self.ceiling_margin_m >= 0):
             raise ValueError(f"controller ceiling_margin_m must be >= 0, not {self.ceiling_margin_m!r}")
         if not (math.isfinite(self.search_climb_m) and self.search_climb_m >= self.ceiling_margin_m):
@@ -182,7 +189,10 @@ class LandingController:
         self._level = math.nan  # the planned altitude (m above home)
         self._aim: tuple[float, float] | None = None  # landing point, north/east metres
         self._blind = False  # in LAND, the zone went out of view: committed
+        self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
+        self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.obedience = ObedienceMonitor(self.config.obedience)
+        self.descent = self.config.descent
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -291,6 +301,26 @@ class LandingController:
             self._last_goto = None  # re-send at the next frame
         return []
 
+    def use_autopilot_speeds(self, speeds: dict[str, float], source: str) -> None:
+        """Take the autopilot's own descent speeds (m/s by ``DescentProfile`` field, read from its
+        parameters) for the time to touchdown; a value that is not a positive number is ignored."""
+        known = {k: v for k, v in speeds.items()
+                 if k in ("descend_speed_mps", "land_speed_mps") and math.isfinite(v) and v > 0}
+        if not known:
+            return
+        self.descent = replace(self.descent, **known)
+        d = self.descent
+        self._event(f"descent {d.descend_speed_mps:.1f} m/s, LAND {d.land_speed_mps:.1f} m/s ({source})")
+
+    def touchdown_clearance(self, track: Track) -> float | None:
+        """The least clearance (m) ``track`` can have at touchdown if the vehicle came down over it
+        now from its present height, with every walker heading for it (``DescentProfile``); None
+        without a vehicle position."""
+        if self.status is None:
+            return None
+        value = self.descent.clearance_at_touchdown(track.r, self.status.height)
+        return round(value, 2) if math.isfinite(value) else None
+
     def zone_target(self) -> Track | None:
         """The zone the vehicle flies to (after a trigger), or would fly to now (before one): what
         the flight recording, the status line and the ground station call "the target". After
@@ -367,6 +397,7 @@ class LandingController:
         s, c = self.status, self.config
         assert s is not None
         self.target = zone
+        self._failing = 0
         self._aim = (zone.x, zone.y)
         if s.alt < self._level - c.alt_tolerance_m:
             self._level = s.alt  # it came down before we took over: do not climb back for nothing
@@ -375,7 +406,7 @@ class LandingController:
         dist = math.hypot(zone.x - s.north, zone.y - s.east)
         self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m",
                         event=TargetChosen, zone_id=zone.id, north=zone.x, east=zone.y, r=zone.r,
-                        lost_zone_id=lost_id)
+                        lost_zone_id=lost_id, touchdown_clearance_m=self.touchdown_clearance(zone))
         self._last_goto = None
         return self._goto(zone.x, zone.y, self._level, zone.id)
 
@@ -383,16 +414,36 @@ class LandingController:
         assert self.target is not None
         verdict, track, why = self.planner.check_target(self.target.id, self.tracks, self.now)
         if verdict == ZoneCheck.LOST:
+            # Gone from the tracks, or unconfirmed for zone_max_age_s: that already took time.
             if self._out_of_view(track):
                 return []
             return self._lost(why)
         if verdict == ZoneCheck.UNCONFIRMED or track is None or not self._status_fresh():
             return []  # no new command toward a zone this frame did not confirm
-        self.target = track
         s = self.status
         assert s is not None
         c = self.config
         seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
+        # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
+        # free is r0 around the vehicle, i.e. the zone's radius less the vehicle's offset.
+        off_centre = math.hypot(track.x - s.north, track.y - s.east)
+        if verdict == ZoneCheck.OK and self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free and \
+                track.r - off_centre < c.planner.r0_m:
+            verdict, why = ZoneCheck.SMALL, f"{track.r - off_centre:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m"
+        if verdict == ZoneCheck.SMALL:
+            # A zone seen too small is lost only when ``lose_after_frames`` frames in a row say so:
+            # the network marks a patch of ground as a person in one frame now and then (at 10 m
+            # about one frame in thirty, on the simulator's ground), and one such frame used to
+            # throw a LAND over a free circle back to HOLD every few seconds. A person who walks
+            # in is seen on every frame: the reaction comes one frame later (0.1 s at 10 Hz, 0.15
+            # m at walking pace). No command goes toward the zone meanwhile.
+            self._failing += 1
+            if self._failing < c.lose_after_frames:
+                self.failures_tolerated += 1
+                return []
+            return self._lost(why)
+        self._failing = 0
+        self.target = track
         # The landing point stays where it is while the zone still holds r0 plus the margin around
         # it; only then does it move to the zone's new centre (see the module docstring). A zone
         # bounded by the view (everything seen is free) keeps it while the view still shows
@@ -402,12 +453,6 @@ class LandingController:
         if aim is None or track.r - math.hypot(aim[0] - track.x, aim[1] - track.y) < room:
             aim = self._aim = (track.x, track.y)
         dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
-        # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
-        # free is r0 around the vehicle, i.e. the zone's radius less the vehicle's offset.
-        off_centre = math.hypot(track.x - s.north, track.y - s.east)
-        if self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free and \
-                track.r - off_centre < c.planner.r0_m:
-            return self._lost(f"{track.r - off_centre:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m")
         if self.phase == Phase.APPROACH:
             if dist > c.arrive_radius_m:
                 return self._goto(aim[0], aim[1], self._level, track.id)
@@ -417,7 +462,7 @@ class LandingController:
             if (dist <= c.arrive_radius_m and low) or s.on_ground:
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",
-                                zone_id=track.id)
+                                zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track))
                 return [Land()]
             # The plan's next step: one step down once the vehicle has reached the current level
             # over the zone, so a lost zone never leaves the vehicle committed to a long descent.

@@ -15,7 +15,9 @@ The target among eligible zones is the oldest (earliest ``born_t``, then lowest 
 A zone already targeted is **kept** with a looser test (hysteresis, so a radius flickering around
 the threshold does not make the vehicle dither): present, ``r >= r0_m``, and confirmed within
 ``zone_max_age_s``. A kept zone with ``misses > 0`` is *unconfirmed*: no new command goes toward it
-until a frame confirms it again, and it is lost once ``zone_max_age_s`` passes.
+until a frame confirms it again, and it is lost once ``zone_max_age_s`` passes. A zone seen with
+less than ``r0_m`` free is *small*: the controller drops it once that has lasted its
+``lose_after_frames`` frames in a row (one frame's false detection must not throw a landing away).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class PlannerConfig:
 class ZoneCheck(enum.Enum):
     OK = "ok"
     UNCONFIRMED = "unconfirmed"  # missed by the latest frame(s), not yet for too long
+    SMALL = "small"  # confirmed by this frame, but with less than r0 free: lost if it stays so
     LOST = "lost"
 
 
@@ -99,7 +102,7 @@ class ZonePlanner:
         # must be free (the tracker says so with view_limited), and it must see at least 0.75 m.
         seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
         if track.r < self.config.r0_m and not seen_all_free:
-            return ZoneCheck.LOST, track, f"shrank to r {track.r:.1f} m < r0 {self.config.r0_m:g} m"
+            return ZoneCheck.SMALL, track, f"shrank to r {track.r:.1f} m < r0 {self.config.r0_m:g} m"
         if track.misses > 0:
             return ZoneCheck.UNCONFIRMED, track, f"missed by {track.misses} frame(s)"
         return ZoneCheck.OK, track, ""

@@ -45,3 +45,21 @@ class DescentProfile:
         """The least clearance (m) a zone of ``clearance_now_m`` can have at touchdown from
         ``height_m``: less the distance a walker covers meanwhile (negative: somebody may be there)."""
         return clearance_now_m - self.walk_speed_mps * self.time_to_touchdown(height_m)
+
+
+def guaranteed_clearance(profile: DescentProfile, height_m: float, view_ratio: float, head_m: float = 1.7,
+                         step_m: float = 0.1) -> float:
+    """The clearance (m) a vertical descent from ``height_m`` can guarantee at touchdown against
+    walkers at ``profile.walk_speed_mps`` heading for it from just beyond what the camera sees:
+    ``max over h <= height_m of view_ratio * (h - head_m) - walk_speed * time_to_touchdown(h)``,
+    evaluated every ``step_m``. ``view_ratio``: ground radius seen per metre of height above the
+    head plane (the tangent of half the narrower field of view). See the module docstring."""
+    if not (math.isfinite(height_m) and math.isfinite(view_ratio) and view_ratio >= 0 and step_m > 0):
+        raise ValueError("guaranteed_clearance needs a finite height, a view ratio >= 0 and a step > 0")
+    best = -math.inf
+    n = max(0, int(math.floor(max(0.0, height_m - head_m) / step_m)))
+    for i in range(n + 1):
+        h = min(height_m, head_m + i * step_m)
+        seen = view_ratio * max(0.0, h - head_m)
+        best = max(best, seen - profile.walk_speed_mps * profile.time_to_touchdown(h))
+    return best

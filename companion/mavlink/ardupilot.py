@@ -31,6 +31,9 @@ class ArduPilotCopter(Autopilot):
     name = "ardupilot"
     GUIDED = "GUIDED"
     FAILSAFE_MODES = frozenset({"LAND", "RTL", "SMART_RTL"})
+    # GUIDED comes down at WPNAV_SPEED_DN; LAND below LAND_ALT_LOW (10 m by default, where the
+    # companion commands it) at LAND_SPEED. Both in cm/s.
+    DESCENT_PARAMS = {"WPNAV_SPEED_DN": ("descend_speed_mps", 0.01), "LAND_SPEED": ("land_speed_mps", 0.01)}
 
     def mode_name(self, base_mode: int, custom_mode: int) -> str:
         return _NAMES.get(custom_mode, f"MODE({custom_mode})")

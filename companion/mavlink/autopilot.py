@@ -21,8 +21,13 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.control.commands import PositionTarget
 from companion.mavlink.link import MavLink
+from companion.mavlink.params import read_params
 
 log = logging.getLogger(__name__)
+
+#: Speeds read from an autopilot outside this range (m/s) are not believed (a unit mix-up, a
+#: garbled value): the configured speed stays.
+PLAUSIBLE_SPEED_MPS = (0.05, 20.0)
 
 # SET_POSITION_TARGET_* type_mask: use x/y/z only; ignore velocity, acceleration, yaw, yaw rate.
 TYPE_MASK_POSITION_ONLY = (
@@ -48,6 +53,10 @@ class Autopilot(ABC):
     #: mode names that mean the autopilot's own failsafe is landing or returning
     FAILSAFE_MODES = frozenset({"LAND", "RTL"})
 
+    #: The parameters that set how fast the vehicle comes down: name -> (``DescentProfile`` field,
+    #: factor to m/s). Empty: the configured speeds are used.
+    DESCENT_PARAMS: dict[str, tuple[str, float]] = {}
+
     def __init__(self, link: MavLink) -> None:
         self.link = link
         self.mode: str | None = None  # current mode name from the last autopilot heartbeat
@@ -60,6 +69,24 @@ class Autopilot(ABC):
     def _on_heartbeat(self, msg: Any, _t: float) -> None:
         if self.link.is_autopilot_heartbeat(msg):
             self.mode = self.mode_name(msg.base_mode, msg.custom_mode)
+
+    async def descent_speeds(self, *, timeout_s: float = 1.0, retries: int = 2) -> dict[str, float]:
+        """The autopilot's own descent speeds (m/s) by ``DescentProfile`` field, read from its
+        parameters (``DESCENT_PARAMS``): those it answered in time with a plausible value."""
+        if not self.DESCENT_PARAMS:
+            return {}
+        values = await read_params(self.link, self.DESCENT_PARAMS, timeout_s=timeout_s, retries=retries)
+        speeds: dict[str, float] = {}
+        lo, hi = PLAUSIBLE_SPEED_MPS
+        for name, raw in values.items():
+            field, factor = self.DESCENT_PARAMS[name]
+            mps = raw * factor
+            if lo <= mps <= hi:
+                speeds[field] = mps
+            else:
+                log.warning("autopilot parameter %s = %g gives %g m/s, outside %g-%g m/s: not used",
+                            name, raw, mps, lo, hi)
+        return speeds
 
     # -- modes -------------------------------------------------------------------------------
 

@@ -10,7 +10,10 @@ Sources, each switchable in ``FailsafeConfig``:
   seen as a mode change in its heartbeat, unless the companion asked for that mode.
 - ``gcs_command``: ``COMMAND_LONG`` (or ``COMMAND_INT``) ``MAV_CMD_USER_1`` (31010) addressed to our system and
   component (191). Accepted (``MAV_RESULT_ACCEPTED``) only from ``gcs_system_ids``; any other
-  sender, or this source switched off, gets ``MAV_RESULT_DENIED``. Params are ignored.
+  sender, or this source switched off, gets ``MAV_RESULT_DENIED`` and a STATUSTEXT saying why.
+  Params are ignored. A USER_1 broadcast to component 0 is not a trigger (USER_1 is user-defined:
+  another component may own it) and gets no answer. With a ``CommandServer``
+  (``attach(commands)``) the server acks it; alone, the monitor acks it itself.
 - ``local_trigger``: ``trigger_local(reason)`` (the service wires SIGUSR1 to it) and, when
   ``local_socket`` is a path, a Unix stream socket taking the line ``trigger [reason]``; it
   answers ``ok`` or ``ignored: <why>`` (``send_local_trigger`` is the client).
@@ -34,7 +37,9 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.control.trigger import Trigger, TriggerSource
 from companion.mavlink.autopilot import Autopilot
+from companion.mavlink.gcs_commands import CommandServer, Reply, send_reply
 from companion.mavlink.link import MavLink
+from companion.mavlink.statustext import send_statustext
 
 log = logging.getLogger(__name__)
 
@@ -89,10 +94,14 @@ class FailsafeMonitor:
         self._last_mode: str | None = None
         self._server: asyncio.AbstractServer | None = None
 
-    def attach(self) -> None:
-        """Subscribe to the link: vehicle telemetry, and commands from every system."""
+    def attach(self, commands: CommandServer | None = None) -> None:
+        """Subscribe to the link: vehicle telemetry, and the trigger command from every system
+        (through ``commands``, which answers every command, when given)."""
         for name in ("HEARTBEAT", "BATTERY_STATUS", "SYS_STATUS"):
             self.link.subscribe(name, self.handle)
+        if commands is not None:
+            commands.register(TRIGGER_COMMAND, self.trigger_command)
+            return
         self.link.subscribe("COMMAND_LONG", self._on_command_long, any_source=True)
         self.link.subscribe("COMMAND_INT", self._on_command_long, any_source=True)  # same fields we use
 
@@ -150,24 +159,33 @@ class FailsafeMonitor:
             self._fire(TriggerSource.AUTOPILOT_MODE, f"autopilot switched itself to {mode}", t)
 
     def _on_command_long(self, msg: Any, t: float) -> None:
+        """The trigger without a ``CommandServer``: answer USER_1 addressed to us, ignore the rest."""
         if msg.command != TRIGGER_COMMAND:
             return
         if msg.target_system != self.link.config.system_id or msg.target_component != self.link.config.component_id:
-            return  # for another component; not ours to answer
+            return  # for another component (or everyone): not ours to answer
+        reply = self.trigger_command(msg, t, False)
+        if reply is not None:
+            send_reply(self.link, msg, reply)
+            if reply.text:
+                send_statustext(self.link, reply.text, reply.severity)
+            if reply.then is not None:
+                reply.then()
+
+    def trigger_command(self, msg: Any, t: float, broadcast: bool) -> Reply | None:
+        """``MAV_CMD_USER_1`` addressed to us, received at monotonic ``t`` (s): fire and accept, or
+        deny saying why. A broadcast one is not a trigger (None: no answer)."""
+        if broadcast:
+            return None
         sender = msg.get_srcSystem()
         if not self.config.gcs_command:
             log.warning("trigger command from system %d denied: gcs_command is off", sender)
-            result = m.MAV_RESULT_DENIED
-        elif sender not in self.config.gcs_system_ids:
+            return Reply(m.MAV_RESULT_DENIED, "SLZ: trigger refused: gcs_command off")
+        if sender not in self.config.gcs_system_ids:
             log.warning("trigger command from system %d denied: not in gcs_system_ids %s", sender, self.config.gcs_system_ids)
-            result = m.MAV_RESULT_DENIED
-        else:
-            result = m.MAV_RESULT_ACCEPTED
-        self.link.send(
-            self.link.mav.command_ack_encode(msg.command, result, 0, 0, sender, msg.get_srcComponent())
-        )
-        if result == m.MAV_RESULT_ACCEPTED:
-            self._fire(TriggerSource.GCS_COMMAND, f"ground station (system {sender}) asked to land", t)
+            return Reply(m.MAV_RESULT_DENIED, f"SLZ: trigger refused: system {sender} not a GCS")
+        reason = f"ground station (system {sender}) asked to land"
+        return Reply(m.MAV_RESULT_ACCEPTED, then=lambda: self._fire(TriggerSource.GCS_COMMAND, reason, t))
 
     def trigger_local(self, reason: str = "local request") -> Trigger | None:
         """Trigger from this machine (signal, CLI). Returns the trigger, or None if switched off."""

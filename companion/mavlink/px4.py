@@ -51,6 +51,9 @@ def px4_custom_mode(main: int, sub: int = 0) -> int:
 class PX4(Autopilot):
     name = "px4"
     OFFBOARD = "OFFBOARD"
+    # OFFBOARD position setpoints come down at most at MPC_Z_VEL_MAX_DN; AUTO.LAND's final
+    # descent is MPC_LAND_SPEED. Both in m/s.
+    DESCENT_PARAMS = {"MPC_Z_VEL_MAX_DN": ("descend_speed_mps", 1.0), "MPC_LAND_SPEED": ("land_speed_mps", 1.0)}
 
     def __init__(self, link: MavLink, *, setpoint_rate_hz: float = 10.0, warmup_s: float = 1.2) -> None:
         super().__init__(link)

@@ -11,6 +11,9 @@ start the camera, wait for the first autopilot heartbeat, then tell systemd READ
   A frame without a fresh pose is recorded but never used for decisions;
 - the failsafe monitor turns telemetry into a trigger for the controller; SIGUSR1 is a local
   trigger;
+- the command server answers every command a ground station addresses to the companion
+  (``companion.mavlink.gcs_commands``): the trigger, camera and live-view information, and
+  UNSUPPORTED for the rest; from the start, before the autopilot is heard;
 - the health loop logs per-stage timings, frame counters and link/camera state every
   ``log.health_interval_s``, reports external faults (no autopilot heartbeat, camera not
   delivering) as ``STATUS=degraded: ...`` while it keeps feeding the systemd watchdog (a restart
@@ -49,8 +52,9 @@ from companion.control.landing import LandingController
 from companion.control.trigger import Trigger
 from companion.geometry.camera import GeometryError, Pose
 from companion.mavlink.autopilot import Autopilot, FlavourError
-from companion.mavlink.failsafe import FailsafeMonitor
+from companion.mavlink.failsafe import TRIGGER_COMMAND, FailsafeMonitor
 from companion.mavlink.flavours import select_flavour
+from companion.mavlink.gcs_commands import CommandServer, Reply, VideoStream, VideoStreamProvider
 from companion.mavlink.link import MavLink
 from companion.mavlink.state import VehicleState
 from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
@@ -65,7 +69,7 @@ from companion.service.gcs import PHASE_CODES, GroundStation
 from companion.service.health import PIPELINE_STUCK_S, FaultLog, FrameCounters, Health, StageTimings, assess
 from companion.service.landing_runner import LandingRunner
 from companion.service.notify import Notifier
-from companion.service.web import LiveView, Snapshot, WebServer, stream_uri, video_stream_information
+from companion.service.web import LiveView, Snapshot, WebServer, live_video_stream, stream_uri
 
 log = logging.getLogger("companion.service")
 
@@ -109,7 +113,8 @@ class Service:
 
     def __init__(self, cfg: Config, model: DensityModel, notifier: Notifier | None = None, *,
                  link: MavLink | None = None, camera: CameraSource | None = None,
-                 pipeline: SLZPipeline | None = None) -> None:
+                 pipeline: SLZPipeline | None = None,
+                 video_stream: VideoStreamProvider | None = None) -> None:
         self.cfg = cfg
         self.model = model
         self.notifier = notifier or Notifier()
@@ -117,6 +122,12 @@ class Service:
         self.mount = settings.mount(cfg)
         self.pipeline = pipeline or build_pipeline(cfg, model)
         self.link = link or MavLink(settings.link_config(cfg))
+        # Answers to the ground station's commands. ``video_stream`` gives the live view's
+        # VIDEO_STREAM_INFORMATION once there is one (None: "no live view configured"); by
+        # default the service's own (``live.enabled``), asked only when a request comes.
+        self.commands = CommandServer(self.link, camera=settings.camera_info(cfg),
+                                      video=video_stream or self.live_video_stream)
+        self.commands.register(TRIGGER_COMMAND, self._trigger_before_wiring)
         # Telemetry placed in time by the autopilot's clock; a frame may still be paired with a
         # held pose up to max_pose_age_s old, which then carries its true age to the controller.
         self.state = VehicleState(max_extrapolation_s=cfg.pipeline.max_pose_age_s,
@@ -167,6 +178,11 @@ class Service:
             return
         self.monitor.trigger_local("SIGUSR1 to the service")
 
+    @staticmethod
+    def _trigger_before_wiring(msg: Any, t: float, broadcast: bool) -> Reply | None:
+        """The trigger before the autopilot is heard: nobody could fly the landing yet."""
+        return None if broadcast else Reply(m.MAV_RESULT_DENIED, "SLZ: trigger refused: no autopilot yet")
+
     def _warn_unsigned(self, connected: bool = True) -> None:
         """Loud, at start and at every link-up: an unsigned link trusts whoever claims the ids."""
         if connected and self.link.config.signing_key is None:
@@ -178,6 +194,7 @@ class Service:
         self._install_signals()
         c = self.cfg
         self.state.attach(self.link)
+        self.commands.attach()
         self._warn_unsigned()
         self.link.on_link_change(self._warn_unsigned)
         try:
@@ -262,7 +279,7 @@ class Service:
         self.autopilot = select_flavour(self.link, c.link.flavour)
         log.info("autopilot flavour: %s", self.autopilot.name)
         self.monitor = FailsafeMonitor(settings.failsafe_config(c), self.link, self.autopilot)
-        self.monitor.attach()
+        self.monitor.attach(self.commands)
         # The landing controller behind its async runner: commands through the autopilot
         # flavour, events recorded here and sent to the ground station as STATUSTEXT.
         self.runner = LandingRunner(LandingController(settings.landing_config(c)), self.autopilot,
@@ -542,14 +559,14 @@ class Service:
         self.web = web
         log.info("status page on http://%s:%d/, live view %s", live.address, web.port, stream_uri(live))
 
-    def video_stream_information(self) -> Any | None:
-        """The VIDEO_STREAM_INFORMATION announcing the live view (None when it is off or could not
-        start): for the camera-protocol handler's provider hook (MAV_CMD_REQUEST_MESSAGE 269)."""
+    def live_video_stream(self) -> VideoStream | None:
+        """The live view as VIDEO_STREAM_INFORMATION announces it, None while it is off or could
+        not start: the provider of the ground station's camera protocol (``self.commands``)."""
         if self.live is None or self.web is None:
             return None
         w, h = self.intrinsics.width, self.intrinsics.height
         # The figure: the frame and its square head-plane view side by side, under the caption.
-        return video_stream_information(self.link, self.cfg.live, w + 4 + h, h + CAPTION_PX)
+        return live_video_stream(self.cfg.live, w + 4 + h, h + CAPTION_PX)
 
     def _target_numbers(self) -> tuple[Track | None, float | None]:
         """The target (flown to, or the one it would fly to now) and its least clearance at
@@ -642,11 +659,14 @@ class Service:
         log.info(
             "health %s: frames camera=%d processed=%d dropped=%d repeated=%d corrupt=%d no_pose=%d "
             "superseded=%d bad=%d errors=%d stalls=%d | link rx=%d bad=%d unknown=%d foreign=%d lost=%d "
-            "| telemetry late=%d backwards=%d rejected=%d clock=%s latency=%s | timings %s%s",
+            "| telemetry late=%d backwards=%d rejected=%d clock=%s latency=%s "
+            "| gcs commands=%d refused=%d malformed=%d | timings %s%s",
             "ok" if ok else f"BAD ({why})", cs.frames, fc.processed, cs.dropped, cs.repeated, cs.corrupt,
             fc.no_pose, fc.superseded, fc.bad, fc.errors, cs.stalls, ls.received, ls.bad, ls.unknown,
             self.link.transport.foreign, ls.link_losses, ck.late, ck.backwards, self.state.rejected, clock.source,
-            "-" if latency is None else f"{latency * 1000:.0f}ms", self.timings.format() or "-",
+            "-" if latency is None else f"{latency * 1000:.0f}ms",
+            self.commands.stats.answered, self.commands.stats.refused, self.commands.stats.malformed,
+            self.timings.format() or "-",
             "" if self.recorder is None else
             f" | recorder frames={self.recorder.stats.frames} dropped={self.recorder.stats.dropped}"
             f" errors={self.recorder.stats.errors} downsampled={self.recorder.stats.downsampled}",

@@ -128,17 +128,30 @@ class LandingRunner:
     async def run(self) -> None:
         """Tick and execute until cancelled (stops the autopilot's setpoint stream on the way out)."""
         worker = asyncio.create_task(self._execute_loop(), name="landing commands")
+        speeds = asyncio.create_task(self.read_autopilot_speeds(), name="autopilot speeds")
         try:
             while True:
                 self.step()
                 await asyncio.sleep(1.0 / self.tick_hz)
         finally:
+            speeds.cancel()
             # Cancel until it is done: a cancellation racing with a command's completion must
             # not leave the worker alive (and this coroutine waiting for it forever).
             while not worker.done():
                 worker.cancel()
                 await asyncio.wait({worker}, timeout=0.5)
             await self.autopilot.stop()
+
+    async def read_autopilot_speeds(self) -> None:
+        """Ask the autopilot for its descent speeds (parameters) once; the controller keeps the
+        configured ones for what it does not answer. Never fatal."""
+        try:
+            speeds = await self.autopilot.descent_speeds()
+        except Exception:  # a link or parsing fault: the configured speeds stay
+            log.exception("reading the autopilot's descent speeds failed")
+            return
+        self.controller.use_autopilot_speeds(speeds, f"{self.autopilot.name} parameters")
+        self._flush_events()
 
     def step(self) -> None:
         """One tick: the latest vehicle status, then timeouts."""

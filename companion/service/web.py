@@ -32,6 +32,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.config import LiveSettings
+from companion.mavlink.gcs_commands import VideoStream
 from companion.pipeline.slz import FrameResult
 from companion.replay.live_figure import live_jpeg
 
@@ -144,17 +145,15 @@ def stream_uri(settings: LiveSettings) -> str:
     return f"http://{host}:{settings.port}{STREAM_PATH}"
 
 
-def video_stream_information(link: Any, settings: LiveSettings, width: int, height: int) -> Any | None:
-    """The VIDEO_STREAM_INFORMATION announcing the live view, or None when it is off: for the
-    provider hook of the camera-protocol handler (a ground station's MAV_CMD_REQUEST_MESSAGE).
-    MAVLink has no stream type for HTTP MJPEG; ``TCP_MPEG`` with an ``http://`` URI is the nearest
-    (QGroundControl does not play it from the announcement; a browser, VLC or MAVProxy opens the URI).
-    ``width`` x ``height``: the figure's size (frame plus head-plane view and caption)."""
-    if not settings.enabled:
-        return None
-    return link.mav.video_stream_information_encode(
-        1, 1, m.VIDEO_STREAM_TYPE_TCP_MPEG, m.VIDEO_STREAM_STATUS_FLAGS_RUNNING, float(settings.max_fps),
-        width, height, 0, 0, 0, b"SLZ live view", stream_uri(settings).encode()[:160])
+def live_video_stream(settings: LiveSettings, width: int, height: int) -> VideoStream:
+    """The live view as VIDEO_STREAM_INFORMATION announces it (for the ground station's camera
+    protocol, ``companion.mavlink.gcs_commands``). MAVLink has no stream type for HTTP MJPEG;
+    ``TCP_MPEG`` with an ``http://`` URI is the nearest (QGroundControl does not play it from the
+    announcement; a browser, VLC or MAVProxy opens the URI). ``width`` x ``height``: the figure's
+    size (the frame and its head-plane view side by side, under the caption)."""
+    return VideoStream(uri=stream_uri(settings)[:160], width=width, height=height,
+                       framerate_hz=float(settings.max_fps), stream_type=m.VIDEO_STREAM_TYPE_TCP_MPEG,
+                       encoding=m.VIDEO_STREAM_ENCODING_UNKNOWN)
 
 
 class WebServer:

@@ -151,8 +151,6 @@ class Service:
         self.web_error: str | None = None
         self.decisions: deque[tuple[float, int, str]] = deque(maxlen=DECISIONS_KEPT)  # (t, severity, text)
         self.last_result: FrameResult | None = None
-        self.last_height_m: float | None = None  # above home, from the last processed frame's pose
-        self.descent = settings.descent_profile(cfg)
 
     # ---- lifecycle ---------------------------------------------------------------------------
     def request_stop(self, why: str = "") -> None:
@@ -490,7 +488,7 @@ class Service:
             self.counters.processed += 1
             self.last_processed_t = time.monotonic()
             self.timings.add(result.timings_ms)
-            self.last_result, self.last_height_m = result, -pose.down
+            self.last_result = result
             target: Track | None = None
             if self.runner is not None:
                 self.runner.on_frame(frame.t, result.tracks, pose)
@@ -570,11 +568,11 @@ class Service:
 
     def _target_numbers(self) -> tuple[Track | None, float | None]:
         """The target (flown to, or the one it would fly to now) and its least clearance at
-        touchdown if it committed now (``DescentProfile``, as replay computes ``clearance_m``)."""
-        target = None if self.controller is None else self.controller.zone_target()
-        if target is None or self.last_height_m is None:
-            return target, None
-        return target, self.descent.clearance_at_touchdown(target.r, self.last_height_m)
+        touchdown if it committed now: the controller's own figure (``DescentProfile`` with the
+        autopilot's descent speeds, as replay computes ``clearance_m``)."""
+        c = self.controller
+        target = None if c is None else c.zone_target()
+        return target, None if c is None or target is None else c.touchdown_clearance(target)
 
     def _caption(self, result: FrameResult, target: Track | None) -> str:
         shadow = "SHADOW  " if self.shadow else ""
@@ -599,14 +597,14 @@ class Service:
         health = self.health(now)
         target, clearance = self._target_numbers()
         result = self.last_result
-        height = self.last_height_m
 
         def finite(v: float | None, nd: int = 2) -> float | None:
             return None if v is None or not np.isfinite(v) else round(float(v), nd)
 
+        c = self.controller
         zones = [] if result is None else [
             {"id": tr.id, "north_m": finite(tr.x), "east_m": finite(tr.y), "r_m": finite(tr.r), "age": tr.age,
-             "clearance_m": None if height is None else finite(self.descent.clearance_at_touchdown(tr.r, height))}
+             "clearance_m": None if c is None else finite(c.touchdown_clearance(tr))}
             for tr in result.tracks]
         return {
             "ready": self.gcs.ready,

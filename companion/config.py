@@ -244,8 +244,8 @@ class GcsSettings:
 
     values_hz: float = _f(1.0, "rate of the NAMED_VALUE_FLOAT/INT numbers a ground station plots "
                                "(docs/ground-station-values.md); 0 = none", min=0.0, max=10.0)
-    frame_budget_ms: float = _f(0.0, "a median frame time (capture to decision) above this reports "
-                                     "'model slow'; 0 = the camera's frame period (1000 / camera.fps)",
+    frame_budget_ms: float = _f(0.0, "a median pipeline time per frame (last 20 frames) above this "
+                                     "reports 'model slow'; 0 = the camera's frame period (1000 / camera.fps)",
                                 min=0.0, max=60000.0)
 
 

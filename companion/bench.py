@@ -3,7 +3,9 @@
 Frames are synthetic crowds seen from a posed camera (20 m up, 70 deg horizontal field of view,
 straight down, slowly drifting) so the geometry stages do real work. The post-density stages run
 on the scene's ideal density map unless a model is given, in which case the model runs on the
-rendered frame and its own output feeds the rest. Figures are printed, never asserted: this
+rendered frame and its own output feeds the rest. ``live_view`` is what the service's live view
+costs per drawn frame while a client watches (the figure and its JPEG; ``live.max_fps`` at most,
+nothing without a client); it is not part of the pipeline's ``total``. Figures are printed, never asserted: this
 machine is shared and timings are noisy, so compare figures measured in one run.
 """
 
@@ -13,6 +15,7 @@ import argparse
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +24,7 @@ from companion import synthetic
 from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.pipeline.slz import STAGES, DensityFn, PipelineConfig, SLZPipeline
+from companion.replay.live_figure import live_jpeg
 
 RESOLUTIONS = ((640, 480), (1280, 720))
 
@@ -54,9 +58,15 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
             continue
         for name, ms in res.timings_ms.items():
             samples.setdefault(name, []).append(ms)
+        # The live view's cost while a client watches (the service draws nothing otherwise): the
+        # figure of this frame and its JPEG, as the service's live view makes them.
+        t0 = time.perf_counter()
+        live_jpeg(frame, res, res.tracks[0].id if res.tracks else None, "MONITOR  zones 0  no target  00:00:00")
+        samples.setdefault("live_view", []).append((time.perf_counter() - t0) * 1e3)
     wanted = list(STAGES if model is not None else STAGES[1:]) + ["post_density"]
     if model is not None:
         wanted.append("total")
+    wanted.append("live_view")
     return {name: _stats(samples[name]) for name in wanted}
 
 

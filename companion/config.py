@@ -235,6 +235,8 @@ class ControllerSettings:
                                    "has shown it can be is handed back to LAND (m)", min=0.3, max=20.0)
     obey_tolerance_xy_m: float = _f(2.0, "a vehicle further than this from its target than it has shown "
                                     "it can be is handed back to LAND (m)", min=0.5, max=50.0)
+    shadow: bool = _f(False, "shadow mode: watch, decide and report (STATUSTEXT 'SHADOW: ...', the "
+                             "recording) but never send a mode or position command (companion run --shadow)")
 
 
 @dataclass(frozen=True)
@@ -247,6 +249,31 @@ class RecorderSettings:
     max_mb: float = _f(2048.0, "disk budget for everything recorded in dir (video, frame index, events); "
                        "oldest files deleted first (MiB)", min=1.0)
     codec: str = _f("MJPG", "video codec: MJPG (.avi) or mp4v (.mp4)", choices=("MJPG", "mp4v"))
+
+
+@dataclass(frozen=True)
+class GcsSettings:
+    """What the ground station sees: health in the heartbeat, STATUSTEXT, named values."""
+
+    values_hz: float = _f(1.0, "rate of the NAMED_VALUE_FLOAT/INT numbers a ground station plots "
+                               "(docs/ground-station-values.md); 0 = none", min=0.0, max=10.0)
+    frame_budget_ms: float = _f(0.0, "a median pipeline time per frame (last 20 frames) above this "
+                                     "reports 'model slow'; 0 = the camera's frame period (1000 / camera.fps)",
+                                min=0.0, max=60000.0)
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """The annotated live view (HTTP MJPEG) and the status page, served by the service."""
+
+    enabled: bool = _f(False, "serve the status page (/), its JSON (/status.json) and the live view "
+                              "(/stream.mjpg)")
+    address: str = _f("127.0.0.1", "address to listen on: loopback by default; 0.0.0.0 exposes the "
+                                   "camera view to the whole network")
+    port: int = _f(8090, "TCP port (the simulator's camera uses 8080)", min=1, max=65535)
+    max_fps: float = _f(5.0, "most frames per second drawn for the live view (drawn only while a "
+                             "client watches)", min=0.1, max=30.0)
+    jpeg_quality: int = _f(80, "JPEG quality of the live view (1..100)", min=1, max=100)
 
 
 @dataclass(frozen=True)
@@ -268,6 +295,8 @@ class Config:
     failsafe: FailsafeSettings = field(default_factory=FailsafeSettings)
     controller: ControllerSettings = field(default_factory=ControllerSettings)
     recorder: RecorderSettings = field(default_factory=RecorderSettings)
+    gcs: GcsSettings = field(default_factory=GcsSettings)
+    live: LiveSettings = field(default_factory=LiveSettings)
     log: LogSettings = field(default_factory=LogSettings)
     #: The file it came from (None for built-in defaults); relative paths resolve beside it.
     source: Path | None = None
@@ -426,6 +455,8 @@ def _cross_checks(cfg: Config) -> None:
         parse_peers(cfg.link.peers)
     except TransportError as exc:
         raise ConfigError(f"link.peers: {exc}") from None
+    if not cfg.live.address.strip() or any(ch.isspace() for ch in cfg.live.address):
+        raise ConfigError(f"live.address must be an IP address or host name, got {cfg.live.address!r}")
     if cfg.link.require_signing and not (cfg.link.signing_key or cfg.link.signing_key_file):
         raise ConfigError("link.require_signing is on but neither link.signing_key nor "
                           "link.signing_key_file is set (docs/signing.md)")
@@ -667,7 +698,8 @@ def from_recording(meta_config: Mapping[str, Any], overrides: Mapping[str, Any] 
 
 __all__ = [
     "Config", "ConfigError", "LinkSettings", "CameraSettings", "ModelSettings", "PipelineSettings",
-    "TrackerSettings", "FailsafeSettings", "ControllerSettings", "RecorderSettings", "LogSettings",
+    "TrackerSettings", "FailsafeSettings", "ControllerSettings", "RecorderSettings", "GcsSettings",
+    "LiveSettings", "LogSettings",
     "load", "from_dict", "parse_assignment", "all_keys", "SHIPPED_MODEL", "threshold_setting",
     "intrinsics", "mount", "pipeline_config", "planner_config", "landing_config", "signing_key",
     "link_config", "failsafe_config", "from_recording",

@@ -79,7 +79,8 @@ class Vehicle:
 
 
 @contextlib.asynccontextmanager
-async def rig(autopilot: int = m.MAV_AUTOPILOT_ARDUPILOTMEGA, custom_mode: int = 5, config: LandingConfig = CFG):
+async def rig(autopilot: int = m.MAV_AUTOPILOT_ARDUPILOTMEGA, custom_mode: int = 5, config: LandingConfig = CFG,
+              shadow: bool = False):
     link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, **FAST))
     await link.start()
     peer = MavPeer(autopilot=autopilot, custom_mode=custom_mode)
@@ -93,7 +94,7 @@ async def rig(autopilot: int = m.MAV_AUTOPILOT_ARDUPILOTMEGA, custom_mode: int =
         flavour.warmup_s = 0.2
     vehicle = Vehicle(peer)
     vehicle.start()
-    runner = LandingRunner(LandingController(config), flavour, state, link, tick_hz=20)
+    runner = LandingRunner(LandingController(config), flavour, state, link, tick_hz=20, shadow=shadow)
     task = asyncio.create_task(runner.run())
     for _ in range(100):
         if state.is_fresh(time.monotonic(), 0.2):
@@ -183,7 +184,8 @@ async def test_no_zone_hands_back_with_the_autopilots_land():
         assert mode_changes(peer) == [(9, 0)]  # LAND, and nothing else was ever commanded
         assert peer.of_type("SET_POSITION_TARGET_GLOBAL_INT") == []
         severity, text = await peer.wait_for_text("handing back")
-        assert severity == m.MAV_SEVERITY_WARNING
+        # CRITICAL: the companion gave up and the autopilot's own failsafe lands where it is.
+        assert severity == m.MAV_SEVERITY_CRITICAL
         assert text == "SLZ: no safe zone confirmed within 0.6 s: handing back to the autopilot (LAND)"
 
 
@@ -253,3 +255,36 @@ async def test_unanswered_guided_times_out_then_hands_back():
         assert [c.confirmation for c in peer.commands_of(m.MAV_CMD_DO_SET_MODE)[:2]] == [0, 1]
         _, text = await peer.wait_for_text("handing back")
         assert "3 commands failed in a row" in text
+
+
+#: What shadow mode must never send: anything that changes the vehicle's mode, position or arming.
+VEHICLE_COMMANDS = {m.MAV_CMD_DO_SET_MODE, m.MAV_CMD_NAV_LAND, m.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                    m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_CMD_DO_REPOSITION, m.MAV_CMD_NAV_TAKEOFF,
+                    m.MAV_CMD_NAV_LOITER_UNLIM, m.MAV_CMD_DO_CHANGE_SPEED}
+
+
+@pytest.mark.parametrize("autopilot", [m.MAV_AUTOPILOT_ARDUPILOTMEGA, m.MAV_AUTOPILOT_PX4])
+async def test_shadow_mode_decides_the_whole_landing_but_sends_nothing(autopilot):
+    custom_mode = 5 if autopilot == m.MAV_AUTOPILOT_ARDUPILOTMEGA else px4_custom_mode(4, 3)
+    async with rig(autopilot, custom_mode, shadow=True) as (runner, vehicle, peer, state):
+        withheld = []
+        runner.on_withheld(withheld.append)
+        vehicle.alt = 10.2
+        runner.on_trigger(Trigger("battery", TriggerSource.BATTERY, time.monotonic()))
+        await feed(runner, state, lambda t: [zone(1, 8.0, 8.0, t)], lambda: runner.controller.phase == Phase.APPROACH)
+        # The vehicle goes there by itself (as if it had been told): the controller commits to LAND.
+        vehicle.north, vehicle.east = 8.0, 8.0
+        await feed(runner, state, lambda t: [zone(1, 8.0, 8.0, t)], lambda: runner.controller.phase == Phase.LAND)
+        await asyncio.sleep(0.3)
+        assert [type(c).__name__ for c in withheld][:1] == ["Goto"] and type(withheld[-1]).__name__ == "Land"
+        assert runner.withheld == withheld and runner.executed == []
+        sent = [c.command for c in peer.commands]
+        assert not VEHICLE_COMMANDS & set(sent), sent
+        for kind in ("SET_MODE", "SET_POSITION_TARGET_GLOBAL_INT", "SET_POSITION_TARGET_LOCAL_NED"):
+            assert peer.of_type(kind) == [], kind
+        texts = peer.statustexts()
+        assert texts and all(t.startswith("SHADOW: ") for _, t in texts), texts
+        assert (m.MAV_SEVERITY_WARNING, "SHADOW: trigger: battery; looking for a landing zone") in texts
+        assert any(sev == m.MAV_SEVERITY_NOTICE and "landing at zone 1" in t for sev, t in texts), texts
+        assert any(sev == m.MAV_SEVERITY_NOTICE and t.startswith("SHADOW: LAND over zone 1") for sev, t in texts)
+        assert not runner.autopilot.streaming if hasattr(runner.autopilot, "streaming") else True

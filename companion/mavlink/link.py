@@ -267,6 +267,9 @@ class MavLink:
         self.vehicle_type: int | None = None
         self.last_heartbeat_t: float | None = None
         self.last_heartbeat: Message | None = None  # the autopilot's latest HEARTBEAT
+        #: MAV_STATE our own HEARTBEAT reports (the service sets it from its health; see
+        #: ``companion.service.gcs``); ACTIVE for a link used on its own.
+        self.system_status: int = mavlink2.MAV_STATE_ACTIVE
         self.connected = False
         self.intervals_acked: dict[str, int] = {}  # message name -> MAV_RESULT of the last request
 
@@ -581,7 +584,7 @@ class MavLink:
                     mavlink2.MAV_AUTOPILOT_INVALID,
                     0,
                     0,
-                    mavlink2.MAV_STATE_ACTIVE,
+                    self.system_status,
                 )
             )
             await asyncio.sleep(self.config.heartbeat_period_s)

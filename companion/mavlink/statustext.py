@@ -11,6 +11,7 @@ import itertools
 
 from pymavlink.dialects.v20 import ardupilotmega as m
 
+from companion.control.events import Event, HandedBack, Holding, Note, TargetChosen
 from companion.mavlink.link import MavLink
 
 STATUSTEXT_LEN = 50
@@ -28,6 +29,29 @@ def statustext_chunks(text: str) -> list[bytes]:
         chunks.append(data[:cut])
         data = data[cut:]
     return chunks or [b""]
+
+
+def event_severity(event: Event) -> int:
+    """The MAV_SEVERITY of a controller event, as ground stations rank them: a handback that
+    commands the autopilot's failsafe is CRITICAL (the companion gave up; the autopilot lands or
+    returns on its own), the trigger, a hold, a pilot's takeover and a failed command WARNING,
+    a chosen target and the other phase changes NOTICE, any other note INFO."""
+    if isinstance(event, HandedBack):
+        return m.MAV_SEVERITY_CRITICAL if event.action else m.MAV_SEVERITY_WARNING
+    if event.warning or isinstance(event, Holding):
+        return m.MAV_SEVERITY_WARNING
+    if isinstance(event, TargetChosen) or event.changed:
+        return m.MAV_SEVERITY_NOTICE
+    if isinstance(event, Note):
+        return m.MAV_SEVERITY_INFO
+    return m.MAV_SEVERITY_NOTICE
+
+
+def shadow_text(text: str) -> str:
+    """The ground station's text of a decision taken in shadow mode: "SHADOW: " in place of the
+    usual "SLZ: " (the same 50 characters a plain event has, as far as it goes)."""
+    body = text[len("SLZ: "):] if text.startswith("SLZ: ") else text
+    return f"SHADOW: {body}"
 
 
 def send_statustext(link: MavLink, text: str, severity: int = m.MAV_SEVERITY_INFO) -> None:

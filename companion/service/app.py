@@ -19,6 +19,12 @@ start the camera, wait for the first autopilot heartbeat, then tell systemd READ
   delivering) as ``STATUS=degraded: ...`` while it keeps feeding the systemd watchdog (a restart
   cannot fix an unplugged camera; the service reconnects by itself), and stops feeding it only on
   an internal fault, a pipeline call stuck beyond ``PIPELINE_STUCK_S`` (see ``health.assess``);
+- the ground station sees the companion's health in its HEARTBEAT, each state change and decision
+  as one STATUSTEXT, and a few numbers at ``gcs.values_hz`` (``gcs.GroundStation``); with
+  ``live.enabled`` a small HTTP server gives a status page and the annotated live view (``web``);
+- in shadow mode (``controller.shadow``, ``companion run --shadow``) everything runs and every
+  decision is reported and recorded, marked shadow, but no command reaches the autopilot (the
+  landing runner withholds them) and stopping hands nothing back;
 - SIGTERM/SIGINT stop everything within 2 s (STOPPING=1 first); every shutdown step is guarded,
   so a failing one (a full disk, anything) is logged and the others still run, and the exit
   status is still 0.
@@ -40,6 +46,7 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion import config as settings
 from companion.config import Config
+from companion.control.commands import Command, Goto, Handback
 from companion.control.events import Event, Phase
 from companion.control.landing import LandingController
 from companion.control.trigger import Trigger
@@ -47,19 +54,22 @@ from companion.geometry.camera import GeometryError, Pose
 from companion.mavlink.autopilot import Autopilot, FlavourError
 from companion.mavlink.failsafe import TRIGGER_COMMAND, FailsafeMonitor
 from companion.mavlink.flavours import select_flavour
-from companion.mavlink.gcs_commands import CommandServer, Reply, VideoStreamProvider, no_live_view
+from companion.mavlink.gcs_commands import CommandServer, Reply, VideoStream, VideoStreamProvider
 from companion.mavlink.link import MavLink
 from companion.mavlink.state import VehicleState
-from companion.mavlink.statustext import send_statustext
+from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
 from companion.mavlink.timesync import run_timesync
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
-from companion.pipeline.slz import SLZPipeline
+from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
+from companion.replay.live_figure import CAPTION_PX
 from companion.service.camera import CameraSource, Frame
+from companion.service.gcs import PHASE_CODES, GroundStation
 from companion.service.health import PIPELINE_STUCK_S, FaultLog, FrameCounters, Health, StageTimings, assess
 from companion.service.landing_runner import LandingRunner
 from companion.service.notify import Notifier
+from companion.service.web import LiveView, Snapshot, WebServer, live_video_stream, stream_uri
 
 log = logging.getLogger("companion.service")
 
@@ -67,6 +77,8 @@ log = logging.getLogger("companion.service")
 TICK_S = 0.25
 #: How often a frame waiting for its telemetry checks again (s).
 POSE_POLL_S = 0.01
+#: Decisions kept for the status page.
+DECISIONS_KEPT = 20
 #: SIGTERM to exit (s): the promise is 2 s (the unit's TimeoutStopSec=5 is the backstop). Every
 #: shutdown step gets at most what is left of it (and at least SHUTDOWN_STEP_MIN_S).
 SHUTDOWN_BUDGET_S = 1.8
@@ -111,9 +123,10 @@ class Service:
         self.pipeline = pipeline or build_pipeline(cfg, model)
         self.link = link or MavLink(settings.link_config(cfg))
         # Answers to the ground station's commands. ``video_stream`` gives the live view's
-        # VIDEO_STREAM_INFORMATION once there is one (None: "no live view configured").
+        # VIDEO_STREAM_INFORMATION once there is one (None: "no live view configured"); by
+        # default the service's own (``live.enabled``), asked only when a request comes.
         self.commands = CommandServer(self.link, camera=settings.camera_info(cfg),
-                                      video=video_stream or no_live_view)
+                                      video=video_stream or self.live_video_stream)
         self.commands.register(TRIGGER_COMMAND, self._trigger_before_wiring)
         # Telemetry placed in time by the autopilot's clock; a frame may still be paired with a
         # held pose up to max_pose_age_s old, which then carries its true age to the controller.
@@ -130,6 +143,14 @@ class Service:
         self.runner: LandingRunner | None = None
         self.recorder: FlightRecorder | None = None
         self.events: list[Event] = []  # every controller event of this run, in order
+        self.shadow = cfg.controller.shadow
+        budget = cfg.gcs.frame_budget_ms or 1000.0 / cfg.camera.fps
+        self.gcs = GroundStation(self.link, frame_budget_ms=budget)
+        self.live = LiveView(cfg.live.max_fps, cfg.live.jpeg_quality) if cfg.live.enabled else None
+        self.web: WebServer | None = None
+        self.web_error: str | None = None
+        self.decisions: deque[tuple[float, int, str]] = deque(maxlen=DECISIONS_KEPT)  # (t, severity, text)
+        self.last_result: FrameResult | None = None
 
     # ---- lifecycle ---------------------------------------------------------------------------
     def request_stop(self, why: str = "") -> None:
@@ -180,6 +201,7 @@ class Service:
             log.error("cannot open the MAVLink link %s: %s", c.link.url, exc)
             return 1
         self.camera.start()
+        await self._start_web()
         tasks: list[asyncio.Task[Any]] = []
         try:
             self.notifier.status(f"waiting for the autopilot heartbeat on {c.link.url}")
@@ -199,6 +221,10 @@ class Service:
             if c.recorder.enabled:
                 self._start_recorder()
             log.info("ready: model %s, link %s, camera %s", c.model.path, c.link.url, c.camera.source)
+            if self.shadow:
+                log.warning("SHADOW MODE: decisions are reported and recorded, no command is sent to the "
+                            "autopilot (controller.shadow)")
+            self.gcs.set_ready(self._ready_texts())
             self.notifier.ready(self._status_line())
             tasks = [
                 asyncio.create_task(self._frame_loop(), name="frames"),
@@ -209,6 +235,10 @@ class Service:
                     run_timesync(self.link, self.state.clock, c.link.timesync_period_s), name="timesync"))
             if self.runner is not None:
                 tasks.append(asyncio.create_task(self.runner.run(), name="controller"))
+            if c.gcs.values_hz > 0:
+                tasks.append(asyncio.create_task(self._values_loop(), name="named values"))
+            if self.live is not None and self.web is not None:
+                tasks.append(asyncio.create_task(self.live.run(), name="live view"))
             stop = asyncio.create_task(self.stop_event.wait())
             tasks.append(stop)
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
@@ -251,8 +281,9 @@ class Service:
         # The landing controller behind its async runner: commands through the autopilot
         # flavour, events recorded here and sent to the ground station as STATUSTEXT.
         self.runner = LandingRunner(LandingController(settings.landing_config(c, self.model.spec)), self.autopilot,
-                                    self.state, self.link)
+                                    self.state, self.link, shadow=self.shadow)
         self.runner.subscribe(self._on_controller_event)
+        self.runner.on_withheld(self._on_withheld)
         self.monitor.subscribe(self._on_trigger)
 
     @property
@@ -267,12 +298,25 @@ class Service:
         """Every controller event, as it happens: recorded (the simulator's judge and replay read
         these, never the log) and, for a phase change, logged for the operator."""
         self.events.append(event)
+        self.decisions.append((event.t, event_severity(event), shadow_text(event.text) if self.shadow else event.text))
+        # In shadow mode every record says so: these are decisions nobody carried out.
+        mark = {"shadow": True} if self.shadow else {}
         if event.changed:
-            log.warning("landing controller: %s -> %s", event.old.value, event.phase.value)
-            self._record_event("phase", event.t, old=event.old.value, new=event.phase.value)
+            log.warning("landing controller: %s%s -> %s", "(shadow) " if self.shadow else "",
+                        event.old.value, event.phase.value)
+            self._record_event("phase", event.t, old=event.old.value, new=event.phase.value, **mark)
         record = event.as_record()
         del record["t"]  # the recording's own time field
-        self._record_event("controller", event.t, **record)
+        self._record_event("controller", event.t, **record, **mark)
+
+    def _on_withheld(self, cmd: Command) -> None:
+        """Shadow mode: a command the controller gave and nobody sent, recorded as such."""
+        data: dict[str, Any] = {"command": type(cmd).__name__}
+        if isinstance(cmd, Goto):
+            data.update(zone_id=cmd.zone_id, north=cmd.north, east=cmd.east, rel_alt_m=cmd.target.rel_alt_m)
+        elif isinstance(cmd, Handback):
+            data.update(action=cmd.action, reason=cmd.reason)
+        self._record_event("shadow_command", time.monotonic(), **data)
 
     def _on_trigger(self, trigger: Trigger) -> None:
         log.warning("failsafe trigger: %s (%s)", trigger.reason, trigger.source.value)
@@ -302,7 +346,7 @@ class Service:
             c.recorder.dir, segment_s=c.recorder.segment_s, max_mb=c.recorder.max_mb, codec=c.recorder.codec,
             fps=c.camera.fps, intrinsics=self.intrinsics, mount=self.mount,
             meta={"model": {"path": str(c.model.path), "spec": self.model.spec}, "config": c.to_dict(),
-                  "autopilot": self.autopilot.name if self.autopilot else None},
+                  "autopilot": self.autopilot.name if self.autopilot else None, "shadow": self.shadow},
         )
         try:
             self.recorder.start()
@@ -320,6 +364,8 @@ class Service:
         autopilot's own failsafe first. In LAND the autopilot is already landing by itself."""
         if self.phase not in ("SELECT", "APPROACH", "DESCEND", "HOLD", "SEARCH") or self.autopilot is None:
             return
+        if self.shadow:
+            return  # the companion never had the vehicle: nothing to give back
         action = self.cfg.controller.handback_action
         log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)
         try:
@@ -348,6 +394,8 @@ class Service:
         for task in tasks:
             task.cancel()
         await self._shutdown_step("tasks", self._reap(tasks), left(0.5))
+        if self.web is not None:
+            await self._shutdown_step("web server", self.web.close(), left(0.5))
         budget = left(1.0)
         await self._shutdown_step("camera", asyncio.to_thread(self.camera.stop, budget), budget + 0.1)
         if self.recorder is not None:
@@ -440,12 +488,19 @@ class Service:
             self.counters.processed += 1
             self.last_processed_t = time.monotonic()
             self.timings.add(result.timings_ms)
+            self.last_result = result
             target: Track | None = None
             if self.runner is not None:
                 self.runner.on_frame(frame.t, result.tracks, pose)
                 # The zone the vehicle flies to, or would fly to now: the planner's choice, the
                 # one rule (the pipeline reports tracks; it does not pick).
                 target = self.runner.controller.zone_target()
+            now = time.monotonic()
+            # Capture to decision: the controller has seen the frame's zones by now.
+            self.gcs.frame(result.timings_ms.get("total", float("nan")), (now - frame.t) * 1000.0, now)
+            if self.live is not None and self.live.wants(now):
+                self.live.offer(Snapshot(image, result, None if target is None else target.id,
+                                         self._caption(result, target)), now)
             self._record_event("zones", frame.t, frame=frame.index,
                                tracks=[asdict(t) for t in result.tracks],
                                target=None if target is None else target.id,
@@ -473,6 +528,103 @@ class Service:
         zone = f"oldest stable zone {target.id} r={target.r:.1f} m" if target is not None else "no zone"
         return f"{self.phase}: {zone}"
 
+    # ---- ground station, status page and live view -------------------------------------------
+    def _ready_texts(self) -> list[str]:
+        """The STATUSTEXTs of readiness (each within 50 characters)."""
+        model = self.cfg.model.path.rsplit("/", 1)[-1].removesuffix(".onnx")[:14]
+        texts = [f"SLZ: ready, model {model}, camera {self.intrinsics.width}x{self.intrinsics.height}"]
+        if self.shadow:
+            texts.append("SHADOW: on; the companion will command nothing")
+        if self.web_error is not None:
+            texts.append(f"SLZ: {self.web_error}"[:50])
+        return texts
+
+    async def _start_web(self) -> None:
+        """The status page and live view, when enabled. A port in use or an address not on this
+        host is logged and told to the ground station, and the service runs on without them:
+        the page is a convenience, landing is not."""
+        if self.live is None:
+            return
+        live = self.cfg.live
+        web = WebServer(live, self.live, self.status_json)
+        try:
+            await web.start()
+        except OSError as exc:
+            self.web_error = f"status page off: {live.address}:{live.port} {exc.strerror or exc}"
+            log.error("live.address/live.port: cannot serve the status page and live view on %s:%d: %s; "
+                      "running without them", live.address, live.port, exc)
+            return
+        self.web = web
+        log.info("status page on http://%s:%d/, live view %s", live.address, web.port, stream_uri(live))
+
+    def live_video_stream(self) -> VideoStream | None:
+        """The live view as VIDEO_STREAM_INFORMATION announces it, None while it is off or could
+        not start: the provider of the ground station's camera protocol (``self.commands``)."""
+        if self.live is None or self.web is None:
+            return None
+        w, h = self.intrinsics.width, self.intrinsics.height
+        # The figure: the frame and its square head-plane view side by side, under the caption.
+        return live_video_stream(self.cfg.live, w + 4 + h, h + CAPTION_PX)
+
+    def _target_numbers(self) -> tuple[Track | None, float | None]:
+        """The target (flown to, or the one it would fly to now) and its least clearance at
+        touchdown if it committed now: the controller's own figure (``DescentProfile`` with the
+        autopilot's descent speeds, as replay computes ``clearance_m``)."""
+        c = self.controller
+        target = None if c is None else c.zone_target()
+        return target, None if c is None or target is None else c.touchdown_clearance(target)
+
+    def _caption(self, result: FrameResult, target: Track | None) -> str:
+        shadow = "SHADOW  " if self.shadow else ""
+        aim = "no target" if target is None else f"target #{target.id} r {target.r:.1f} m"
+        return (f"{shadow}{self.phase}  zones {len(result.tracks)}  {aim}  "
+                f"{time.strftime('%H:%M:%S')}")
+
+    async def _values_loop(self) -> None:
+        period = 1.0 / self.cfg.gcs.values_hz
+        while True:
+            now = time.monotonic()
+            target, clearance = self._target_numbers()
+            result = self.last_result
+            self.gcs.values(now, phase=Phase(self.phase), zones=0 if result is None else len(result.tracks),
+                            health=self.health(now), target_r_m=None if target is None else target.r,
+                            clearance_m=clearance)
+            await asyncio.sleep(period)
+
+    def status_json(self) -> dict[str, Any]:
+        """What the status page shows (``/status.json``): plain JSON, no NaN."""
+        now = time.monotonic()
+        health = self.health(now)
+        target, clearance = self._target_numbers()
+        result = self.last_result
+
+        def finite(v: float | None, nd: int = 2) -> float | None:
+            return None if v is None or not np.isfinite(v) else round(float(v), nd)
+
+        c = self.controller
+        zones = [] if result is None else [
+            {"id": tr.id, "north_m": finite(tr.x), "east_m": finite(tr.y), "r_m": finite(tr.r), "age": tr.age,
+             "clearance_m": None if c is None else finite(c.touchdown_clearance(tr))}
+            for tr in result.tracks]
+        return {
+            "ready": self.gcs.ready,
+            "shadow": self.shadow,
+            "phase": self.phase,
+            "phase_code": PHASE_CODES[Phase(self.phase)],
+            "health": {"ok": health.ok, "reason": health.reason, "system_status": self.link.system_status},
+            "zones": zones,
+            "target": None if target is None else {"id": target.id, "r_m": finite(target.r),
+                                                   "clearance_m": finite(clearance)},
+            "frames_processed": self.counters.processed,
+            "frame_ms": finite(self.gcs.frame_ms, 1),
+            "fps": finite(self.gcs.fps(now), 1),
+            "decisions": [{"age_s": round(now - t, 1), "severity": sev, "text": text}
+                          for t, sev, text in reversed(self.decisions)],
+            "live": None if self.live is None else {"stream": "/stream.mjpg", "clients": self.live.clients,
+                                                    "drawn": self.live.stats.drawn,
+                                                    "dropped": self.live.stats.dropped},
+        }
+
     async def _health_loop(self) -> None:
         interval = self.notifier.watchdog_interval
         next_log = time.monotonic() + self.cfg.log.health_interval_s
@@ -488,6 +640,7 @@ class Service:
                 last_ping = now
             for level, line in faults.update(health, now):
                 log.log(level, "health: %s", line)
+            self.gcs.update(health, now)
             self.notifier.status(health.status(self._status_line()))
             if now >= next_log:
                 next_log = now + self.cfg.log.health_interval_s

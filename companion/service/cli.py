@@ -30,6 +30,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", metavar="FILE", help="ONNX density model (model.path)")
     parser.add_argument("--record", metavar="DIR", help="record the flight into DIR (recorder.enabled, .dir)")
     parser.add_argument("--flavour", choices=config_mod.FLAVOURS, help="autopilot dialect (link.flavour)")
+    parser.add_argument("--shadow", action="store_true",
+                        help="shadow mode: watch, decide and report what it would do, command nothing "
+                             "(controller.shadow)")
     parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="set_",
                         help="set any config key, e.g. --set camera.fps=15 (repeatable)")
 
@@ -42,6 +45,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         value = getattr(args, opt, None)
         if value is not None:
             out[key] = value
+    if getattr(args, "shadow", False):
+        out["controller.shadow"] = True
     if getattr(args, "record", None):
         out["recorder.enabled"] = True
         out["recorder.dir"] = args.record

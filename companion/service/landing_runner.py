@@ -10,6 +10,18 @@ to subscribers (the service records them) and sends their text as STATUSTEXT. Wi
     monitor.subscribe(runner.on_trigger)
     task = asyncio.create_task(runner.run())
     ...  # after each frame: runner.on_frame(t, tracker.tracks(), pose)
+
+Shadow mode (``shadow=True``): the controller runs as in a real takeover, but no command reaches
+the autopilot: each is *withheld* (kept in ``withheld`` and handed to ``on_withheld`` listeners,
+which the service records) and reported to the controller as done. The controller then goes on
+deciding as if the autopilot had accepted (re-targets, holds, the commit to LAND, its timeouts), so
+the pilot sees what it would do over the scene the camera really sees while the autopilot's own
+failsafe flies the vehicle. Reporting them refused instead would end every shadow run in "3
+commands failed" after its first target, which tells nothing. The story ends as a real one would
+not: the vehicle does not fly to the zone, so the controller sees it coming down elsewhere
+(LANDED "vehicle on the ground and disarmed", or a hold or takeover timeout handing back): every
+event of a shadow run is therefore marked shadow, in the STATUSTEXT ("SHADOW: ...") and in the
+recording.
 """
 
 from __future__ import annotations
@@ -18,8 +30,6 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable, Sequence
-
-from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.control.events import Event
 from companion.control.landing import (
@@ -36,7 +46,7 @@ from companion.geometry.camera import Pose
 from companion.mavlink.autopilot import Autopilot
 from companion.mavlink.link import MavLink
 from companion.mavlink.state import VehicleState
-from companion.mavlink.statustext import send_statustext
+from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
@@ -88,6 +98,7 @@ class LandingRunner:
         *,
         tick_hz: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
+        shadow: bool = False,
     ) -> None:
         self.controller = controller
         self.autopilot = autopilot
@@ -100,11 +111,18 @@ class LandingRunner:
         self.executed: list[tuple[Command, Exception | None]] = []
         self._stopped_stream = False
         self._listeners: list[Callable[[Event], None]] = []
+        self.shadow = shadow
+        self.withheld: list[Command] = []  # shadow mode: every command not sent, in order
+        self._withheld_listeners: list[Callable[[Command], None]] = []
 
     def subscribe(self, listener: Callable[[Event], None]) -> None:
         """Call ``listener`` with every controller event, in order, as it is emitted (before its
         STATUSTEXT goes out); the service records them."""
         self._listeners.append(listener)
+
+    def on_withheld(self, listener: Callable[[Command], None]) -> None:
+        """Shadow mode: call ``listener`` with every command withheld from the autopilot."""
+        self._withheld_listeners.append(listener)
 
     # -- inputs from the service ---------------------------------------------------------------
 
@@ -176,7 +194,8 @@ class LandingRunner:
                     error = exc
                     if not isinstance(exc, (RuntimeError, ValueError)):
                         log.exception("executing %s failed", cmd)
-                self.executed.append((cmd, error))
+                if not self.shadow:  # executed: what reached the autopilot (shadow: ``withheld``)
+                    self.executed.append((cmd, error))
                 self._submit(self.controller.on_command_result(cmd, error))
             if self.controller.phase in (Phase.HANDBACK, Phase.LANDED) and not self._stopped_stream:
                 # Covers the pilot-takeover handback, which sends no command: no stream left behind.
@@ -184,6 +203,9 @@ class LandingRunner:
                 await self.autopilot.stop()
 
     async def _execute(self, cmd: Command) -> None:
+        if self.shadow:
+            self._withhold(cmd)
+            return
         if isinstance(cmd, Goto):
             await self.autopilot.goto(cmd.target)
         elif isinstance(cmd, Land):
@@ -192,6 +214,16 @@ class LandingRunner:
             await self.autopilot.handback(cmd.action)
         else:  # pragma: no cover - exhaustive
             raise TypeError(f"unknown command {cmd!r}")
+
+    def _withhold(self, cmd: Command) -> None:
+        """Shadow mode: the command goes nowhere; it is kept and told, and counts as done."""
+        self.withheld.append(cmd)
+        log.info("shadow: withheld %s", cmd)
+        for listener in self._withheld_listeners:
+            try:
+                listener(cmd)
+            except Exception:  # a listener's bug must not stop the controller
+                log.exception("withheld-command listener failed on %s", cmd)
 
     def _flush_events(self) -> None:
         events = self.controller.pop_events()
@@ -204,7 +236,7 @@ class LandingRunner:
         if self.link is None:
             return
         for event in events:
-            severity = m.MAV_SEVERITY_WARNING if event.warning else m.MAV_SEVERITY_NOTICE
-            send_statustext(self.link, event.text, severity)
+            text = shadow_text(event.text) if self.shadow else event.text
+            send_statustext(self.link, text, event_severity(event))
         if self.controller.phase in (Phase.HANDBACK, Phase.LANDED) and not self._stopped_stream:
             self._wake.set()  # let the worker stop a setpoint stream

@@ -39,6 +39,9 @@ class Sample:
 
     points: (N, 2) float32 head points (x, y) in pixels; for box data sets, the box centres.
     boxes: (N, 4) float32 person boxes (x1, y1, x2, y2) in pixels, or None for point data sets.
+    sizes: (N,) float32 person size in pixels (longer side of the person's box), or None where the
+        data set does not give it (head points alone, or DroneCrowd's fixed 20 px head boxes).
+    pixels: the image itself when it lives in memory (synthetic sets), else None (read ``path``).
     """
 
     name: str
@@ -46,10 +49,12 @@ class Sample:
     points: np.ndarray
     boxes: np.ndarray | None = None
     meta: dict[str, object] = field(default_factory=dict)
+    sizes: np.ndarray | None = None
+    pixels: np.ndarray | None = None
 
     def image(self) -> np.ndarray:
         """The image as HxWx3 BGR uint8."""
-        return read_image(self.path)
+        return self.pixels if self.pixels is not None else read_image(self.path)
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -127,5 +132,6 @@ def semantic_drone(shared: Path, split: Split = "all") -> list[Sample]:
             continue
         b = np.asarray(boxes.get(name, []), dtype=np.float32).reshape(-1, 4)
         centres = np.stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2], axis=1)
-        out.append(Sample(Path(name).stem, root / "images" / name, centres.astype(np.float32), b))
+        sizes = np.maximum(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]).astype(np.float32)
+        out.append(Sample(Path(name).stem, root / "images" / name, centres.astype(np.float32), b, sizes=sizes))
     return out

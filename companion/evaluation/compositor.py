@@ -135,6 +135,7 @@ class Composite:
     boxes: (N, 4) float32 ``x1, y1, x2, y2`` of each person's full pasted silhouette.
     sizes: (N,) float32 person size in pixels (the longer side of its box).
     instances: (H, W) int32, 0 = nobody, k = visible pixel of person k - 1.
+    classes: (H, W) uint8 the ground's class map as warped into this image (people not included).
     """
 
     name: str
@@ -143,6 +144,7 @@ class Composite:
     boxes: np.ndarray
     sizes: np.ndarray
     instances: np.ndarray
+    classes: np.ndarray
 
     def as_sample(self) -> Sample:
         return Sample(self.name, Path("synthetic") / self.name, self.points, self.boxes,
@@ -221,7 +223,7 @@ def layout_split(sequence: int) -> Split:
 
 def load_layouts(shared: Path, split: Split) -> Layouts:
     root = Path(shared) / "data" / "dronecrowd" / "gt"
-    files = sorted(root.glob("000*.mat"))
+    files = sorted(root.glob("[0-9]*.mat"))
     if not files:
         raise DatasetError(f"no DroneCrowd trajectories in {root}")
     seqs = {f.stem: scipy.io.loadmat(f)["anno"].astype(np.float32) for f in files
@@ -337,7 +339,7 @@ class Compositor:
             ys, xs = np.nonzero(full)
             boxes.append((ix0 + xs.min(), iy0 + ys.min(), ix0 + xs.max() + 1.0, iy0 + ys.max() + 1.0))
         image = np.clip(img_f + 0.5, 0, 255).astype(np.uint8)
-        return self._labels(name or lname, image, inst, boxes)
+        return self._labels(name or lname, image, inst, boxes, classes)
 
     @staticmethod
     def _render(cut: Cutout, size: float, angle: float, blur: float, bg_mean: np.ndarray, bg_std: np.ndarray,
@@ -389,7 +391,7 @@ class Compositor:
 
     @staticmethod
     def _labels(name: str, image: np.ndarray, inst: np.ndarray,
-                boxes: list[tuple[float, float, float, float]]) -> Composite:
+                boxes: list[tuple[float, float, float, float]], classes: np.ndarray) -> Composite:
         pts = np.zeros((len(boxes), 2), np.float32)
         for k, (x1, y1, x2, y2) in enumerate(boxes, start=1):
             xa, ya, xb, yb = int(x1), int(y1), int(x2), int(y2)
@@ -400,7 +402,7 @@ class Compositor:
             pts[k - 1] = (xa + c + 0.5, ya + r + 0.5)
         b = np.asarray(boxes, np.float32).reshape(-1, 4)
         sizes = np.maximum(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]) if len(b) else np.zeros(0, np.float32)
-        return Composite(name, image, pts, b, sizes.astype(np.float32), inst)
+        return Composite(name, image, pts, b, sizes.astype(np.float32), inst, classes)
 
 
 def load_compositor(shared: Path, split: Split, params: CompositorParams = CompositorParams(),

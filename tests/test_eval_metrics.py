@@ -188,3 +188,14 @@ def test_eval_cli_reports_size_recall_and_the_model_figure(model_path: Path, sha
     assert syn["images"] == 3 and syn["heads"] == sum(b["people"] for b in syn["size_recall"])
     assert "min_person_px" in doc and doc["min_person_px_metadata"] is None  # the shipped file has none yet
     assert main(["eval", "--shared", str(shared_dir), "--sets", "synthetic", "--synthetic-n", "0"]) == 2
+
+
+def test_scaled_samples_keep_annotations_on_the_same_pixels(shared_dir: Path) -> None:
+    s = next(x for x in D.semantic_drone(shared_dir, "val") if len(x.points) >= 2)
+    (half,) = D.scaled([s], 0.5, "_x0.5")
+    img = half.image()
+    assert img.shape[:2] == (250, 375) and half.name.endswith("_x0.5")
+    np.testing.assert_allclose(half.points, s.points / 2, atol=1e-4)
+    np.testing.assert_allclose(half.sizes, s.sizes / 2, atol=1e-4)  # type: ignore[operator]
+    with pytest.raises(ValueError, match="scale factor"):
+        D.scaled([s], 1.5)

@@ -9,11 +9,12 @@ Figures (definitions in :mod:`companion.evaluation.metrics`): ShanghaiTech B tes
 Mall 801-2000 MAE; occupancy head recall and free-area share at the model's default threshold
 (its ``companion.occupancy_threshold``, else the paper's 0) on the six DroneCrowd frames, the
 held-out DroneCrowd frame ``img017012``, Mall 801-2000 and the held-out fifth of the semantic drone
-photos, and (``--sets ...,synthetic``) the synthetic hold-out; the recall/free curve over
+photos, and on request (``--sets``) those photos downscaled x0.5 and x0.25 (``semantic-scaled``:
+real pixels of smaller people) and the synthetic hold-out (``synthetic``); the recall/free curve over
 thresholds; density latency at 640x480 and 1280x720.
 
-Recall by person size, on the sets that give person sizes (semantic drone: its person boxes;
-synthetic: the pasted silhouettes; the others have head points only): recall per size bin and
+Recall by person size, on the sets that give person sizes (semantic drone, also downscaled: its
+person boxes; synthetic: the pasted silhouettes; the others have head points only): recall per size bin and
 ``min_person_px``, the smallest size from which recall reaches 99.5 % (``metrics.min_person_px``).
 The model's figure is the largest over those sets (None if any never reaches it); the model's own
 ``companion.min_person_px`` metadata is printed beside it.
@@ -49,7 +50,7 @@ PRESETS: dict[str, dict[str, object]] = {
     # The MCNN peer: greyscale 0-255, no normalisation, stride 4 (shared/README.md).
     "mcnn": {"color": "gray", "scale": 1.0, "mean": 0.0, "std": 1.0, "stride": 4},
 }
-SETS = ("shb", "mall", "dronecrowd", "semantic", "synthetic")
+SETS = ("shb", "mall", "dronecrowd", "semantic", "semantic-scaled", "synthetic")
 DEFAULT_SETS = ("shb", "mall", "dronecrowd", "semantic")
 LATENCY_SIZES = {"640x480": (480, 640), "1280x720": (720, 1280)}
 
@@ -78,7 +79,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--peer-threshold", type=float, help="occupancy threshold of the peer (default its own, else 0)")
     parser.add_argument("--shared", type=Path, default=None, help="shared data directory (default ../shared)")
     parser.add_argument("--sets", default=",".join(DEFAULT_SETS),
-                        help=f"comma-separated subset of {','.join(SETS)} (default: all but synthetic)")
+                        help=f"comma-separated subset of {','.join(SETS)} (default: {','.join(DEFAULT_SETS)})")
     parser.add_argument("--synthetic-n", type=int, default=200, help="synthetic hold-out images (512x512)")
     parser.add_argument("--synthetic-seed", type=int, default=13, help="seed of the synthetic hold-out")
     parser.add_argument("--mall-step", type=int, default=1, help="use every N-th Mall frame (default 1: all 1,200)")
@@ -111,6 +112,10 @@ def _datasets(shared: Path, sets: list[str], mall_step: int, limit: int, synthet
         out["mall"] = D.mall(shared, mall_step)
     if "semantic" in sets:
         out["semantic_drone_val"] = D.semantic_drone(shared, "val")
+    if "semantic-scaled" in sets:
+        val = D.semantic_drone(shared, "val")
+        for f in D.SEMANTIC_SCALES:
+            out[f"semantic_drone_val_x{f:g}"] = D.scaled(val, f, f"_x{f:g}")
     if "synthetic" in sets:
         if synthetic_n < 1:
             raise ValueError(f"--synthetic-n must be >= 1, got {synthetic_n}")

@@ -10,8 +10,8 @@
   read as a count; the test images stay untouched).
 * ``companion.min_person_px``: at that threshold, the smallest person size (px) from which head
   recall reaches 99.5 % on the validation sets that give person sizes: the held-out semantic-drone
-  fifth and the synthetic hold-out (:func:`companion.evaluation.compositor.synthetic_set`, seed 13,
-  200 images); the larger of the two (:func:`companion.evaluation.metrics.overall_min_person_px`).
+  fifth, the same photos downscaled x0.5 and x0.25, and the synthetic hold-out
+  (:func:`companion.evaluation.compositor.synthetic_set`, seed 13, 200 images); the largest of them (:func:`companion.evaluation.metrics.overall_min_person_px`).
   When a set never reaches it, the key is removed: the model makes no size claim.
 
     python -m companion.training.calibrate --model models/slz-density.onnx --shared ../shared
@@ -47,8 +47,10 @@ def validation_sets(shared: Path, mall_step: int = MALL_STEP) -> dict[str, list[
 
 def size_sets(shared: Path) -> dict[str, list[D.Sample]]:
     """The validation sets that give person sizes (for ``min_person_px``)."""
+    val = D.semantic_drone(shared, "val")
     return {
-        "semantic_drone_val": D.semantic_drone(shared, "val"),
+        "semantic_drone_val": val,
+        **{f"semantic_drone_val_x{f:g}": D.scaled(val, f, f"_x{f:g}") for f in D.SEMANTIC_SCALES},
         "synthetic_val": C.synthetic_set(shared),
     }
 
@@ -76,7 +78,8 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float = MI
         "companion.count_scale": f"{count_scale:.6g}",
         "companion.calibration": f"threshold: largest with recall >= {min_recall} on dronecrowd6, "
         f"semantic_drone_val, mall/{MALL_STEP}; count_scale: shanghaitech_b train[::4]; "
-        "min_person_px: recall >= 0.995 per size bin from there up on semantic_drone_val and synthetic_val",
+        "min_person_px: recall >= 0.995 per size bin from there up on semantic_drone_val (x1, x0.5, x0.25) "
+        "and synthetic_val",
     }
     set_metadata(Path(path), meta)
     for r in results:

@@ -195,3 +195,17 @@ def test_real_hard_negatives(shared_dir: Path) -> None:
     for _ in range(10):
         img, tgt, _kind = neg.crop(96, rng)
         assert img.shape == (96, 96, 3) and not tgt.any()
+
+
+def test_compositor_command_times_and_writes_samples(shared_dir: Path, tmp_path: Path, capsys) -> None:
+    import json
+
+    assert C.main(["--shared", str(shared_dir), "--split", "val", "--n", "2", "--size", "64", "--out", str(tmp_path)]) == 0
+    assert "2 samples of 64x64: median" in capsys.readouterr().out
+    labels = json.loads((tmp_path / "labels.json").read_text())
+    assert sorted(labels) == ["val_0000", "val_0001"] and (tmp_path / "val_0000.png").is_file()
+
+
+def test_compositor_command_without_the_data(tmp_path: Path, capsys) -> None:
+    assert C.main(["--shared", str(tmp_path), "--n", "1"]) == 2
+    assert "missing" in capsys.readouterr().err

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -421,3 +422,54 @@ def synthetic_set(shared: Path, n: int = 200, seed: int = 13, size: tuple[int, i
     comp = load_compositor(shared, split)
     rng = np.random.default_rng(seed)
     return [comp.sample(rng, size, name=f"synthetic_{split}_{i:04d}").as_sample() for i in range(n)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Time the compositor and optionally write samples for a look (never into the repository)::
+
+        python -m companion.evaluation.compositor --shared ../shared --n 100 --size 512 --out /tmp/synth
+    """
+    import argparse
+    import time
+
+    p = argparse.ArgumentParser(description="time synthetic top-down crowd samples; optionally write them")
+    p.add_argument("--shared", type=Path, default=Path("../shared"))
+    p.add_argument("--split", choices=["train", "val"], default="train")
+    p.add_argument("--n", type=int, default=100, help="samples to draw")
+    p.add_argument("--size", type=int, default=512, help="side of each sample in pixels")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, help="write image PNGs and a labels JSON here (outside the repository)")
+    args = p.parse_args(argv)
+    if args.n < 1 or args.size < 16:
+        p.error("--n must be >= 1 and --size >= 16")
+    cv2.setNumThreads(1)
+    t0 = time.perf_counter()
+    try:
+        comp = load_compositor(args.shared, args.split)
+    except DatasetError as exc:
+        print(f"compositor: {exc}", file=sys.stderr)
+        return 2
+    print(f"loaded the {args.split} split in {time.perf_counter() - t0:.1f} s: {len(comp.cutouts)} people, "
+          f"{len(comp.grounds)} grounds, {len(comp.layouts.sequences)} layout sequences")
+    rng = np.random.default_rng(args.seed)
+    times, people, labels = [], [], {}
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+    for i in range(args.n):
+        t = time.perf_counter()
+        c = comp.sample(rng, (args.size, args.size), name=f"{args.split}_{i:04d}")
+        times.append(time.perf_counter() - t)
+        people.append(len(c.points))
+        if args.out:
+            cv2.imwrite(str(args.out / f"{c.name}.png"), c.image)
+            labels[c.name] = {"points": c.points.tolist(), "boxes": c.boxes.tolist(), "sizes": c.sizes.tolist()}
+    if args.out:
+        (args.out / "labels.json").write_text(json.dumps(labels))
+    ms = 1e3 * np.asarray(times)
+    print(f"{args.n} samples of {args.size}x{args.size}: median {np.median(ms):.1f} ms, mean {ms.mean():.1f} ms, "
+          f"p90 {np.percentile(ms, 90):.1f} ms; people per sample median {np.median(people):.0f}, max {max(people)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -143,17 +143,24 @@ def load_sources(shared: Path, max_images: int = 0) -> list[Source]:
     return sources
 
 
+def check_shares(synthetic_share: float, negative_share: float, max_images: int = 0) -> None:
+    """ValueError naming the flag when the shares or the image limit make no sense."""
+    for key, v in (("synthetic share", synthetic_share), ("negative share", negative_share)):
+        if not 0.0 <= v <= 1.0:
+            raise ValueError(f"{key} must be in [0, 1], got {v}")
+    if synthetic_share + negative_share > 1.0 + 1e-9:
+        raise ValueError(f"synthetic share + negative share must be <= 1, got {synthetic_share + negative_share}")
+    if max_images < 0:
+        raise ValueError(f"max images must be >= 0, got {max_images}")
+
+
 def all_sources(shared: Path, synthetic_share: float, negative_share: float, max_images: int = 0,
                 seed: int = 0) -> list[CropSource]:
     """The real sources scaled to ``1 - synthetic_share - negative_share`` of the crops, plus the
     synthetic and hard-negative sources at their shares (each loaded only when its share is > 0).
     With both shares 0 this is exactly :func:`load_sources` (the shipped configuration)."""
-    for key, v in (("synthetic share", synthetic_share), ("negative share", negative_share)):
-        if not 0.0 <= v <= 1.0:
-            raise ValueError(f"{key} must be in [0, 1], got {v}")
+    check_shares(synthetic_share, negative_share, max_images)
     real = 1.0 - synthetic_share - negative_share
-    if real < -1e-9:
-        raise ValueError(f"synthetic share + negative share must be <= 1, got {synthetic_share + negative_share}")
     out: list[CropSource] = []
     if real > 1e-9:
         for s in load_sources(shared, max_images):
@@ -279,9 +286,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-calibrate", action="store_true", help="skip threshold / count-scale calibration")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    try:  # bad flags and missing data: a clear message and exit 2 before any training
+        resolve_device(args.device)
+        check_shares(args.synthetic_share, args.negative_share, args.max_images)
+    except ValueError as exc:
+        print(f"companion.training.train: {exc}", file=sys.stderr)
+        return 2
     try:
         out = train(args)
-    except (ValueError, D.DatasetError) as exc:
+    except D.DatasetError as exc:
         print(f"companion.training.train: {exc}", file=sys.stderr)
         return 2
     if not args.no_calibrate:

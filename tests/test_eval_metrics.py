@@ -186,7 +186,7 @@ def test_eval_cli_reports_size_recall_and_the_model_figure(model_path: Path, sha
     assert doc["sets"]["dronecrowd6"]["size_recall"] is None  # 20 px head boxes: no person size
     syn = doc["sets"]["synthetic_val"]
     assert syn["images"] == 3 and syn["heads"] == sum(b["people"] for b in syn["size_recall"])
-    assert "min_person_px" in doc and doc["min_person_px_metadata"] is None  # the shipped file has none yet
+    assert "min_person_px" in doc and doc["min_person_px_metadata"] == DensityModel(model_path).min_person_px
     assert main(["eval", "--shared", str(shared_dir), "--sets", "synthetic", "--synthetic-n", "0"]) == 2
 
 

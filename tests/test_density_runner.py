@@ -213,6 +213,38 @@ def test_bad_metadata_value_names_the_file(tmp_path: Path) -> None:
         DensityModel(path)
 
 
+def _with_metadata(src: Path, dst: Path, meta: dict[str, str]) -> Path:
+    proto = onnx.load(str(src))
+    for k, v in meta.items():
+        e = proto.metadata_props.add()
+        e.key, e.value = k, v
+    onnx.save(proto, str(dst))
+    return dst
+
+
+def test_shipped_model_copy_carries_min_person_size(model_path: Path, tmp_path: Path) -> None:
+    """A copy of the shipped network with a minimum person size in its metadata (the shipped file
+    itself stays as it is): the runner reads it, beside the threshold, and a config can override it."""
+    shipped = DensityModel(model_path)
+    path = _with_metadata(model_path, tmp_path / "copy.onnx", {"companion.min_person_px": "24"})
+    m = DensityModel(path)
+    assert m.min_person_px == 24.0 and m.spec.min_person_px == 24.0
+    assert m.spec.occupancy_threshold == shipped.spec.occupancy_threshold
+    assert DensityModel(path, overrides={"min_person_px": 30}).min_person_px == 30.0
+    assert DensityModel(path, overrides={"min_person_px": "none"}).min_person_px is None
+    assert DensityModel(first_channel_model(tmp_path)).min_person_px is None  # absent: no claim
+
+
+@pytest.mark.parametrize("value", ["abc", "-3", "0", "nan", "inf", "1e9", "3,4", ""])
+def test_malformed_min_person_px_is_a_clear_error_at_load(tmp_path: Path, value: str) -> None:
+    path = first_channel_model(tmp_path, {"companion.min_person_px": value})
+    if value == "":  # an empty value is "not given", as for every other key
+        assert DensityModel(path).min_person_px is None
+        return
+    with pytest.raises(DensityModelError, match=r"m\.onnx.*min_person_px must be one number of pixels"):
+        DensityModel(path)
+
+
 def test_bad_thread_count(tmp_path: Path) -> None:
     with pytest.raises(DensityModelError, match="threads"):
         DensityModel(first_channel_model(tmp_path), threads=0)

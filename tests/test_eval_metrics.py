@@ -117,3 +117,85 @@ def test_eval_cli_reports_missing_data(model_path: Path, tmp_path: Path, capsys)
 
     assert main(["eval", "--model", str(model_path), "--shared", str(tmp_path), "--sets", "mall"]) == 2
     assert "missing" in capsys.readouterr().err
+
+
+# --- recall by person size (issue 13) --------------------------------------------------------
+
+
+def test_size_recall_bins_and_the_smallest_trusted_size() -> None:
+    from companion.evaluation.metrics import min_person_px, size_recall
+
+    rng = np.random.default_rng(0)
+    sizes = rng.uniform(5, 60, 2000)
+    covered = sizes >= 12  # a model that sees everyone from 12 px and nobody below
+    bins = {(b["lo"], b["hi"]): b for b in size_recall(sizes, covered)}
+    assert bins[(5.0, 8.0)]["recall"] == 0.0 and bins[(12.0, 16.0)]["recall"] == 1.0
+    assert bins[(0.0, 5.0)]["people"] == 0 and np.isnan(bins[(0.0, 5.0)]["recall"])
+    assert sum(b["people"] for b in bins.values()) == 2000
+    assert min_person_px(sizes, covered) == 12.0
+    # One miss in a large bin (of ~300) keeps 99.5 %; a cluster of misses there moves the size up.
+    big = np.flatnonzero((sizes >= 24) & (sizes < 40))
+    c1 = covered.copy()
+    c1[big[:1]] = False
+    assert min_person_px(sizes, c1) == 12.0
+    c2 = covered.copy()
+    c2[big[:5]] = False
+    assert min_person_px(sizes, c2) == 40.0
+    # Too few people at or above a size: no claim (one miss in fewer than 200 already fails it).
+    assert min_person_px(sizes[:150], covered[:150]) is None
+    # Everyone seen, but nobody smaller than 20 px measured: the claim starts where the data does.
+    s3 = rng.uniform(20, 60, 500)
+    assert min_person_px(s3, np.ones(500, bool)) == 16.0
+
+
+def test_evaluate_set_reports_recall_by_size_only_where_sizes_are_known() -> None:
+    from companion.evaluation.metrics import overall_min_person_px
+
+    img = np.zeros((64, 64, 3), np.uint8)
+    pts = np.array([[10.5, 10.5], [50.5, 50.5]], np.float32)
+
+    class Mem(D.Sample):
+        def image(self) -> np.ndarray:
+            return img
+
+    def left_half(frame: np.ndarray) -> np.ndarray:  # "sees" people only in the left half
+        d = np.zeros((16, 16), np.float32)
+        d[:, :4] = 1.0
+        return d
+
+    sized = Mem("a", Path("a"), pts, sizes=np.array([30.0, 6.0], np.float32))
+    r = evaluate_set("sized", [sized] * 250, left_half, 0.5)  # 250 people of 30 px: enough for a claim
+    bins = {b["lo"]: b for b in r.size_recall or []}
+    assert bins[24.0]["recall"] == 1.0 and bins[5.0]["recall"] == 0.0 and r.min_person_px == 24.0
+    r2 = evaluate_set("plain", [Mem("b", Path("b"), pts)], left_half, 0.5)
+    assert r2.size_recall is None and r2.min_person_px is None
+    assert overall_min_person_px([r, r2]) == 24.0
+    assert overall_min_person_px([r2]) is None
+    r.min_person_px = None  # a sized set that never reaches 99.5 %: no figure for the model
+    assert overall_min_person_px([r, r2]) is None
+
+
+def test_eval_cli_reports_size_recall_and_the_model_figure(model_path: Path, shared_dir: Path, capsys) -> None:
+    from companion.cli import main
+
+    rc = main(["eval", "--shared", str(shared_dir), "--sets", "semantic,dronecrowd,synthetic", "--limit", "3",
+               "--synthetic-n", "3", "--latency-runs", "0", "--json"])
+    assert rc == 0
+    doc = json.loads(capsys.readouterr().out)["model"]
+    assert doc["min_person_px_sets"] == ["semantic_drone_val", "synthetic_val"]
+    assert doc["sets"]["dronecrowd6"]["size_recall"] is None  # 20 px head boxes: no person size
+    syn = doc["sets"]["synthetic_val"]
+    assert syn["images"] == 3 and syn["heads"] == sum(b["people"] for b in syn["size_recall"])
+    assert "min_person_px" in doc and doc["min_person_px_metadata"] == DensityModel(model_path).min_person_px
+    assert main(["eval", "--shared", str(shared_dir), "--sets", "synthetic", "--synthetic-n", "0"]) == 2
+
+
+def test_scaled_samples_keep_annotations_on_the_same_pixels(shared_dir: Path) -> None:
+    s = next(x for x in D.semantic_drone(shared_dir, "val") if len(x.points) >= 2)
+    (half,) = D.scaled([s], 0.5, "_x0.5")
+    img = half.image()
+    assert img.shape[:2] == (250, 375) and half.name.endswith("_x0.5")
+    np.testing.assert_allclose(half.points, s.points / 2, atol=1e-4)
+    np.testing.assert_allclose(half.sizes, s.sizes / 2, atol=1e-4)  # type: ignore[operator]
+    with pytest.raises(ValueError, match="scale factor"):
+        D.scaled([s], 1.5)

@@ -9,7 +9,15 @@ Figures (definitions in :mod:`companion.evaluation.metrics`): ShanghaiTech B tes
 Mall 801-2000 MAE; occupancy head recall and free-area share at the model's default threshold
 (its ``companion.occupancy_threshold``, else the paper's 0) on the six DroneCrowd frames, the
 held-out DroneCrowd frame ``img017012``, Mall 801-2000 and the held-out fifth of the semantic drone
-photos; the recall/free curve over thresholds; density latency at 640x480 and 1280x720.
+photos, and on request (``--sets``) those photos downscaled x0.5 and x0.25 (``semantic-scaled``:
+real pixels of smaller people) and the synthetic hold-out (``synthetic``); the recall/free curve over
+thresholds; density latency at 640x480 and 1280x720.
+
+Recall by person size, on the sets that give person sizes (semantic drone, also downscaled: its
+person boxes; synthetic: the pasted silhouettes; the others have head points only): recall per size bin and
+``min_person_px``, the smallest size from which recall reaches 99.5 % (``metrics.min_person_px``).
+The model's figure is the largest over those sets (None if any never reaches it); the model's own
+``companion.min_person_px`` metadata is printed beside it.
 With ``--peer`` the second model is measured in the same run, its recall is also read off its
 curve at our free share, and the latency ratio is printed.
 """
@@ -24,8 +32,16 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from companion.config import SHIPPED_MODEL
+from companion.evaluation import compositor as C
 from companion.evaluation import datasets as D
-from companion.evaluation.metrics import SetResult, bench_frame, evaluate_set, latency_ms, latency_pair_ms
+from companion.evaluation.metrics import (
+    SetResult,
+    bench_frame,
+    evaluate_set,
+    latency_ms,
+    latency_pair_ms,
+    overall_min_person_px,
+)
 from companion.pipeline.density import DensityModel, DensityModelError, resolve_threshold
 
 REPO = Path(__file__).resolve().parents[2]
@@ -34,7 +50,8 @@ PRESETS: dict[str, dict[str, object]] = {
     # The MCNN peer: greyscale 0-255, no normalisation, stride 4 (shared/README.md).
     "mcnn": {"color": "gray", "scale": 1.0, "mean": 0.0, "std": 1.0, "stride": 4},
 }
-SETS = ("shb", "mall", "dronecrowd", "semantic")
+SETS = ("shb", "mall", "dronecrowd", "semantic", "semantic-scaled", "synthetic")
+DEFAULT_SETS = ("shb", "mall", "dronecrowd", "semantic")
 LATENCY_SIZES = {"640x480": (480, 640), "1280x720": (720, 1280)}
 
 
@@ -61,7 +78,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--peer-preset", choices=sorted(PRESETS), help="default: mcnn if the file name says mcnn")
     parser.add_argument("--peer-threshold", type=float, help="occupancy threshold of the peer (default its own, else 0)")
     parser.add_argument("--shared", type=Path, default=None, help="shared data directory (default ../shared)")
-    parser.add_argument("--sets", default=",".join(SETS), help=f"comma-separated subset of {','.join(SETS)}")
+    parser.add_argument("--sets", default=",".join(DEFAULT_SETS),
+                        help=f"comma-separated subset of {','.join(SETS)} (default: {','.join(DEFAULT_SETS)})")
+    parser.add_argument("--synthetic-n", type=int, default=200, help="synthetic hold-out images (512x512)")
+    parser.add_argument("--synthetic-seed", type=int, default=13, help="seed of the synthetic hold-out")
     parser.add_argument("--mall-step", type=int, default=1, help="use every N-th Mall frame (default 1: all 1,200)")
     parser.add_argument("--limit", type=int, default=0, help="at most N images per set (0: all; for quick checks)")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
@@ -80,7 +100,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, object]:
     return ov
 
 
-def _datasets(shared: Path, sets: list[str], mall_step: int, limit: int) -> dict[str, list[D.Sample]]:
+def _datasets(shared: Path, sets: list[str], mall_step: int, limit: int, synthetic_n: int = 200,
+              synthetic_seed: int = 13) -> dict[str, list[D.Sample]]:
     out: dict[str, list[D.Sample]] = {}
     if "shb" in sets:
         out["shanghaitech_b_test"] = D.shanghaitech_b(shared, "test")
@@ -91,6 +112,14 @@ def _datasets(shared: Path, sets: list[str], mall_step: int, limit: int) -> dict
         out["mall"] = D.mall(shared, mall_step)
     if "semantic" in sets:
         out["semantic_drone_val"] = D.semantic_drone(shared, "val")
+    if "semantic-scaled" in sets:
+        val = D.semantic_drone(shared, "val")
+        for f in D.SEMANTIC_SCALES:
+            out[f"semantic_drone_val_x{f:g}"] = D.scaled(val, f, f"_x{f:g}")
+    if "synthetic" in sets:
+        if synthetic_n < 1:
+            raise ValueError(f"--synthetic-n must be >= 1, got {synthetic_n}")
+        out["synthetic_val"] = C.synthetic_set(shared, synthetic_n, synthetic_seed)
     if limit:
         out = {k: v[:limit] for k, v in out.items()}
     return out
@@ -108,6 +137,10 @@ def measure(model: DensityModel, data: dict[str, list[D.Sample]], latency_runs: 
         "spec": {k: getattr(model.spec, k) for k in model.spec.__dataclass_fields__},
         "threshold": thr,
         "sets": {k: vars(v) for k, v in sets.items()},
+        # Measured here: the largest per-set figure, None if a sized set never reaches 99.5 %.
+        "min_person_px": overall_min_person_px(sets.values()),
+        "min_person_px_sets": [k for k, r in sets.items() if r.size_recall is not None],
+        "min_person_px_metadata": model.min_person_px,
     }
     if latency_runs > 0:
         src = next(iter(data.values()))[0].image()
@@ -133,9 +166,18 @@ def _print(res: dict[str, Any], curve: bool, file: TextIO = sys.stdout) -> None:
                      f" vs peer {_fmt(s['peer_recall'], True)}; peer at our free: {_fmt(s['peer_recall_at_our_free'], True)}"
                      f" (its best: {_fmt(s['peer_best_recall'], True)} at free {_fmt(s['peer_best_recall_free'], True)})")
         print(line, file=file)
+        if s.get("size_recall") is not None:
+            bins = "  ".join(f"{b['lo']:g}-{b['hi']:g} px: {_fmt(b['recall'], True)} ({b['people']})"
+                             for b in s["size_recall"] if b["people"])
+            mp = s["min_person_px"]
+            print(f"      by person size: {bins}; recall >= 99.5 % from {'-' if mp is None else f'{mp:g} px'}", file=file)
         if curve:
             for c in s["curve"]:
                 print(f"      t={c['threshold']:<10.4g} recall {_fmt(c['recall'], True):>8s} free {_fmt(c['free'], True):>8s}", file=file)
+    mp, meta = res.get("min_person_px"), res.get("min_person_px_metadata")
+    print(f"  min_person_px measured {'not reached' if mp is None else f'{mp:g} px'} on "
+          f"{', '.join(res.get('min_person_px_sets') or ['no set with person sizes'])}; "
+          f"model metadata {'none' if meta is None else f'{meta:g} px'}", file=file)
     for k, v in res.get("latency_ms", {}).items():
         print(f"  latency {k:9s} median {v['median']:.1f} ms (p10 {v['p10']:.1f}, p90 {v['p90']:.1f}, {v['runs']} runs)", file=file)
 
@@ -156,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
             if args.peer_threshold is not None:
                 pov["occupancy_threshold"] = args.peer_threshold
             peer = DensityModel(args.peer, threads=args.threads, overrides=pov)
-        data = _datasets(Path(shared), sets, args.mall_step, args.limit)
+        data = _datasets(Path(shared), sets, args.mall_step, args.limit, args.synthetic_n, args.synthetic_seed)
     except (DensityModelError, D.DatasetError, ValueError) as exc:
         print(f"companion eval: {exc}", file=sys.stderr)
         return 2

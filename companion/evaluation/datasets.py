@@ -27,6 +27,8 @@ DRONECROWD_FRAMES: dict[str, tuple[str, int]] = {
     "img017012": ("00017.mat", 11),
 }
 MALL_FIRST, MALL_LAST = 801, 2000
+#: Factors of the downscaled semantic-drone hold-out (real photos of smaller people; see ``scaled``).
+SEMANTIC_SCALES = (0.5, 0.25)
 
 
 class DatasetError(FileNotFoundError):
@@ -39,6 +41,9 @@ class Sample:
 
     points: (N, 2) float32 head points (x, y) in pixels; for box data sets, the box centres.
     boxes: (N, 4) float32 person boxes (x1, y1, x2, y2) in pixels, or None for point data sets.
+    sizes: (N,) float32 person size in pixels (longer side of the person's box), or None where the
+        data set does not give it (head points alone, or DroneCrowd's fixed 20 px head boxes).
+    pixels: the image itself when it lives in memory (synthetic sets), else None (read ``path``).
     """
 
     name: str
@@ -46,10 +51,12 @@ class Sample:
     points: np.ndarray
     boxes: np.ndarray | None = None
     meta: dict[str, object] = field(default_factory=dict)
+    sizes: np.ndarray | None = None
+    pixels: np.ndarray | None = None
 
     def image(self) -> np.ndarray:
         """The image as HxWx3 BGR uint8."""
-        return read_image(self.path)
+        return self.pixels if self.pixels is not None else read_image(self.path)
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -127,5 +134,28 @@ def semantic_drone(shared: Path, split: Split = "all") -> list[Sample]:
             continue
         b = np.asarray(boxes.get(name, []), dtype=np.float32).reshape(-1, 4)
         centres = np.stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2], axis=1)
-        out.append(Sample(Path(name).stem, root / "images" / name, centres.astype(np.float32), b))
+        sizes = np.maximum(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]).astype(np.float32)
+        out.append(Sample(Path(name).stem, root / "images" / name, centres.astype(np.float32), b, sizes=sizes))
+    return out
+
+
+def scaled(samples: list[Sample], factor: float, suffix: str = "") -> list[Sample]:
+    """``samples`` resized by ``factor`` (area filter) in memory, annotations scaled alike.
+
+    Used to measure recall on real photos at person sizes a set lacks (semantic-drone people are
+    mostly 16-100 px; at x0.25 they are 4-25 px). A downscaled photo is close to, not the same as,
+    one taken from higher up (no extra haze, motion or sensor noise): the model card says so.
+    """
+    if not 0 < factor <= 1:
+        raise ValueError(f"scale factor must be in (0, 1], got {factor}")
+    out = []
+    for s in samples:
+        img = s.image()
+        h, w = img.shape[:2]
+        small = cv2.resize(img, (max(1, round(w * factor)), max(1, round(h * factor))), interpolation=cv2.INTER_AREA)
+        fx, fy = small.shape[1] / w, small.shape[0] / h
+        pts = (s.points * np.array([fx, fy], np.float32)).astype(np.float32)
+        boxes = None if s.boxes is None else (s.boxes * np.array([fx, fy, fx, fy], np.float32)).astype(np.float32)
+        sizes = None if s.sizes is None else (s.sizes * max(fx, fy)).astype(np.float32)
+        out.append(Sample(s.name + suffix, s.path, pts, boxes, dict(s.meta), sizes, small))
     return out

@@ -10,6 +10,11 @@ For the recall/free curve over many thresholds, :func:`level_map` gives, per ima
 largest threshold at which the pixel is still occupied; ``level > t`` is then exactly the
 occupied mask of ``occupancy_map`` at threshold ``t`` (dilation by a box kernel and nearest
 upscaling commute with thresholding), so one map serves every threshold.
+
+Recall by person size (:func:`size_recall`, :func:`min_person_px`) needs each person's size, which
+only some sets give (``Sample.sizes``: the longer side of the person's box in pixels): the
+semantic-drone photos (their person boxes) and the synthetic sets (the pasted silhouettes).
+DroneCrowd's 20x20 head boxes, Mall and ShanghaiTech give head points only, so they have none.
 """
 
 from __future__ import annotations
@@ -27,6 +32,11 @@ from companion.pipeline.occupancy import FREE, OccupancyParams, occupancy_map
 # Thresholds above min(D) for the curve; geometric so both probability-like maps (ours, 0-1) and
 # true density maps (MCNN, ~1e-3 per pixel) get a usable curve.
 CURVE_THRESHOLDS: tuple[float, ...] = (0.0, *np.geomspace(1e-4, 0.9, 48).tolist())
+#: Person-size bin edges in pixels (longer side of the person's box) for recall by size.
+SIZE_EDGES: tuple[float, ...] = (0.0, 5.0, 8.0, 12.0, 16.0, 24.0, 40.0, 64.0, float("inf"))
+SIZE_RECALL_TARGET = 0.995
+#: Fewest people at or above a size for a 99.5 % claim: below 200, one miss already fails it.
+SIZE_MIN_PEOPLE = 200
 
 
 def level_map(density: np.ndarray, image_hw: tuple[int, int], kernel: int = 5, iterations: int = 2) -> np.ndarray:
@@ -93,6 +103,8 @@ class SetResult:
     curve: list[dict[str, float]] = field(default_factory=list)  # {threshold, recall, free}
     mae: float | None = None
     rmse: float | None = None
+    size_recall: list[dict[str, float]] | None = None  # per size bin at ``threshold``; None: no sizes
+    min_person_px: float | None = None  # :func:`min_person_px` at ``threshold``; None: not reached / no sizes
 
     def at_free(self, free: float) -> float:
         """Recall on this set's curve at free share ``free`` (linear interpolation, NaN outside)."""
@@ -127,12 +139,19 @@ def evaluate_set(
     free_px = np.zeros(len(thr), np.int64)
     total = OccupancyTally()
     errors = []
+    sizes: list[np.ndarray] = []
+    covered: list[np.ndarray] = []
     op = OccupancyParams(threshold, params.kernel, params.iterations)
     for s in samples:
         img = s.image()
         hw = img.shape[:2]
         d = density_fn(img)
-        t = tally_occupancy(occupancy_map(d, hw, op), s.points)
+        occ = occupancy_map(d, hw, op)
+        t = tally_occupancy(occ, s.points)
+        if s.sizes is not None:
+            r, c = head_pixels(s.points, hw)
+            sizes.append(np.asarray(s.sizes, np.float64).reshape(-1))
+            covered.append(occ[r, c] != FREE)
         total.heads += t.heads
         total.covered += t.covered
         total.pixels += t.pixels
@@ -154,7 +173,43 @@ def evaluate_set(
     if errors:
         e = np.asarray(errors)
         res.mae, res.rmse = float(np.abs(e).mean()), float(np.sqrt((e**2).mean()))
+    if sizes:
+        sz, cov = np.concatenate(sizes), np.concatenate(covered)
+        res.size_recall = size_recall(sz, cov)
+        res.min_person_px = min_person_px(sz, cov)
     return res
+
+
+def size_recall(sizes: np.ndarray, covered: np.ndarray, edges: Sequence[float] = SIZE_EDGES) -> list[dict[str, float]]:
+    """Recall per person-size bin ``[lo, hi)`` (px): ``{lo, hi, people, covered, recall}`` (recall NaN if empty)."""
+    sizes, covered = np.asarray(sizes, np.float64), np.asarray(covered, bool)
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (sizes >= lo) & (sizes < hi)
+        n, k = int(sel.sum()), int(covered[sel].sum())
+        out.append({"lo": float(lo), "hi": float(hi), "people": n, "covered": k,
+                    "recall": k / n if n else float("nan")})
+    return out
+
+
+def min_person_px(sizes: np.ndarray, covered: np.ndarray, target: float = SIZE_RECALL_TARGET,
+                  edges: Sequence[float] = SIZE_EDGES, min_people: int = SIZE_MIN_PEOPLE) -> float | None:
+    """The smallest bin edge ``lo`` (px) from which recall reaches ``target``, or None.
+
+    Conservative on purpose: every non-empty size bin at or above ``lo`` must reach ``target`` on
+    its own (not just the pooled people), and at least ``min_people`` people must be that large
+    (a 99.5 % claim on fewer is not measurable).
+    """
+    bins = size_recall(sizes, covered, edges)
+    sizes = np.asarray(sizes, np.float64)
+    for i, b in enumerate(bins):
+        if not b["people"]:
+            continue  # never claim a size nobody in the data was measured at
+        if int((sizes >= b["lo"]).sum()) < min_people:
+            return None
+        if all(c["recall"] >= target for c in bins[i:] if c["people"]):
+            return b["lo"]
+    return None
 
 
 def latency_ms(density_fn: Callable[[np.ndarray], np.ndarray], frame: np.ndarray, runs: int = 20, warmup: int = 3) -> dict[str, float]:
@@ -201,3 +256,13 @@ def best_threshold(results: Iterable[SetResult], min_recall: float) -> float | N
         if all(r.curve[i]["recall"] >= min_recall for r in results):
             ok = c["threshold"]
     return ok
+
+
+def overall_min_person_px(results: Iterable[SetResult]) -> float | None:
+    """A model's figure over several sets: the largest per-set ``min_person_px`` among the sets that
+    give person sizes; None when none does or any of them never reaches the target (err toward
+    "not trusted")."""
+    sized = [r.min_person_px for r in results if r.size_recall is not None]
+    if not sized or any(v is None for v in sized):
+        return None
+    return max(v for v in sized if v is not None)

@@ -23,6 +23,12 @@ key                                meaning
                                    the pipeline's default when its config sets none
 ``companion.count_scale``          multiplier turning the map's sum into a people count
                                    (default 1: a true density map)
+``companion.min_person_px``        the smallest person size (longer side of the person's box,
+                                   in input pixels) from which the model's head recall reaches
+                                   99.5 % at its occupancy threshold, measured on validation
+                                   sets with real person sizes (``companion eval``); absent or
+                                   ``none``: not measured or never reached. A caller trusts
+                                   "free" only where people would appear at least this large
 =================================  ==========================================================
 
 The returned map is float32, 2-D, in output pixels: output pixel (i, j) covers input pixels
@@ -47,7 +53,8 @@ import numpy as np
 
 PREFIX = "companion."
 COLORS = ("bgr", "rgb", "gray")
-KEYS = ("color", "scale", "mean", "std", "stride", "input_multiple", "occupancy_threshold", "count_scale")
+KEYS = ("color", "scale", "mean", "std", "stride", "input_multiple", "occupancy_threshold", "count_scale",
+        "min_person_px")
 
 
 class DensityModelError(ValueError):
@@ -69,6 +76,8 @@ class DensitySpec:
     input_multiple: frames are padded to a multiple of this many pixels.
     occupancy_threshold: the model's validated occupancy threshold, or None.
     count_scale: multiplier turning the sum of the map into a count of people.
+    min_person_px: smallest person size (px, longer side of the person's box) at which the model's
+        head recall reaches 99.5 % at its threshold, or None (not measured / not reached).
     """
 
     color: str
@@ -146,6 +155,17 @@ def _parse(settings: Mapping[str, object], channels: int) -> dict[str, object]:
     if len(cs) != 1 or cs[0] <= 0:
         raise ValueError(f"count_scale must be one number > 0, got {settings.get('count_scale')!r}")
     out["count_scale"] = cs[0]
+    mp = settings.get("min_person_px")
+    if mp in (None, "", "none", "None"):
+        out["min_person_px"] = None
+    else:
+        try:
+            v = _floats(mp, "min_person_px")
+        except ValueError:
+            v = ()
+        if len(v) != 1 or not 0 < v[0] <= 10000:
+            raise ValueError(f"min_person_px must be one number of pixels in (0, 10000] (or none), got {mp!r}")
+        out["min_person_px"] = v[0]
     return out
 
 
@@ -240,11 +260,19 @@ class DensityModel:
             input_multiple=int(multiple or stride),
             occupancy_threshold=parsed["occupancy_threshold"],  # type: ignore[arg-type]
             count_scale=float(parsed["count_scale"]),  # type: ignore[arg-type]
+            min_person_px=cast("float | None", parsed["min_person_px"]),
         )
         # (x * scale - mean) / std  ==  x * gain + offset, per channel
         std = np.asarray(self.spec.std, np.float64)
         self._gain = (self.spec.scale / std).astype(np.float32)
         self._offset = (-np.asarray(self.spec.mean, np.float64) / std).astype(np.float32)
+
+    @property
+    def min_person_px(self) -> float | None:
+        """Smallest person size in input pixels (longer side of the person's box) at which this
+        model finds 99.5 % of people at its threshold; None when the model does not say. Free area
+        is trustworthy only where people would appear at least this large."""
+        return self.spec.min_person_px
 
     def _probe_size(self, multiple: int) -> tuple[int, int]:
         side = multiple * max(1, math.ceil(64 / multiple))

@@ -8,6 +8,11 @@
 * ``companion.count_scale``: people per unit of map sum, fitted on every 4th ShanghaiTech B
   *training* image (the map is an occupancy score, not a density, so its sum needs a scale to
   read as a count; the test images stay untouched).
+* ``companion.min_person_px``: at that threshold, the smallest person size (px) from which head
+  recall reaches 99.5 % on the validation sets that give person sizes: the held-out semantic-drone
+  fifth, the same photos downscaled x0.5 and x0.25, and the synthetic hold-out
+  (:func:`companion.evaluation.compositor.synthetic_set`, seed 13, 200 images); the largest of them (:func:`companion.evaluation.metrics.overall_min_person_px`).
+  When a set never reaches it, the key is removed: the model makes no size claim.
 
     python -m companion.training.calibrate --model models/slz-density.onnx --shared ../shared
 """
@@ -20,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.evaluation import compositor as C
 from companion.evaluation import datasets as D
-from companion.evaluation.metrics import best_threshold, evaluate_set
+from companion.evaluation.metrics import best_threshold, evaluate_set, overall_min_person_px
 from companion.pipeline.density import DensityModel
 from companion.training.export import set_metadata
 
@@ -39,6 +45,16 @@ def validation_sets(shared: Path, mall_step: int = MALL_STEP) -> dict[str, list[
     }
 
 
+def size_sets(shared: Path) -> dict[str, list[D.Sample]]:
+    """The validation sets that give person sizes (for ``min_person_px``)."""
+    val = D.semantic_drone(shared, "val")
+    return {
+        "semantic_drone_val": val,
+        **{f"semantic_drone_val_x{f:g}": D.scaled(val, f, f"_x{f:g}") for f in D.SEMANTIC_SCALES},
+        "synthetic_val": C.synthetic_set(shared),
+    }
+
+
 def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float = MIN_RECALL) -> dict[str, object]:
     model = DensityModel(path, threads=threads, overrides={"count_scale": 1.0})
     shb = D.shanghaitech_b(shared, "train")[::4]
@@ -51,11 +67,19 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float = MI
         log.warning("no threshold reaches %.1f %% recall on every validation set; storing 0 (the paper's)",
                     100 * min_recall)
         thr = 0.0
+    sized = [evaluate_set(n, s, model, thr) for n, s in size_sets(shared).items()]
+    min_px = overall_min_person_px(sized)
+    for r in sized:
+        log.info("%s: recall >= 99.5 %% from %s px; by size %s", r.name, r.min_person_px,
+                 [(b["lo"], b["people"], round(b["recall"], 4)) for b in r.size_recall or [] if b["people"]])
     meta: dict[str, object] = {
         "companion.occupancy_threshold": f"{thr:.6g}",
+        "companion.min_person_px": None if min_px is None else f"{min_px:g}",
         "companion.count_scale": f"{count_scale:.6g}",
         "companion.calibration": f"threshold: largest with recall >= {min_recall} on dronecrowd6, "
-        f"semantic_drone_val, mall/{MALL_STEP}; count_scale: shanghaitech_b train[::4]",
+        f"semantic_drone_val, mall/{MALL_STEP}; count_scale: shanghaitech_b train[::4]; "
+        "min_person_px: recall >= 0.995 per size bin from there up on semantic_drone_val (x1, x0.5, x0.25) "
+        "and synthetic_val",
     }
     set_metadata(Path(path), meta)
     for r in results:

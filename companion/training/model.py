@@ -45,6 +45,7 @@ class SLZDensityNet(nn.Module):
             _cbr(width, 32, 3),
         )
         self.head = nn.Conv2d(32, 1, 1)
+        assert self.head.bias is not None  # Conv2d has a bias by default
         nn.init.constant_(self.head.bias, -4.0)  # start near "nobody": most pixels are empty
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -72,7 +73,9 @@ def fold_batchnorm(net: SLZDensityNet) -> SLZDensityNet:
     net = copy.deepcopy(net).eval()
     for mod in net.modules():
         if isinstance(mod, nn.Sequential) and len(mod) == 3 and isinstance(mod[1], nn.BatchNorm2d):
-            mod[0] = fuse_conv_bn_eval(mod[0], mod[1])
+            conv = mod[0]
+            assert isinstance(conv, nn.Conv2d)
+            mod[0] = fuse_conv_bn_eval(conv, mod[1])
             mod[1] = nn.Identity()
     return net
 

@@ -1,0 +1,103 @@
+"""Hard negatives: crops centred on things that are not people but look like them from above.
+
+The static clutter that the findings note and the hidden rooftop scene show the network mistaking
+for people: roofs, walls, windows, cars, obstacles, trees, fences and road markings, plus whole
+photos with nobody in them. All come from the semantic-drone photos of the training split with
+their people inpainted away (:func:`companion.evaluation.compositor.load_semantic`), so every crop
+has an all-zero target. numpy / OpenCV only.
+
+Kinds are named as in ``labels/classes.txt`` (looked up by name, so a renumbered class list fails
+loudly). ``road-marking`` is not a class there: it is the brightest 2 % of an image's paved-area
+pixels (painted lines and symbols are brighter than the asphalt or paving around them).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from companion.evaluation.compositor import PERSON, Background
+from companion.evaluation.datasets import DatasetError
+from companion.training.augment import GeomAug, random_crop
+
+KINDS = ("roof", "wall", "window", "car", "obstacle", "tree", "bald-tree", "fence", "fence-pole", "road-marking")
+EMPTY = "no-person-photo"
+POINTS_PER_IMAGE = 64  # candidate centres kept per (image, kind): enough variety, little memory
+MIN_PIXELS = 30  # a kind with fewer pixels in an image is noise in the class map there
+
+
+def class_indices(shared: Path) -> dict[str, int]:
+    """``labels/classes.txt`` as name -> index."""
+    path = Path(shared) / "data" / "semantic_drone" / "labels" / "classes.txt"
+    if not path.is_file():
+        raise DatasetError(f"missing {path} (see shared/README.md for the layout)")
+    out = {}
+    for line in path.read_text().splitlines():
+        if line.strip():
+            idx, name = line.split(maxsplit=1)
+            out[name.strip()] = int(idx)
+    return out
+
+
+def kind_mask(kind: str, ground: Background, classes: dict[str, int]) -> np.ndarray:
+    """Boolean mask of ``kind``'s pixels in ``ground``."""
+    if kind == "road-marking":
+        paved = ground.classes == classes["paved-area"]
+        if paved.sum() < MIN_PIXELS:
+            return np.zeros_like(paved)
+        grey = cv2.cvtColor(ground.bgr, cv2.COLOR_BGR2GRAY)
+        return paved & (grey > np.percentile(grey[paved], 98))
+    return np.asarray(ground.classes == classes[kind])
+
+
+@dataclass
+class HardNegatives:
+    """Draws person-free crops centred on a hard-negative kind (uniform over kinds with any pixels,
+    ``EMPTY`` counting as one kind: a random crop of a photo with nobody in it).
+
+    aug: the geometric augmentation of each crop (scale range, rotation).
+    """
+
+    grounds: list[Background]
+    centres: dict[str, list[tuple[int, np.ndarray]]]  # kind -> [(ground index, (K, 2) x, y)]
+    aug: GeomAug = GeomAug((0.4, 1.6), True, 1.0)
+
+    @classmethod
+    def build(cls, grounds: Sequence[Background], classes: dict[str, int], seed: int = 0) -> HardNegatives:
+        """Index the candidate centres of every kind in ``grounds`` (a ground whose class map has
+        no person pixel at all is also an ``EMPTY`` photo)."""
+        missing = [k for k in (*KINDS, "paved-area") if k not in classes and k != "road-marking"]
+        if missing:
+            raise DatasetError(f"labels/classes.txt has no class named {', '.join(missing)}")
+        rng = np.random.default_rng(seed)
+        centres: dict[str, list[tuple[int, np.ndarray]]] = {k: [] for k in (*KINDS, EMPTY)}
+        for gi, g in enumerate(grounds):
+            for kind in KINDS:
+                ys, xs = np.nonzero(kind_mask(kind, g, classes))
+                if len(xs) >= MIN_PIXELS:
+                    pick = rng.choice(len(xs), min(POINTS_PER_IMAGE, len(xs)), replace=False)
+                    centres[kind].append((gi, np.stack([xs[pick], ys[pick]], axis=1).astype(np.float32)))
+            if not (g.classes == PERSON).any():
+                h, w = g.classes.shape
+                centres[EMPTY].append((gi, np.array([[w / 2, h / 2]], np.float32)))
+        return cls(list(grounds), {k: v for k, v in centres.items() if v})
+
+    @property
+    def kinds(self) -> list[str]:
+        return sorted(self.centres)
+
+    def crop(self, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, str]:
+        """(``size`` x ``size`` BGR uint8 crop, its all-zero float32 target, the kind)."""
+        kinds = self.kinds
+        kind = kinds[int(rng.integers(len(kinds)))]
+        gi, pts = self.centres[kind][int(rng.integers(len(self.centres[kind])))]
+        g = self.grounds[gi]
+        zero = np.zeros(g.classes.shape, np.float32)
+        # EMPTY: anywhere in the photo (focus 0); a kind: near one of its pixels (focus 1).
+        aug = GeomAug(self.aug.scale, self.aug.rotate, 0.0 if kind == EMPTY else 1.0)
+        img, _ = random_crop(g.bgr, zero, pts[[int(rng.integers(len(pts)))]], size, aug, rng)
+        return img, np.zeros((size, size), np.float32), kind

@@ -9,7 +9,7 @@
   *training* image (the map is an occupancy score, not a density, so its sum needs a scale to
   read as a count; the test images stay untouched).
 
-    python -m companion.training.calibrate --model models/slz-density.onnx --shared ../shared
+    python -m companion.training.calibrate --model companion/models/slz-density.onnx --shared ../shared
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float = MI
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default="models/slz-density.onnx")
+    p.add_argument("--model", default="companion/models/slz-density.onnx")
     p.add_argument("--shared", default="../shared")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--min-recall", type=float, default=MIN_RECALL)

@@ -31,7 +31,7 @@ KEYS = {key for key, _default, _doc in config.all_keys()}
 TABLE_KEYS = {key for key, default, _doc in config.all_keys() if isinstance(default, dict)}  # free-form tables
 SECTIONS = {key.rsplit(".", 1)[0] for key in KEYS if "." in key}
 TOP = sorted({key.split(".")[0] for key in KEYS})
-DOTTED = re.compile(r"(?<![\w./-])((?:%s)(?:\.[a-z_0-9]+)+)(?![\w/-]|\.[a-z])" % "|".join(TOP))
+DOTTED = re.compile(r"(?<![\w./-])((?:" + "|".join(TOP) + r")(?:\.[a-z_0-9]+)+)(?![\w/-]|\.[a-z])")
 
 
 def _known(dotted: str) -> bool:

@@ -222,7 +222,7 @@ class Service:
                 last_log = time.monotonic()
             try:
                 await asyncio.wait_for(self.stop_event.wait(), 0.05)
-            except TimeoutError:
+            except (TimeoutError, asyncio.TimeoutError):
                 pass
         return True
 
@@ -354,7 +354,7 @@ class Service:
         """Await one shutdown step for at most ``timeout`` s; log, never raise, when it fails."""
         try:
             await asyncio.wait_for(step, timeout)
-        except TimeoutError:
+        except (TimeoutError, asyncio.TimeoutError):
             log.error("shutdown: %s did not finish within %.2f s; going on", name, timeout)
         except asyncio.CancelledError:
             me = asyncio.current_task()
@@ -480,7 +480,7 @@ class Service:
                 self._log_health(health.ok, health.reason)
             try:
                 await asyncio.wait_for(self.stop_event.wait(), TICK_S)
-            except TimeoutError:
+            except (TimeoutError, asyncio.TimeoutError):
                 pass
 
     def _log_health(self, ok: bool, why: str) -> None:

@@ -10,6 +10,8 @@ own site-packages, so the installed ``companion`` is the one imported, not the c
 
 from __future__ import annotations
 
+import fnmatch
+import json
 import os
 import re
 import shutil
@@ -133,11 +135,62 @@ def test_a_missing_optional_package_names_its_extra(tmp_path: Path) -> None:
 
 # ---- the wheel, installed outside the clone --------------------------------------------------
 
+def _dockerfile() -> list[tuple[str, list[str]]]:
+    """The Dockerfile's instructions as (INSTRUCTION, arguments), continuation lines joined."""
+    text = re.sub(r"\\\n", " ", (REPO / "Dockerfile").read_text())
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), rest.split()))
+    return out
+
+
+def _build_stage_copies() -> list[tuple[str, str]]:
+    """(source, destination) of each COPY of the Dockerfile's first stage, the one building the wheel."""
+    copies, stage = [], 0
+    for word, args in _dockerfile():
+        if word == "FROM":
+            stage += 1
+        elif word == "COPY" and stage == 1:
+            *sources, dest = args
+            copies += [(src, dest) for src in sources]
+    return copies
+
+
 def _copy_source(dest: Path) -> Path:
-    ignore = shutil.ignore_patterns(".git", ".venv", "build", "dist", "*.egg-info", "__pycache__",
-                                    ".*_cache", "demo-out", "tests")
-    shutil.copytree(REPO, dest, ignore=ignore)
+    """What the Dockerfile's build stage copies, laid out as it lays it out (so the wheel this
+    test installs is the one the image installs)."""
+    dest.mkdir()
+    ignore = shutil.ignore_patterns("__pycache__", "*.egg-info")
+    for src, to in _build_stage_copies():
+        target = dest / to if not to.endswith("/") and to not in ("./", ".") else dest / Path(src).name
+        if (REPO / src).is_dir():
+            shutil.copytree(REPO / src, target, ignore=ignore)
+        else:
+            shutil.copy(REPO / src, target)
     return dest
+
+
+def test_the_dockerfile_copies_what_exists_and_runs_the_service() -> None:
+    ignored = [line.strip() for line in (REPO / ".dockerignore").read_text().splitlines()
+               if line.strip() and not line.startswith("#")]
+    steps = _dockerfile()
+    copies = [args for word, args in steps if word == "COPY" and not args[0].startswith("--from")]
+    assert copies
+    for *sources, _dest in copies:
+        for src in sources:
+            assert (REPO / src).exists(), f"the Dockerfile copies {src}, which is not in the repository"
+            assert not any(fnmatch.fnmatch(src.rstrip("/"), pat.strip("/")) for pat in ignored), \
+                f"{src} is copied but .dockerignore leaves it out of the build context"
+    assert sum(word == "FROM" for word, _ in steps) == 2  # multi-stage: build the wheel, then install it
+    assert any(word == "USER" and args != ["root"] for word, args in steps)
+    (entry,) = [args for word, args in steps if word == "ENTRYPOINT"]
+    argv = json.loads(" ".join(entry))
+    assert argv[:2] == ["companion", "run"] and argv[2:] == ["--config", "/etc/companion/companion.toml"]
+    assert ["companion.example.toml", "/etc/companion/companion.toml"] in copies  # the config it names exists
+    assert any("pip wheel" in " ".join(args) and "--no-deps" in args for word, args in steps if word == "RUN")
 
 
 def test_a_wheel_installed_outside_the_clone_runs_and_finds_its_model(tmp_path: Path) -> None:

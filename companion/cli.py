@@ -74,9 +74,7 @@ def build_parser(chosen: str | None) -> tuple[argparse.ArgumentParser, object | 
         except ModuleNotFoundError as exc:
             extra = missing_extra(exc)
             if extra is not None:
-                # Whatever follows parses, so the run (or --help) says what to install.
                 p.description = f"{help_text}. Not available here: {extra}"
-                p.add_argument("_rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
                 p.set_defaults(_unavailable=f"'{name}': {extra}")
                 continue
             if not (exc.name and module_name.startswith(exc.name)):
@@ -91,7 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     chosen = next((a for a in argv if a in COMMANDS), None)
     parser, module = build_parser(chosen)
-    args = parser.parse_args(argv)
+    if chosen is not None and module is None:
+        # The command's own arguments are unknown without its module: say what to install.
+        args, _unknown = parser.parse_known_args(argv)
+    else:
+        args = parser.parse_args(argv)
     logging.basicConfig(
         level=getattr(logging, args.log_level),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

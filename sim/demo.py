@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib.util
+import importlib
 import json
 import sys
 import time
@@ -148,8 +148,16 @@ def _write_zones(recording: Path, path: Path) -> int:
     return n
 
 
+def _have(module: str) -> bool:
+    try:
+        importlib.import_module(module)
+    except ImportError:
+        return False
+    return True
+
+
 def run(args: argparse.Namespace) -> int:
-    if not args.no_video and importlib.util.find_spec("av") is None:
+    if not args.no_video and not _have("av"):
         # Said before the two-minute flight, not after it.
         print("companion: demo: the video needs the optional package 'av': pip install 'companion-slz[tools]' "
               "(or run with --no-video)", file=sys.stderr)

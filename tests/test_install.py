@@ -126,11 +126,20 @@ def test_a_missing_optional_package_names_its_extra(tmp_path: Path) -> None:
             "sys.exit(main(['replay', '--help']))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
     assert "Traceback" not in r.stderr
-    code = ("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
-            f"sys.exit(main(['replay', {str(tmp_path)!r}]))")
+    for argv in (["replay", str(tmp_path)], ["sim-scenarios", "--seeds", "1-3", "--json"]):
+        code = ("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
+                f"sys.exit(main({argv!r}))")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert "pip install 'companion-slz[tools]'" in r.stderr and "tqdm" in r.stderr, r.stderr
+
+
+def test_the_demo_without_pyav_says_so_before_flying(tmp_path: Path) -> None:
+    code = ("import sys; sys.modules['av'] = None; from companion.cli import main; "
+            f"sys.exit(main(['demo', '--out', {str(tmp_path / 'out')!r}]))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
-    assert r.returncode == 2 and "Traceback" not in r.stderr
-    assert "pip install 'companion-slz[tools]'" in r.stderr and "tqdm" in r.stderr
+    assert r.returncode == 2 and "companion-slz[tools]" in r.stderr and "--no-video" in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()  # nothing flown, nothing written
 
 
 # ---- the wheel, installed outside the clone --------------------------------------------------

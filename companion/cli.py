@@ -1,4 +1,4 @@
-"""The ``companion`` command line.
+"""The companion command line: a service that lands a drone away from people.
 
 Each sub-command lives in its own module, which provides ``configure(parser)`` to add its
 arguments and ``run(args) -> int`` to execute it. Modules are imported only when their command
@@ -13,6 +13,8 @@ import importlib
 import logging
 import sys
 
+from companion import __version__
+
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("companion.service.cli", "run the service against a flight controller (the daemon)"),
@@ -23,7 +25,25 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("sim.cli", "run the simulated vehicle and camera on their own"),
     "sim-scenarios": ("sim.scenarios", "fly N seeded random scenarios and report safety figures"),
     "signing-key": ("companion.mavlink.keygen", "make a MAVLink signing key file for the link"),
+    "check-config": ("companion.service.check_config",
+                     "validate a configuration file and print the settings it resolves to"),
 }
+
+#: Optional packages -> the extra that installs them (pyproject.toml). A command that needs one
+#: that is missing says which extra to install, instead of a traceback.
+EXTRAS: dict[str, str] = {
+    "tqdm": "tools", "av": "tools", "torch": "train", "onnx": "train", "ray": "scale",
+    "mavsdk": "dev",
+}
+
+
+def missing_extra(exc: ModuleNotFoundError) -> str | None:
+    """The message for a missing optional package, or None when ``exc`` is not about one."""
+    top = (exc.name or "").split(".")[0]
+    if top not in EXTRAS:
+        return None
+    return (f"this command needs the optional package '{top}': "
+            f"pip install 'companion-slz[{EXTRAS[top]}]'")
 
 
 def _add_log_level(parser: argparse.ArgumentParser, default: object) -> None:
@@ -38,7 +58,9 @@ def _add_log_level(parser: argparse.ArgumentParser, default: object) -> None:
 
 def build_parser(chosen: str | None) -> tuple[argparse.ArgumentParser, object | None]:
     """The parser, with the arguments of ``chosen`` (the one command that will run) filled in."""
-    parser = argparse.ArgumentParser(prog="companion", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="companion", description=__doc__.splitlines()[0],
+                                     epilog="'companion COMMAND --help' describes each command.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     _add_log_level(parser, "INFO")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     chosen_module = None
@@ -50,6 +72,11 @@ def build_parser(chosen: str | None) -> tuple[argparse.ArgumentParser, object | 
         try:
             chosen_module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:
+            extra = missing_extra(exc)
+            if extra is not None:
+                p.description = f"{help_text}. Not available here: {extra}"
+                p.set_defaults(_unavailable=f"'{name}': {extra}")
+                continue
             if not (exc.name and module_name.startswith(exc.name)):
                 raise
             p.set_defaults(_unavailable=f"'{name}' is not available in this build ({exc.name} missing)")
@@ -62,7 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     chosen = next((a for a in argv if a in COMMANDS), None)
     parser, module = build_parser(chosen)
-    args = parser.parse_args(argv)
+    if chosen is not None and module is None:
+        # The command's own arguments are unknown without its module: say what to install.
+        args, _unknown = parser.parse_known_args(argv)
+    else:
+        args = parser.parse_args(argv)
     logging.basicConfig(
         level=getattr(logging, args.log_level),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
@@ -74,7 +105,14 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "_unavailable", None) or module is None:
         print(f"companion: {getattr(args, '_unavailable', 'command not available')}", file=sys.stderr)
         return 2
-    return int(module.run(args) or 0)  # type: ignore[attr-defined]
+    try:
+        return int(module.run(args) or 0)  # type: ignore[attr-defined]
+    except ModuleNotFoundError as exc:  # an optional package imported only on the way (e.g. av)
+        message = missing_extra(exc)
+        if message is None:
+            raise
+        print(f"companion: {args.command}: {message}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -13,9 +13,10 @@ Units are in the key names where they matter (``_s`` seconds, ``_m`` metres, ``_
 from __future__ import annotations
 
 import functools
+import importlib.resources
 import json
 import math
-import tomllib
+import sys
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -39,9 +40,16 @@ from companion.pipeline.riskmap import MAX_HALF_CELLS, RiskMapConfig
 from companion.pipeline.slz import FUSIONS, PipelineConfig
 from companion.pipeline.tracker import TrackerParams
 
-#: The shipped density model, in ``models/`` of a source checkout or an editable install: the one
-#: definition the service, replay, evaluation and the benchmark use.
-SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "slz-density.onnx"
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10 (NVIDIA JetPack 6): tomli is the package tomllib was taken from
+    import tomli as tomllib
+
+#: The shipped density model: package data in ``companion/models/``, so it is found the same way
+#: in a source checkout, an editable install and an installed wheel (``pip install .`` from any
+#: directory). The one definition the service, replay, evaluation and the benchmark use. A wheel is
+#: always unpacked on disk, so the resource is a real file onnxruntime can open by path.
+SHIPPED_MODEL = Path(str(importlib.resources.files("companion") / "models" / "slz-density.onnx"))
 
 FLAVOURS = ("auto", "ardupilot", "px4")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -125,7 +133,8 @@ class CameraSettings:
 class ModelSettings:
     """The ONNX density model."""
 
-    path: str = _f(str(SHIPPED_MODEL), "ONNX density model file", path=True)
+    path: str = _f(str(SHIPPED_MODEL), "ONNX density model file; empty = the model shipped in the package",
+                   path=True)
     threads: int = _f(2, "onnxruntime intra-op threads", min=1, max=64)
     overrides: dict[str, Any] = _f({}, "settings that win over the model's metadata (color, scale, ...)")
 
@@ -467,6 +476,10 @@ def from_dict(raw: Mapping[str, Any], source: Path | None = None) -> Config:
     base_dir = source.parent if source is not None else None
     cfg = _build(Config, raw, "", base_dir)
     cfg = replace(cfg, source=source)
+    if not cfg.model.path:
+        # "" names the shipped model wherever the package is installed, so the example file works
+        # copied to /etc/companion unchanged.
+        cfg = replace(cfg, model=replace(cfg.model, path=str(SHIPPED_MODEL)))
     _cross_checks(cfg)
     return cfg
 

@@ -57,7 +57,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, cast
 
@@ -279,7 +279,7 @@ class FlightRecorder:
         self._meta = {
             "format": "companion-recording",
             "version": FORMAT_VERSION,
-            "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "monotonic_at_start": time.monotonic(),
             "codec": codec,
             "segment_s": self.segment_s,
@@ -314,7 +314,7 @@ class FlightRecorder:
         """Make room within the budget, create the run folder, write meta.json and start the
         writer thread. Raises OSError (naming the folder) when the folder cannot be created or
         written."""
-        stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
         self.root.mkdir(parents=True, exist_ok=True)
         self._scan()
         self._enforce_budget()

@@ -2,6 +2,7 @@
 
     companion sim --flavour px4 --out udpout:127.0.0.1:14540 --start-alt 30
     companion sim --out udp:127.0.0.1:14550 --out udpout:127.0.0.1:14540 --camera
+    companion sim --camera-only --pose-from udpin:127.0.0.1:14551    # a real SITL flies (docs/sitl.md)
 
 Like SITL's ``--out``, each ``--out`` is a UDP address the vehicle streams telemetry to and whose
 replies it obeys; ``udpin:HOST:PORT`` binds a port instead and answers whoever sends to it.
@@ -49,6 +50,17 @@ def _out(text: str) -> str:
     return text
 
 
+def _pose_url(text: str) -> str:
+    from companion.mavlink.transports import TransportError
+    from companion.mavlink.transports import parse_url as parse_link_url
+
+    try:
+        parse_link_url(text)
+    except TransportError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flavour", choices=FLAVOURS, default="ardupilot",
                         help="which autopilot to behave like (default ardupilot)")
@@ -90,6 +102,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     cam.add_argument("--hfov-deg", type=float, default=70.0, help="camera horizontal field of view")
     cam.add_argument("--width", type=int, default=640)
     cam.add_argument("--height", type=int, default=480)
+    ext = parser.add_argument_group("camera on an external vehicle (a real ArduPilot or PX4 SITL; docs/sitl.md)")
+    ext.add_argument("--camera-only", action="store_true",
+                     help="no simulated vehicle: only the crowd and the camera, which follows the pose "
+                          "read with --pose-from")
+    ext.add_argument("--pose-from", metavar="URL", type=_pose_url, default=None,
+                     help="MAVLink URL of the external vehicle (udpin:HOST:PORT, tcp:HOST:PORT, ...): its "
+                          "HOME_POSITION, GLOBAL_POSITION_INT and ATTITUDE place the camera")
 
 
 def build_config(args: argparse.Namespace) -> SimConfig:
@@ -110,7 +129,41 @@ def build_config(args: argparse.Namespace) -> SimConfig:
         autopilot=ap, seed=args.seed)
 
 
+async def _camera_only(args: argparse.Namespace) -> int:
+    """The crowd and the camera, the camera riding on the external vehicle at ``--pose-from``."""
+    from companion.geometry.camera import Intrinsics, Mount
+    from sim.camera_server import CameraServer
+    from sim.pose_follow import ExternalPose, NoPose
+    from sim.world import default_world
+
+    vehicle = ExternalPose(args.pose_from, system_id=args.sysid)
+    world = default_world(seed=args.seed)
+    intr = Intrinsics.from_fov(args.width, args.height, args.hfov_deg)
+    camera = CameraServer(vehicle.pose, world, intr, Mount(), fps=args.fps, port=args.camera_port,
+                          advance_world=True)
+    await vehicle.start()
+    try:
+        async with camera:
+            log.info("camera at %s, following the vehicle on %s", camera.url, args.pose_from)
+            loop = asyncio.get_running_loop()
+            start = loop.time()
+            while args.duration is None or loop.time() - start < args.duration:
+                await asyncio.sleep(1.0)
+                try:
+                    p = vehicle.pose()
+                    log.info("pose N %.1f E %.1f alt %.1f m yaw %.0f deg; frames %d",
+                             p.north, p.east, -p.down, math.degrees(p.yaw), camera.frames_rendered)
+                except NoPose as exc:
+                    log.info("waiting: %s (HOME_POSITION, GLOBAL_POSITION_INT, ATTITUDE on %s)", exc,
+                             args.pose_from)
+    finally:
+        await vehicle.close()
+    return 0
+
+
 async def _main(args: argparse.Namespace) -> int:
+    if args.camera_only:
+        return await _camera_only(args)
     config = build_config(args)
     world = camera = None
     if args.camera:
@@ -162,6 +215,8 @@ def run(args: argparse.Namespace) -> int:
         build_config(args)
     except ValueError as exc:
         config_error = str(exc)
+    if not config_error and args.camera_only != (args.pose_from is not None):
+        config_error = "--camera-only and --pose-from go together: the camera follows the vehicle at --pose-from"
     if config_error:
         print(f"companion sim: {config_error}")
         return 2

@@ -546,7 +546,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             proc.send_signal(signal.SIGTERM)
             try:
                 result.service_exit = await asyncio.wait_for(proc.wait(), 5.0)
-            except TimeoutError:
+            except (TimeoutError, asyncio.TimeoutError):
                 proc.kill()
                 result.service_exit = await proc.wait()
         elif proc is not None:

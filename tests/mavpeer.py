@@ -212,5 +212,5 @@ class MavPeer:
             self._new.clear()
             try:
                 await asyncio.wait_for(self._new.wait(), remaining)
-            except TimeoutError:
+            except (TimeoutError, asyncio.TimeoutError):
                 pass

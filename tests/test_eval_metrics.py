@@ -14,7 +14,7 @@ from companion.evaluation.metrics import CURVE_THRESHOLDS, best_threshold, evalu
 from companion.pipeline.density import DensityModel
 from companion.pipeline.occupancy import FREE, OccupancyParams, occupancy_map
 
-CARD = Path(__file__).resolve().parents[1] / "models" / "MODEL_CARD.md"
+CARD = Path(__file__).resolve().parents[1] / "companion" / "models" / "MODEL_CARD.md"
 
 
 @pytest.mark.parametrize("shape,image_hw", [((30, 40), (120, 160)), ((125, 188), (500, 750)), ((9, 9), (9, 9))])

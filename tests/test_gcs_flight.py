@@ -73,7 +73,7 @@ async def _dump_dom(port: int) -> tuple[str | None, str | None]:
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         try:
             out, err = await asyncio.wait_for(proc.communicate(), 60.0)
-        except TimeoutError:
+        except (TimeoutError, asyncio.TimeoutError):  # one class from 3.11 on
             proc.kill()
             await proc.wait()
             return None, "chromium did not finish within 60 s"

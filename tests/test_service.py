@@ -23,7 +23,7 @@ from companion.geometry.camera import Intrinsics, Mount
 from companion.recording import RecordingReader
 
 REPO = Path(__file__).resolve().parents[1]
-SHIPPED_MODEL = REPO / "models" / "slz-density.onnx"
+SHIPPED_MODEL = REPO / "companion" / "models" / "slz-density.onnx"
 PEER_MODEL = REPO.parent / "shared" / "peers" / "mcnn-shb.onnx"
 
 pytestmark = pytest.mark.sitl
@@ -558,7 +558,7 @@ async def test_configured_ground_station_ids_and_the_local_trigger_socket(tmp_pa
                            ("127.0.0.1", port))
                 try:
                     data = await asyncio.wait_for(loop.sock_recv(gcs, 4096), 0.5)
-                except TimeoutError:
+                except (TimeoutError, asyncio.TimeoutError):
                     continue
                 for msg in rx.parse_buffer(data) or []:
                     if msg.get_type() == "COMMAND_ACK" and msg.command == 31010 and msg.target_system == sysid:

@@ -1,6 +1,6 @@
 """Closed loop on pixels: the shipped density model must find the people the simulator draws.
 
-Runs the real ONNX model (``models/slz-density.onnx``) on rendered frames and checks, through the
+Runs the real ONNX model (``companion/models/slz-density.onnx``) on rendered frames and checks, through the
 service's occupancy step with the model's own threshold, that (a) the heads of >= 95 % of the
 people in view fall on occupied pixels at 20-40 m, and (b) a sparse scene still leaves > 20 % of
 the frame free. Skips, naming the file, until the trained model is committed.
@@ -20,7 +20,7 @@ from sim.render import render_world
 from sim.walkers import CrowdParams
 from sim.world import default_world
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "slz-density.onnx"
+MODEL = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
 K = Intrinsics.from_fov(640, 480, 70.0)
 
 pytestmark = pytest.mark.skipif(not MODEL.is_file(), reason=f"the shipped density model {MODEL} is not there yet")

@@ -88,7 +88,7 @@ class MavClient(asyncio.DatagramProtocol):
             self._event.clear()
             try:
                 await asyncio.wait_for(self._event.wait(), left)
-            except TimeoutError:
+            except (TimeoutError, asyncio.TimeoutError):
                 pass
 
     def latest(self, type_: str):

@@ -232,7 +232,7 @@ class FailsafeMonitor:
                 answer = "ok"
             writer.write((answer + "\n").encode())
             await writer.drain()
-        except (TimeoutError, OSError) as exc:
+        except (TimeoutError, asyncio.TimeoutError, OSError) as exc:
             log.debug("local trigger client: %s", exc)
         finally:
             writer.close()

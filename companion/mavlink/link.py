@@ -26,6 +26,7 @@ import asyncio
 import hashlib
 import logging
 import math
+import sys
 import time
 from collections import defaultdict
 from collections.abc import Callable, Mapping
@@ -43,6 +44,11 @@ from companion.mavlink.transports import (
     make_transport,
     parse_peers,
 )
+
+if sys.version_info >= (3, 11):
+    from asyncio import timeout as _timeout
+else:  # Python 3.10 (JetPack 6): the package asyncio.timeout was taken from
+    from async_timeout import timeout as _timeout
 
 log = logging.getLogger(__name__)
 
@@ -427,9 +433,9 @@ class MavLink:
                         try:
                             # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a
                             # cancellation that races with the ack, leaving the caller running.
-                            async with asyncio.timeout(remaining):
+                            async with _timeout(remaining):
                                 result = await acks.get()
-                        except TimeoutError:
+                        except (TimeoutError, asyncio.TimeoutError):  # one class from 3.11 on
                             break
                         if result == mavlink2.MAV_RESULT_ACCEPTED:
                             return result

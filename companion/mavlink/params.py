@@ -15,10 +15,16 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import sys
 from collections.abc import Iterable
 from typing import Any
 
 from companion.mavlink.link import MavLink
+
+if sys.version_info >= (3, 11):
+    from asyncio import timeout as _timeout
+else:  # Python 3.10 (JetPack 6): the package asyncio.timeout was taken from
+    from async_timeout import timeout as _timeout
 
 log = logging.getLogger(__name__)
 
@@ -66,9 +72,9 @@ async def read_params(link: MavLink, names: Iterable[str], *, timeout_s: float =
                     link.send(link.mav.param_request_read_encode(link.target_system, component,
                                                                  name.encode("ascii"), -1))
             try:
-                async with asyncio.timeout(timeout_s):
+                async with _timeout(timeout_s):
                     await arrived.wait()
-            except TimeoutError:
+            except (TimeoutError, asyncio.TimeoutError):  # one class from 3.11 on
                 continue
             break
     finally:

@@ -67,7 +67,7 @@ def resize_keep_occupied(mask: np.ndarray, size_hw: tuple[int, int]) -> np.ndarr
     src = mask.astype(np.uint8)
     sh, sw = src.shape
     if (sh, sw) == (h, w):
-        return mask.copy()
+        return np.array(mask, copy=True)  # not .copy(): typed ndarray for mypy at Python 3.10
     if sh > h or sw > w:
         # INTER_AREA averages the covered source pixels: any occupied one gives a value > 0.
         small = cv2.resize(src * 255, (min(w, sw), min(h, sh)), interpolation=cv2.INTER_AREA)

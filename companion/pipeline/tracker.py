@@ -149,7 +149,7 @@ class _ZoneFilter:
 
     def circle(self) -> np.ndarray:
         x: np.ndarray = self.kf.x  # filterpy is untyped
-        return x[:3].copy()
+        return np.array(x[:3], copy=True)  # not .copy(): typed ndarray for mypy at Python 3.10
 
     def snapshot(self) -> Track:
         x, y, r = (float(v) for v in self.kf.x[:3])

@@ -268,7 +268,7 @@ class Service:
                 last_log = time.monotonic()
             try:
                 await asyncio.wait_for(self.stop_event.wait(), 0.05)
-            except TimeoutError:
+            except (TimeoutError, asyncio.TimeoutError):
                 pass
         return True
 
@@ -418,11 +418,13 @@ class Service:
         """Await one shutdown step for at most ``timeout`` s; log, never raise, when it fails."""
         try:
             await asyncio.wait_for(step, timeout)
-        except TimeoutError:
+        except (TimeoutError, asyncio.TimeoutError):
             log.error("shutdown: %s did not finish within %.2f s; going on", name, timeout)
         except asyncio.CancelledError:
             me = asyncio.current_task()
-            if me is not None and me.cancelling():
+            # Task.cancelling() is 3.11+; on 3.10 a cancelled step is logged and the (bounded)
+            # shutdown goes on to the next step, the handback included.
+            if me is not None and getattr(me, "cancelling", lambda: 0)():
                 raise  # this task itself is being cancelled: let it go
             log.error("shutdown: %s failed: cancelled", name)
         except Exception as exc:  # a full disk (OSError), a part's bug: log it and go on
@@ -647,7 +649,7 @@ class Service:
                 self._log_health(health.ok, health.reason)
             try:
                 await asyncio.wait_for(self.stop_event.wait(), TICK_S)
-            except TimeoutError:
+            except (TimeoutError, asyncio.TimeoutError):
                 pass
 
     def _log_health(self, ok: bool, why: str) -> None:

@@ -488,7 +488,7 @@ class CameraSource:
             return f
         try:
             await asyncio.wait_for(self._anew.wait(), timeout)
-        except TimeoutError:
+        except (TimeoutError, asyncio.TimeoutError):
             return None
         return self.take()
 

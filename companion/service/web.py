@@ -259,7 +259,7 @@ class WebServer:
                              .encode() + jpeg + b"\r\n")
                 try:
                     await asyncio.wait_for(writer.drain(), SEND_TIMEOUT_S)
-                except TimeoutError:
+                except (TimeoutError, asyncio.TimeoutError):  # one class from 3.11 on
                     self.live.stats.clients_dropped += 1
                     log.info("live view: a client stopped reading for %.0f s: dropped", SEND_TIMEOUT_S)
                     return

@@ -2,5 +2,5 @@
 
 Retrain the shipped model from scratch (about 35 minutes on 2 CPU threads)::
 
-    python -m companion.training.train --shared ../shared --out models/slz-density.onnx
+    python -m companion.training.train --shared ../shared --out companion/models/slz-density.onnx
 """

@@ -14,7 +14,7 @@
   (:func:`companion.evaluation.compositor.synthetic_set`, seed 13, 200 images); the largest of them (:func:`companion.evaluation.metrics.overall_min_person_px`).
   When a set never reaches it, the key is removed: the model makes no size claim.
 
-    python -m companion.training.calibrate --model models/slz-density.onnx --shared ../shared
+    python -m companion.training.calibrate --model companion/models/slz-density.onnx --shared ../shared
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float = MI
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default="models/slz-density.onnx")
+    p.add_argument("--model", default="companion/models/slz-density.onnx")
     p.add_argument("--shared", default="../shared")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--min-recall", type=float, default=MIN_RECALL)

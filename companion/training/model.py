@@ -3,7 +3,7 @@
 Input: ``(N, 3, H, W)`` BGR scaled to [0, 1] then ``(x - 0.45) / 0.25``; H and W multiples of 4.
 Output: ``(N, 1, H/4, W/4)`` logits during training; the exported model ends in a sigmoid, so the
 shipped map is the probability, per 4x4-pixel cell, that a person is there (an occupancy score,
-not a count: see ``models/MODEL_CARD.md``).
+not a count: see ``companion/models/MODEL_CARD.md``).
 
 Layout (C-CNN of Shi et al. 2020 in spirit): three parallel stride-2 branches with 9x9, 7x7 and
 5x5 kernels see people of different sizes at full input resolution (tiny people from above need

@@ -1,6 +1,6 @@
 """Train the shipped density network from scratch and export it to ONNX.
 
-    python -m companion.training.train --shared ../shared --out models/slz-density.onnx
+    python -m companion.training.train --shared ../shared --out companion/models/slz-density.onnx
 
 Data: the semantic drone photos except the held-out fifth (person boxes), five of the six
 DroneCrowd frames (``img112008-012``; ``img017012``, another sequence, stays held out) and the
@@ -267,7 +267,7 @@ def train(args: argparse.Namespace) -> Path:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--shared", default="../shared", help="the shared data directory")
-    p.add_argument("--out", default="models/slz-density.onnx", help="ONNX file to write")
+    p.add_argument("--out", default="companion/models/slz-density.onnx", help="ONNX file to write")
     p.add_argument("--work", default="/tmp/slz-train", help="checkpoint directory (outside the repo)")
     p.add_argument("--steps", type=int, default=2400)
     p.add_argument("--batch", type=int, default=16)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as m
@@ -171,17 +171,7 @@ class MavPeer:
 
     def statustexts(self) -> list[tuple[int, str]]:
         """(severity, text) of every STATUSTEXT, chunks (same non-zero id) joined."""
-        out: list[tuple[int, str]] = []
-        open_ids: dict[int, int] = {}
-        for msg in self.of_type("STATUSTEXT"):
-            if msg.id and msg.id in open_ids:
-                i = open_ids[msg.id]
-                out[i] = (out[i][0], out[i][1] + msg.text)
-                continue
-            if msg.id:
-                open_ids[msg.id] = len(out)
-            out.append((msg.severity, msg.text))
-        return out
+        return join_statustexts(self.of_type("STATUSTEXT"))
 
     async def wait_for_text(self, needle: str, timeout: float = 2.0) -> tuple[int, str]:
         """The first (joined) STATUSTEXT containing ``needle``."""
@@ -214,3 +204,21 @@ class MavPeer:
                 await asyncio.wait_for(self._new.wait(), remaining)
             except (TimeoutError, asyncio.TimeoutError):
                 pass
+
+
+def join_statustexts(messages: Iterable[Any]) -> list[tuple[int, str]]:
+    """(severity, text) of each STATUSTEXT among ``messages``, in order, the chunks of a long
+    text (same non-zero ``id``) joined as a ground station joins them."""
+    out: list[tuple[int, str]] = []
+    open_ids: dict[int, int] = {}
+    for msg in messages:
+        if msg.get_type() != "STATUSTEXT":
+            continue
+        if msg.id and msg.id in open_ids:
+            i = open_ids[msg.id]
+            out[i] = (out[i][0], out[i][1] + msg.text)
+            continue
+        if msg.id:
+            open_ids[msg.id] = len(out)
+        out.append((int(msg.severity), msg.text))
+    return out

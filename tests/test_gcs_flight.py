@@ -29,6 +29,7 @@ from companion.recording import RecordingReader
 from companion.service.app import Service, load_model
 from companion.service.gcs import CONDITIONS
 from sim.flight import FlightSpec, build_scene, reserve_port
+from tests.mavpeer import join_statustexts
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
@@ -186,19 +187,7 @@ def test_shadow_mode_sends_no_mode_or_position_command_through_a_whole_failsafe(
 
 
 def statustexts(flight: Flight) -> list[tuple[int, str]]:
-    out: list[tuple[int, str]] = []
-    open_ids: dict[int, int] = {}
-    for msg in from_companion(flight):
-        if msg.get_type() != "STATUSTEXT":
-            continue
-        if msg.id and msg.id in open_ids:
-            i = open_ids[msg.id]
-            out[i] = (out[i][0], out[i][1] + msg.text)
-            continue
-        if msg.id:
-            open_ids[msg.id] = len(out)
-        out.append((int(msg.severity), msg.text))
-    return out
+    return join_statustexts(from_companion(flight))
 
 
 def test_the_ground_station_sees_readiness_the_shadow_decisions_and_the_numbers(flight):

@@ -281,10 +281,11 @@ def test_a_real_run_resumes_flying_only_what_is_missing(tmp_path: Path, model_pa
 def test_two_workers_give_the_sequential_verdicts(tmp_path: Path, model_path, capsys) -> None:
     # A landing under the companion (uniform ground: "safe" when flown alone, as in
     # test_sitl.py and test_a_real_run_resumes_flying_only_what_is_missing) and a dense crowd with
-    # no safe zone (seed 1: the companion hands back to the autopilot's own LAND), flown at once.
-    # The sequential verdicts are those two; flying them alone again here would only add two
-    # minutes to CI.
-    jobs = [_uniform(6), FlightJob(1, "ardupilot")]
+    # no free ground anywhere (the companion searches briefly, then hands back to the autopilot's
+    # own LAND), flown at once. The sequential verdicts are those two; flying them alone again
+    # here would only add two minutes to CI.
+    dense = FlightJob(1, "ardupilot", (("world", "dense"), ("service_set", ("controller.search_s=8",))))
+    jobs = [_uniform(6), dense]
     out = tmp_path / "w2.jsonl"
     run_jobs(jobs, workers=2, out=out, as_json=True)
     capsys.readouterr()

@@ -46,7 +46,9 @@ def test_failsafe_over_a_free_area_takes_over_and_never_lands_near_anyone(flavou
         assert r.clearance_m >= r.spec.r0_m and not r.handed_back
 
 
-@pytest.mark.parametrize("flavour", FLAVOURS)
+# One autopilot: the search and the decision to hand back are the controller's, the same for both
+# (each flavour's handback command is flown in tests/test_service.py).
+@pytest.mark.parametrize("flavour", ["ardupilot"])
 def test_no_safe_zone_hands_back_and_the_autopilot_lands(flavour, model_path):
     # No free ground anywhere: the search (cut short here) finds nothing, and the companion never
     # flies toward a zone; the autopilot's own LAND takes over when the search gives up.
@@ -72,7 +74,9 @@ def test_the_search_finds_free_ground_out_of_the_first_view_and_lands_there(mode
     assert ((r.touchdown[0] - n) ** 2 + (r.touchdown[1] - e) ** 2) ** 0.5 < 7.0, _explain(r)
 
 
-@pytest.mark.parametrize("flavour", FLAVOURS)
+# One autopilot (CI's time): noticing the walkers is the pipeline's and the controller's; PX4's
+# different way of being commanded is flown by the other tests here.
+@pytest.mark.parametrize("flavour", ["px4"])
 def test_people_walking_into_the_target_make_it_retarget_or_hold(flavour, model_path):
     r = _fly(FlightSpec(flavour=flavour, world="intrusion", seed=4, altitude_m=18.0,
                         service_set=FAST_BUDGET))

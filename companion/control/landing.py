@@ -216,7 +216,7 @@ class LandingController:
         self._search_t = math.nan  # when the search started
         self._dwell_until = -math.inf  # hovering at a reached waypoint or lead until then
         self._investigated: set[int] = set()  # zones the search flew over that never qualified
-        self._lead_id: int | None = None  # the zone the search hovers over now
+        self._over_lead: tuple[int, float] | None = None  # (zone id, since when) the search hovers over
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.obedience = ObedienceMonitor(self.config.obedience)
@@ -603,15 +603,14 @@ class LandingController:
         if lead is not None:
             # Free ground seen, too little of it to choose (cut by the edge of the view, or too
             # young): fly over it so the camera sees it whole, and let the tracker confirm it.
-            if math.hypot(lead.x - s.north, lead.y - s.east) <= 2 * c.arrive_radius_m:
-                if self._dwell_until < self.now - 1e-9 and self._lead_id != lead.id:
-                    self._lead_id = lead.id
-                    self._dwell_until = self.now + self._search_dwell_s()
-                if self.now >= self._dwell_until:
-                    self._investigated.add(lead.id)  # looked at it long enough: not a zone
-                return []
-            self._lead_id = None
-            return self._goto(lead.x, lead.y, self._level, None)
+            if math.hypot(lead.x - s.north, lead.y - s.east) > 2 * c.arrive_radius_m:
+                self._over_lead = None
+                return self._goto(lead.x, lead.y, self._level, None)
+            if self._over_lead is None or self._over_lead[0] != lead.id:
+                self._over_lead = (lead.id, self.now)
+            elif self.now - self._over_lead[1] >= self._search_dwell_s():
+                self._investigated.add(lead.id)  # looked at long enough: it is no zone
+            return []
         if self._search and math.hypot(self._search[0][0] - s.north,
                                         self._search[0][1] - s.east) <= 2 * c.arrive_radius_m:
             # Hover there long enough for a zone in view to become a track and be old enough to

@@ -59,8 +59,8 @@ def test_no_zone_in_view_climbs_to_the_ceiling_then_flies_the_square_and_lands_o
     # First: climb where it is, to the ceiling less its margin (20 + 5 - 1 m).
     assert len(first) == 1 and isinstance(first[0], Goto) and first[0].zone_id is None
     assert (first[0].north, first[0].east, first[0].target.rel_alt_m) == pytest.approx((0.0, 0.0, 24.0))
-    # Then the square: legs of the ground radius seen at 24 m (0.525 x 22.3 m): 11.7 m.
-    spacing = 0.525 * (24.0 - 1.7)
+    # Then the square: legs of 1.5 times the ground radius seen at 24 m (0.525 x 22.3 m): 17.6 m.
+    spacing = 1.5 * 0.525 * (24.0 - 1.7)
     north, east, visited, sent_t = 0.0, 0.0, [], []
     while len(visited) < 3:
         t += 0.1
@@ -204,4 +204,4 @@ def test_a_glimpse_that_never_qualifies_is_looked_at_once_then_the_square_goes_o
                 north, east = c.north, c.east
     assert targets[0] == (-9.0, 6.0)  # first the patch,
     assert ctl.phase == Phase.SEARCH and (-9.0, 6.0) not in targets[1:]  # then the square, never back
-    assert targets[1] == (round(0.525 * 22.3, 1), 0.0)
+    assert targets[1] == (round(1.5 * 0.525 * 22.3, 1), 0.0)

@@ -574,13 +574,16 @@ class LandingController:
         return self._goto(s.north, s.east, self._level, None)
 
     def _search_spacing(self) -> float:
-        """Metres between the search's legs: the ground radius the camera sees at the planned level
-        along its narrower side, so that a free circle between two legs is seen whole from one
-        of them (at least 4 m)."""
+        """Metres between the search's legs: 1.5 times the ground radius the camera sees at the
+        planned level along its narrower side. Ground between two legs is then within 0.75 of
+        that radius of one of them, so a free circle there shows enough of itself from a corner
+        to be a glimpse worth flying over (``_search_lead``); at 1.0 a circle just beyond the
+        first corner showed a strip too thin to be one, and the search flew away from it (at
+        least 4 m)."""
         s, c = self.status, self.config
         assert s is not None
         height = self._level - (s.alt - s.height)
-        return max(4.0, c.view_ratio * max(0.0, height - 1.7))
+        return max(4.0, 1.5 * c.view_ratio * max(0.0, height - 1.7))
 
     def _search_over(self) -> str | None:
         """Why the search must stop now, or None: its time, or the battery's."""

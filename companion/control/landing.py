@@ -5,9 +5,11 @@ Phases::
     MONITOR --trigger--> SELECT --eligible zone--> APPROACH --over it--> DESCEND --low enough--> LAND
        LAND --on ground / disarmed--> LANDED
     APPROACH/DESCEND/LAND --zone lost--> APPROACH (another eligible zone) or HOLD
-    HOLD --eligible zone--> APPROACH
-    SELECT/HOLD timeout, stale pose, repeated refusals --> HANDBACK (the autopilot's LAND or RTL)
-    APPROACH/DESCEND/HOLD/LAND --pilot changes mode--> HANDBACK (without a command)
+    HOLD/SEARCH --eligible zone--> APPROACH
+    SELECT/HOLD timeout --> SEARCH (with ``search_s`` 0: HANDBACK)
+    SEARCH out of time, radius or battery, stale pose, repeated refusals --> HANDBACK (the
+        autopilot's LAND or RTL)
+    APPROACH/DESCEND/HOLD/LAND/SEARCH --pilot changes mode--> HANDBACK (without a command)
 
 Inputs (times are monotonic seconds):
 
@@ -42,6 +44,16 @@ the vehicle back to HOLD; below it the landing is committed. It is committed too
 last seen all free in a view smaller than ``BLIND_VIEW_M``, drops out of the tracks: the camera
 has come too low to confirm anything (seen occupied, it is lost as before). HOLD is a position
 target at the vehicle's own position, so the autopilot stays in GUIDED/OFFBOARD and can resume.
+A zone seen with less than ``r0_m`` free is lost only once ``lose_after_frames`` frames in a row
+see it so (one frame's false detection must not throw a landing away); gone from the tracks or
+stale, it is lost at once.
+
+Search: with no zone in view at the SELECT/HOLD timeout, the vehicle climbs to the ceiling over
+where it is and flies an ``expanding_square`` (legs 1.5 view radii apart, hovering at each corner
+while the tracker looks), flying first over free ground glimpsed at the edge of the view; any zone
+that becomes eligible is flown to. It hands back after ``search_s``, at ``search_radius_m``, or
+when the battery's time left (``VehicleStatus.battery_s``) no longer covers the landing plus
+``search_reserve_s``.
 
 Never fly away: no target is ever above the *ceiling* less ``ceiling_margin_m``; the ceiling is the
 altitude at the trigger plus ``search_climb_m``, and never above ``max_alt_m`` above home. While the
@@ -214,7 +226,7 @@ class LandingController:
         self._blind = False  # in LAND, the zone went out of view: committed
         self._search: list[tuple[float, float]] = []  # waypoints left (north, east)
         self._search_t = math.nan  # when the search started
-        self._dwell_until = -math.inf  # hovering at a reached waypoint or lead until then
+        self._dwell_until = -math.inf  # hovering at a reached search waypoint until then
         self._investigated: set[int] = set()  # zones the search flew over that never qualified
         self._over_lead: tuple[int, float] | None = None  # (zone id, since when) the search hovers over
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)

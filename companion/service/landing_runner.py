@@ -57,13 +57,15 @@ def vehicle_status(
 ) -> VehicleStatus | None:
     """The controller's view of the vehicle from the latest telemetry, or None without position/home.
 
-    ``now`` (monotonic s) decides whether the rangefinder is fresh enough to give ``agl``.
+    ``now`` (monotonic s; the clock when None) decides whether the rangefinder is fresh enough to
+    give ``agl`` and counts the battery's time left down to it.
     """
     if state.position is None or state.home is None:
         return None
     ned = state.local_ned()
     if ned is None:
         return None
+    now = time.monotonic() if now is None else now
     return VehicleStatus(
         state.position.t,
         *ned,
@@ -71,12 +73,12 @@ def vehicle_status(
         mode=autopilot.mode if autopilot is not None else None,
         armed=state.armed,
         on_ground=None if state.landed is None else state.landed.on_ground,
-        agl=state.altitude_above_ground(time.monotonic() if now is None else now),
+        agl=state.altitude_above_ground(now),
         vn=state.position.vn,
         ve=state.position.ve,
         vd=state.position.vd,
         latency_s=state.clock.latency_s or 0.0,
-        battery_s=_battery_s(state, time.monotonic() if now is None else now),
+        battery_s=_battery_s(state, now),
     )
 
 

@@ -55,7 +55,12 @@ async def _fly_with_ports(flavour: str, link_port: int, cam_port: int) -> tuple[
         end = time.monotonic() + 90
         while "t" not in truth and time.monotonic() < end and not task.done():
             await asyncio.sleep(0.1)
-        await asyncio.sleep(0.5)
+        # The simulator's touchdown comes first; the companion's LANDED follows once the
+        # autopilot reports it (EXTENDED_SYS_STATE / disarm), which on a loaded CI machine
+        # has taken more than half a second. Wait for it, bounded.
+        end = time.monotonic() + 10
+        while "t" in truth and svc.phase != "LANDED" and time.monotonic() < end and not task.done():
+            await asyncio.sleep(0.1)
     finally:
         svc.request_stop("test over")
         code = await asyncio.wait_for(task, 10.0)

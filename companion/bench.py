@@ -77,6 +77,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-model", action="store_true",
                         help="time only the post-density stages on ideal density maps")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    parser.add_argument("--spinning", action="store_true",
+                        help="let onnxruntime's threads busy-wait between runs (model.allow_spinning; off by default)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -91,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
             from companion.pipeline.density import DensityModel, DensityModelError
 
             try:
-                model = DensityModel(path, threads=args.threads)
+                model = DensityModel(path, threads=args.threads, allow_spinning=args.spinning)
             except DensityModelError as exc:
                 print(f"companion bench: {exc}", file=sys.stderr)
                 return 2
@@ -100,7 +102,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(result))
         return 0
     print(f"companion bench: {args.frames} frames per resolution, model: "
-          f"{model.path if model is not None else 'none (ideal density maps)'}")
+          f"{model.path if model is not None else 'none (ideal density maps)'}"
+          + (f", {args.threads} thread(s), spinning {'on' if args.spinning else 'off'}" if model is not None else ""))
     for res_name, stages in result.items():
         print(f"\n{res_name}")
         print(f"  {'stage':<14}{'median ms':>11}{'p99 ms':>10}")

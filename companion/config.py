@@ -136,6 +136,8 @@ class ModelSettings:
     path: str = _f(str(SHIPPED_MODEL), "ONNX density model file; empty = the model shipped in the package",
                    path=True)
     threads: int = _f(2, "onnxruntime intra-op threads", min=1, max=64)
+    allow_spinning: bool = _f(False, "let onnxruntime's threads busy-wait between runs (off: they would take "
+                                     "the CPU from the stages after the model on a small board)")
     overrides: dict[str, Any] = _f({}, "settings that win over the model's metadata (color, scale, ...)")
 
 

@@ -137,10 +137,17 @@ CROSSING_SHARE = 1 / 3
 BEYOND_SHARE = 1 / 2
 
 #: CPUs one flight is given by default. A flight averages 0.8-0.9 of a CPU (the service and this
-#: simulator together), but its service runs the density model on ``model.threads`` = 2 threads:
-#: two flights on 2 CPUs each took 2.5 times as long per frame as one alone and changed verdicts
+#: simulator together), but by default its service runs the density model on two threads: two
+#: such flights on 2 CPUs took 2.5 times as long per frame as one alone and changed verdicts
 #: (docs/scale.md), so a flight gets 2.
 CPUS_PER_FLIGHT = 2.0
+
+
+def model_threads(cpus_per_flight: float) -> int:
+    """The onnxruntime threads a flight's service gets (``model.threads``): the whole CPUs it is
+    given, at least one, so that N flights at once never run more model threads than the CPUs
+    they were given."""
+    return max(1, int(cpus_per_flight))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,12 +160,18 @@ class FlightJob:
     flavour: str | None = None
     overrides: tuple[tuple[str, Any], ...] = ()
     baseline: bool = False
+    #: ``model.threads`` for the flight's service (None: the service's default, 2).
+    threads: int | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
         if self.baseline:
             spec = dataclasses.replace(spec, companion=False)
-        return dataclasses.replace(spec, **dict(self.overrides)) if self.overrides else spec
+        if self.overrides:
+            spec = dataclasses.replace(spec, **dict(self.overrides))
+        if self.threads is not None and not any(s.startswith("model.threads=") for s in spec.service_set):
+            spec = dataclasses.replace(spec, service_set=(*spec.service_set, f"model.threads={self.threads}"))
+        return spec
 
     def key(self) -> RowKey:
         """Its key in a results file (``sim.evidence.row_key``): a baseline flight's is its own."""
@@ -181,7 +194,7 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     row = result.as_dict()
     row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
                wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
-               host=socket.gethostname())
+               host=socket.gethostname(), model_threads=job.threads)
     return row
 
 
@@ -241,7 +254,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                             "'auto' starts a local Ray (needs the 'scale' extra)")
     scale.add_argument("--cpus-per-flight", type=float, default=CPUS_PER_FLIGHT, metavar="CPUS",
                        help=f"CPUs one flight needs (default {CPUS_PER_FLIGHT:g}): sets the default "
-                            "--workers and each Ray task's num_cpus")
+                            "--workers, each Ray task's num_cpus and the flight's model.threads (its "
+                            "whole CPUs, at least 1)")
     scale.add_argument("--out", type=Path, default=None, metavar="FILE.jsonl",
                        help="append each flight's row here as it ends; seeds already in it are not "
                             "flown again (resume), and the summary is computed from it")
@@ -261,9 +275,10 @@ def run(args: argparse.Namespace) -> int:
     if workers < 1:
         print("companion sim-scenarios: --workers must be >= 1", file=sys.stderr)
         return 2
+    threads = model_threads(args.cpus_per_flight)
     jobs = [job for seed in dict.fromkeys(seeds)
-            for job in ([FlightJob(seed, args.flavour)]
-                        + ([FlightJob(seed, args.flavour, baseline=True)] if args.baseline else []))]
+            for job in ([FlightJob(seed, args.flavour, threads=threads)]
+                        + ([FlightJob(seed, args.flavour, baseline=True, threads=threads)] if args.baseline else []))]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress)
 

@@ -250,6 +250,19 @@ def test_bad_thread_count(tmp_path: Path) -> None:
         DensityModel(first_channel_model(tmp_path), threads=0)
 
 
+@pytest.mark.parametrize("spinning", [False, True])
+def test_spinning_is_off_unless_asked_and_the_output_does_not_change(model_path: Path, spinning: bool) -> None:
+    # Spinning pool threads busy-wait after each run; off by default so the stages after the
+    # model (and the rest of a 2-core board) get the CPU between frames.
+    model = DensityModel(model_path, allow_spinning=spinning)
+    opts = model._session.get_session_options()
+    want = "1" if spinning else "0"
+    assert opts.get_session_config_entry("session.intra_op.allow_spinning") == want
+    assert opts.get_session_config_entry("session.inter_op.allow_spinning") == want
+    frame = np.random.default_rng(3).integers(0, 255, (96, 128, 3), dtype=np.uint8)
+    np.testing.assert_allclose(model(frame), DensityModel(model_path, allow_spinning=not spinning)(frame), rtol=1e-6)
+
+
 @pytest.mark.parametrize(
     "frame,match",
     [(np.zeros((8, 8, 3), np.float32), "uint8"), (np.zeros((8, 8, 4), np.uint8), "shape"),

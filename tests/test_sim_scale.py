@@ -170,6 +170,17 @@ def test_summarise_keeps_its_figures_for_flight_results() -> None:
     assert s["starved"] == 1 and s["safe"] == 0 and s["total"] == 1
 
 
+def test_a_flights_model_threads_follow_the_cpus_it_is_given() -> None:
+    # N flights at once never run more onnxruntime threads than the CPUs they were given.
+    assert [scenarios.model_threads(c) for c in (0.5, 1.0, 1.9, 2.0, 4.0)] == [1, 1, 1, 2, 4]
+    spec = FlightJob(3, "ardupilot", threads=1).spec()
+    assert spec.service_set[-1] == "model.threads=1"
+    assert FlightJob(3, "ardupilot").spec().service_set == scenarios.scenario(3, "ardupilot").service_set
+    # A flight's own model.threads (a test's or a user's override) wins.
+    own = FlightJob(3, "ardupilot", (("service_set", ("model.threads=2",)),), threads=1).spec()
+    assert own.service_set == ("model.threads=2",)
+
+
 # ---- results files and resuming -------------------------------------------------------------
 
 

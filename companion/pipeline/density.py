@@ -178,11 +178,15 @@ class DensityModel:
 
     path: the ``.onnx`` file.
     threads: onnxruntime intra-op threads (the companion board's cores to spend on it).
+    allow_spinning: let onnxruntime's pool threads busy-wait for the next run after each one.
+        Off by default: on a 2-core board the spinning threads take the CPU from the stages
+        after the density model and from the rest of the service, which run between two frames.
     overrides: settings that win over the model's metadata, keys as in the module docstring
         without the ``companion.`` prefix (the prefixed form is accepted too).
     """
 
-    def __init__(self, path: str | Path, threads: int = 2, overrides: Mapping[str, object] | None = None) -> None:
+    def __init__(self, path: str | Path, threads: int = 2, overrides: Mapping[str, object] | None = None,
+                 allow_spinning: bool = False) -> None:
         self.path = Path(path)
         if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
             raise DensityModelError(f"{self.path}: threads must be an integer >= 1, got {threads!r}")
@@ -200,7 +204,11 @@ class DensityModel:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
+        spin = "1" if allow_spinning else "0"
+        opts.add_session_config_entry("session.intra_op.allow_spinning", spin)
+        opts.add_session_config_entry("session.inter_op.allow_spinning", spin)
         opts.log_severity_level = 3
+        self.allow_spinning = bool(allow_spinning)
         try:
             self._session = ort.InferenceSession(str(self.path), opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for every parse failure

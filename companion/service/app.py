@@ -87,7 +87,8 @@ SHUTDOWN_STEP_MIN_S = 0.05
 
 def load_model(cfg: Config) -> DensityModel:
     """The density model; raises DensityModelError naming the file."""
-    return DensityModel(cfg.model.path, threads=cfg.model.threads, overrides=cfg.model.overrides)
+    return DensityModel(cfg.model.path, threads=cfg.model.threads, overrides=cfg.model.overrides,
+                        allow_spinning=cfg.model.allow_spinning)
 
 
 def build_pipeline(cfg: Config, model: DensityModel) -> SLZPipeline:

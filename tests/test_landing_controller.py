@@ -23,6 +23,7 @@ from companion.control.trigger import Trigger, TriggerSource
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint
 from companion.mavlink.link import CommandRefused
+from companion.pipeline.circles import GroundBelow
 from companion.pipeline.tracker import Track
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)
@@ -442,6 +443,57 @@ def test_descent_needs_r0_free_around_the_vehicle_not_only_around_the_zone_centr
         ctl.on_frame(t, [zone(1, 10, 0, t, r=2.5, born=-8)], pose(t, 10.9, 0, 17))
     assert ctl.phase == Phase.HOLD
     assert any("1.6 m free around the vehicle < r0 2 m" in x for x in texts(ctl))
+
+
+def test_the_ground_measured_under_the_camera_keeps_a_descent_over_a_view_bounded_zone():
+    """Low over a zone the view bounds it: the zone's centre sits off the vehicle, away from the
+    people at one side, and its radius less that offset is under r0 although the frame measured
+    4 m free straight under the camera. That frame's measure keeps the descent going; seen
+    occupied under the camera, the zone is lost as before."""
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    texts(ctl)
+    t = 0.2
+    for _ in range(10):
+        ctl.on_state(status(t, 11.5, 0, 11, mode="GUIDED"))
+        below = GroundBelow(11.5, 0.0, r=4.0, r_view=4.6)  # a person 4 m away; 1.6 m by r - offset
+        ctl.on_frame(t, [zone(1, 10, 0, t, r=3.1, born=-8)], pose(t, 11.5, 0, 11), below)
+        t += 0.1
+    assert ctl.phase == Phase.DESCEND and ctl.failures_tolerated == 0 and texts(ctl) == []
+    # The frame was taken 1 m from where the vehicle is now: 4.0 - 1.0 = 3.0 m is still >= r0,
+    # and 2.5 - 1.0 = 1.5 m is not (one frame: tolerated, nothing lost).
+    ctl.on_state(status(t, 11.5, 0, 11, mode="GUIDED"))
+    ctl.on_frame(t, [zone(1, 10, 0, t, r=3.1, born=-8)], pose(t, 11.5, 0, 11), GroundBelow(10.5, 0.0, 4.0, 4.6))
+    assert ctl.phase == Phase.DESCEND and ctl.failures_tolerated == 0
+    t += 0.1
+    ctl.on_state(status(t, 11.5, 0, 11, mode="GUIDED"))
+    ctl.on_frame(t, [zone(1, 10, 0, t, r=3.1, born=-8)], pose(t, 11.5, 0, 11), GroundBelow(10.5, 0.0, 2.5, 4.6))
+    assert ctl.phase == Phase.DESCEND and ctl.failures_tolerated == 1
+    for _ in range(2):  # somebody 1.2 m from the vehicle, on two frames
+        t += 0.1
+        ctl.on_state(status(t, 11.5, 0, 11, mode="GUIDED"))
+        ctl.on_frame(t, [zone(1, 10, 0, t, r=3.1, born=-8)], pose(t, 11.5, 0, 11), GroundBelow(11.5, 0.0, 1.2, 4.6))
+    assert ctl.phase in (Phase.HOLD, Phase.APPROACH)  # out of the descent (HOLD, or back to a zone)
+    assert any("zone 1 lost (1.6 m free around the vehicle < r0 2 m)" in x for x in texts(ctl))
+
+
+def test_an_all_free_view_under_the_camera_counts_and_a_broken_measure_is_ignored():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    t = 0.2
+    for _ in range(5):  # 1.5 m seen around the vehicle, all of it free: the view bounds it
+        ctl.on_state(status(t, 11.5, 0, 11, mode="GUIDED"))
+        ctl.on_frame(t, [zone(1, 10, 0, t, r=3.1, born=-8)], pose(t, 11.5, 0, 11), GroundBelow(11.5, 0, 1.5, 1.5))
+        t += 0.1
+    assert ctl.phase in (Phase.DESCEND, Phase.LAND) and ctl.failures_tolerated == 0
+    ctl2 = LandingController(CFG)
+    start_descent(ctl2, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    for k in range(2):  # NaN under the camera: ignored, the zone's own measure (1.6 m) decides
+        t = 0.2 + 0.1 * k
+        ctl2.on_state(status(t, 11.5, 0, 11, mode="GUIDED"))
+        ctl2.on_frame(t, [zone(1, 10, 0, t, r=3.1, born=-8)], pose(t, 11.5, 0, 11),
+                      GroundBelow(11.5, 0, math.nan, 4.6))
+    assert ctl2.phase == Phase.HOLD and ctl2.below is None
 
 
 def _in_land(ctl: LandingController, r_view: float) -> float:

@@ -133,3 +133,27 @@ def test_ground_all_free_up_to_the_view_edge_is_view_limited():
     t = res.tracks[0]
     assert t.view_limited and t.r == pytest.approx(t.r_view, abs=1e-6)
     assert 1.5 < t.r_view < 2.5
+
+
+def test_the_ground_under_the_camera_is_measured_on_every_posed_frame():
+    """What the controller checks under the vehicle: the free radius around the camera's ground
+    point, people included and the view's edge too (unseen is never free)."""
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    alt = 12.0
+    pose = Pose(0.0, 20.0, -5.0, -alt, 0.0, 0.0, 0.0)
+    gsd = (alt - 1.7) / K.fx
+    # One person 60 px right of the image centre: about 60 gsd east of the vehicle.
+    density = np.zeros((120, 160), np.float32)
+    density[60, 80 + 15] = 1.0  # stride 4: column 95 is pixel 380, 60 px right of 320
+    pipe = SLZPipeline(lambda f: density, PipelineConfig(r0_m=1.0), intrinsics=K, mount=Mount())
+    res = pipe.process(np.zeros((480, 640, 3), np.uint8), 0.0, pose)
+    below = res.below
+    assert below is not None and (below.x, below.y) == pytest.approx((20.0, -5.0), abs=1e-6)
+    assert not below.view_limited and 0.5 < below.r < 60 * gsd  # the person (dilated) bounds it
+    assert below.r_view == pytest.approx(240 * gsd, rel=0.1)  # the narrower half of the view
+    empty = SLZPipeline(lambda f: np.zeros((120, 160), np.float32), PipelineConfig(r0_m=1.0), intrinsics=K,
+                        mount=Mount()).process(np.zeros((480, 640, 3), np.uint8), 0.0, pose).below
+    assert empty is not None and empty.view_limited and empty.r == pytest.approx(empty.r_view, abs=1e-6)
+    # A fixed projection that does not say where the camera is: no measure, not a guess.
+    assert SLZPipeline(lambda f: density, projection=PlaneProjection.nadir(0.05)).process(
+        np.zeros((480, 640, 3), np.uint8), 0.0).below is None

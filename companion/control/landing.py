@@ -14,8 +14,8 @@ Phases::
 Inputs (times are monotonic seconds):
 
 - ``on_trigger(trigger)``: a failsafe ``Trigger``; the only way out of MONITOR.
-- ``on_frame(t, tracks, pose)``: the zone tracks after the frame captured at ``t`` and the pose the
-  pipeline used for it. A frame whose pose is missing, not finite or further than
+- ``on_frame(t, tracks, pose, below)``: the zone tracks after the frame captured at ``t``, the pose
+  the pipeline used for it and the ground it saw under the camera (``GroundBelow``, optional). A frame whose pose is missing, not finite or further than
   ``max_pose_age_s`` from ``t``, or a frame older than ``zone_max_age_s``, is ignored: no decision
   is ever made on a zone that was not seen with a fresh pose.
 - ``on_state(status)``: where the vehicle is now (``VehicleStatus``), its mode, armed, on ground.
@@ -77,6 +77,7 @@ from companion.control.touchdown import DescentProfile
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
+from companion.pipeline.circles import GroundBelow
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
@@ -97,7 +98,7 @@ class LandingConfig:
     select_timeout_s: float = 10.0
     hold_timeout_s: float = 15.0
     arrive_radius_m: float = 1.0
-    descend_alt_m: float = 10.0
+    descend_alt_m: float = 6.0
     descend_step_m: float = 3.0
     alt_tolerance_m: float = 0.5
     land_abort_above_m: float = 3.5
@@ -211,6 +212,8 @@ class LandingController:
         self.now = -math.inf
         self.status: VehicleStatus | None = None
         self.tracks: list[Track] = []
+        #: The ground under the camera on the latest usable frame (None: the frame did not say).
+        self.below: GroundBelow | None = None
         self.last_valid_frame_t: float | None = None
         self.frames_ignored = 0
         self.refusals = 0
@@ -290,13 +293,16 @@ class LandingController:
                                 warning=True, event=HandedBack, reason=f"mode changed to {status.mode}")
         return []
 
-    def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None) -> list[Command]:
+    def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
+                 below: GroundBelow | None = None) -> list[Command]:
         self._advance(t)
         if not self._frame_usable(t, pose):
             self.frames_ignored += 1
             return []
         self.last_valid_frame_t = t
         self.tracks = list(tracks)
+        ok = below is not None and all(math.isfinite(v) for v in (below.x, below.y, below.r, below.r_view))
+        self.below = below if ok else None
         if self.phase in (Phase.SELECT, Phase.HOLD, Phase.SEARCH):
             found = self._select()
             if found or self.phase != Phase.SEARCH:
@@ -460,6 +466,26 @@ class LandingController:
         self._last_goto = None
         return self._goto(zone.x, zone.y, self._level, zone.id)
 
+    def _free_below(self, track: Track) -> tuple[float, bool]:
+        """How far the ground around the vehicle is free (m), and whether everything the camera
+        sees around it is free (the view, not a person, bounds it, and it shows ``MIN_VIEW_M``).
+
+        Two measures, the larger wins (both are lower bounds of the same thing): the zone's radius
+        less the vehicle's offset from its centre, and the frame's own measure under the camera
+        (``GroundBelow``) less how far the vehicle has moved since that frame. The first alone
+        threw landings away low over view-bounded zones: at 10 m the view shows about 4 m around
+        the vehicle, the zone's centre sits 1-2 m off it, away from the people at one side, and
+        ``r - offset`` came out at 1.6-1.9 m with the nearest person 4 m away."""
+        s = self.status
+        assert s is not None
+        free = track.r - math.hypot(track.x - s.north, track.y - s.east)
+        below = self.below
+        if below is None:
+            return free, False
+        moved = math.hypot(below.x - s.north, below.y - s.east)
+        all_free = below.view_limited and below.r_view - moved >= MIN_VIEW_M
+        return max(free, below.r - moved), all_free
+
     def _follow(self) -> list[Command]:
         assert self.target is not None
         verdict, track, why = self.planner.check_target(self.target.id, self.tracks, self.now)
@@ -474,12 +500,12 @@ class LandingController:
         assert s is not None
         c = self.config
         seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
-        # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
-        # free is r0 around the vehicle, i.e. the zone's radius less the vehicle's offset.
-        off_centre = math.hypot(track.x - s.north, track.y - s.east)
-        if verdict == ZoneCheck.OK and self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free and \
-                track.r - off_centre < c.planner.r0_m:
-            verdict, why = ZoneCheck.SMALL, f"{track.r - off_centre:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m"
+        if verdict == ZoneCheck.OK and self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free:
+            # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
+            # free is r0 around the vehicle.
+            free, all_free = self._free_below(track)
+            if free < c.planner.r0_m and not all_free:
+                verdict, why = ZoneCheck.SMALL, f"{free:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m"
         if verdict == ZoneCheck.SMALL:
             # A zone seen too small is lost only when ``lose_after_frames`` frames in a row say so:
             # the network marks a patch of ground as a person in one frame now and then (at 10 m

@@ -22,6 +22,29 @@ class Circle:
         return np.array([self.x, self.y, self.r], dtype=float)
 
 
+@dataclass(frozen=True)
+class GroundBelow:
+    """The ground straight under the camera on one frame: where the vehicle touches down if it
+    comes straight down from where the frame was taken.
+
+    x, y: that point on the head plane (m; world north/east when poses are known).
+    r: how far the ground around it is free on the grid proposals are made on (m; 0 when it is
+        occupied or out of the grid; unseen ground is not free, so ``r <= r_view``).
+    r_view: how far the camera's view reaches around it (m).
+    """
+
+    x: float
+    y: float
+    r: float
+    r_view: float
+
+    @property
+    def view_limited(self) -> bool:
+        """Everything the camera saw within ``r_view`` of the point was free: only the edge of
+        the view bounds ``r`` (low over a zone the view is smaller than the zone)."""
+        return self.r >= self.r_view - 1e-6
+
+
 def intersection_area(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Area of the intersection of circles ``a`` (n, 3) and ``b`` (m, 3) as (n, m), in m^2.
 

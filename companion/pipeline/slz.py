@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
-from companion.pipeline.circles import Circle
+from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.density import resolve_threshold
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
@@ -81,6 +81,9 @@ class FrameResult:
     free_grid: np.ndarray
     density: np.ndarray
     fused_grid: np.ndarray | None = None  # the grid proposals were made on, with fusion "map"
+    #: The ground under the camera (posed frames and fixed projections that know where the
+    #: camera is), measured like a track's radius: what the controller checks under the vehicle.
+    below: GroundBelow | None = None
 
 
 class SLZPipeline:
@@ -165,10 +168,15 @@ class SLZPipeline:
             return c, clearance_at(view_dist, grid, x, y)
 
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
+        below = None
+        if proj.camera_xy is not None:
+            bx, by = (float(v) for v in proj.camera_xy)
+            if math.isfinite(bx) and math.isfinite(by):
+                below = GroundBelow(bx, by, *clearance(bx, by))
         t6 = time.perf_counter()
         for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4, t5), (t1, t2, t3, t4, t5, t6), strict=True):
             timings[name] = (b - a) * 1e3
         timings["post_density"] = (t6 - t1) * 1e3
         timings["total"] = (t6 - t0) * 1e3
         return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
-                           density, fused if risk is not None else None)
+                           density, fused if risk is not None else None, below)

@@ -47,6 +47,7 @@ from companion.mavlink.autopilot import Autopilot
 from companion.mavlink.link import MavLink
 from companion.mavlink.state import VehicleState
 from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
+from companion.pipeline.circles import GroundBelow
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
@@ -131,8 +132,9 @@ class LandingRunner:
     def on_trigger(self, trigger: Trigger) -> None:
         self._submit(self.controller.on_trigger(trigger))
 
-    def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None) -> None:
-        self._submit(self.controller.on_frame(t, tracks, pose))
+    def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
+                 below: GroundBelow | None = None) -> None:
+        self._submit(self.controller.on_frame(t, tracks, pose, below))
 
     # -- loop ----------------------------------------------------------------------------------
 

@@ -24,6 +24,7 @@ from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint
 from companion.mavlink.link import CommandRefused
 from companion.pipeline.circles import GroundBelow
+from companion.pipeline.people import Person
 from companion.pipeline.tracker import Track
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)
@@ -591,3 +592,85 @@ def test_above_the_trust_height_the_candidate_is_approached_at_it_and_judged_bel
     alts, land_alt = _fly_down(LandingController(dataclasses.replace(CFG, trust_height_m=6.0)), 30.0)
     assert alts[0] == pytest.approx(10.0)  # never below descend_alt_m before it is over the zone
     assert land_alt == pytest.approx(6.0) and min(alts) == pytest.approx(6.0)
+
+
+def _low_over_zone(ctl: LandingController) -> float:
+    """Fly ctl down to the LAND height over zone 1 (at north 10, east 0) without commanding it
+    yet: returns the time reached."""
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    return 0.2
+
+
+def test_no_land_while_a_walker_is_predicted_at_the_landing_point_then_land_when_they_are_past():
+    """The LAND is judged at touchdown: from 9.8 m the descent takes 14.5 s (the default profile),
+    and a walker 8 m away heading for the point at 1.2 m/s gets there in 7 s. The descent pauses (no
+    phase change, one note) and the LAND follows once they are predicted clear."""
+    ctl = LandingController(CFG)
+    t = _low_over_zone(ctl)
+    texts(ctl)
+    walker = Person(7, 10.0, -8.0, 0.0, 1.2, 0.1, 10, t)  # west of the point, walking east
+    cmds: list = []
+    for k in range(5):
+        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None,
+                            [dataclasses.replace(walker, y=-8.0 + 1.2 * 0.1 * k, last_t=t)])
+        assert not any(isinstance(c, Land) for c in cmds)
+        t += 0.1
+    assert ctl.phase == Phase.DESCEND and ctl.pauses == 1
+    notes = texts(ctl)
+    assert len(notes) == 1 and "person 7 (1.2 m/s) predicted" in notes[0] and "waiting before the LAND" in notes[0]
+    # They walked through and on: 6 m east of the point and going away.
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None,
+                        [dataclasses.replace(walker, y=6.0, last_t=t)])
+    assert Land() in cmds and ctl.phase == Phase.LAND
+    assert any("person 7 is past the landing point" in x for x in texts(ctl))
+
+
+def test_a_standing_person_outside_r0_and_a_walker_going_elsewhere_do_not_hold_the_landing():
+    ctl = LandingController(CFG)
+    t = _low_over_zone(ctl)
+    people = [Person(1, 13.5, 0.0, 0.0, 0.0, 0.1, 30, t),  # 3.5 m away, standing
+              Person(2, 10.0, -8.0, 0.0, -1.4, 0.1, 30, t)]  # walking away to the west
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None, people)
+    assert Land() in cmds and ctl.pauses == 0
+
+
+def test_a_land_under_way_pauses_above_the_abort_height_and_is_committed_below_it():
+    ctl = LandingController(CFG)  # land_abort_above_m = 5 m
+    t = _low_over_zone(ctl)
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8))
+    t += 0.1
+    coming = Person(4, 10.0, -5.0, 0.0, 1.3, 0.1, 10, t)
+    ctl.on_state(status(t, 10, 0, 9.5, mode="LAND"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.5), None, [coming])
+    assert ctl.phase == Phase.DESCEND and len(cmds) == 1 and isinstance(cmds[0], Goto)
+    assert cmds[0].target.rel_alt_m == pytest.approx(9.5)  # stops where it is
+    assert any("pausing the LAND" in x for x in texts(ctl))
+    # Committed: below the abort height the same walker changes nothing.
+    ctl2 = LandingController(CFG)
+    t = _low_over_zone(ctl2)
+    ctl2.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    ctl2.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8))
+    t += 0.1
+    ctl2.on_state(status(t, 10, 0, 4.0, mode="LAND"))
+    assert ctl2.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 4.0), None,
+                         [dataclasses.replace(coming, last_t=t)]) == []
+    assert ctl2.phase == Phase.LAND
+
+
+def test_prediction_off_lands_as_before_and_broken_people_are_ignored():
+    ctl = LandingController(dataclasses.replace(CFG, predict_people=False))
+    t = _low_over_zone(ctl)
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    walker = Person(7, 10.0, -3.0, 0.0, 1.2, 0.1, 10, t)
+    assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None, [walker])
+    ctl = LandingController(CFG)
+    t = _low_over_zone(ctl)
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    broken = dataclasses.replace(walker, vx=math.nan)
+    assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None, [broken])
+    with pytest.raises(ValueError, match="pose_uncertainty_m"):
+        LandingConfig(pose_uncertainty_m=-1.0)

@@ -78,6 +78,7 @@ from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.pipeline.circles import GroundBelow
+from companion.pipeline.people import Person, predicted_clearance
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
@@ -133,6 +134,12 @@ class LandingConfig:
     #: Ground radius the camera sees per metre of height above the head plane (the tangent of half
     #: its narrower field of view): the search's legs are spaced so that their views overlap.
     view_ratio: float = 0.5
+    #: Judge the landing point at touchdown against the people seen walking (``Person``s from the
+    #: pipeline): the LAND is commanded, and goes on above ``land_abort_above_m``, only while
+    #: nobody seen is predicted within r0 of it before touchdown; otherwise the descent pauses.
+    predict_people: bool = True
+    #: The vehicle's horizontal position error (m), taken off every predicted clearance.
+    pose_uncertainty_m: float = 0.5
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -153,6 +160,8 @@ class LandingConfig:
             raise ValueError(f"controller trust_height_m must be > 0 m (inf: no limit), not {self.trust_height_m!r}")
         if self.max_refusals < 1:
             raise ValueError("controller max_refusals must be >= 1")
+        if not (math.isfinite(self.pose_uncertainty_m) and self.pose_uncertainty_m >= 0):
+            raise ValueError(f"controller pose_uncertainty_m must be >= 0 m, not {self.pose_uncertainty_m!r}")
         if self.lose_after_frames < 1:
             raise ValueError(f"controller lose_after_frames must be >= 1, not {self.lose_after_frames!r}")
         if not (math.isfinite(self.ceiling_margin_m) and self.ceiling_margin_m >= 0):
@@ -214,6 +223,10 @@ class LandingController:
         self.tracks: list[Track] = []
         #: The ground under the camera on the latest usable frame (None: the frame did not say).
         self.below: GroundBelow | None = None
+        #: The people seen on the ground after the latest usable frame (world frame).
+        self.people: list[Person] = []
+        self._paused_for: int | None = None  # the person a paused landing waits for
+        self.pauses = 0  # landings paused for a person predicted at the landing point
         self.last_valid_frame_t: float | None = None
         self.frames_ignored = 0
         self.refusals = 0
@@ -294,13 +307,15 @@ class LandingController:
         return []
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
-                 below: GroundBelow | None = None) -> list[Command]:
+                 below: GroundBelow | None = None, people: Sequence[Person] | None = None) -> list[Command]:
         self._advance(t)
         if not self._frame_usable(t, pose):
             self.frames_ignored += 1
             return []
         self.last_valid_frame_t = t
         self.tracks = list(tracks)
+        self.people = [q for q in (people or ()) if all(math.isfinite(v) for v in
+                                                          (q.x, q.y, q.vx, q.vy, q.pos_std_m, q.last_t))]
         ok = below is not None and all(math.isfinite(v) for v in (below.x, below.y, below.r, below.r_view))
         self.below = below if ok else None
         if self.phase in (Phase.SELECT, Phase.HOLD, Phase.SEARCH):
@@ -373,6 +388,35 @@ class LandingController:
             return None
         value = self.descent.clearance_at_touchdown(track.r, self.status.height)
         return round(value, 2) if math.isfinite(value) else None
+
+    def predicted_clearance(self, north: float, east: float) -> tuple[float, Person | None]:
+        """The least distance (m) anybody seen comes to the point (north, east) before touchdown
+        from the present height (``people.predicted_clearance``), less ``pose_uncertainty_m``; and
+        who. inf and None with nobody seen, with prediction off or without a vehicle position."""
+        c, s = self.config, self.status
+        if not c.predict_people or s is None or not self.people:
+            return math.inf, None
+        horizon = self.descent.time_to_touchdown(s.height)
+        if not math.isfinite(horizon):
+            return math.inf, None
+        worst = min(self.people, key=lambda q: predicted_clearance([q], north, east, self.now, horizon))
+        return predicted_clearance([worst], north, east, self.now, horizon) - c.pose_uncertainty_m, worst
+
+    def _walker_in_the_way(self, north: float, east: float, where: str) -> bool:
+        """Whether somebody seen walking is predicted within r0 of the landing point before
+        touchdown; reports the wait once per person (a Note, not a phase change)."""
+        clear, who = self.predicted_clearance(north, east)
+        if who is None or clear >= self.config.planner.r0_m:
+            if self._paused_for is not None:
+                self._event(f"person {self._paused_for} is past the landing point: going on")
+            self._paused_for = None
+            return False
+        if self._paused_for != who.id:
+            self.pauses += 1
+            self._event(f"person {who.id} ({who.speed_mps:.1f} m/s) predicted {max(clear, 0.0):.1f} m from the "
+                        f"landing point before touchdown: {where}")
+        self._paused_for = who.id
+        return True
 
     def zone_target(self) -> Track | None:
         """The zone the vehicle flies to (after a trigger), or would fly to now (before one): what
@@ -529,13 +573,22 @@ class LandingController:
         if aim is None or track.r - math.hypot(aim[0] - track.x, aim[1] - track.y) < room:
             aim = self._aim = (track.x, track.y)
         dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
+        if self.phase == Phase.LAND and s.height > c.land_abort_above_m and \
+                self._walker_in_the_way(s.north, s.east, "pausing the LAND"):
+            # Stop where it is (GUIDED/OFFBOARD, the zone still held) and let them pass: cheaper
+            # than losing the zone and climbing back to the hold height.
+            self._level = s.alt
+            self._set_phase(Phase.DESCEND, f"LAND over zone {track.id} paused at {s.height:.1f} m", zone_id=track.id)
+            self._last_goto = None
+            return self._goto(aim[0], aim[1], self._level, track.id)
         if self.phase == Phase.APPROACH:
             if dist > c.arrive_radius_m:
                 return self._goto(aim[0], aim[1], self._level, track.id)
             self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m", zone_id=track.id)
         if self.phase == Phase.DESCEND:
             low = s.height <= min(c.descend_alt_m, c.trust_height_m) + c.alt_tolerance_m
-            if (dist <= c.arrive_radius_m and low) or s.on_ground:
+            if s.on_ground or (dist <= c.arrive_radius_m and low and
+                               not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",
                                 zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track))

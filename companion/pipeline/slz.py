@@ -20,13 +20,14 @@ from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.density import resolve_threshold
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
+from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import clearance_at, distance_cells, propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
 DensityFn = Callable[[np.ndarray], np.ndarray]
 
-STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking")
+STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking", "people")
 
 #: Where proposals come from: the paper's single frame (the default until the controller judges
 #: zones at touchdown), or the ground risk map fused over frames.
@@ -48,6 +49,8 @@ class PipelineConfig:
     r0_m: float = 2.0
     fusion: str = "frame"
     risk: RiskMapConfig = field(default_factory=RiskMapConfig)
+    #: People followed on the ground over posed frames (``pipeline.people``); None: not followed.
+    people: PeopleParams | None = field(default_factory=PeopleParams)
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSIONS:
@@ -84,6 +87,8 @@ class FrameResult:
     #: The ground under the camera (posed frames and fixed projections that know where the
     #: camera is), measured like a track's radius: what the controller checks under the vehicle.
     below: GroundBelow | None = None
+    #: The people followed on the ground after this frame (posed frames; empty otherwise).
+    people: list[Person] = field(default_factory=list)
 
 
 class SLZPipeline:
@@ -107,6 +112,7 @@ class SLZPipeline:
         self.fixed_projection = projection
         self.tracker = ZoneTracker(config.tracker)
         self.risk = GroundRiskMap(config.risk) if config.fusion == "map" else None
+        self.people = PeopleTracker(config.people) if config.people is not None else None
         self._undistort = (intrinsics.undistort_maps()
                            if intrinsics is not None and intrinsics.has_distortion else None)
 
@@ -174,9 +180,22 @@ class SLZPipeline:
             if math.isfinite(bx) and math.isfinite(by):
                 below = GroundBelow(bx, by, *clearance(bx, by))
         t6 = time.perf_counter()
-        for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4, t5), (t1, t2, t3, t4, t5, t6), strict=True):
+        people: list[Person] = []
+        if self.people is not None and pose is not None:
+            # World-frame people only: under a fixed projection the plane moves with the camera.
+            params = self.people.params
+            uv, strength = density_peaks(density, float(self.config.occupancy.threshold or 0.0), (h, w),
+                                         params.window)
+            if self._undistort is not None and len(uv) and self.intrinsics is not None:
+                K = self.intrinsics.K
+                uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, np.asarray(self.intrinsics.dist, np.float64),
+                                         P=K).reshape(-1, 2)
+            found = place_people(uv, strength, proj, params.merge_m)
+            people = self.people.update(found, t, view=proj, image_hw=(h, w))
+        t7 = time.perf_counter()
+        for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4, t5, t6), (t1, t2, t3, t4, t5, t6, t7), strict=True):
             timings[name] = (b - a) * 1e3
-        timings["post_density"] = (t6 - t1) * 1e3
-        timings["total"] = (t6 - t0) * 1e3
+        timings["post_density"] = (t7 - t1) * 1e3
+        timings["total"] = (t7 - t0) * 1e3
         return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
-                           density, fused if risk is not None else None, below)
+                           density, fused if risk is not None else None, below, people)

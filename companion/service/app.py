@@ -494,7 +494,7 @@ class Service:
             self.last_result = result
             target: Track | None = None
             if self.runner is not None:
-                self.runner.on_frame(frame.t, result.tracks, pose, result.below)
+                self.runner.on_frame(frame.t, result.tracks, pose, result.below, result.people)
                 # The zone the vehicle flies to, or would fly to now: the planner's choice, the
                 # one rule (the pipeline reports tracks; it does not pick).
                 target = self.runner.controller.zone_target()

@@ -1,0 +1,281 @@
+"""People on the ground, tracked over frames in the world and predicted to touchdown (issue 11).
+
+The zones say where the ground is free *now*; what a landing needs is where people will be when
+the vehicle touches down, seconds later. This stage finds each person in the density map, places
+them on the head plane in the world (local NED metres from home), follows them from frame to
+frame with a constant-velocity Kalman filter, and answers: how close to a landing point will
+anybody seen so far come before touchdown, walking as they are seen walking?
+
+- **Detection**: a person is a local maximum of the density map (``window`` cells square) above
+  the occupancy threshold; its pixel (the cell's centre at the map's stride) goes to the head plane
+  through the frame's projection. Two maxima closer than ``merge_m`` are one person.
+- **Tracking**: all people are filtered at once (vectorised numpy: a crowd in view is a hundred
+  people, and the post-density budget is a few milliseconds), associated to detections by the
+  Hungarian method (``scipy.optimize.linear_sum_assignment``) within ``gate_m`` plus how far a
+  walker gets since the last frame. Unmatched detections start people; a person the camera still
+  looks at but has not matched for ``max_missed_s`` is dropped, one out of view after
+  ``memory_s``.
+- **Prediction**: a person seen for ``min_hits`` frames moves on at the filter's velocity when that
+  velocity is clear of its own uncertainty (twice its standard deviation), else is taken to stand
+  still: noise must not make a standing person "walk" into every zone. The clearance of a point is
+  the least distance to any person's predicted path until the horizon, less twice the position's
+  standard deviation.
+
+What this cannot know is a person the camera never saw, or one who changes course: walking speed
+times the time the camera cannot see the ground around the landing point is a floor no prediction
+removes (docs/design.md, "The physics of the last metres").
+
+Units: metres, seconds (capture time), metres per second. Pure numpy/OpenCV/scipy, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from companion.geometry.camera import GeometryError, PlaneProjection
+
+
+class PeopleError(GeometryError):
+    """A frame the people tracker cannot take (a non-finite time, or time going back): the frame
+    is dropped and counted, as the risk map's are, and the people stay as they were."""
+
+
+@dataclass(frozen=True)
+class PeopleParams:
+    """See the module docstring. window: side of the local-maximum window (density cells, odd).
+    merge_m: detections closer than this are one person. gate_m: association distance at no
+    elapsed time; walk_speed_mps widens it with the time since the person was last matched.
+    meas_std_m: a detection's position error. accel_std: the filter's process noise (m/s^2).
+    max_missed_s / memory_s: how long a person not matched is kept in view / out of view.
+    min_hits: matched frames before a person's velocity is used."""
+
+    window: int = 3
+    merge_m: float = 0.4
+    gate_m: float = 1.0
+    walk_speed_mps: float = 1.5
+    meas_std_m: float = 0.25
+    accel_std: float = 1.0
+    max_missed_s: float = 0.6
+    memory_s: float = 5.0
+    min_hits: int = 3
+
+    def __post_init__(self) -> None:
+        if int(self.window) != self.window or self.window < 1 or self.window % 2 == 0:
+            raise ValueError(f"people window must be an odd integer >= 1, got {self.window!r}")
+        for name in ("merge_m", "gate_m", "walk_speed_mps", "meas_std_m", "accel_std", "max_missed_s", "memory_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"people {name} must be a positive number, got {v!r}")
+        if self.min_hits < 1:
+            raise ValueError(f"people min_hits must be >= 1, got {self.min_hits!r}")
+
+
+@dataclass(frozen=True)
+class Person:
+    """One person followed on the ground. x, y: head-plane position (m, world north/east) at
+    ``last_t``; vx, vy: velocity (m/s) as used for prediction (0 while not established);
+    pos_std_m: position standard deviation (m); hits: frames matched; last_t: the capture time of
+    the last frame that saw them (s)."""
+
+    id: int
+    x: float
+    y: float
+    vx: float
+    vy: float
+    pos_std_m: float
+    hits: int
+    last_t: float
+
+    @property
+    def speed_mps(self) -> float:
+        return math.hypot(self.vx, self.vy)
+
+
+def density_peaks(density: np.ndarray, threshold: float, image_hw: tuple[int, int],
+                  window: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """The people in one frame's density map, in image pixels: its local maxima (``window`` cells
+    square) above ``min(D) + threshold``, as ((N, 2) pixel centres, (N,) peak values). NaN or
+    infinite density is no person (the occupancy stage already marks it occupied)."""
+    d = np.asarray(density, dtype=np.float32)
+    none = (np.zeros((0, 2)), np.zeros(0))
+    if d.ndim != 2 or d.size == 0:
+        return none
+    finite = np.isfinite(d)
+    if not finite.any():
+        return none
+    d = np.where(finite, d, -np.inf).astype(np.float32)
+    level = float(d[finite].min()) + max(float(threshold), 0.0)
+    peaks = (d >= cv2.dilate(d, np.ones((window, window), np.uint8))) & (d > level)
+    rows, cols = np.nonzero(peaks)
+    h, w = image_hw
+    sy, sx = h / d.shape[0], w / d.shape[1]
+    uv = np.column_stack([(cols + 0.5) * sx - 0.5, (rows + 0.5) * sy - 0.5]).astype(float)
+    return uv, d[rows, cols].astype(float)
+
+
+def place_people(uv: np.ndarray, strength: np.ndarray, proj: PlaneProjection, merge_m: float = 0.4) -> np.ndarray:
+    """(N, 2) head-plane points (m) of the peaks at ideal (undistorted) pixels ``uv``: points that
+    do not project (above the horizon) are dropped, and of two closer than ``merge_m`` (a plateau,
+    a double peak of one person) the stronger is kept."""
+    if len(uv) == 0:
+        return np.zeros((0, 2))
+    xy = proj.image_to_plane(np.asarray(uv, dtype=float))
+    ok = np.isfinite(xy).all(axis=1)
+    xy, strength = xy[ok], np.asarray(strength, dtype=float)[ok]
+    if len(xy) < 2:
+        return np.asarray(xy, dtype=float)
+    xy = xy[np.argsort(-strength)]
+    keep: list[int] = []
+    for i in range(len(xy)):
+        if not keep or np.min(np.hypot(*(xy[keep] - xy[i]).T)) >= merge_m:
+            keep.append(i)
+    return np.asarray(xy[keep], dtype=float)
+
+
+class PeopleTracker:
+    """Constant-velocity Kalman filters over everyone at once (state x, y, vx, vy per person)."""
+
+    def __init__(self, params: PeopleParams = PeopleParams()) -> None:
+        self.params = params
+        self.reset()
+
+    def reset(self) -> None:
+        self._x = np.zeros((0, 4))  # state
+        self._P = np.zeros((0, 4, 4))  # covariance
+        self._ids = np.zeros(0, dtype=int)
+        self._hits = np.zeros(0, dtype=int)
+        self._last = np.zeros(0)  # last matched capture time
+        self._t: float | None = None
+        self._next_id = 1
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def update(self, points: np.ndarray, t: float,
+               view: PlaneProjection | None = None, image_hw: tuple[int, int] | None = None) -> list[Person]:
+        """Advance to capture time ``t`` (s) with this frame's detections ((N, 2) plane metres).
+        ``view`` and ``image_hw``: the frame's projection and size, to tell people the camera
+        looks at (dropped after ``max_missed_s`` unmatched) from people out of view (kept for
+        ``memory_s``). Times going back are refused with PeopleError (the frame is dropped)."""
+        p = self.params
+        if not math.isfinite(t):
+            raise PeopleError(f"frame time must be finite, got {t!r}")
+        if self._t is not None and t < self._t:
+            raise PeopleError(f"frame time went back from {self._t} to {t}")
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        dt = 0.0 if self._t is None else t - self._t
+        self._t = t
+        self._predict(dt)
+        n = len(self._ids)
+        matched_tracks = np.zeros(n, dtype=bool)
+        used = np.zeros(len(pts), dtype=bool)
+        if n and len(pts):
+            cost = np.hypot(self._x[:, None, 0] - pts[None, :, 0], self._x[:, None, 1] - pts[None, :, 1])
+            gate = p.gate_m + p.walk_speed_mps * np.maximum(t - self._last, 0.0)
+            big = 1e6
+            cost_g = np.where(cost <= gate[:, None], cost, big)
+            rows, cols = linear_sum_assignment(cost_g)
+            ok = cost_g[rows, cols] < big
+            rows, cols = rows[ok], cols[ok]
+            self._correct(rows, pts[cols])
+            self._hits[rows] += 1
+            self._last[rows] = t
+            matched_tracks[rows] = True
+            used[cols] = True
+        # Forget people: matched long ago while the camera looks where they should be, or out of
+        # view for longer than the memory.
+        if n:
+            looked = np.zeros(n, dtype=bool)
+            if view is not None and image_hw is not None:
+                uv = view.plane_to_image(self._x[:, :2])
+                h, w = image_hw
+                looked = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & \
+                    (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            unseen = t - self._last
+            alive = matched_tracks | np.where(looked, unseen <= p.max_missed_s, unseen <= p.memory_s)
+            self._keep(alive)
+        new = pts[~used]
+        if len(new):
+            k = len(new)
+            x = np.zeros((k, 4))
+            x[:, :2] = new
+            P = np.zeros((k, 4, 4))
+            P[:, 0, 0] = P[:, 1, 1] = p.meas_std_m ** 2
+            P[:, 2, 2] = P[:, 3, 3] = p.walk_speed_mps ** 2  # any walking direction and pace
+            self._x = np.concatenate([self._x, x])
+            self._P = np.concatenate([self._P, P])
+            self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + k)])
+            self._hits = np.concatenate([self._hits, np.ones(k, dtype=int)])
+            self._last = np.concatenate([self._last, np.full(k, t)])
+            self._next_id += k
+        return self.people()
+
+    def people(self) -> list[Person]:
+        """Everyone followed now, with the velocity used for prediction (see the module docstring)."""
+        p = self.params
+        v = self._x[:, 2:]
+        v_std = np.sqrt(np.maximum(self._P[:, 2, 2], self._P[:, 3, 3]))
+        moving = (self._hits >= p.min_hits) & (np.hypot(v[:, 0], v[:, 1]) > 2 * v_std)
+        v_used = np.where(moving[:, None], v, 0.0)
+        pos_std = np.sqrt(np.maximum(self._P[:, 0, 0], self._P[:, 1, 1]))
+        return [Person(int(i), float(x[0]), float(x[1]), float(vu[0]), float(vu[1]), float(s), int(hh), float(lt))
+                for i, x, vu, s, hh, lt in zip(self._ids, self._x, v_used, pos_std, self._hits, self._last,
+                                               strict=True)]
+
+    # -- the filter ------------------------------------------------------------------------
+
+    def _predict(self, dt: float) -> None:
+        if not len(self._ids) or dt <= 0:
+            return
+        F = np.eye(4)
+        F[0, 2] = F[1, 3] = dt
+        q = self.params.accel_std ** 2
+        g = np.array([0.5 * dt * dt, dt])
+        Q1 = q * np.outer(g, g)  # white acceleration, per axis
+        Q = np.zeros((4, 4))
+        Q[np.ix_([0, 2], [0, 2])] = Q1
+        Q[np.ix_([1, 3], [1, 3])] = Q1
+        self._x = self._x @ F.T
+        self._P = F @ self._P @ F.T + Q
+
+    def _correct(self, rows: np.ndarray, z: np.ndarray) -> None:
+        if not len(rows):
+            return
+        H = np.zeros((2, 4))
+        H[0, 0] = H[1, 1] = 1.0
+        R = np.eye(2) * self.params.meas_std_m ** 2
+        P = self._P[rows]
+        S = H @ P @ H.T + R
+        K = P @ H.T @ np.linalg.inv(S)
+        y = z - self._x[rows][:, :2]
+        self._x[rows] = self._x[rows] + np.einsum("nij,nj->ni", K, y)
+        self._P[rows] = (np.eye(4) - K @ H) @ P
+
+    def _keep(self, alive: np.ndarray) -> None:
+        self._x, self._P = self._x[alive], self._P[alive]
+        self._ids, self._hits, self._last = self._ids[alive], self._hits[alive], self._last[alive]
+
+
+def predicted_clearance(people: list[Person], x: float, y: float, t: float, horizon_s: float) -> float:
+    """The least distance (m) anybody in ``people`` comes to the point (x, y) between time ``t``
+    and ``t + horizon_s`` (s), each moving on at their predicted velocity from where they were
+    last seen, less twice their position's standard deviation; inf with nobody. Never negative."""
+    if not people:
+        return math.inf
+    a = np.array([[q.x, q.y, q.vx, q.vy, q.pos_std_m, q.last_t] for q in people], dtype=float)
+    age = np.maximum(t - a[:, 5], 0.0)
+    # Position now (moved on since it was last seen), and its offset from the point.
+    dx = a[:, 0] + a[:, 2] * age - x
+    dy = a[:, 1] + a[:, 3] * age - y
+    vv = a[:, 2] ** 2 + a[:, 3] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tau = np.where(vv > 0, -(dx * a[:, 2] + dy * a[:, 3]) / vv, 0.0)
+    tau = np.clip(tau, 0.0, max(horizon_s, 0.0))
+    d = np.hypot(dx + a[:, 2] * tau, dy + a[:, 3] * tau) - 2.0 * a[:, 4]
+    return float(max(0.0, d.min()))

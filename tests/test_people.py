@@ -1,0 +1,147 @@
+"""People followed on the ground and predicted to touchdown (issue 11, item 3): detection from a
+density map, the world-frame tracker, the prediction, and on real rendered frames with the
+shipped model, a walker heading for a landing zone seen coming seconds before the zone is."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
+from companion.pipeline.people import (
+    PeopleError,
+    PeopleParams,
+    PeopleTracker,
+    Person,
+    density_peaks,
+    place_people,
+    predicted_clearance,
+)
+
+K = Intrinsics.from_fov(640, 480, 70.0)
+
+
+def _blob_map(points_uv: list[tuple[float, float]], shape=(120, 160), stride=4) -> np.ndarray:
+    d = np.zeros(shape, np.float32)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    for u, v in points_uv:
+        cu, cv = (u + 0.5) / stride - 0.5, (v + 0.5) / stride - 0.5
+        d += np.exp(-((xx - cu) ** 2 + (yy - cv) ** 2) / 2.0).astype(np.float32) / (2 * math.pi)
+    return d
+
+
+def test_peaks_of_the_density_map_are_people_on_the_head_plane():
+    pose = Pose(0.0, 10.0, -4.0, -20.0, 0.0, 0.0, 0.0)
+    proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)
+    truth = np.array([[12.0, -6.0], [7.5, -1.0], [10.0, -4.0]])
+    uv = proj.plane_to_image(truth)
+    d = _blob_map([tuple(p) for p in uv])
+    pix, strength = density_peaks(d, 0.01, (480, 640))
+    found = place_people(pix, strength, proj)
+    assert len(found) == 3
+    for p in truth:  # within one density cell (4 px at 18.3 m: 0.16 m)
+        assert np.min(np.hypot(*(found - p).T)) < 0.25
+    # Nothing above the threshold, NaN maps and empty maps: nobody, no error.
+    assert len(density_peaks(d, 10.0, (480, 640))[0]) == 0
+    assert len(density_peaks(np.full((4, 4), np.nan, np.float32), 0.0, (16, 16))[0]) == 0
+    assert len(density_peaks(np.zeros((0, 0), np.float32), 0.0, (16, 16))[0]) == 0
+
+
+def test_two_peaks_of_one_person_are_merged():
+    proj = PlaneProjection.nadir(0.05)
+    found = place_people(np.array([[100.0, 100.0], [104.0, 100.0], [200.0, 100.0]]), np.array([1.0, 0.9, 1.0]), proj)
+    assert len(found) == 2 and [5.0, 5.0] in found.tolist()
+
+
+def test_a_walker_is_followed_at_their_speed_and_a_standing_person_stands():
+    tracker = PeopleTracker(PeopleParams())
+    rng = np.random.default_rng(0)
+    v = np.array([1.2, -0.5])
+    for k in range(40):
+        t = 0.1 * k
+        walker = np.array([0.0, 0.0]) + v * t
+        standing = np.array([5.0, 5.0])
+        pts = np.array([walker, standing]) + rng.normal(0, 0.1, (2, 2))
+        people = tracker.update(pts, t)
+    assert len(people) == 2
+    w = min(people, key=lambda q: math.hypot(q.x - v[0] * 3.9, q.y - v[1] * 3.9))
+    s = min(people, key=lambda q: math.hypot(q.x - 5.0, q.y - 5.0))
+    assert math.hypot(w.vx - v[0], w.vy - v[1]) < 0.3
+    assert s.vx == 0.0 and s.vy == 0.0 and s.hits == 40  # noise does not make them walk
+
+
+def test_people_out_of_view_are_kept_and_people_in_view_unmatched_are_dropped():
+    pose = Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
+    proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)
+    tracker = PeopleTracker(PeopleParams(max_missed_s=0.5, memory_s=3.0))
+    tracker.update(np.array([[1.0, 1.0], [200.0, 200.0]]), 0.0, proj, (480, 640))
+    tracker.update(np.zeros((0, 2)), 1.0, proj, (480, 640))
+    assert [(p.x, p.y) for p in tracker.people()] == [(200.0, 200.0)]  # out of view: remembered
+    tracker.update(np.zeros((0, 2)), 3.5, proj, (480, 640))
+    assert tracker.people() == []  # beyond the memory
+
+
+def test_time_going_back_or_nan_is_a_clear_error_and_changes_nothing():
+    tracker = PeopleTracker()
+    tracker.update(np.array([[1.0, 1.0]]), 5.0)
+    with pytest.raises(PeopleError, match="went back"):
+        tracker.update(np.array([[1.0, 1.0]]), 4.0)
+    with pytest.raises(PeopleError, match="finite"):
+        tracker.update(np.array([[1.0, 1.0]]), math.nan)
+    people = tracker.update(np.array([[np.nan, 1.0], [1.0, 1.05]]), 5.1)  # a NaN point is dropped
+    assert len(people) == 1 and people[0].hits == 2
+
+
+def test_predicted_clearance_is_the_closest_approach_before_the_horizon():
+    walker = Person(1, -10.0, 1.0, 1.0, 0.0, 0.0, 5, 0.0)  # 10 m west of the point, walking east, 1 m off
+    assert predicted_clearance([walker], 0.0, 0.0, 0.0, 5.0) == pytest.approx(math.hypot(5.0, 1.0))
+    assert predicted_clearance([walker], 0.0, 0.0, 0.0, 20.0) == pytest.approx(1.0)
+    # Seen 4 s ago: it has walked on since, so the closest approach comes sooner.
+    assert predicted_clearance([walker], 0.0, 0.0, 4.0, 6.0) == pytest.approx(1.0)
+    assert predicted_clearance([walker], 0.0, 0.0, 0.0, 6.0) == pytest.approx(math.hypot(4.0, 1.0))
+    # Walking away: now is the closest; uncertainty (2 sigma) comes off; never negative.
+    away = Person(2, 3.0, 0.0, 1.0, 0.0, 0.5, 5, 0.0)
+    assert predicted_clearance([away], 0.0, 0.0, 0.0, 10.0) == pytest.approx(2.0)
+    assert predicted_clearance([Person(3, 0.1, 0, 0, 0, 1.0, 5, 0.0)], 0.0, 0.0, 0.0, 1.0) == 0.0
+    assert predicted_clearance([], 0.0, 0.0, 0.0, 10.0) == math.inf
+
+
+@pytest.mark.parametrize("field,value", [("window", 2), ("gate_m", 0.0), ("memory_s", math.nan), ("min_hits", 0)])
+def test_bad_parameters_are_clear_errors(field, value):
+    with pytest.raises(ValueError, match=field):
+        PeopleParams(**{field: value})
+
+
+def test_a_walker_heading_for_the_zone_is_seen_coming_before_the_zone_is_seen_occupied(model_path):
+    """Real frames (the simulator's renderer), the shipped model, the whole pipeline: a scenario
+    whose walkers cross the free circle. The predicted clearance at the circle's centre over a
+    12 s horizon drops under r0 seconds before the ground there is seen occupied."""
+    from companion.pipeline.density import DensityModel
+    from companion.pipeline.slz import PipelineConfig, SLZPipeline
+    from sim.flight import build_world
+    from sim.ground import ProceduralGround
+    from sim.render import render_world
+    from sim.scenarios import scenario
+    from sim.world import add_crossing_walkers
+
+    spec = scenario(2, "ardupilot")
+    assert spec.world == "crossing"
+    world, free, _ = build_world(spec)
+    add_crossing_walkers(world, free, 4.0, spec.seed)
+    ground = ProceduralGround(spec.seed)
+    kk = Intrinsics.from_fov(640, 480, spec.hfov_deg)
+    pipe = SLZPipeline(DensityModel(model_path, threads=1), PipelineConfig(), intrinsics=kk, mount=Mount())
+    warned = occupied = None
+    for _ in range(200):  # 20 s at 10 Hz
+        world.step(0.1)
+        pose = Pose(world.t, free.north, free.east, -12.0, 0.0, 0.0, 0.0)
+        res = pipe.process(render_world(world, pose, kk, Mount(), ground), world.t, pose)
+        if warned is None and predicted_clearance(res.people, free.north, free.east, world.t, 12.0) < 2.0:
+            warned = world.t
+        if occupied is None and res.below is not None and res.below.r < 2.0:
+            occupied = world.t
+            break
+    assert warned is not None and occupied is not None, (warned, occupied)
+    assert occupied - warned >= 2.0, (warned, occupied)

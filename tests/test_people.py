@@ -145,3 +145,21 @@ def test_a_walker_heading_for_the_zone_is_seen_coming_before_the_zone_is_seen_oc
             break
     assert warned is not None and occupied is not None, (warned, occupied)
     assert occupied - warned >= 2.0, (warned, occupied)
+
+
+def test_only_the_window_after_the_commit_counts():
+    # Crossing the point 3 s from now and gone by 5 s: outside a window from 6 s to 12 s.
+    walker = Person(1, -3.0, 0.0, 1.0, 0.0, 0.0, 5, 0.0)
+    assert predicted_clearance([walker], 0.0, 0.0, 0.0, 12.0) == pytest.approx(0.0)
+    assert predicted_clearance([walker], 0.0, 0.0, 0.0, 12.0, from_s=6.0) == pytest.approx(3.0)
+    assert predicted_clearance([walker], 0.0, 0.0, 0.0, 5.0, from_s=6.0) == math.inf  # empty window
+
+
+def test_a_person_not_seen_since_is_reported_where_they_were_seen():
+    tracker = PeopleTracker(PeopleParams(max_missed_s=5.0))
+    for k in range(10):
+        tracker.update(np.array([[1.0 * 0.1 * k, 0.0]]), 0.1 * k)
+    tracker.update(np.zeros((0, 2)), 2.0)  # not seen for 1.1 s
+    (p,) = tracker.people()
+    assert p.last_t == pytest.approx(0.9) and p.x == pytest.approx(0.9, abs=0.1)
+    assert p.pos_std_m < 0.25  # its error when last seen, not grown with the time since

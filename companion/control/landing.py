@@ -390,17 +390,25 @@ class LandingController:
         return round(value, 2) if math.isfinite(value) else None
 
     def predicted_clearance(self, north: float, east: float) -> tuple[float, Person | None]:
-        """The least distance (m) anybody seen comes to the point (north, east) before touchdown
-        from the present height (``people.predicted_clearance``), less ``pose_uncertainty_m``; and
-        who. inf and None with nobody seen, with prediction off or without a vehicle position."""
+        """The least distance (m) anybody seen walking comes to the point (north, east) while the
+        landing is committed (from ``land_abort_above_m`` down to touchdown, at the descent's
+        speeds from the present height), less ``pose_uncertainty_m``; and who. inf and None with
+        nobody walking, prediction off, or no vehicle position.
+
+        Only walkers count: where people stand the zone check sees on every frame, and above the
+        commit height the camera still watches, so a walker who arrives sooner is seen arriving
+        (``people.predicted_clearance`` for the prediction itself)."""
         c, s = self.config, self.status
-        if not c.predict_people or s is None or not self.people:
+        walkers = [q for q in self.people if q.speed_mps > 0]
+        if not c.predict_people or s is None or not walkers:
             return math.inf, None
         horizon = self.descent.time_to_touchdown(s.height)
         if not math.isfinite(horizon):
             return math.inf, None
-        worst = min(self.people, key=lambda q: predicted_clearance([q], north, east, self.now, horizon))
-        return predicted_clearance([worst], north, east, self.now, horizon) - c.pose_uncertainty_m, worst
+        blind_from = max(0.0, horizon - self.descent.time_to_touchdown(min(s.height, c.land_abort_above_m)))
+        worst = min(walkers, key=lambda q: predicted_clearance([q], north, east, self.now, horizon, blind_from))
+        clear = predicted_clearance([worst], north, east, self.now, horizon, blind_from) - c.pose_uncertainty_m
+        return clear, worst
 
     def _walker_in_the_way(self, north: float, east: float, where: str) -> bool:
         """Whether somebody seen walking is predicted within r0 of the landing point before

@@ -150,6 +150,7 @@ class PeopleTracker:
         self._ids = np.zeros(0, dtype=int)
         self._hits = np.zeros(0, dtype=int)
         self._last = np.zeros(0)  # last matched capture time
+        self._std = np.zeros(0)  # position standard deviation at the last match (m)
         self._t: float | None = None
         self._next_id = 1
 
@@ -184,6 +185,7 @@ class PeopleTracker:
             ok = cost_g[rows, cols] < big
             rows, cols = rows[ok], cols[ok]
             self._correct(rows, pts[cols])
+            self._std[rows] = np.sqrt(np.maximum(self._P[rows, 0, 0], self._P[rows, 1, 1]))
             self._hits[rows] += 1
             self._last[rows] = t
             matched_tracks[rows] = True
@@ -213,6 +215,7 @@ class PeopleTracker:
             self._ids = np.concatenate([self._ids, np.arange(self._next_id, self._next_id + k)])
             self._hits = np.concatenate([self._hits, np.ones(k, dtype=int)])
             self._last = np.concatenate([self._last, np.full(k, t)])
+            self._std = np.concatenate([self._std, np.full(k, p.meas_std_m)])
             self._next_id += k
         return self.people()
 
@@ -223,9 +226,12 @@ class PeopleTracker:
         v_std = np.sqrt(np.maximum(self._P[:, 2, 2], self._P[:, 3, 3]))
         moving = (self._hits >= p.min_hits) & (np.hypot(v[:, 0], v[:, 1]) > 2 * v_std)
         v_used = np.where(moving[:, None], v, 0.0)
-        pos_std = np.sqrt(np.maximum(self._P[:, 0, 0], self._P[:, 1, 1]))
+        # Where they were when last seen (the filter's state is predicted to the latest frame,
+        # but a person not matched since is reported as seen: the prediction moves them on).
+        age = np.maximum((self._t or 0.0) - self._last, 0.0)
+        seen_xy = self._x[:, :2] - self._x[:, 2:] * age[:, None]
         return [Person(int(i), float(x[0]), float(x[1]), float(vu[0]), float(vu[1]), float(s), int(hh), float(lt))
-                for i, x, vu, s, hh, lt in zip(self._ids, self._x, v_used, pos_std, self._hits, self._last,
+                for i, x, vu, s, hh, lt in zip(self._ids, seen_xy, v_used, self._std, self._hits, self._last,
                                                strict=True)]
 
     # -- the filter ------------------------------------------------------------------------
@@ -260,13 +266,16 @@ class PeopleTracker:
     def _keep(self, alive: np.ndarray) -> None:
         self._x, self._P = self._x[alive], self._P[alive]
         self._ids, self._hits, self._last = self._ids[alive], self._hits[alive], self._last[alive]
+        self._std = self._std[alive]
 
 
-def predicted_clearance(people: list[Person], x: float, y: float, t: float, horizon_s: float) -> float:
-    """The least distance (m) anybody in ``people`` comes to the point (x, y) between time ``t``
-    and ``t + horizon_s`` (s), each moving on at their predicted velocity from where they were
-    last seen, less twice their position's standard deviation; inf with nobody. Never negative."""
-    if not people:
+def predicted_clearance(people: list[Person], x: float, y: float, t: float, horizon_s: float,
+                        from_s: float = 0.0) -> float:
+    """The least distance (m) anybody in ``people`` comes to the point (x, y) between times
+    ``t + from_s`` and ``t + horizon_s`` (s), each moving on at their predicted velocity from
+    where they were last seen, less twice their position's standard deviation at that sighting;
+    inf with nobody (or an empty window). Never negative."""
+    if not people or horizon_s < from_s:
         return math.inf
     a = np.array([[q.x, q.y, q.vx, q.vy, q.pos_std_m, q.last_t] for q in people], dtype=float)
     age = np.maximum(t - a[:, 5], 0.0)
@@ -276,6 +285,6 @@ def predicted_clearance(people: list[Person], x: float, y: float, t: float, hori
     vv = a[:, 2] ** 2 + a[:, 3] ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         tau = np.where(vv > 0, -(dx * a[:, 2] + dy * a[:, 3]) / vv, 0.0)
-    tau = np.clip(tau, 0.0, max(horizon_s, 0.0))
+    tau = np.clip(tau, max(from_s, 0.0), max(horizon_s, 0.0))
     d = np.hypot(dx + a[:, 2] * tau, dy + a[:, 3] * tau) - 2.0 * a[:, 4]
     return float(max(0.0, d.min()))

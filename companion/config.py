@@ -228,10 +228,11 @@ class ControllerSettings:
     lose_after_frames: int = _f(2, "a zone seen with less than r0 free is dropped only after this many "
                                 "frames in a row (one frame's false detection must not throw a landing "
                                 "back to HOLD; a person walking in is seen on every frame)", min=1, max=10)
-    predict_people: bool = _f(True, "follow the people seen on the ground and command the LAND (and let it go "
+    predict_people: bool = _f(False, "follow the people seen on the ground and command the LAND (and let it go "
                                     "on above land_abort_above_m) only while nobody seen walking is predicted "
                                     "within r0 of the landing point before touchdown; otherwise the descent "
-                                    "pauses until they are past")
+                                    "pauses until they are past (off: in the simulator it kept landing "
+                                    "points from ever being judged clear; docs/design.md)")
     pose_uncertainty_m: float = _f(0.5, "the vehicle's horizontal position error, taken off every predicted "
                                         "clearance (m)", min=0.0, max=20.0)
     hold_height_m: float = _f(15.0, "on a lost zone the vehicle holds at least this high above the "

@@ -594,6 +594,10 @@ def test_above_the_trust_height_the_candidate_is_approached_at_it_and_judged_bel
     assert land_alt == pytest.approx(6.0) and min(alts) == pytest.approx(6.0)
 
 
+#: The controller with the people prediction on (off by default: docs/design.md).
+PREDICT = dataclasses.replace(CFG, predict_people=True)
+
+
 def _low_over_zone(ctl: LandingController) -> float:
     """Fly ctl down to the LAND height over zone 1 (at north 10, east 0) without commanding it
     yet: returns the time reached."""
@@ -605,7 +609,7 @@ def test_no_land_while_a_walker_is_predicted_at_the_landing_point_then_land_when
     """The LAND is judged at touchdown: from 9.8 m the descent takes 14.5 s (the default profile),
     and a walker 8 m away heading for the point at 1.2 m/s gets there in 7 s. The descent pauses (no
     phase change, one note) and the LAND follows once they are predicted clear."""
-    ctl = LandingController(CFG)
+    ctl = LandingController(PREDICT)
     t = _low_over_zone(ctl)
     texts(ctl)
     walker = Person(7, 10.0, -8.0, 0.0, 1.2, 0.1, 10, t)  # west of the point, walking east
@@ -628,7 +632,7 @@ def test_no_land_while_a_walker_is_predicted_at_the_landing_point_then_land_when
 
 
 def test_a_standing_person_outside_r0_and_a_walker_going_elsewhere_do_not_hold_the_landing():
-    ctl = LandingController(CFG)
+    ctl = LandingController(PREDICT)
     t = _low_over_zone(ctl)
     people = [Person(1, 13.5, 0.0, 0.0, 0.0, 0.1, 30, t),  # 3.5 m away, standing
               Person(2, 10.0, -8.0, 0.0, -1.4, 0.1, 30, t)]  # walking away to the west
@@ -638,7 +642,7 @@ def test_a_standing_person_outside_r0_and_a_walker_going_elsewhere_do_not_hold_t
 
 
 def test_a_land_under_way_pauses_above_the_abort_height_and_is_committed_below_it():
-    ctl = LandingController(CFG)  # land_abort_above_m = 5 m
+    ctl = LandingController(PREDICT)  # land_abort_above_m = 5 m
     t = _low_over_zone(ctl)
     ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
     assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8))
@@ -650,7 +654,7 @@ def test_a_land_under_way_pauses_above_the_abort_height_and_is_committed_below_i
     assert cmds[0].target.rel_alt_m == pytest.approx(9.5)  # stops where it is
     assert any("pausing the LAND" in x for x in texts(ctl))
     # Committed: below the abort height the same walker changes nothing.
-    ctl2 = LandingController(CFG)
+    ctl2 = LandingController(PREDICT)
     t = _low_over_zone(ctl2)
     ctl2.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
     ctl2.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8))
@@ -662,12 +666,13 @@ def test_a_land_under_way_pauses_above_the_abort_height_and_is_committed_below_i
 
 
 def test_prediction_off_lands_as_before_and_broken_people_are_ignored():
-    ctl = LandingController(dataclasses.replace(CFG, predict_people=False))
+    ctl = LandingController(CFG)  # off by default
+    assert not CFG.predict_people
     t = _low_over_zone(ctl)
     ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
     walker = Person(7, 10.0, -3.0, 0.0, 1.2, 0.1, 10, t)
     assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None, [walker])
-    ctl = LandingController(CFG)
+    ctl = LandingController(PREDICT)
     t = _low_over_zone(ctl)
     ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
     broken = dataclasses.replace(walker, vx=math.nan)

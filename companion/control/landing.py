@@ -137,7 +137,7 @@ class LandingConfig:
     #: Judge the landing point at touchdown against the people seen walking (``Person``s from the
     #: pipeline): the LAND is commanded, and goes on above ``land_abort_above_m``, only while
     #: nobody seen is predicted within r0 of it before touchdown; otherwise the descent pauses.
-    predict_people: bool = True
+    predict_people: bool = False
     #: The vehicle's horizontal position error (m), taken off every predicted clearance.
     pose_uncertainty_m: float = 0.5
 

@@ -478,6 +478,23 @@ def test_the_ground_measured_under_the_camera_keeps_a_descent_over_a_view_bounde
     assert any("zone 1 lost (1.6 m free around the vehicle < r0 2 m)" in x for x in texts(ctl))
 
 
+def test_a_zone_the_tracker_drops_low_down_holds_while_the_ground_under_the_vehicle_is_seen_free():
+    ctl = LandingController(CFG)
+    start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)
+    texts(ctl)
+    t = 0.2
+    for _ in range(5):  # no tracks at all, r0 free under the vehicle: the descent goes on
+        ctl.on_state(status(t, 10, 0, 11, mode="GUIDED"))
+        ctl.on_frame(t, [], pose(t, 10, 0, 11), GroundBelow(10.0, 0.0, 2.6, 3.0))
+        t += 0.1
+    assert ctl.phase == Phase.DESCEND and texts(ctl) == []
+    # Without the measure (or with somebody within r0 of the vehicle) it is lost as before.
+    ctl.on_state(status(t, 10, 0, 11, mode="GUIDED"))
+    ctl.on_frame(t, [], pose(t, 10, 0, 11), GroundBelow(10.0, 0.0, 1.1, 3.0))
+    assert ctl.phase == Phase.HOLD
+    assert any("zone 1 lost (no longer tracked)" in x for x in texts(ctl))
+
+
 def test_an_all_free_view_under_the_camera_counts_and_a_broken_measure_is_ignored():
     ctl = LandingController(CFG)
     start_descent(ctl, [zone(1, 10, 0, 0.0, born=-8)], alt=12.0)

@@ -518,6 +518,20 @@ class LandingController:
         self._last_goto = None
         return self._goto(zone.x, zone.y, self._level, zone.id)
 
+    def _ground_below_holds(self) -> bool:
+        """Over the zone (DESCEND, or LAND above the commit height), whether this frame saw r0
+        free around the vehicle, or everything it saw there free with ``MIN_VIEW_M`` in view
+        (``GroundBelow``, less how far the vehicle moved since the frame)."""
+        s, below, aim = self.status, self.below, self._aim
+        if self.phase not in (Phase.DESCEND, Phase.LAND) or s is None or below is None or aim is None \
+                or not self._status_fresh():
+            return False
+        if math.hypot(aim[0] - s.north, aim[1] - s.east) > self.config.arrive_radius_m:
+            return False  # not over the landing point: the zone's own track must say
+        moved = math.hypot(below.x - s.north, below.y - s.east)
+        return below.r - moved >= self.config.planner.r0_m or \
+            (below.view_limited and below.r_view - moved >= MIN_VIEW_M)
+
     def _free_below(self, track: Track) -> tuple[float, bool]:
         """How far the ground around the vehicle is free (m), and whether everything the camera
         sees around it is free (the view, not a person, bounds it, and it shows ``MIN_VIEW_M``).
@@ -541,6 +555,11 @@ class LandingController:
     def _follow(self) -> list[Command]:
         assert self.target is not None
         verdict, track, why = self.planner.check_target(self.target.id, self.tracks, self.now)
+        if verdict == ZoneCheck.LOST and track is None and self._ground_below_holds():
+            # Low over the zone the tracker may drop it (the view, smaller than r0 plus the
+            # margin, makes no proposal of it), while this frame sees r0 free straight under the
+            # vehicle: that ground, not the zone's track, is where it comes down.
+            verdict, track, why = ZoneCheck.OK, self.target, ""
         if verdict == ZoneCheck.LOST:
             # Gone from the tracks, or unconfirmed for zone_max_age_s: that already took time.
             if self._out_of_view(track):

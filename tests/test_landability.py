@@ -21,6 +21,7 @@ from companion.pipeline.edges import PEOPLE, SURFACE, VIEW, edge_reason
 from companion.pipeline.headplane import GridSpec
 from companion.pipeline.landability import LandabilityModel, LandabilityModelError
 from companion.pipeline.occupancy import FREE, OCCUPIED, surface_free_map
+from companion.pipeline.proposals import distance_cells
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 
 REPO = Path(__file__).resolve().parents[1]
@@ -162,15 +163,24 @@ def test_edge_reason_names_people_surface_and_view() -> None:
     people[:, :5] = 0        # people along the west...
     surface[:, 30:] = 0      # ...water along the east
     free = np.minimum(people, surface)
-    assert edge_reason(12, 20, 6.0, grid, free, seen, people, surface) == PEOPLE
-    assert edge_reason(24, 20, 5.0, grid, free, seen, people, surface) == SURFACE
+    dist = distance_cells(free)
+    assert edge_reason(12, 20, grid, dist, free, seen, people, surface) == PEOPLE
+    assert edge_reason(24, 20, grid, dist, free, seen, people, surface) == SURFACE
+    assert edge_reason(2, 20, grid, dist, free, seen, people, surface) == PEOPLE   # inside the people
     # A zone whose nearest edge is the end of the grid / the view.
-    assert edge_reason(17, 2, 1.5, grid, free, seen, people, surface) == VIEW
+    assert edge_reason(17, 1, grid, dist, free, seen, people, surface) == VIEW
+    assert edge_reason(50, 20, grid, dist, free, seen, people, surface) == VIEW   # off the grid
     unseen = seen.copy()
     unseen[:, 30:] = 0
-    assert edge_reason(24, 20, 5.0, grid, free, unseen, people, surface) == VIEW
+    assert edge_reason(24, 20, grid, dist, free, unseen, people, surface) == VIEW
     # Without a landability model every seen non-free cell is people.
-    assert edge_reason(24, 20, 5.0, grid, surface, seen) == PEOPLE
+    assert edge_reason(24, 20, grid, distance_cells(surface), surface, seen) == PEOPLE
+    # A large zone: the ring is all that is looked at, and it still finds the water.
+    big = np.full((400, 400), 255, np.uint8)
+    big[:, 390:] = 0
+    bgrid = GridSpec(0.0, 0.0, 0.1, 400, 400)
+    assert edge_reason(20.0, 20.0, bgrid, distance_cells(big), big, np.full_like(big, 255), np.full_like(big, 255),
+                       big) == SURFACE
 
 
 # ---- the pipeline: people OR unlandable ground ----------------------------------------------------

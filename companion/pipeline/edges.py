@@ -21,42 +21,43 @@ VIEW = "view"
 EDGES = (PEOPLE, SURFACE, VIEW)
 
 
-def edge_reason(x: float, y: float, r: float, grid: GridSpec, free_grid: np.ndarray, seen: np.ndarray,
+def edge_reason(x: float, y: float, grid: GridSpec, dist: np.ndarray, free_grid: np.ndarray, seen: np.ndarray,
                 people_free: np.ndarray | None = None, surface_free: np.ndarray | None = None) -> str:
-    """``"people"``, ``"surface"`` or ``"view"`` for the zone of radius ``r`` metres at plane point
-    (x, y): what the nearest non-free cell of ``free_grid`` (255 free; the grid the zone was made
-    on) is.
+    """``"people"``, ``"surface"`` or ``"view"`` for the zone centred at plane point (x, y): what
+    the nearest non-free cells of ``free_grid`` (255 free; the grid the zone was made on) are.
 
-    seen: 255 where the camera sees the cell on this frame. people_free, surface_free: this frame's
-    grids of people alone and of the ground alone (0 where occupied / unlandable); None without a
-    landability model (then every seen non-free cell is people). Among the cells at the nearest
-    distance (half a cell of slack), people win over ground, and ground over the view: people are
-    the first concern. A seen cell that neither grid occupies is held by the risk map (somebody
-    stood there a moment ago): people.
+    dist: ``proposals.distance_cells(free_grid)``, which already knows how far the nearest
+    non-free cell is (d cells); only the ring of cells at that distance (half a cell either side)
+    is looked at, so the cost grows with the zone's perimeter, not its area. seen: 255 where the
+    camera sees the cell on this frame. people_free, surface_free: this frame's grids of people
+    alone and of the ground alone (0 where occupied / unlandable); None without a landability
+    model (then every seen non-free cell is people). Out of the grid, or not seen, is the view.
+    Among the ring's cells people win over ground, and ground over the view: people are the
+    first concern. A seen cell that neither grid occupies is held by the risk map (somebody stood
+    there a moment ago): people.
     """
     rows, cols = free_grid.shape
-    ci, cj = (y - grid.y0) / grid.cell, (x - grid.x0) / grid.cell
-    # Out of the grid is out of view: how far the centre is from the grid's border (cells).
-    to_border = min(ci + 0.5, rows - 0.5 - ci, cj + 0.5, cols - 0.5 - cj)
-    reach = max(r / grid.cell, 0.0) + 3.0
-    i0, i1 = max(0, int(math.floor(ci - reach))), min(rows, int(math.ceil(ci + reach)) + 1)
-    j0, j1 = max(0, int(math.floor(cj - reach))), min(cols, int(math.ceil(cj + reach)) + 1)
-    if i0 >= i1 or j0 >= j1:
+    i = int(round((y - grid.y0) / grid.cell))
+    j = int(round((x - grid.x0) / grid.cell))
+    if not (0 <= i < rows and 0 <= j < cols):
         return VIEW
-    window = free_grid[i0:i1, j0:j1] == 0
-    if not window.any():
+    d = float(dist[i, j])
+    if d <= 0.0:
+        ii, jj = np.array([i]), np.array([j])
+    else:
+        n = max(16, int(math.ceil(4.0 * math.pi * (d + 1.0))))  # about half a cell apart
+        a = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+        rr = np.array([max(d - 0.5, 0.0), d, d + 0.5])[:, None]
+        ii = np.rint(i + rr * np.sin(a)).astype(np.int64).ravel()
+        jj = np.rint(j + rr * np.cos(a)).astype(np.int64).ravel()
+    inside = (ii >= 0) & (ii < rows) & (jj >= 0) & (jj < cols)
+    ii, jj = ii[inside], jj[inside]
+    ring = (free_grid[ii, jj] == 0) & (seen[ii, jj] > 0)
+    if not ring.any():
         return VIEW
-    ii = np.arange(i0, i1, dtype=np.float64)[:, None] - ci
-    jj = np.arange(j0, j1, dtype=np.float64)[None, :] - cj
-    dist = np.where(window, np.hypot(ii, jj), np.inf)
-    dmin = float(dist.min())
-    if to_border + 0.5 < dmin:
-        return VIEW
-    near = (dist <= dmin + 0.5) & (seen[i0:i1, j0:j1] > 0)
-    if not near.any():
-        return VIEW
-    ground = (np.zeros_like(near) if surface_free is None else surface_free[i0:i1, j0:j1] == 0) & near
-    people = (near & ~ground) if people_free is None else (near & (people_free[i0:i1, j0:j1] == 0))
+    ii, jj = ii[ring], jj[ring]
+    ground = np.zeros(len(ii), bool) if surface_free is None else surface_free[ii, jj] == 0
+    people = ~ground if people_free is None else people_free[ii, jj] == 0
     if people.any():
         return PEOPLE
     if ground.any():

@@ -217,11 +217,11 @@ class SLZPipeline:
 
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
 
-        def edge(x: float, y: float, r: float) -> str:
-            return edge_reason(x, y, r, grid, fused, seen[0], people_grid, surface_grid)
+        def edge(x: float, y: float) -> str:
+            return edge_reason(x, y, grid, dist, fused, seen[0], people_grid, surface_grid)
 
-        edges = [edge(c.x, c.y, c.r) for c in proposals]
-        tracks = [replace(tr, edge=edge(tr.x, tr.y, tr.r)) for tr in tracks]
+        edges = [edge(c.x, c.y) for c in proposals]
+        tracks = [replace(tr, edge=edge(tr.x, tr.y)) for tr in tracks]
         t6 = time.perf_counter()
         starts = (t0, t_surface, t2, t3, t4, t5)
         for name, a, b in zip(STAGES, starts, (t1, t2, t3, t4, t5, t6), strict=True):

@@ -293,9 +293,9 @@ def train(args: argparse.Namespace) -> Path:
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shared", default="../shared", help="the shared data directory")
     p.add_argument("--out", default="companion/models/slz-landability.onnx", help="ONNX file to write")
-    p.add_argument("--steps", type=int, default=3000)
-    p.add_argument("--batch", type=int, default=12)
-    p.add_argument("--crop", type=int, default=192, help="crop side in pixels (multiple of 8)")
+    p.add_argument("--steps", type=int, default=7000)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--crop", type=int, default=256, help="crop side in pixels (multiple of 8)")
     p.add_argument("--lr", type=float, default=4e-3)
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--seed", type=int, default=0)

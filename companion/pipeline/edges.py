@@ -27,8 +27,8 @@ def edge_reason(x: float, y: float, grid: GridSpec, dist: np.ndarray, free_grid:
     the nearest non-free cells of ``free_grid`` (255 free; the grid the zone was made on) are.
 
     dist: ``proposals.distance_cells(free_grid)``, which already knows how far the nearest
-    non-free cell is (d cells); only the ring of cells at that distance (half a cell either side)
-    is looked at, so the cost grows with the zone's perimeter, not its area. seen: 255 where the
+    non-free cell is (d cells); only the ring of cells at that distance (to 0.7 cell beyond) is
+    looked at, so the cost grows with the zone's perimeter, not its area. seen: 255 where the
     camera sees the cell on this frame. people_free, surface_free: this frame's grids of people
     alone and of the ground alone (0 where occupied / unlandable); None without a landability
     model (then every seen non-free cell is people). Out of the grid, or not seen, is the view.
@@ -45,9 +45,9 @@ def edge_reason(x: float, y: float, grid: GridSpec, dist: np.ndarray, free_grid:
     if d <= 0.0:
         ii, jj = np.array([i]), np.array([j])
     else:
-        n = max(16, int(math.ceil(4.0 * math.pi * (d + 1.0))))  # about half a cell apart
+        n = max(16, int(math.ceil(2.0 * math.pi * (d + 0.7) / 0.7)))  # 0.7 cell apart: no cell skipped
         a = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
-        rr = np.array([max(d - 0.5, 0.0), d, d + 0.5])[:, None]
+        rr = np.array([d, d + 0.7])[:, None]
         ii = np.rint(i + rr * np.sin(a)).astype(np.int64).ravel()
         jj = np.rint(j + rr * np.cos(a)).astype(np.int64).ravel()
     inside = (ii >= 0) & (ii < rows) & (jj >= 0) & (jj < cols)

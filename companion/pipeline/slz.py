@@ -90,7 +90,8 @@ class FrameResult:
 
     With a surface model: ``people`` and ``surface`` are the image-sized free maps of each alone
     (``occupancy`` is their minimum), ``unlandable`` the model's map. ``proposal_edges`` says, per
-    proposal, what bounds it (``edges.EDGES``); each track's ``edge`` does the same."""
+    proposal, what bounds it (``edges.EDGES``); each track's ``edge`` does the same. Without a
+    surface model neither is judged (an empty list, empty strings)."""
 
     t: float
     proposals: list[Circle]
@@ -217,11 +218,15 @@ class SLZPipeline:
 
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
 
-        def edge(x: float, y: float) -> str:
-            return edge_reason(x, y, grid, dist, fused, seen[0], people_grid, surface_grid)
+        edges: list[str] = []
+        if surface_grid is not None:
+            # Only with a surface model: without one every edge is people or the view, and the
+            # people-only pipeline keeps its cost to the microsecond.
+            def edge(x: float, y: float) -> str:
+                return edge_reason(x, y, grid, dist, fused, seen[0], people_grid, surface_grid)
 
-        edges = [edge(c.x, c.y) for c in proposals]
-        tracks = [replace(tr, edge=edge(tr.x, tr.y)) for tr in tracks]
+            edges = [edge(c.x, c.y) for c in proposals]
+            tracks = [replace(tr, edge=edge(tr.x, tr.y)) for tr in tracks]
         t6 = time.perf_counter()
         starts = (t0, t_surface, t2, t3, t4, t5)
         for name, a, b in zip(STAGES, starts, (t1, t2, t3, t4, t5, t6), strict=True):

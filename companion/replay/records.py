@@ -12,7 +12,7 @@ written as JSON ``null``: NaN never reaches the output.
 
 Each proposal and track also carries ``edge``: what bounds it on that frame, ``"people"``,
 ``"surface"`` (ground the landability model calls unlandable) or ``"view"`` (the end of what the
-camera sees); ``null`` where it was not judged (``companion.pipeline.edges``).
+camera sees); ``null`` without the landability model (``companion.pipeline.edges``).
 """
 
 from __future__ import annotations

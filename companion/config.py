@@ -56,7 +56,7 @@ SHIPPED_MODEL = Path(str(importlib.resources.files("companion") / "models" / "sl
 SHIPPED_LANDABILITY = Path(str(importlib.resources.files("companion") / "models" / "slz-landability.onnx"))
 #: Whether the landability model runs unless the configuration says otherwise (docs/design.md,
 #: "Unlandable ground", says why this is the default).
-LANDABILITY_DEFAULT = True
+LANDABILITY_DEFAULT = False
 
 FLAVOURS = ("auto", "ardupilot", "px4")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")

@@ -309,6 +309,12 @@ def test_water_beside_a_lawn_gives_circles_only_on_the_lawn(shared_dir: Path, mo
         assert c.x - c.r >= boundary - 1e-6, f"circle {c} reaches into the water"
     assert SURFACE in res.proposal_edges  # the largest circle on the lawn is bounded by the water
     assert set(res.proposal_edges) <= {SURFACE, VIEW, PEOPLE}
+    # The replay's JSON Lines carry it per proposal (tracks get theirs once born).
+    from companion.control.planner import PlannerConfig, ZonePlanner
+    from companion.replay.records import frame_record
+
+    rec = frame_record(0, res, ZonePlanner(PlannerConfig()))
+    assert [p["edge"] for p in rec["proposals"]] == res.proposal_edges
 
 
 # ---- drawing ----------------------------------------------------------------------------------

@@ -54,8 +54,9 @@ SHIPPED_MODEL = Path(str(importlib.resources.files("companion") / "models" / "sl
 #: The shipped landability model (water, vehicles, trees, roofs, ...: ground that is no place to
 #: land), beside the density model; ``model.landability`` switches it on.
 SHIPPED_LANDABILITY = Path(str(importlib.resources.files("companion") / "models" / "slz-landability.onnx"))
-#: Whether the landability model runs unless the configuration says otherwise (docs/design.md,
-#: "Unlandable ground", says why this is the default).
+#: Whether the landability model runs unless the configuration says otherwise: off, because on
+#: the simulator's drawn ground the shipped model errs both ways (companion/models/LANDABILITY_CARD.md,
+#: "On the simulator's ground"; docs/design.md, step 1b).
 LANDABILITY_DEFAULT = False
 
 FLAVOURS = ("auto", "ardupilot", "px4")

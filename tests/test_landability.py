@@ -371,3 +371,27 @@ def test_the_grouping_covers_every_class_once(shared_dir: Path) -> None:
         level_lut(SHIPPED[:-1], classes)
     with pytest.raises(ValueError, match="'lava'"):
         level_lut((*SHIPPED, RiskLevel("lava", ("lava",))), classes)
+
+
+def test_replay_with_the_landability_model_on_records_edges_and_the_model(tmp_path: Path, model_path: Path) -> None:
+    from companion.cli import main
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, frame in enumerate(_crowd_frames(3)):
+        cv2.imwrite(str(frames / f"{k:03d}.png"), frame)
+    out = tmp_path / "r.jsonl"
+    summary = tmp_path / "s.json"
+    args = ["replay", str(frames), "--fps", "5", "--nadir", "--gsd", "0.05", "--threads", "1",
+            "--jsonl", str(out), "--summary-json", str(summary)]
+    assert main([*args, "--set", "model.landability=true"]) == 0
+    recs = [json.loads(line) for line in out.read_text().splitlines()]
+    edges = [p["edge"] for r in recs for p in r["proposals"]]
+    assert len(recs) == 3 and edges and set(edges) <= {PEOPLE, SURFACE, VIEW}
+    assert json.loads(summary.read_text())["landability_model"] == str(LANDABILITY)
+    # Off (the default): no model, and no edges judged.
+    assert main(args) == 0
+    assert json.loads(summary.read_text())["landability_model"] is None
+    assert all(p["edge"] is None for line in out.read_text().splitlines() for p in json.loads(line)["proposals"])
+    bad = ["--set", "model.landability=true", "--set", f"model.landability_path={tmp_path / 'nope.onnx'}"]
+    assert main([*args, *bad]) == 2

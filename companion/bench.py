@@ -5,8 +5,10 @@ straight down, slowly drifting) so the geometry stages do real work. The post-de
 on the scene's ideal density map unless a model is given, in which case the model runs on the
 rendered frame and its own output feeds the rest. ``live_view`` is what the service's live view
 costs per drawn frame while a client watches (the figure and its JPEG; ``live.max_fps`` at most,
-nothing without a client); it is not part of the pipeline's ``total``. Figures are printed, never asserted: this
-machine is shared and timings are noisy, so compare figures measured in one run.
+nothing without a client); it is not part of the pipeline's ``total``. ``landability`` is the
+landability model (the shipped one unless ``--no-landability``; it runs on the same frame after the
+density model and is counted in ``total``, not in ``post_density``). Figures are printed, never
+asserted: this machine is shared and timings are noisy, so compare figures measured in one run.
 """
 
 from __future__ import annotations
@@ -21,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from companion import synthetic
-from companion.config import SHIPPED_MODEL
+from companion.config import SHIPPED_LANDABILITY, SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, Pose
-from companion.pipeline.slz import STAGES, DensityFn, PipelineConfig, SLZPipeline
+from companion.pipeline.slz import STAGES, DensityFn, PipelineConfig, SLZPipeline, SurfaceFn
 from companion.replay.live_figure import live_jpeg
 
 RESOLUTIONS = ((640, 480), (1280, 720))
@@ -36,8 +38,9 @@ def _stats(values: list[float]) -> dict[str, float]:
 
 
 def bench_resolution(width: int, height: int, frames: int, model: DensityFn | None = None, warmup: int = 5,
-                     seed: int = 0) -> dict[str, dict[str, float]]:
-    """Per-stage median and p99 milliseconds over ``frames`` frames at one resolution."""
+                     seed: int = 0, surface: SurfaceFn | None = None) -> dict[str, dict[str, float]]:
+    """Per-stage median and p99 milliseconds over ``frames`` frames at one resolution
+    (``surface``: the landability model's callable, timed as ``landability``)."""
     scale = width / 640.0
     scene = synthetic.crowd_scene(width, height, n_people=int(150 * scale * scale),
                                   free=((0.3 * width, 0.5 * height, 0.15 * width),
@@ -47,7 +50,7 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
     density = model if model is not None else (lambda f: ideal)
     K = Intrinsics.from_fov(width, height, 70.0)
     # The fused risk-map stage is timed too, whatever the flight default is.
-    pipe = SLZPipeline(density, PipelineConfig(fusion="map"), intrinsics=K, mount=Mount())
+    pipe = SLZPipeline(density, PipelineConfig(fusion="map"), intrinsics=K, mount=Mount(), surface=surface)
     samples: dict[str, list[float]] = {}
     for k in range(frames + warmup):
         t = k / 15.0
@@ -64,7 +67,9 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
         live_jpeg(frame, res, res.tracks[0].id if res.tracks else None, "MONITOR  zones 0  no target  00:00:00")
         samples.setdefault("live_view", []).append((time.perf_counter() - t0) * 1e3)
     wanted = list(STAGES if model is not None else STAGES[1:]) + ["post_density"]
-    if model is not None:
+    if surface is not None:
+        wanted.insert(1 if model is not None else 0, "landability")
+    if model is not None or surface is not None:
         wanted.append("total")
     wanted.append("live_view")
     return {name: _stats(samples[name]) for name in wanted}
@@ -76,6 +81,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="ONNX density model (default: the shipped model, when present)")
     parser.add_argument("--no-model", action="store_true",
                         help="time only the post-density stages on ideal density maps")
+    parser.add_argument("--landability", type=Path, default=None,
+                        help="ONNX landability model (default: the shipped one, when present)")
+    parser.add_argument("--no-landability", action="store_true", help="leave the landability model out")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
     parser.add_argument("--spinning", action="store_true",
                         help="let onnxruntime's threads busy-wait between runs (model.allow_spinning; off by default)")
@@ -97,13 +105,26 @@ def run(args: argparse.Namespace) -> int:
             except DensityModelError as exc:
                 print(f"companion bench: {exc}", file=sys.stderr)
                 return 2
-    result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model) for w, h in RESOLUTIONS}
+    surface = None
+    if not args.no_landability:
+        lpath = args.landability or SHIPPED_LANDABILITY
+        if args.landability is not None or lpath.is_file():
+            from companion.pipeline.density import DensityModelError
+            from companion.pipeline.landability import LandabilityModel
+
+            try:
+                surface = LandabilityModel(lpath, threads=args.threads, allow_spinning=args.spinning).unlandable()
+            except DensityModelError as exc:
+                print(f"companion bench: {exc}", file=sys.stderr)
+                return 2
+    result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface) for w, h in RESOLUTIONS}
     if args.json:
         print(json.dumps(result))
         return 0
     print(f"companion bench: {args.frames} frames per resolution, model: "
           f"{model.path if model is not None else 'none (ideal density maps)'}"
-          + (f", {args.threads} thread(s), spinning {'on' if args.spinning else 'off'}" if model is not None else ""))
+          + (f", {args.threads} thread(s), spinning {'on' if args.spinning else 'off'}" if model is not None else "")
+          + f", landability: {surface.model.path if surface is not None else 'none'}")
     for res_name, stages in result.items():
         print(f"\n{res_name}")
         print(f"  {'stage':<14}{'median ms':>11}{'p99 ms':>10}")

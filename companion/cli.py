@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("companion.replay.cli", "run the pipeline offline over a recording, video or frames"),
     "eval": ("companion.evaluation.cli", "measure a density model on the crowd data sets"),
     "bench": ("companion.bench", "measure per-stage latency of the pipeline"),
+    "train-landability": ("companion.training.landability",
+                          "train the landability model (water, vehicles, trees, roofs) on the semantic-drone photos"),
     "sim": ("sim.cli", "run the simulated vehicle and camera on their own"),
     "sim-scenarios": ("sim.scenarios", "fly N seeded random scenarios and report safety figures"),
     "signing-key": ("companion.mavlink.keygen", "make a MAVLink signing key file for the link"),

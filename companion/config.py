@@ -16,6 +16,7 @@ import functools
 import importlib.resources
 import json
 import math
+import re
 import sys
 import typing
 from collections.abc import Mapping
@@ -51,6 +52,13 @@ else:  # Python 3.10 (NVIDIA JetPack 6): tomli is the package tomllib was taken 
 #: directory). The one definition the service, replay, evaluation and the benchmark use. A wheel is
 #: always unpacked on disk, so the resource is a real file onnxruntime can open by path.
 SHIPPED_MODEL = Path(str(importlib.resources.files("companion") / "models" / "slz-density.onnx"))
+#: The shipped landability model (water, vehicles, trees, roofs, ...: ground that is no place to
+#: land), beside the density model; ``model.landability`` switches it on.
+SHIPPED_LANDABILITY = Path(str(importlib.resources.files("companion") / "models" / "slz-landability.onnx"))
+#: Whether the landability model runs unless the configuration says otherwise: off, because on
+#: the simulator's drawn ground the shipped model errs both ways (companion/models/LANDABILITY_CARD.md,
+#: "On the simulator's ground"; docs/design.md, step 1b).
+LANDABILITY_DEFAULT = False
 
 FLAVOURS = ("auto", "ardupilot", "px4")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -140,6 +148,10 @@ class ModelSettings:
     allow_spinning: bool = _f(False, "let onnxruntime's threads busy-wait between runs (off: they would take "
                                      "the CPU from the stages after the model on a small board)")
     overrides: dict[str, Any] = _f({}, "settings that win over the model's metadata (color, scale, ...)")
+    landability: bool = _f(LANDABILITY_DEFAULT, "also keep zones off unlandable ground (water, vehicles, trees, "
+                                                "roofs, ...) with the landability model")
+    landability_path: str = _f(str(SHIPPED_LANDABILITY), "ONNX landability model file; empty = the model shipped "
+                                                         "in the package", path=True)
 
 
 @dataclass(frozen=True)
@@ -179,6 +191,10 @@ class PipelineSettings:
                                      "(s; a person the network misses in a few frames)", min=0.0, max=30.0)
     map_memory_s: float = _f(10.0, "ground not seen for longer than this is unknown again (s)", min=0.1, max=600.0)
     map_half_extent_m: float = _f(60.0, "the risk map covers this far around the vehicle (m)", min=5.0, max=400.0)
+    unlandable_levels: list[str] = _f([], "risk levels of the landability model that keep zones off the ground; "
+                                          "empty = every level but the model's landable one")
+    unlandable_threshold: float = _f(-1.0, "probability of the unlandable levels above which a cell is "
+                                           "unlandable; -1 = the model's validated value", min=-1.0, max=0.999)
     tracker: TrackerSettings = field(default_factory=TrackerSettings)
 
 
@@ -466,6 +482,13 @@ def _cross_checks(cfg: Config) -> None:
         # traceback, systemd restarting it): say what is wrong, exit 2.
         raise ConfigError(f"link.url: {exc}") from None
     p = cfg.pipeline
+    names = p.unlandable_levels
+    if len(set(names)) != len(names) or any(not re.fullmatch(r"[a-z0-9][a-z0-9_-]{0,31}", n) for n in names):
+        raise ConfigError(f"pipeline.unlandable_levels must list distinct level names (lower case, "
+                          f"[a-z0-9_-]), got {names!r}")
+    if -1.0 < p.unlandable_threshold < 0.0:
+        raise ConfigError(f"pipeline.unlandable_threshold must be -1 (the model's) or in [0, 1), "
+                          f"got {p.unlandable_threshold!r}")
     if p.occupied_hold_s > p.map_memory_s:
         raise ConfigError(f"pipeline.occupied_hold_s ({p.occupied_hold_s} s) must not exceed "
                           f"pipeline.map_memory_s ({p.map_memory_s} s)")
@@ -492,6 +515,8 @@ def from_dict(raw: Mapping[str, Any], source: Path | None = None) -> Config:
         # "" names the shipped model wherever the package is installed, so the example file works
         # copied to /etc/companion unchanged.
         cfg = replace(cfg, model=replace(cfg.model, path=str(SHIPPED_MODEL)))
+    if not cfg.model.landability_path:
+        cfg = replace(cfg, model=replace(cfg.model, landability_path=str(SHIPPED_LANDABILITY)))
     _cross_checks(cfg)
     return cfg
 
@@ -605,6 +630,7 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         head_height_m=p.head_height_m,
         r0_m=p.r0_m,
         fusion=p.fusion,
+        surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
         risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,
                            walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,
                            memory_s=p.map_memory_s),
@@ -728,7 +754,8 @@ __all__ = [
     "Config", "ConfigError", "LinkSettings", "CameraSettings", "ModelSettings", "PipelineSettings",
     "TrackerSettings", "FailsafeSettings", "ControllerSettings", "RecorderSettings", "GcsSettings",
     "LiveSettings", "LogSettings",
-    "load", "from_dict", "parse_assignment", "all_keys", "SHIPPED_MODEL", "threshold_setting",
+    "load", "from_dict", "parse_assignment", "all_keys", "SHIPPED_MODEL", "SHIPPED_LANDABILITY",
+    "LANDABILITY_DEFAULT", "threshold_setting",
     "intrinsics", "mount", "pipeline_config", "planner_config", "landing_config", "signing_key",
     "link_config", "failsafe_config", "from_recording",
 ]

@@ -81,6 +81,9 @@ class TargetChosen(Event):
     #: every walker heading for it (``companion.control.touchdown``): the zone's radius less the
     #: walking speed times the time to touchdown. Negative: a walker could be there by then.
     touchdown_clearance_m: float | None = None
+    #: What bounds the zone on the frame that chose it: "people", "surface" (unlandable ground,
+    #: the landability model) or "view" (``companion.pipeline.edges``); None when not judged.
+    edge: str | None = None
 
 
 @dataclass(frozen=True)

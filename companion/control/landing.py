@@ -514,7 +514,8 @@ class LandingController:
         dist = math.hypot(zone.x - s.north, zone.y - s.east)
         self._set_phase(Phase.APPROACH, f"{verb} zone {zone.id}, {dist:.1f} m away, radius {zone.r:.1f} m",
                         event=TargetChosen, zone_id=zone.id, north=zone.x, east=zone.y, r=zone.r,
-                        lost_zone_id=lost_id, touchdown_clearance_m=self.touchdown_clearance(zone))
+                        lost_zone_id=lost_id, touchdown_clearance_m=self.touchdown_clearance(zone),
+                        edge=zone.edge or None)
         self._last_goto = None
         return self._goto(zone.x, zone.y, self._level, zone.id)
 

@@ -20,6 +20,13 @@ The model's figure is the largest over those sets (None if any never reaches it)
 ``companion.min_person_px`` metadata is printed beside it.
 With ``--peer`` the second model is measured in the same run, its recall is also read off its
 curve at our free share, and the latency ratio is printed.
+
+The ``landability`` set measures the landability model (``--landability``, default the shipped
+one) on the same held-out semantic-drone fifth: IoU per risk level and of the unlandable/landable
+decision, per class the share of its pixels put in its own level and called unlandable, and the
+share of each proposed landing circle's pixels that truly is landable ground (the whole pipeline,
+people and landability, on each photo seen straight down at ``--gsd`` m/px); definitions in
+:mod:`companion.evaluation.landability`.
 """
 
 from __future__ import annotations
@@ -31,9 +38,10 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
-from companion.config import SHIPPED_MODEL
+from companion.config import SHIPPED_LANDABILITY, SHIPPED_MODEL
 from companion.evaluation import compositor as C
 from companion.evaluation import datasets as D
+from companion.evaluation.landability import SEMANTIC_GSD, LandabilityResult, evaluate_landability
 from companion.evaluation.metrics import (
     SetResult,
     bench_frame,
@@ -43,6 +51,7 @@ from companion.evaluation.metrics import (
     overall_min_person_px,
 )
 from companion.pipeline.density import DensityModel, DensityModelError, resolve_threshold
+from companion.pipeline.landability import LandabilityModel
 
 REPO = Path(__file__).resolve().parents[2]
 PRESETS: dict[str, dict[str, object]] = {
@@ -50,8 +59,8 @@ PRESETS: dict[str, dict[str, object]] = {
     # The MCNN peer: greyscale 0-255, no normalisation, stride 4 (shared/README.md).
     "mcnn": {"color": "gray", "scale": 1.0, "mean": 0.0, "std": 1.0, "stride": 4},
 }
-SETS = ("shb", "mall", "dronecrowd", "semantic", "semantic-scaled", "synthetic")
-DEFAULT_SETS = ("shb", "mall", "dronecrowd", "semantic")
+SETS = ("shb", "mall", "dronecrowd", "semantic", "semantic-scaled", "synthetic", "landability")
+DEFAULT_SETS = ("shb", "mall", "dronecrowd", "semantic", "landability")
 LATENCY_SIZES = {"640x480": (480, 640), "1280x720": (720, 1280)}
 
 
@@ -74,6 +83,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--input-multiple", type=int, help="pad input to a multiple of N pixels")
     g.add_argument("--threshold", type=float, help="occupancy threshold (default: the model's, else 0)")
     g.add_argument("--count-scale", type=float, help="people per unit of map sum")
+    parser.add_argument("--landability", type=Path, default=SHIPPED_LANDABILITY,
+                        help="ONNX landability model for the landability set (default: the shipped one)")
+    parser.add_argument("--gsd", type=float, default=SEMANTIC_GSD,
+                        help=f"metres per pixel of the semantic-drone photos for the landability set's "
+                             f"circles (default {SEMANTIC_GSD})")
     parser.add_argument("--peer", type=Path, help="a second model measured in the same run")
     parser.add_argument("--peer-preset", choices=sorted(PRESETS), help="default: mcnn if the file name says mcnn")
     parser.add_argument("--peer-threshold", type=float, help="occupancy threshold of the peer (default its own, else 0)")
@@ -199,9 +213,29 @@ def run(args: argparse.Namespace) -> int:
                 pov["occupancy_threshold"] = args.peer_threshold
             peer = DensityModel(args.peer, threads=args.threads, overrides=pov)
         data = _datasets(Path(shared), sets, args.mall_step, args.limit, args.synthetic_n, args.synthetic_seed)
+        land = None
+        if "landability" in sets:
+            land = (LandabilityModel(args.landability, threads=args.threads),
+                    D.semantic_drone(Path(shared), "val")[: args.limit or None], D.semantic_classes(Path(shared)))
     except (DensityModelError, D.DatasetError, ValueError) as exc:
         print(f"companion eval: {exc}", file=sys.stderr)
         return 2
+    land_res = None
+    if land is not None:
+        try:
+            land_res = evaluate_landability(land[1], land[0], land[2], density=model, gsd=args.gsd)
+        except ValueError as exc:  # a grouping naming classes the data set lacks
+            print(f"companion eval: {args.landability}: {exc}", file=sys.stderr)
+            return 2
+    if not data and land_res is not None:  # only the landability set asked for
+        doc0: dict[str, Any] = {"shared": str(shared), "landability": _land_doc(land_res, args.landability)}
+        if args.json:
+            json.dump(doc0, sys.stdout, indent=1)
+            print()
+        else:
+            print(f"shared {shared}")
+            _print_land(doc0["landability"])
+        return 0
     # With a peer, latency is timed alternately below (fair ratio on a shared machine).
     res = measure(model, data, 0 if args.peer else args.latency_runs)
     doc: dict[str, Any] = {"shared": str(shared), "mall_step": args.mall_step, "limit": args.limit, "model": res}
@@ -229,6 +263,8 @@ def run(args: argparse.Namespace) -> int:
             }
         pres.pop("_results")
     res.pop("_results")
+    if land_res is not None:
+        doc["landability"] = _land_doc(land_res, args.landability)
     if args.json:
         json.dump(doc, sys.stdout, indent=1)
         print()
@@ -240,4 +276,28 @@ def run(args: argparse.Namespace) -> int:
             _print(doc["peer"], args.curve)
             for k, v in doc.get("latency_ratio_ours_over_peer", {}).items():
                 print(f"  latency ratio ours/peer at {k}: {v:.2f}")
+        if "landability" in doc:
+            _print_land(doc["landability"])
     return 0
+
+
+def _land_doc(res: LandabilityResult | None, path: Path) -> dict[str, Any]:
+    d = dict(vars(res)) if res is not None else {}
+    d["model"] = str(path)
+    return d
+
+
+def _print_land(d: dict[str, Any], file: TextIO = sys.stdout) -> None:
+    print(f"landability {d['model']} on semantic_drone_val ({d['images']} photos), threshold {d['threshold']:.3g}",
+          file=file)
+    print("  IoU per level: " + "  ".join(f"{k} {_fmt(v, True)}" for k, v in d["level_iou"].items())
+          + f"  | mean {_fmt(d['mean_iou'], True)}, pixel accuracy {_fmt(d['pixel_accuracy'], True)}", file=file)
+    print(f"  decision at the threshold: unlandable IoU {_fmt(d['unlandable_iou'], True)}, "
+          f"landable IoU {_fmt(d['landable_iou'], True)}", file=file)
+    print("  per class (pixels in its own level / called unlandable): " + "  ".join(
+        f"{k} {_fmt(d['class_in_level'][k], True)}/{_fmt(d['class_unlandable'][k], True)}"
+        for k in d["class_in_level"]), file=file)
+    print(f"  circles: {d['circles']} on {d['images_with_circles']} photos (gsd {d['gsd']:g} m/px); truly landable "
+          f"pixels inside them: pooled {_fmt(d['circle_landable_pooled'], True)}, median "
+          f"{_fmt(d['circle_landable_median'], True)}, worst {_fmt(d['circle_landable_min'], True)}; "
+          f"circles >= 99 % landable: {_fmt(d['circles_at_least_99'], True)}", file=file)

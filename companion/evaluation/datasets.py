@@ -139,6 +139,27 @@ def semantic_drone(shared: Path, split: Split = "all") -> list[Sample]:
     return out
 
 
+def semantic_labels(sample: Sample) -> np.ndarray:
+    """The per-pixel class map (uint8, the photo's size) of a :func:`semantic_drone` sample:
+    ``labels/NNN.png`` beside ``images/NNN.jpg``; class names in ``labels/classes.txt``."""
+    path = sample.path.parent.parent / "labels" / f"{sample.path.stem}.png"
+    lab = cv2.imread(str(_need(path)), cv2.IMREAD_UNCHANGED)
+    if lab is None or lab.ndim != 2 or lab.dtype != np.uint8:
+        raise DatasetError(f"cannot read {path} as an 8-bit class map")
+    return lab
+
+
+def semantic_classes(shared: Path) -> dict[str, int]:
+    """``labels/classes.txt`` of the semantic drone set as class name -> index."""
+    path = _need(Path(shared) / "data" / "semantic_drone" / "labels" / "classes.txt")
+    out: dict[str, int] = {}
+    for line in path.read_text().splitlines():
+        if line.strip():
+            idx, name = line.split(maxsplit=1)
+            out[name.strip()] = int(idx)
+    return out
+
+
 def scaled(samples: list[Sample], factor: float, suffix: str = "") -> list[Sample]:
     """``samples`` resized by ``factor`` (area filter) in memory, annotations scaled alike.
 

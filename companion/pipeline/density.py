@@ -185,6 +185,9 @@ class DensityModel:
         without the ``companion.`` prefix (the prefixed form is accepted too).
     """
 
+    #: What the model is, in messages ("density model file ... does not exist").
+    KIND = "density"
+
     def __init__(self, path: str | Path, threads: int = 2, overrides: Mapping[str, object] | None = None,
                  allow_spinning: bool = False) -> None:
         self.path = Path(path)
@@ -197,7 +200,7 @@ class DensityModel:
                 f"{self.path}: unknown density model setting(s) {', '.join(unknown)}; known: {', '.join(KEYS)}"
             )
         if not self.path.is_file():
-            raise DensityModelError(f"density model file {self.path} does not exist")
+            raise DensityModelError(f"{self.KIND} model file {self.path} does not exist")
 
         import onnxruntime as ort
 
@@ -228,12 +231,7 @@ class DensityModel:
             )
         channels = int(inp.shape[1])
         out = outputs[0]
-        if len(out.shape) not in (2, 4) or (len(out.shape) == 4 and _dim(out.shape[1]) not in (1, None)):
-            raise DensityModelError(
-                f"{self.path}: output {out.name!r} has shape {out.shape}; expected a 2-D map (N, 1, h, w) or (h, w)"
-            )
-        if len(out.shape) == 4 and out.shape[1] != 1:
-            raise DensityModelError(f"{self.path}: output {out.name!r} must have one channel, has shape {out.shape}")
+        self._check_output(out.name, list(out.shape))
         self._output_name = out.name
         self._fixed_hw = (_dim(inp.shape[2]), _dim(inp.shape[3]))
 
@@ -250,7 +248,7 @@ class DensityModel:
         multiple = cast("int | None", parsed.get("input_multiple"))
         # A probe run finds the stride when it is not declared and proves the model runs at all.
         probe_hw = self._probe_size(int(stride or 1) * int(multiple or 1))
-        out_hw = self._infer(np.zeros((1, channels, *probe_hw), np.float32)).shape
+        out_hw = self._infer(np.zeros((1, channels, *probe_hw), np.float32)).shape[-2:]
         if stride is None:
             ratios = {probe_hw[0] / out_hw[0], probe_hw[1] / out_hw[1]}
             if len(ratios) != 1 or not float(next(iter(ratios))).is_integer():
@@ -287,17 +285,29 @@ class DensityModel:
         h, w = self._fixed_hw
         return (h or side, w or side)
 
+    def _check_output(self, name: str, shape: list[object]) -> None:
+        """Raise when the declared output is not one 2-D map (a subclass may want another)."""
+        if len(shape) not in (2, 4) or (len(shape) == 4 and _dim(shape[1]) not in (1, None)):
+            raise DensityModelError(
+                f"{self.path}: output {name!r} has shape {shape}; expected a 2-D map (N, 1, h, w) or (h, w)"
+            )
+        if len(shape) == 4 and shape[1] != 1:
+            raise DensityModelError(f"{self.path}: output {name!r} must have one channel, has shape {shape}")
+
+    def _shape_output(self, y: np.ndarray) -> np.ndarray:
+        """The map of one frame from the raw output (density: 2-D)."""
+        if y.ndim == 4 and y.shape[:2] == (1, 1):
+            y = y[0, 0]
+        if y.ndim != 2:
+            raise DensityModelError(f"{self.path}: output has shape {y.shape}, expected a 2-D map")
+        return y
+
     def _infer(self, x: np.ndarray) -> np.ndarray:
         try:
             raw = self._session.run([self._output_name], {self.input_name: x})[0]
         except Exception as exc:
             raise DensityModelError(f"{self.path}: inference failed on input {x.shape}: {exc}") from exc
-        y = np.asarray(raw)
-        if y.ndim == 4 and y.shape[:2] == (1, 1):
-            y = y[0, 0]
-        if y.ndim != 2:
-            raise DensityModelError(f"{self.path}: output has shape {y.shape}, expected a 2-D map")
-        return y.astype(np.float32, copy=False)
+        return self._shape_output(np.asarray(raw)).astype(np.float32, copy=False)
 
     def _check_frame(self, frame: object) -> np.ndarray:
         if not isinstance(frame, np.ndarray):
@@ -345,7 +355,7 @@ class DensityModel:
         y = self._infer(x)
         if not any(self._fixed_hw):
             s = self.spec.stride
-            y = y[: math.ceil(frame.shape[0] / s), : math.ceil(frame.shape[1] / s)]
+            y = y[..., : math.ceil(frame.shape[0] / s), : math.ceil(frame.shape[1] / s)]
         return np.ascontiguousarray(y)
 
     def count(self, density: np.ndarray) -> float:

@@ -98,3 +98,33 @@ def occupancy_map(
         kernel = np.ones((params.kernel, params.kernel), np.uint8)
         occ_img = cv2.dilate(occ_img, kernel, iterations=params.iterations)
     return cv2.bitwise_not(occ_img)
+
+
+def surface_free_map(
+    unlandable: np.ndarray,
+    image_hw: tuple[int, int],
+    threshold: float,
+    params: OccupancyParams = OccupancyParams(),
+) -> np.ndarray:
+    """The ground's free map at image size: uint8, ``OCCUPIED`` (0) where the landability model
+    gives the unlandable levels a probability above ``threshold``, ``FREE`` (255) elsewhere.
+
+    unlandable: 2-D map (any stride) of the probability that a cell's ground is unlandable.
+    Unlike people, the probability is absolute (no ``- min``: a frame that is all water is all
+    unlandable). Non-finite values and an empty map are unlandable; occupied cells grow on the
+    way up as in :func:`occupancy_map` and are dilated by the same kernel, so the two maps are
+    combined as equals (``numpy.minimum``).
+    """
+    h, w = image_hw
+    if h <= 0 or w <= 0:
+        raise ValueError(f"image size must be positive, got {image_hw!r}")
+    p = np.asarray(unlandable, dtype=np.float32)
+    if p.size == 0:
+        return np.full((h, w), OCCUPIED, np.uint8)
+    if p.ndim != 2:
+        raise ValueError(f"unlandable map must be 2-D, got shape {p.shape}")
+    occ = ~(np.isfinite(p) & (p <= threshold))
+    occ_img: np.ndarray = resize_keep_occupied(occ, image_hw).astype(np.uint8) * 255
+    if params.iterations > 0 and params.kernel > 1:
+        occ_img = cv2.dilate(occ_img, np.ones((params.kernel, params.kernel), np.uint8), iterations=params.iterations)
+    return cv2.bitwise_not(occ_img)

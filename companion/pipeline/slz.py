@@ -3,6 +3,13 @@
 density -> occupancy -> head-plane grid -> proposals -> tracks (docs/design.md, steps 1-5). The density
 model is injected (any callable returning a 2-D map), so the pipeline runs with the shipped ONNX
 model, another model, or a synthetic stand-in.
+
+A second callable, ``surface`` (optional), maps the frame to the per-cell probability that the ground
+is unlandable (``companion.pipeline.landability``: water, vehicles, trees, roofs, ...). With it the
+occupancy step marks a pixel not-free where people are OR the ground is unlandable, and that one
+combined map feeds the grid, the risk map, the proposals and the tracks; each zone says which of the
+two (or the end of the view) bounds it (``companion.pipeline.edges``). Without it the pipeline is
+exactly the people-only one.
 """
 
 from __future__ import annotations
@@ -18,14 +25,17 @@ import numpy as np
 from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.density import resolve_threshold
+from companion.pipeline.edges import edge_reason
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
-from companion.pipeline.occupancy import OccupancyParams, occupancy_map
+from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import clearance_at, distance_cells, propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
 DensityFn = Callable[[np.ndarray], np.ndarray]
+#: frame -> 2-D per-cell probability that the ground is unlandable (``landability.UnlandableMap``).
+SurfaceFn = Callable[[np.ndarray], np.ndarray]
 
 STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking", "people")
 
@@ -40,7 +50,9 @@ class PipelineConfig:
     radius in metres (proposals below it are not made). Which zone is the target is not the
     pipeline's to say: ``companion.control.planner`` decides that, in flight and in replay.
     fusion: "map" (proposals on the ground risk map's fused grid, ``riskmap``; frames with a pose
-    only) or "frame" (on each frame alone, as in the paper, and every frame without a pose). risk: the risk map's settings (its cell is the grid's)."""
+    only) or "frame" (on each frame alone, as in the paper, and every frame without a pose). risk: the risk map's settings (its cell is the grid's).
+    surface_threshold: a cell is unlandable where the surface model's probability exceeds this;
+    None = the model's own (``threshold`` of the callable), else 0.5. Unused without one."""
 
     occupancy: OccupancyParams = field(default_factory=OccupancyParams)
     grid: GridParams = field(default_factory=GridParams)
@@ -51,8 +63,12 @@ class PipelineConfig:
     risk: RiskMapConfig = field(default_factory=RiskMapConfig)
     #: People followed on the ground over posed frames (``pipeline.people``); None: not followed.
     people: PeopleParams | None = field(default_factory=PeopleParams)
+    surface_threshold: float | None = None
 
     def __post_init__(self) -> None:
+        if self.surface_threshold is not None and not (
+                math.isfinite(self.surface_threshold) and 0.0 <= self.surface_threshold < 1.0):
+            raise ValueError(f"surface_threshold must be in [0, 1), got {self.surface_threshold!r}")
         if self.fusion not in FUSIONS:
             raise ValueError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
         if abs(self.risk.cell_m - self.grid.cell) > 1e-9:
@@ -72,7 +88,13 @@ class FrameResult:
     """What one frame produced. Circles and tracks are in head-plane metres; ``occupancy`` is the
     image-sized free map (255 free, 0 occupied); ``free_grid`` the head-plane grid described by
     ``grid``; ``fused_grid`` the risk map's fused free grid over the same cells (fusion "map");
-    ``timings_ms`` per stage plus ``post_density`` and ``total``."""
+    ``timings_ms`` per stage plus ``post_density`` and ``total`` (and ``landability`` when a
+    surface model runs; it is counted in ``total``, not in ``post_density``).
+
+    With a surface model: ``people_free`` and ``surface`` are the image-sized free maps of each alone
+    (``occupancy`` is their minimum), ``unlandable`` the model's map. ``proposal_edges`` says, per
+    proposal, what bounds it (``edges.EDGES``); each track's ``edge`` does the same. Without a
+    surface model neither is judged (an empty list, empty strings)."""
 
     t: float
     proposals: list[Circle]
@@ -89,6 +111,10 @@ class FrameResult:
     below: GroundBelow | None = None
     #: The people followed on the ground after this frame (posed frames; empty otherwise).
     people: list[Person] = field(default_factory=list)
+    proposal_edges: list[str] = field(default_factory=list)
+    people_free: np.ndarray | None = None
+    surface: np.ndarray | None = None
+    unlandable: np.ndarray | None = None
 
 
 class SLZPipeline:
@@ -101,11 +127,15 @@ class SLZPipeline:
 
     def __init__(self, density: DensityFn, config: PipelineConfig = PipelineConfig(),
                  intrinsics: Intrinsics | None = None, mount: Mount | None = None,
-                 projection: PlaneProjection | None = None):
+                 projection: PlaneProjection | None = None, surface: SurfaceFn | None = None):
         self.density = density
+        self.surface = surface
         if config.occupancy.threshold is None:
             config = replace(config, occupancy=replace(
                 config.occupancy, threshold=resolve_threshold(None, getattr(density, "spec", None))))
+        if surface is not None and config.surface_threshold is None:
+            thr = getattr(surface, "threshold", None)
+            config = replace(config, surface_threshold=float(thr) if isinstance(thr, (int, float)) else 0.5)
         self.config = config
         self.intrinsics = intrinsics
         self.mount = mount or Mount()
@@ -142,14 +172,36 @@ class SLZPipeline:
         t0 = time.perf_counter()
         density = np.asarray(self.density(frame))
         t1 = time.perf_counter()
+        unlandable = None
+        if self.surface is not None:
+            unlandable = np.asarray(self.surface(frame))
+        t_surface = time.perf_counter()
         free = occupancy_map(density, (h, w), self.config.occupancy)
+        people_free = surface = None
+        if unlandable is not None:
+            thr = self.config.surface_threshold
+            surface = surface_free_map(unlandable, (h, w), 0.5 if thr is None else thr, self.config.occupancy)
+            people_free = free
         t2 = time.perf_counter()
         if self._undistort is not None and pose is not None:
             free = cv2.remap(free, *self._undistort, cv2.INTER_NEAREST,
                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            if surface is not None:
+                people_free = free
+                surface = cv2.remap(surface, *self._undistort, cv2.INTER_NEAREST,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         grid = grid_for_view(proj, (h, w), self.config.grid)
         seen: list[np.ndarray] = []
         free_grid = sample_to_grid(free, proj, grid, seen)
+        people_grid = surface_grid = None
+        if surface is not None:
+            # Sampling keeps a cell free only when all its pixels are (erosion, then nearest):
+            # that commutes with the pixel-wise minimum, so the grid of the combined map is the
+            # minimum of the two grids, and both are at hand for the zones' edges.
+            people_grid = free_grid
+            surface_grid = sample_to_grid(surface, proj, grid)
+            free_grid = np.minimum(people_grid, surface_grid)
+            free = np.minimum(free, surface)
         t3 = time.perf_counter()
         # Only posed frames are in the world frame: under a fixed projection (a video without
         # poses) plane coordinates move with the camera, and a map would smear people across it.
@@ -174,13 +226,23 @@ class SLZPipeline:
             return c, clearance_at(view_dist, grid, x, y)
 
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
+
+        edges: list[str] = []
+        if surface_grid is not None:
+            # Only with a surface model: without one every edge is people or the view, and the
+            # people-only pipeline keeps its cost to the microsecond.
+            def edge(x: float, y: float) -> str:
+                return edge_reason(x, y, grid, dist, fused, seen[0], people_grid, surface_grid)
+
+            edges = [edge(c.x, c.y) for c in proposals]
+            tracks = [replace(tr, edge=edge(tr.x, tr.y)) for tr in tracks]
         below = None
         if proj.camera_xy is not None:
             bx, by = (float(v) for v in proj.camera_xy)
             if math.isfinite(bx) and math.isfinite(by):
                 below = GroundBelow(bx, by, *clearance(bx, by))
         t6 = time.perf_counter()
-        people: list[Person] = []
+        followed: list[Person] = []
         if self.people is not None and pose is not None:
             # World-frame people only: under a fixed projection the plane moves with the camera.
             params = self.people.params
@@ -191,11 +253,15 @@ class SLZPipeline:
                 uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, np.asarray(self.intrinsics.dist, np.float64),
                                          P=K).reshape(-1, 2)
             found = place_people(uv, strength, proj, params.merge_m)
-            people = self.people.update(found, t, view=proj, image_hw=(h, w))
+            followed = self.people.update(found, t, view=proj, image_hw=(h, w))
         t7 = time.perf_counter()
-        for name, a, b in zip(STAGES, (t0, t1, t2, t3, t4, t5, t6), (t1, t2, t3, t4, t5, t6, t7), strict=True):
+        starts = (t0, t_surface, t2, t3, t4, t5, t6)
+        for name, a, b in zip(STAGES, starts, (t1, t2, t3, t4, t5, t6, t7), strict=True):
             timings[name] = (b - a) * 1e3
-        timings["post_density"] = (t7 - t1) * 1e3
+        if unlandable is not None:
+            timings["landability"] = (t_surface - t1) * 1e3
+        timings["post_density"] = (t7 - t_surface) * 1e3
         timings["total"] = (t7 - t0) * 1e3
         return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
-                           density, fused if risk is not None else None, below, people)
+                           density, fused if risk is not None else None, below, followed, edges, people_free,
+                           surface, unlandable)

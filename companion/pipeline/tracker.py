@@ -74,6 +74,8 @@ class Track:
     not by anything seen occupied: everything the camera saw within ``r_view`` metres of the
     centre was free (low over a zone, the view is smaller than the zone).
     r_view: how far the view reached from the centre on the confirming frame (m).
+    edge: what bounds the zone on the latest frame, set by the pipeline
+    (``companion.pipeline.edges``: "people", "surface" or "view"; "" when not judged).
     born_t, last_t: capture times (s) of the birth and of the last confirming frame.
     """
 
@@ -89,6 +91,7 @@ class Track:
     last_t: float
     view_limited: bool = False
     r_view: float = math.inf
+    edge: str = ""
 
     @property
     def confirmed(self) -> bool:

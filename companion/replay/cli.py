@@ -18,10 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from companion import config as settings
-from companion.config import SHIPPED_MODEL, Config, ConfigError
+from companion.config import SHIPPED_LANDABILITY, SHIPPED_MODEL, Config, ConfigError
 from companion.control.planner import ZonePlanner
 from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.density import DensityModel, DensityModelError
+from companion.pipeline.landability import LandabilityModel, UnlandableMap
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 from companion.replay import batch
 from companion.replay.homography import HomographyFileError, projection_from_file
@@ -187,6 +188,19 @@ def _load_model(args: argparse.Namespace, cfg: Config, from_recording: bool) -> 
         raise _Fail(f"--model: {exc}") from None
 
 
+def _load_surface(args: argparse.Namespace, cfg: Config, from_recording: bool) -> UnlandableMap | None:
+    """The landability model when the settings switch it on (the recording's file when it is
+    still there, else the shipped one), bound to ``pipeline.unlandable_levels``."""
+    if not cfg.model.landability:
+        return None
+    recorded = Path(cfg.model.landability_path)
+    path = recorded if (recorded.is_file() or not from_recording) else SHIPPED_LANDABILITY
+    try:
+        return LandabilityModel(path, threads=args.threads).unlandable(cfg.pipeline.unlandable_levels or None)
+    except DensityModelError as exc:
+        raise _Fail(f"model.landability_path: {exc}") from None
+
+
 def _config(cfg: Config, model: DensityModel) -> PipelineConfig:
     try:
         return settings.pipeline_config(cfg, model.spec)
@@ -231,10 +245,11 @@ def replay_input(args: argparse.Namespace, path: Path, out: OutputPaths,
                     "--homography FILE")
     cfg, origin = _settings(args, source)
     model = _load_model(args, cfg, origin.startswith("the recording"))
+    surface = _load_surface(args, cfg, origin.startswith("the recording"))
     config = _config(cfg, model)
     planner = ZonePlanner(settings.planner_config(cfg))
     pipe = SLZPipeline(model, config, intrinsics=source.intrinsics if use_pose else None,
-                       mount=source.mount if use_pose else None, projection=projection)
+                       mount=source.mount if use_pose else None, projection=projection, surface=surface)
 
     video = None
     if out.video is not None:
@@ -263,6 +278,7 @@ def replay_input(args: argparse.Namespace, path: Path, out: OutputPaths,
             jsonl.close()
     summary["input"] = {"path": str(path), "kind": source.kind}
     summary["model"] = str(model.path)
+    summary["landability_model"] = None if surface is None else str(surface.model.path)
     summary["occupancy_threshold"] = config.occupancy.threshold
     summary["r_0"] = config.r0_m
     summary["settings"] = origin

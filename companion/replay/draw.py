@@ -1,5 +1,7 @@
 """The paper's figure: a frame with people in red, proposals in green, numbered tracks in blue and
 the landing target in yellow, plus, when the pose is known, a north-up view of the head plane.
+With the landability model, ground it calls unlandable (water, vehicles, trees, roofs, ...) is
+tinted magenta, apart from the people's red.
 
 Pure functions: arrays in, new arrays out (inputs are never modified). Colours are BGR.
 Circles live on the head plane, so in the image they are drawn as the projection of a polygon of
@@ -24,6 +26,7 @@ RED = (0, 0, 255)
 GREEN = (0, 200, 0)
 BLUE = (255, 80, 0)
 YELLOW = (0, 230, 255)
+MAGENTA = (220, 0, 220)
 WHITE = (255, 255, 255)
 BLACK = (0, 0, 0)
 POLYGON_POINTS = 72
@@ -45,13 +48,29 @@ def circle_in_image_polygon(proj: PlaneProjection, x: float, y: float, r: float)
     return np.round(uv * 16).astype(np.int32).reshape(-1, 1, 2)
 
 
-def overlay_people(frame: np.ndarray, occupancy_free: np.ndarray, alpha: float = 0.45) -> np.ndarray:
-    """``frame`` with the occupied pixels (``occupancy_free == 0``) tinted red by ``alpha``."""
+def _tint(img: np.ndarray, mask: np.ndarray, color: tuple[int, int, int], alpha: float) -> None:
+    if mask.any():
+        c = np.array(color, np.float32)
+        img[mask] = (img[mask].astype(np.float32) * (1 - alpha) + c * alpha).astype(np.uint8)
+
+
+def overlay_people(frame: np.ndarray, occupancy_free: np.ndarray, alpha: float = 0.45,
+                   surface_free: np.ndarray | None = None, people_free: np.ndarray | None = None) -> np.ndarray:
+    """``frame`` with the occupied pixels (``occupancy_free == 0``) tinted red by ``alpha``.
+
+    With the landability model's ``surface_free`` (0 = unlandable ground), those pixels are tinted
+    magenta instead, except where ``people_free`` (the people's own map; default: whatever is
+    occupied and not unlandable ground) has people: people stay red wherever they stand."""
     out = frame.copy()
     occ = occupancy_free == OCCUPIED
-    if occ.any():
-        red = np.array(RED, np.float32)
-        out[occ] = (out[occ].astype(np.float32) * (1 - alpha) + red * alpha).astype(np.uint8)
+    if surface_free is None or surface_free.shape != occ.shape:
+        _tint(out, occ, RED, alpha)
+        return out
+    ground = surface_free == OCCUPIED
+    people = (people_free == OCCUPIED) if people_free is not None and people_free.shape == occ.shape \
+        else occ & ~ground
+    _tint(out, ground & ~people, MAGENTA, alpha)
+    _tint(out, people, RED, alpha)
     return out
 
 
@@ -68,9 +87,11 @@ def _track_text(tr: Track) -> str:
 
 def draw_image_view(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,
                     proposals: Sequence[Circle], tracks: Sequence[Track],
-                    target_id: int | None) -> np.ndarray:
-    """The annotated camera frame (same size as ``frame``)."""
-    img = overlay_people(frame, occupancy_free)
+                    target_id: int | None, surface_free: np.ndarray | None = None,
+                    people_free: np.ndarray | None = None) -> np.ndarray:
+    """The annotated camera frame (same size as ``frame``); unlandable ground in magenta when
+    ``surface_free`` is given (see :func:`overlay_people`)."""
+    img = overlay_people(frame, occupancy_free, surface_free=surface_free, people_free=people_free)
     for c in proposals:
         poly = circle_in_image_polygon(proj, c.x, c.y, c.r)
         if poly is not None:
@@ -173,11 +194,12 @@ def compose(image_view: np.ndarray, plane_view: np.ndarray | None) -> np.ndarray
 def figure(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,
            proposals: Sequence[Circle], tracks: Sequence[Track], target_id: int | None,
            free_grid: np.ndarray | None = None, grid: GridSpec | None = None,
-           fused_grid: np.ndarray | None = None) -> np.ndarray:
+           fused_grid: np.ndarray | None = None, surface_free: np.ndarray | None = None,
+           people_free: np.ndarray | None = None) -> np.ndarray:
     """The full figure of one frame; the plane view is added when ``free_grid`` and ``grid`` are
     given (the replay passes them when the pose is known, so north is meaningful), with the risk
     map's held cells when ``fused_grid`` is given."""
-    view = draw_image_view(frame, occupancy_free, proj, proposals, tracks, target_id)
+    view = draw_image_view(frame, occupancy_free, proj, proposals, tracks, target_id, surface_free, people_free)
     plane = None
     if free_grid is not None and grid is not None and free_grid.size:
         plane = draw_plane_view(free_grid, grid, proposals, tracks, target_id, frame.shape[0], fused_grid)

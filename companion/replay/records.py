@@ -9,6 +9,10 @@ is the ellipse's extent along the image row through its centre, to first order.
 
 Values that do not exist (a centre behind the camera, a degenerate projection) are ``None``,
 written as JSON ``null``: NaN never reaches the output.
+
+Each proposal and track also carries ``edge``: what bounds it on that frame, ``"people"``,
+``"surface"`` (ground the landability model calls unlandable) or ``"view"`` (the end of what the
+camera sees); ``null`` without the landability model (``companion.pipeline.edges``).
 """
 
 from __future__ import annotations
@@ -94,6 +98,7 @@ def track_record(proj: PlaneProjection, tr: Track, planner: ZonePlanner, now: fl
     rec["r_filtered"] = finite_or_none(tr.r_filtered)
     rec["clearance_m"] = (None if height_m is None or descent is None
                           else finite_or_none(descent.clearance_at_touchdown(tr.r, height_m)))
+    rec["edge"] = tr.edge or None
     return rec
 
 
@@ -110,12 +115,14 @@ def frame_record(index: int, result: FrameResult, planner: ZonePlanner, height_m
     ``height_m`` (metres above the ground, from the frame's pose) and ``descent`` give each
     track's ``clearance_m`` at touchdown."""
     proj = result.projection
+    edges = getattr(result, "proposal_edges", None) or []
     target = frame_target(result, planner)
     timing = {k: finite_or_none(result.timings_ms.get(k, float("nan"))) for k in TIMING_KEYS}
     return {
         "frame": int(index),
         "t": finite_or_none(result.t),
-        "proposals": [proposal_record(proj, c) for c in result.proposals],
+        "proposals": [{**proposal_record(proj, c), "edge": edges[i] if i < len(edges) else None}
+                      for i, c in enumerate(result.proposals)],
         "tracks": [track_record(proj, tr, planner, result.t, height_m, descent) for tr in result.tracks],
         "target": None if target is None else int(target.id),
         "timing_ms": timing,

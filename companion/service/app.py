@@ -60,6 +60,7 @@ from companion.mavlink.state import VehicleState
 from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
 from companion.mavlink.timesync import run_timesync
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
+from companion.pipeline.landability import LandabilityModel, LandabilityModelError, UnlandableMap
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
@@ -91,10 +92,26 @@ def load_model(cfg: Config) -> DensityModel:
                         allow_spinning=cfg.model.allow_spinning)
 
 
-def build_pipeline(cfg: Config, model: DensityModel) -> SLZPipeline:
-    """The pipeline the settings describe, for frames of ``camera.width x camera.height``."""
+def load_landability(cfg: Config) -> UnlandableMap | None:
+    """The landability model bound to ``pipeline.unlandable_levels``, or None when
+    ``model.landability`` is off; raises LandabilityModelError (a DensityModelError) naming the
+    file, or the key for a level the model does not have."""
+    if not cfg.model.landability:
+        return None
+    model = LandabilityModel(cfg.model.landability_path, threads=cfg.model.threads,
+                             allow_spinning=cfg.model.allow_spinning)
+    levels = cfg.pipeline.unlandable_levels or None
+    try:
+        return model.unlandable(levels)
+    except LandabilityModelError as exc:
+        raise LandabilityModelError(f"pipeline.unlandable_levels: {exc}") from None
+
+
+def build_pipeline(cfg: Config, model: DensityModel, surface: UnlandableMap | None = None) -> SLZPipeline:
+    """The pipeline the settings describe, for frames of ``camera.width x camera.height``;
+    ``surface``: the landability model (``load_landability``), None for people alone."""
     return SLZPipeline(model, settings.pipeline_config(cfg, model.spec),
-                       intrinsics=settings.intrinsics(cfg), mount=settings.mount(cfg))
+                       intrinsics=settings.intrinsics(cfg), mount=settings.mount(cfg), surface=surface)
 
 
 def build_camera(cfg: Config) -> CameraSource:
@@ -115,13 +132,14 @@ class Service:
     def __init__(self, cfg: Config, model: DensityModel, notifier: Notifier | None = None, *,
                  link: MavLink | None = None, camera: CameraSource | None = None,
                  pipeline: SLZPipeline | None = None,
-                 video_stream: VideoStreamProvider | None = None) -> None:
+                 video_stream: VideoStreamProvider | None = None,
+                 surface: UnlandableMap | None = None) -> None:
         self.cfg = cfg
         self.model = model
         self.notifier = notifier or Notifier()
         self.intrinsics = settings.intrinsics(cfg)
         self.mount = settings.mount(cfg)
-        self.pipeline = pipeline or build_pipeline(cfg, model)
+        self.pipeline = pipeline or build_pipeline(cfg, model, surface)
         self.link = link or MavLink(settings.link_config(cfg))
         # Answers to the ground station's commands. ``video_stream`` gives the live view's
         # VIDEO_STREAM_INFORMATION once there is one (None: "no live view configured"); by

@@ -58,7 +58,7 @@ def check(cfg: config_mod.Config) -> None:
     ConfigError naming the key or file."""
     from companion.config import signing_key
     from companion.pipeline.density import DensityModelError
-    from companion.service.app import load_model
+    from companion.service.app import load_landability, load_model
     from companion.service.camera import CameraError, classify
 
     signing_key(cfg)
@@ -70,6 +70,11 @@ def check(cfg: config_mod.Config) -> None:
         load_model(cfg)
     except DensityModelError as exc:
         raise ConfigError(f"model.path: {exc}") from None
+    try:
+        load_landability(cfg)
+    except DensityModelError as exc:
+        key = "" if str(exc).startswith("pipeline.") else "model.landability_path: "
+        raise ConfigError(f"{key}{exc}") from None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
 
     from companion.config import signing_key
     from companion.pipeline.density import DensityModelError
-    from companion.service.app import Service, load_model
+    from companion.service.app import Service, load_landability, load_model
     from companion.service.camera import CameraError, check_source, classify
 
     try:
@@ -88,7 +88,10 @@ def run(args: argparse.Namespace) -> int:
     log.info("loading density model %s", cfg.model.path)
     try:
         model = load_model(cfg)
-    except DensityModelError as exc:
+        if cfg.model.landability:
+            log.info("loading landability model %s", cfg.model.landability_path)
+        surface = load_landability(cfg)
+    except DensityModelError as exc:  # the landability model's errors are DensityModelErrors too
         print(f"companion: model error: {exc}", file=sys.stderr)
         return EXIT_CONFIG
     try:
@@ -98,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG
 
     async def main() -> int:
-        return await Service(cfg, model).run()
+        return await Service(cfg, model, surface=surface).run()
 
     try:
         return asyncio.run(main())

@@ -282,7 +282,7 @@ table{border-collapse:collapse}td,th{padding:2px 8px;border-bottom:1px solid #44
 <p>Phase: <b id="phase">-</b> &middot; Health: <b id="health">-</b> &middot;
 Zones: <b id="zone-count">-</b> &middot; Target: <b id="target">-</b> &middot;
 <span id="rates"></span></p>
-<img id="live" src="/stream.mjpg" alt="live view (people red, proposals green, zones blue, target yellow)">
+<img id="live" src="/stream.mjpg" alt="live view (people red, unlandable ground magenta, proposals green, zones blue, target yellow)">
 <h2>Zones</h2>
 <table id="zones"><thead><tr><th>id</th><th>north m</th><th>east m</th><th>radius m</th><th>age</th>
 <th>clearance at touchdown m</th></tr></thead><tbody></tbody></table>

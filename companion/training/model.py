@@ -12,6 +12,8 @@ it), a 2x2 max-pool, then four 3x3 convolutions, two of them dilated for context
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import torch
 from torch import nn
 
@@ -20,6 +22,8 @@ SCALE = 1.0 / 255.0
 MEAN = (0.45, 0.45, 0.45)
 STD = (0.25, 0.25, 0.25)
 STRIDE = 4
+
+NetT = TypeVar("NetT", bound=nn.Module)
 
 
 def _cbr(cin: int, cout: int, k: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
@@ -64,7 +68,7 @@ class Exported(nn.Module):
         return torch.sigmoid(self.net(x))
 
 
-def fold_batchnorm(net: SLZDensityNet) -> SLZDensityNet:
+def fold_batchnorm(net: NetT) -> NetT:
     """A copy of ``net`` (eval mode) with every Conv+BN pair fused into one convolution."""
     import copy
 

@@ -1,0 +1,339 @@
+"""Train the landability model: semantic-drone photos -> per-cell probabilities of risk levels.
+
+    companion train-landability --shared ../shared --out companion/models/slz-landability.onnx
+    python -m companion.training.landability ...   # the same
+
+A second small network beside the density model (which stays as it is): input the frame, output
+``(N, L, H/8, W/8)`` softmax probabilities of the risk levels of :data:`LEVELS` (the grouping of
+the semantic-drone classes, written into the model's metadata; ``companion.pipeline.landability``
+documents the keys). About 39 k parameters.
+
+Data: the semantic-drone photos of the training split (``datasets.semantic_drone(..., "train")``,
+the same held-out fifth as the density model's stays out), of which every 8th (by sorted name) is
+kept aside as *training-side validation* for the threshold; the rest train. Crops get a random
+scale, any rotation and a mirror (the photos look straight down), and the photometric changes of
+the density training. The target of a cell is the share of its 8x8 pixels in each level (soft
+labels); the loss is the cross-entropy weighted per level (:data:`LEVEL_WEIGHTS`: people, vehicles
+and water weigh more, as they are rare and the costliest to miss).
+
+The threshold (``companion.unlandable_threshold``) is the largest on a grid at which at least
+:data:`LANDABLE_PRECISION` of the pixels the pipeline's decision leaves landable (after its
+dilation) truly are landable on the training-side validation photos; it errs toward
+"unlandable". ``--device cuda`` trains on a GPU (the shipped model: CPU, one thread).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from companion.evaluation import datasets as D
+from companion.evaluation.landability import level_lut
+from companion.pipeline.landability import OUTPUT_KIND, RiskLevel
+from companion.pipeline.occupancy import FREE, OccupancyParams, surface_free_map
+from companion.training import model as M
+from companion.training.augment import photometric
+from companion.training.export import set_metadata
+
+log = logging.getLogger("companion.training.landability")
+
+#: The risk levels, in output-channel order, and the semantic-drone classes in each. "unknown"
+#: holds what says nothing about the ground (unlabeled, conflicting annotations) and the survey's
+#: AR markers: not landable, erring toward safety.
+LEVELS: tuple[RiskLevel, ...] = (
+    RiskLevel("landable", ("paved-area", "dirt", "grass", "gravel")),
+    RiskLevel("people", ("person", "dog")),
+    RiskLevel("vehicles", ("car", "bicycle")),
+    RiskLevel("water", ("water", "pool")),
+    RiskLevel("vegetation", ("vegetation", "tree", "bald-tree")),
+    RiskLevel("obstacles", ("rocks", "roof", "wall", "window", "door", "fence", "fence-pole", "obstacle")),
+    RiskLevel("unknown", ("unlabeled", "ar-marker", "conflicting")),
+)
+LANDABLE = "landable"
+LEVEL_WEIGHTS = (1.0, 3.0, 3.0, 3.0, 1.5, 1.5, 1.0)
+STRIDE = 8
+LANDABLE_PRECISION = 0.99
+THRESHOLDS = tuple(round(t, 3) for t in np.linspace(0.05, 0.9, 18))
+VAL_EVERY = 8
+
+
+def _cbr(cin: int, cout: int, k: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
+    pad = dilation * (k - 1) // 2
+    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, pad, dilation=dilation, bias=False),
+                         nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class LandabilityNet(nn.Module):
+    """A 2x2 average pool (surfaces need no full-resolution detail), two stride-2 convolutions and
+    one more at stride 8; a context branch at stride 16 (a stride-2 convolution, then two dilated
+    2 and 4) brought back up and added, so that each cell sees about 300 pixels around it (a roof
+    and a yard, a pool and a lawn, can look alike up close) at a quarter of the cost of doing the
+    same at stride 8; a 1x1 head to the levels' logits."""
+
+    def __init__(self, levels: int = len(LEVELS), width: int = 32) -> None:
+        super().__init__()
+        self.stem = nn.Sequential(nn.AvgPool2d(2), _cbr(3, 16, 3, 2), _cbr(16, 24, 3, 2), _cbr(24, width, 3))
+        self.context = nn.Sequential(_cbr(width, width, 3, 2), _cbr(width, width, 3, dilation=2),
+                                     _cbr(width, width, 3, dilation=4))
+        self.head = nn.Conv2d(width, levels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f8 = self.stem(x)
+        up = F.interpolate(self.context(f8), size=f8.shape[-2:], mode="nearest")
+        return self.head(f8 + up)
+
+
+class Exported(nn.Module):
+    """The deployable form: batch norm folded, softmax over the levels."""
+
+    def __init__(self, net: LandabilityNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.softmax(self.net(x), dim=1)
+
+
+@dataclass
+class Photos:
+    """Photos in memory: BGR uint8 images and their level maps (uint8, one level code a pixel)."""
+
+    names: list[str]
+    images: list[np.ndarray]
+    levels: list[np.ndarray]
+
+
+def load_photos(shared: Path, max_images: int = 0) -> tuple[Photos, Photos]:
+    """(train, training-side validation) photos of the semantic-drone training split."""
+    lut = level_lut(LEVELS, D.semantic_classes(shared))
+    samples = D.semantic_drone(shared, "train")
+    if max_images:
+        samples = samples[:max_images]
+    train, val = Photos([], [], []), Photos([], [], [])
+    for i, s in enumerate(samples):
+        dst = val if i % VAL_EVERY == VAL_EVERY - 1 else train
+        dst.names.append(s.name)
+        dst.images.append(s.image())
+        dst.levels.append(lut[D.semantic_labels(s)])
+    if not train.images or not val.images:
+        raise D.DatasetError(f"too few semantic-drone photos ({len(samples)}) for a training and a validation part")
+    return train, val
+
+
+def level_crop(image: np.ndarray, levels: np.ndarray, size: int, rng: np.random.Generator,
+               scale: tuple[float, float] = (0.35, 1.4)) -> tuple[np.ndarray, np.ndarray]:
+    """A ``size`` x ``size`` crop after a random scale, rotation and mirror; the level map is
+    warped with nearest neighbour so that no level is invented at a boundary."""
+    h, w = image.shape[:2]
+    s = float(np.exp(rng.uniform(np.log(scale[0]), np.log(scale[1]))))
+    cx, cy = rng.uniform(0, w), rng.uniform(0, h)
+    m = cv2.getRotationMatrix2D((float(cx), float(cy)), float(rng.uniform(0, 360)), s)
+    if rng.random() < 0.5:
+        m = np.array([[-1, 0, 0], [0, 1, 0]], np.float64) @ np.vstack([m, [0, 0, 1]])
+        m[0, 2] += 2 * cx
+    m[0, 2] += size / 2 - cx
+    m[1, 2] += size / 2 - cy
+    img = cv2.warpAffine(image, m, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+    lv = cv2.warpAffine(levels, m, (size, size), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REFLECT_101)
+    return img, lv
+
+
+def soft_target(levels: np.ndarray, n_levels: int, stride: int = STRIDE) -> np.ndarray:
+    """(L, h/stride, w/stride) float32: the share of each cell's pixels in each level."""
+    h, w = levels.shape
+    onehot = (levels[None] == np.arange(n_levels, dtype=levels.dtype)[:, None, None]).astype(np.float32)
+    return onehot.reshape(n_levels, h // stride, stride, w // stride, stride).mean(axis=(2, 4))
+
+
+def make_batch(photos: Photos, batch: int, size: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    xs = np.empty((batch, 3, size, size), np.float32)
+    ys = np.empty((batch, len(LEVELS), size // STRIDE, size // STRIDE), np.float32)
+    mean = np.array(M.MEAN, np.float32)[:, None, None]
+    std = np.array(M.STD, np.float32)[:, None, None]
+    for b in range(batch):
+        i = int(rng.integers(len(photos.images)))
+        img, lv = level_crop(photos.images[i], photos.levels[i], size, rng)
+        img = photometric(img, rng)
+        xs[b] = (img.transpose(2, 0, 1).astype(np.float32) * M.SCALE - mean) / std
+        ys[b] = soft_target(lv, len(LEVELS))
+    return torch.from_numpy(xs), torch.from_numpy(ys)
+
+
+def loss(logits: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Soft-label cross-entropy, each level's term weighted (``weights`` (L,))."""
+    logp = F.log_softmax(logits, dim=1)
+    return -(target * logp * weights[None, :, None, None]).sum(dim=1).mean()
+
+
+def predict(net: nn.Module, image: np.ndarray) -> np.ndarray:
+    """(L, ceil(H/8), ceil(W/8)) level probabilities of one photo with the torch network (eval)."""
+    h, w = image.shape[:2]
+    ph, pw = -h % STRIDE, -w % STRIDE
+    img = cv2.copyMakeBorder(image, 0, ph, 0, pw, cv2.BORDER_REPLICATE) if ph or pw else image
+    mean = np.array(M.MEAN, np.float32)[:, None, None]
+    std = np.array(M.STD, np.float32)[:, None, None]
+    x = (img.transpose(2, 0, 1).astype(np.float32) * M.SCALE - mean) / std
+    with torch.no_grad():
+        p = torch.softmax(net(torch.from_numpy(x[None])), dim=1)[0].numpy()
+    return p[:, : math.ceil(h / STRIDE), : math.ceil(w / STRIDE)]
+
+
+def choose_threshold(probs: list[np.ndarray], levels: list[np.ndarray], precision: float = LANDABLE_PRECISION,
+                     occupancy: OccupancyParams = OccupancyParams()) -> tuple[float, list[dict[str, float]]]:
+    """The largest threshold of :data:`THRESHOLDS` at which at least ``precision`` of the pixels
+    the pipeline leaves landable (:func:`surface_free_map`, with its dilation) truly are landable,
+    pooled over the photos; the smallest threshold when none reaches it. Returns it and the curve
+    (threshold, precision, landable share of the pixels)."""
+    land = [lv.name for lv in LEVELS].index(LANDABLE)
+    curve = []
+    for t in THRESHOLDS:
+        kept = good = total = 0
+        for p, lv in zip(probs, levels):
+            free = surface_free_map(1.0 - p[land], lv.shape, t, occupancy) == FREE
+            kept += int(free.sum())
+            good += int((free & (lv == land)).sum())
+            total += free.size
+        curve.append({"threshold": float(t), "precision": good / kept if kept else 1.0, "landable": kept / total})
+    ok = [c["threshold"] for c in curve if c["precision"] >= precision]
+    return (max(ok) if ok else min(THRESHOLDS)), curve
+
+
+def export(net: LandabilityNet, out: Path, threshold: float, note: str) -> Path:
+    """Fold batch norm, add the softmax, export with dynamic H and W, write the metadata."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    deploy = Exported(M.fold_batchnorm(net)).eval()
+    with torch.no_grad():
+        torch.onnx.export(deploy, (torch.zeros(1, 3, 480, 640),), str(out), input_names=["input"],
+                          output_names=["levels"],
+                          dynamic_axes={"input": {0: "n", 2: "h", 3: "w"}, "levels": {0: "n", 2: "h8", 3: "w8"}},
+                          opset_version=17, dynamo=False)
+    set_metadata(out, {
+        "companion.color": M.COLOR,
+        "companion.scale": repr(M.SCALE),
+        "companion.mean": ",".join(str(v) for v in M.MEAN),
+        "companion.std": ",".join(str(v) for v in M.STD),
+        "companion.stride": STRIDE,
+        "companion.input_multiple": STRIDE,
+        "companion.output": OUTPUT_KIND,
+        "companion.levels": json.dumps([{"name": lv.name, "classes": list(lv.classes)} for lv in LEVELS]),
+        "companion.landable_level": LANDABLE,
+        "companion.unlandable_threshold": f"{threshold:.6g}",
+        "companion.class_set": "semantic-drone",
+        "companion.parameters": M.count_parameters(net),
+        "companion.training": note,
+    })
+    return out
+
+
+def train(args: argparse.Namespace) -> Path:
+    from companion.training.train import resolve_device
+
+    device = resolve_device(args.device)
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(1)
+    rng = np.random.default_rng(args.seed)
+    t0 = time.monotonic()
+    train_set, val_set = load_photos(Path(args.shared), args.max_images)
+    log.info("loaded %d training and %d validation photos in %.0f s", len(train_set.images),
+             len(val_set.images), time.monotonic() - t0)
+    net = LandabilityNet().to(device)
+    log.info("parameters: %d", M.count_parameters(net))
+    weights = torch.tensor(LEVEL_WEIGHTS, dtype=torch.float32, device=device)
+    opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
+    warm = min(100, max(1, args.steps // 10))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda k: min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(k, args.steps) / args.steps)))
+    t0 = time.monotonic()
+    running = 0.0
+    net.train()
+    for step in range(1, args.steps + 1):
+        x, y = make_batch(train_set, args.batch, args.crop, rng)
+        if device.type != "cpu":
+            x, y = x.to(device), y.to(device)
+        batch_loss = loss(net(x), y, weights)
+        opt.zero_grad(set_to_none=True)
+        batch_loss.backward()
+        opt.step()
+        sched.step()
+        running += batch_loss.item()
+        if step % 50 == 0 or step == args.steps:
+            el = time.monotonic() - t0
+            log.info("step %d/%d loss %.4f lr %.2e %.2f s/step elapsed %.1f min", step, args.steps,
+                     running / (50 if step % 50 == 0 else step % 50), sched.get_last_lr()[0], el / step, el / 60)
+            running = 0.0
+    net = net.cpu().eval()
+    probs = [predict(net, img) for img in val_set.images]
+    pix = [cv2.resize(p.transpose(1, 2, 0), (lv.shape[1], lv.shape[0]), interpolation=cv2.INTER_NEAREST)
+           .transpose(2, 0, 1) for p, lv in zip(probs, val_set.levels)]
+    thr, curve = choose_threshold(pix, val_set.levels)
+    for c in curve:
+        log.info("validation: threshold %.3f landable precision %.4f landable share %.3f",
+                 c["threshold"], c["precision"], c["landable"])
+    log.info("threshold %.3f (largest with landable precision >= %.3f on %d validation photos)", thr,
+             LANDABLE_PRECISION, len(val_set.images))
+    note = (f"steps={args.steps} batch={args.batch} crop={args.crop} lr={args.lr} seed={args.seed} "
+            f"threads={args.threads} device={args.device} minutes={(time.monotonic() - t0) / 60:.1f}; "
+            f"threshold: largest with landable precision >= {LANDABLE_PRECISION} on every {VAL_EVERY}th "
+            "training-split photo (held out of training)")
+    out = export(net, Path(args.out), thr, note)
+    log.info("exported %s (%.1f min)", out, (time.monotonic() - t0) / 60)
+    return out
+
+
+def configure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--shared", default="../shared", help="the shared data directory")
+    p.add_argument("--out", default="companion/models/slz-landability.onnx", help="ONNX file to write")
+    p.add_argument("--steps", type=int, default=6000)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--crop", type=int, default=256, help="crop side in pixels (multiple of 8)")
+    p.add_argument("--lr", type=float, default=4e-3)
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda[:N]")
+    p.add_argument("--max-images", type=int, default=0,
+                   help="use only the first N photos of the training split (quick runs and tests; 0: all)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from companion.training.train import resolve_device
+
+    try:
+        resolve_device(args.device)
+        for key in ("steps", "batch", "threads"):
+            if getattr(args, key) < 1:
+                raise ValueError(f"--{key} must be >= 1, got {getattr(args, key)}")
+        if args.crop < STRIDE or args.crop % STRIDE:
+            raise ValueError(f"--crop must be a positive multiple of {STRIDE}, got {args.crop}")
+        if args.max_images < 0:
+            raise ValueError(f"--max-images must be >= 0, got {args.max_images}")
+        train(args)
+    except (ValueError, D.DatasetError) as exc:
+        print(f"companion train-landability: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    configure(p)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    return run(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -224,9 +224,8 @@ class ControllerSettings:
     hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: hand back (s)", min=0.5)
     arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",
                                 min=0.1, max=20.0)
-    descend_alt_m: float = _f(6.0, "altitude above home at which LAND is commanded (m): the lowest height at "
-                                    "which the camera still sees r0 all round; below it the autopilot's slower "
-                                    "LAND takes over", min=1.0, max=200.0)
+    descend_alt_m: float = _f(10.0, "altitude above home at which LAND is commanded (m): where the camera "
+                                     "still sees r0 plus radius_margin_m all round at the commit", min=1.0, max=200.0)
     descend_speed_mps: float = _f(1.5, "how fast the stepped descent comes down (m/s; ArduPilot WPNAV_SPEED_DN, "
                                        "PX4 MPC_Z_VEL_MAX_DN): the time to touchdown", min=0.1, max=10.0)
     land_speed_mps: float = _f(0.5, "the autopilot's LAND descent speed (m/s; ArduPilot LAND_SPEED 50 cm/s, "

@@ -623,18 +623,19 @@ def _low_over_zone(ctl: LandingController) -> float:
 
 
 def test_no_land_while_a_walker_is_predicted_at_the_landing_point_then_land_when_they_are_past():
-    """The LAND is judged at touchdown: from 9.8 m the descent takes 14.5 s (the default profile),
-    and a walker 8 m away heading for the point at 1.2 m/s gets there in 7 s. The descent pauses (no
+    """The LAND is judged at touchdown: from 9.8 m the descent takes 19.6 s (the default profile),
+    the last 10 s of it committed (below land_abort_above_m = 5 m); a walker 14 m away heading for
+    the point at 1.2 m/s gets there in 11.7 s, inside that window. The descent pauses (no
     phase change, one note) and the LAND follows once they are predicted clear."""
     ctl = LandingController(PREDICT)
     t = _low_over_zone(ctl)
     texts(ctl)
-    walker = Person(7, 10.0, -8.0, 0.0, 1.2, 0.1, 10, t)  # west of the point, walking east
+    walker = Person(7, 10.0, -14.0, 0.0, 1.2, 0.1, 10, t)  # west of the point, walking east
     cmds: list = []
     for k in range(5):
         ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
         cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None,
-                            [dataclasses.replace(walker, y=-8.0 + 1.2 * 0.1 * k, last_t=t)])
+                            [dataclasses.replace(walker, y=-14.0 + 1.2 * 0.1 * k, last_t=t)])
         assert not any(isinstance(c, Land) for c in cmds)
         t += 0.1
     assert ctl.phase == Phase.DESCEND and ctl.pauses == 1
@@ -664,7 +665,7 @@ def test_a_land_under_way_pauses_above_the_abort_height_and_is_committed_below_i
     ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
     assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8))
     t += 0.1
-    coming = Person(4, 10.0, -5.0, 0.0, 1.3, 0.1, 10, t)
+    coming = Person(4, 10.0, -13.0, 0.0, 1.3, 0.1, 10, t)  # at the point 10 s from now: committed by then
     ctl.on_state(status(t, 10, 0, 9.5, mode="LAND"))
     cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.5), None, [coming])
     assert ctl.phase == Phase.DESCEND and len(cmds) == 1 and isinstance(cmds[0], Goto)

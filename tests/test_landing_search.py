@@ -127,18 +127,18 @@ def test_the_search_hands_back_at_the_end_of_its_square():
 
 
 def test_no_search_when_the_battery_cannot_pay_for_it_and_none_past_its_reserve():
-    # 20 m at 1.5 m/s to 6 m, then 0.5 m/s: 21.3 s to land, plus the 20 s reserve: 41.3 s.
+    # 20 m at 1.5 m/s to 10 m, then 0.5 m/s: 26.7 s to land, plus the 20 s reserve: 46.7 s.
     ctl = LandingController(SEARCH)
     _to_search(ctl, battery_s=40.0)
     assert ctl.phase == Phase.HANDBACK
-    assert any("battery 40 s left, landing needs 41 s with the reserve" in x for x in texts(ctl))
+    assert any("battery 40 s left, landing needs 47 s with the reserve" in x for x in texts(ctl))
     ctl = LandingController(dataclasses.replace(SEARCH, search_radius_m=500.0))
     start = _to_search(ctl, battery_s=60.0)
     assert ctl.phase == Phase.SEARCH
     t, cmds = _fly_search(ctl, start, battery=lambda t: 60.0 - (t - start))
     assert ctl.phase == Phase.HANDBACK and "battery" in cmds[-1].reason
-    # From 24 m: 18 m at 1.5 m/s and 6 m at 0.5 m/s, plus the 20 s reserve: 44 s.
-    assert 60.0 - (t - start) == pytest.approx(18.0 / 1.5 + 12.0 + 20.0, abs=0.51)
+    # From 24 m: 14 m at 1.5 m/s and 10 m at 0.5 m/s, plus the 20 s reserve: 49.3 s.
+    assert 60.0 - (t - start) == pytest.approx(14.0 / 1.5 + 20.0 + 20.0, abs=0.51)
 
 
 def test_search_off_hands_back_at_the_timeout_as_before():

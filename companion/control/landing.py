@@ -99,7 +99,7 @@ class LandingConfig:
     select_timeout_s: float = 10.0
     hold_timeout_s: float = 15.0
     arrive_radius_m: float = 1.0
-    descend_alt_m: float = 6.0
+    descend_alt_m: float = 10.0
     descend_step_m: float = 3.0
     alt_tolerance_m: float = 0.5
     land_abort_above_m: float = 3.5

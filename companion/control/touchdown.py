@@ -21,7 +21,7 @@ class DescentProfile:
     """See the module docstring."""
 
     descend_speed_mps: float = 1.5
-    land_alt_m: float = 6.0
+    land_alt_m: float = 10.0
     land_speed_mps: float = 0.5
     walk_speed_mps: float = 1.5
 

@@ -51,9 +51,11 @@ async def _fly_with_ports(flavour: str, link_port: int, cam_port: int) -> tuple[
             await asyncio.sleep(0.1)
         assert svc.runner is not None, "the service never wired the vehicle"
         await asyncio.sleep(3.0)  # watch the ground before the failsafe
+        truth["alt0"] = truth["alt_max"] = -float(sim.truth.position[2])
         sim.inject_failsafe("battery_critical")
         end = time.monotonic() + 90
         while "t" not in truth and time.monotonic() < end and not task.done():
+            truth["alt_max"] = max(truth["alt_max"], -float(sim.truth.position[2]))
             await asyncio.sleep(0.1)
         # The simulator's touchdown comes first; the companion's LANDED follows once the
         # autopilot reports it (EXTENDED_SYS_STATE / disarm), which on a loaded CI machine
@@ -69,8 +71,8 @@ async def _fly_with_ports(flavour: str, link_port: int, cam_port: int) -> tuple[
     return svc, code, truth
 
 
-# One flavour is enough here (the flavours are flown by test_sitl.py); PX4, the one with a
-# setpoint stream and its home below its estimator's origin.
+# PX4, the one with a setpoint stream and its home below its estimator's origin; this is also
+# test_sitl.py's uniform-ground flight for PX4 (that file flies it on ArduPilot).
 @pytest.mark.parametrize("flavour", ["px4"])
 def test_the_service_in_process_lands_on_free_ground_and_reports_every_phase(flavour, model_path):
     svc, code, truth = asyncio.run(_fly_in_process(flavour))
@@ -81,3 +83,5 @@ def test_the_service_in_process_lands_on_free_ground_and_reports_every_phase(fla
     assert not any(isinstance(e, HandedBack) for e in svc.events), [e.text for e in svc.events]
     assert any(isinstance(e, TargetChosen) for e in svc.events)
     assert svc.phase == "LANDED" and truth["clearance"] > 2.0
+    # PX4's home 1.5 m below its estimator's origin: frame-6 targets would climb (issue 19).
+    assert truth["alt_max"] - truth["alt0"] <= 1.0, truth

@@ -101,11 +101,13 @@ def test_twenty_percent_packet_loss_still_lands_safely_or_hands_back(flavour, mo
         assert r.clearance_m >= r.spec.r0_m
 
 
-@pytest.mark.parametrize("flavour", FLAVOURS)
+# ArduPilot here; PX4 flies the same scene (home 1.5 m below its estimator's origin, as in PX4's
+# SIH, where frame-6 targets would make it climb: issue 19) in tests/test_service_inprocess.py,
+# which checks the same landing and climb on the truth: one flight less for CI's 20 minutes.
+@pytest.mark.parametrize("flavour", ["ardupilot"])
 def test_uniform_free_ground_lands_under_the_companion_within_the_budget(flavour, model_path):
     # Every frame the same: the free circle is bounded by the view and moves with the camera. The
-    # vehicle must converge and land instead of chasing it. PX4 with its home 1.5 m below its
-    # estimator's origin, as in PX4's SIH: frame-6 targets would make it climb (issue 19).
+    # vehicle must converge and land instead of chasing it.
     r = _fly(FlightSpec(flavour=flavour, world="uniform", seed=6, altitude_m=18.0,
                         home_origin_offset_m=-1.5))
     assert r.outcome == "safe" and not r.handed_back, _explain(r)

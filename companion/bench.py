@@ -25,6 +25,7 @@ import numpy as np
 from companion import synthetic
 from companion.config import SHIPPED_LANDABILITY, SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, Pose
+from companion.pipeline.people import PeopleParams
 from companion.pipeline.slz import STAGES, DensityFn, PipelineConfig, SLZPipeline, SurfaceFn
 from companion.replay.live_figure import live_jpeg
 
@@ -49,8 +50,9 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
     ideal = synthetic.point_density(scene)
     density = model if model is not None else (lambda f: ideal)
     K = Intrinsics.from_fov(width, height, 70.0)
-    # The fused risk-map stage is timed too, whatever the flight default is.
-    pipe = SLZPipeline(density, PipelineConfig(fusion="map"), intrinsics=K, mount=Mount(), surface=surface)
+    # The fused risk-map and people stages are timed too, whatever the flight defaults are.
+    pipe = SLZPipeline(density, PipelineConfig(fusion="map", people=PeopleParams()), intrinsics=K, mount=Mount(),
+                       surface=surface)
     samples: dict[str, list[float]] = {}
     for k in range(frames + warmup):
         t = k / 15.0

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
@@ -23,6 +22,7 @@ from companion.pipeline.landability import LandabilityModel, LandabilityModelErr
 from companion.pipeline.occupancy import FREE, OCCUPIED, surface_free_map
 from companion.pipeline.proposals import distance_cells
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
+from tests.test_density_runner import _save
 
 REPO = Path(__file__).resolve().parents[1]
 LANDABILITY = REPO / "companion" / "models" / "slz-landability.onnx"
@@ -59,15 +59,7 @@ def level_model(tmp_path: Path, meta: dict[str, str], levels: int = 3, name: str
         [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", levels, "h8", "w8"])],
         [numpy_helper.from_array(w, "w")],
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    for k, v in meta.items():
-        e = model.metadata_props.add()
-        e.key, e.value = k, v
-    onnx.checker.check_model(model)
-    path = tmp_path / name
-    onnx.save(model, str(path))
-    return path
+    return _save(tmp_path, graph, meta, name)
 
 
 # ---- the runner and the metadata ------------------------------------------------------------

@@ -14,8 +14,9 @@ Phases::
 Inputs (times are monotonic seconds):
 
 - ``on_trigger(trigger)``: a failsafe ``Trigger``; the only way out of MONITOR.
-- ``on_frame(t, tracks, pose, below)``: the zone tracks after the frame captured at ``t``, the pose
-  the pipeline used for it and the ground it saw under the camera (``GroundBelow``, optional). A frame whose pose is missing, not finite or further than
+- ``on_frame(t, tracks, pose, below, people)``: the zone tracks after the frame captured at ``t``,
+  the pose the pipeline used for it, and optionally the ground it saw under the camera
+  (``GroundBelow``) and the people followed (``Person``). A frame whose pose is missing, not finite or further than
   ``max_pose_age_s`` from ``t``, or a frame older than ``zone_max_age_s``, is ignored: no decision
   is ever made on a zone that was not seen with a fresh pose.
 - ``on_state(status)``: where the vehicle is now (``VehicleStatus``), its mode, armed, on ground.
@@ -406,9 +407,9 @@ class LandingController:
         if not math.isfinite(horizon):
             return math.inf, None
         blind_from = max(0.0, horizon - self.descent.time_to_touchdown(min(s.height, c.land_abort_above_m)))
-        worst = min(walkers, key=lambda q: predicted_clearance([q], north, east, self.now, horizon, blind_from))
-        clear = predicted_clearance([worst], north, east, self.now, horizon, blind_from) - c.pose_uncertainty_m
-        return clear, worst
+        clear, worst = min(((predicted_clearance([q], north, east, self.now, horizon, blind_from), q)
+                            for q in walkers), key=lambda pair: pair[0])
+        return clear - c.pose_uncertainty_m, worst
 
     def _walker_in_the_way(self, north: float, east: float, where: str) -> bool:
         """Whether somebody seen walking is predicted within r0 of the landing point before
@@ -519,19 +520,28 @@ class LandingController:
         self._last_goto = None
         return self._goto(zone.x, zone.y, self._level, zone.id)
 
+    def _below_here(self) -> tuple[float, bool] | None:
+        """The frame's measure under the camera (``GroundBelow``), carried to where the vehicle is
+        now: how far the ground around it is free (m, less how far it moved since the frame), and
+        whether everything the camera saw there is free with ``MIN_VIEW_M`` in view. None without
+        a measure or a vehicle position."""
+        s, below = self.status, self.below
+        if s is None or below is None:
+            return None
+        moved = math.hypot(below.x - s.north, below.y - s.east)
+        return below.r - moved, below.view_limited and below.r_view - moved >= MIN_VIEW_M
+
     def _ground_below_holds(self) -> bool:
         """Over the zone (DESCEND, or LAND above the commit height), whether this frame saw r0
-        free around the vehicle, or everything it saw there free with ``MIN_VIEW_M`` in view
-        (``GroundBelow``, less how far the vehicle moved since the frame)."""
-        s, below, aim = self.status, self.below, self._aim
-        if self.phase not in (Phase.DESCEND, Phase.LAND) or s is None or below is None or aim is None \
+        free around the vehicle, or everything it saw there free (``_below_here``)."""
+        s, aim, here = self.status, self._aim, self._below_here()
+        if self.phase not in (Phase.DESCEND, Phase.LAND) or s is None or here is None or aim is None \
                 or not self._status_fresh():
             return False
         if math.hypot(aim[0] - s.north, aim[1] - s.east) > self.config.arrive_radius_m:
             return False  # not over the landing point: the zone's own track must say
-        moved = math.hypot(below.x - s.north, below.y - s.east)
-        return below.r - moved >= self.config.planner.r0_m or \
-            (below.view_limited and below.r_view - moved >= MIN_VIEW_M)
+        free, all_free = here
+        return free >= self.config.planner.r0_m or all_free
 
     def _free_below(self, track: Track) -> tuple[float, bool]:
         """How far the ground around the vehicle is free (m), and whether everything the camera
@@ -539,19 +549,17 @@ class LandingController:
 
         Two measures, the larger wins (both are lower bounds of the same thing): the zone's radius
         less the vehicle's offset from its centre, and the frame's own measure under the camera
-        (``GroundBelow``) less how far the vehicle has moved since that frame. The first alone
-        threw landings away low over view-bounded zones: at 10 m the view shows about 4 m around
-        the vehicle, the zone's centre sits 1-2 m off it, away from the people at one side, and
-        ``r - offset`` came out at 1.6-1.9 m with the nearest person 4 m away."""
+        (``_below_here``). The first alone threw landings away low over view-bounded zones: at
+        10 m the view shows about 4 m around the vehicle, the zone's centre sits 1-2 m off it,
+        away from the people at one side, and ``r - offset`` came out at 1.6-1.9 m with the
+        nearest person 4 m away."""
         s = self.status
         assert s is not None
         free = track.r - math.hypot(track.x - s.north, track.y - s.east)
-        below = self.below
-        if below is None:
+        here = self._below_here()
+        if here is None:
             return free, False
-        moved = math.hypot(below.x - s.north, below.y - s.east)
-        all_free = below.view_limited and below.r_view - moved >= MIN_VIEW_M
-        return max(free, below.r - moved), all_free
+        return max(free, here[0]), here[1]
 
     def _follow(self) -> list[Command]:
         assert self.target is not None

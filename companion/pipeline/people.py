@@ -38,6 +38,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from companion.geometry.camera import GeometryError, PlaneProjection
+from companion.pipeline.occupancy import occupied_mask
 
 
 class PeopleError(GeometryError):
@@ -99,8 +100,9 @@ class Person:
 def density_peaks(density: np.ndarray, threshold: float, image_hw: tuple[int, int],
                   window: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """The people in one frame's density map, in image pixels: its local maxima (``window`` cells
-    square) above ``min(D) + threshold``, as ((N, 2) pixel centres, (N,) peak values). NaN or
-    infinite density is no person (the occupancy stage already marks it occupied)."""
+    square) among the cells the occupancy stage marks occupied (``occupied_mask``: above
+    ``min(D) + threshold``), as ((N, 2) pixel centres, (N,) peak values). NaN or infinite density
+    is no person (the occupancy stage already marks it occupied)."""
     d = np.asarray(density, dtype=np.float32)
     none = (np.zeros((0, 2)), np.zeros(0))
     if d.ndim != 2 or d.size == 0:
@@ -108,9 +110,9 @@ def density_peaks(density: np.ndarray, threshold: float, image_hw: tuple[int, in
     finite = np.isfinite(d)
     if not finite.any():
         return none
+    above = occupied_mask(d, max(float(threshold), 0.0)) & finite
     d = np.where(finite, d, -np.inf).astype(np.float32)
-    level = float(d[finite].min()) + max(float(threshold), 0.0)
-    peaks = (d >= cv2.dilate(d, np.ones((window, window), np.uint8))) & (d > level)
+    peaks = (d >= cv2.dilate(d, np.ones((window, window), np.uint8))) & above
     rows, cols = np.nonzero(peaks)
     h, w = image_hw
     sy, sx = h / d.shape[0], w / d.shape[1]

@@ -61,8 +61,9 @@ class PipelineConfig:
     r0_m: float = 2.0
     fusion: str = "frame"
     risk: RiskMapConfig = field(default_factory=RiskMapConfig)
-    #: People followed on the ground over posed frames (``pipeline.people``); None: not followed.
-    people: PeopleParams | None = field(default_factory=PeopleParams)
+    #: People followed on the ground over posed frames, for the controller's prediction
+    #: (``controller.predict_people``); None: not followed, and not paid for.
+    people: PeopleParams | None = None
     surface_threshold: float | None = None
 
     def __post_init__(self) -> None:

@@ -98,3 +98,57 @@ def test_clearance_at_a_point_never_reaches_a_non_free_cell():
         if r > 0:
             assert not _touches(Circle(x, y, r), free, grid)
     assert clearance_at(dist, grid, -100.0, -100.0) == 0.0
+
+
+@pytest.mark.parametrize("seed", range(15))
+def test_a_preferred_point_keeps_every_guarantee_of_the_oracle(seed):
+    # Near-ties go to the preferred point, but every circle is still free, disjoint, at least
+    # r_min, and the first within tie_m (plus a cell of sampling) of the largest one.
+    free = _random_map(seed)
+    grid = GridSpec(x0=3.0, y0=-2.0, cell=0.25, rows=free.shape[0], cols=free.shape[1])
+    rng = np.random.default_rng(seed)
+    prefer = (float(rng.uniform(3.0, 23.0)), float(rng.uniform(-2.0, 13.0)))
+    circles = propose(free, grid, n_max=6, r_min=0.3, prefer=prefer, tie_m=0.5)
+    assert circles
+    assert circles[0].r >= _oracle_radius_cells(free) * grid.cell - 0.5 - grid.cell
+    for c in circles:
+        assert not _touches(c, free, grid) and c.r >= 0.3
+    for a in range(len(circles)):
+        for b in range(a + 1, len(circles)):
+            ca, cb = circles[a], circles[b]
+            assert math.hypot(ca.x - cb.x, ca.y - cb.y) >= ca.r + cb.r - 1e-9
+
+
+def _view(shift_cells):
+    # Empty ground seen through a 4:3 footprint: the largest free circles form a ridge along
+    # the footprint's long axis, 2 m long here.
+    free = np.zeros((120, 160), np.uint8)
+    free[20:100, 20 + shift_cells:140 + shift_cells] = 255
+    return free
+
+
+def test_over_empty_ground_the_proposal_stays_under_the_camera_as_the_view_moves():
+    # The uniform-ground flake (issue 11): a plain argmax takes the first cell of the ridge, so
+    # the proposal jumps to the footprint's far end as the view sways, and the tracker loses it.
+    grid = GridSpec(0.0, 0.0, 0.1, 120, 160)
+    under = (9.0, 6.0)  # the camera over the ridge's east part
+    centres = []
+    for shift in (-8, -4, 0, 4, 8):  # the footprint swaying 0.8 m either way
+        c = propose(_view(shift), grid, n_max=1, r_min=2.0, prefer=under)[0]
+        assert c.r >= 3.9 - 0.3 - 0.1
+        centres.append((c.x, c.y))
+        assert abs(c.y - 6.0) < 0.1 and abs(c.x - 9.0) < 0.1  # right under the camera
+    # Without the preference, the first cell of the ridge: its west end, moving with the view.
+    plain = [propose(_view(s), grid, n_max=1, r_min=2.0)[0].x for s in (-8, 8)]
+    assert plain[1] - plain[0] == pytest.approx(1.6, abs=0.11)
+    assert plain[0] < 7.0
+
+
+def test_a_preference_never_drops_a_circle_to_below_r_min():
+    # The largest circle is just over r_min; a nearer centre within tie_m would be under it.
+    free = np.zeros((60, 60), np.uint8)
+    free[10:50, 10:50] = 255  # 4 m square: largest radius ~2 m
+    grid = GridSpec(0.0, 0.0, 0.1, 60, 60)
+    best = propose(free, grid, n_max=1, r_min=0.1)[0]
+    c = propose(free, grid, n_max=1, r_min=best.r - 0.01, prefer=(0.0, 0.0), tie_m=1.0)
+    assert len(c) == 1 and c[0].r >= best.r - 0.01

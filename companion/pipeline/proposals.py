@@ -5,6 +5,14 @@ occupied or unknown cell; its maximum is the centre and radius of the largest fr
 circle is then marked occupied and the next one sought, until ``n_max`` circles or a radius below
 ``r_min`` metres. Marking a disk occupied only lowers distances near it, so the distances are
 updated in a window around the disk instead of recomputing the transform.
+
+Near-ties go to the point nearest a preferred point (the ground under the camera): the maximum of a
+distance transform is often a ridge or a plateau (a corridor between people; over empty ground the
+whole mid-line of the view's footprint), and a plain argmax picks its first cell, which jumps from
+one end of the ridge to the other as the footprint moves. Such a proposal leaves its track behind
+(the tracker matches on overlap) and the zone is lost while the ground under it is still free.
+Giving up at most ``tie_m`` of radius for the circle nearest the camera keeps proposals where the
+vehicle already is; the radius is still the one measured at the chosen centre.
 """
 
 from __future__ import annotations
@@ -20,6 +28,9 @@ from companion.pipeline.headplane import GridSpec
 # A cell is a square: a circle centred at a cell centre that keeps this far (in cells) short of
 # the nearest occupied cell *centre* cannot touch that cell's square anywhere.
 _HALF_DIAGONAL = math.sqrt(2.0) / 2.0 + 1e-3  # + float32 rounding of the transform
+#: Radius (m) a proposal may give up to sit nearer the preferred point (see the module docstring):
+#: small against r_0, larger than the ripples the view's edge and the sampling leave on a ridge.
+TIE_M = 0.3
 
 
 def distance_cells(free_grid: np.ndarray) -> np.ndarray:
@@ -49,11 +60,14 @@ def clearance_at(dist: np.ndarray, grid: GridSpec, x: float, y: float) -> float:
 
 
 def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
-            dist: np.ndarray | None = None) -> list[Circle]:
+            dist: np.ndarray | None = None, prefer: tuple[float, float] | None = None,
+            tie_m: float = TIE_M) -> list[Circle]:
     """Up to ``n_max`` disjoint free circles, largest first, each with radius >= ``r_min`` metres.
 
     free_grid: uint8 grid, > 0 where free (see ``headplane.sample_to_grid``).
     dist: its ``distance_cells`` if already computed (it is not modified).
+    prefer: a plane point (m; the ground under the camera): of the centres whose circle is within
+    ``tie_m`` metres of the largest, the one nearest it is taken. None: the first largest.
     Each circle touches no non-free cell (not even a corner of one).
     """
     if free_grid.shape != grid.shape:
@@ -63,17 +77,31 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
         return out
     dist = distance_cells(free_grid) if dist is None else dist.copy()
     rows, cols = dist.shape
+    pref = None
+    if prefer is not None and all(math.isfinite(v) for v in prefer):
+        # In cells, as (row, col): prefer's x is along columns, y along rows.
+        pref = ((prefer[1] - grid.y0) / grid.cell, (prefer[0] - grid.x0) / grid.cell)
+    tie = max(0.0, tie_m) / grid.cell
     for _ in range(n_max):
         flat = int(np.argmax(dist))
         i, j = divmod(flat, cols)
-        d = float(dist[i, j])
+        d = d_max = float(dist[i, j])
+        if pref is not None and tie > 0 and (d - _HALF_DIAGONAL) * grid.cell >= r_min:
+            # Never below r_min for a nearer centre: the largest circle would have qualified.
+            near = np.flatnonzero(dist >= max(d - tie, r_min / grid.cell + _HALF_DIAGONAL))
+            if len(near) > 1:
+                ni, nj = np.divmod(near, cols)
+                k = int(np.argmin((ni - pref[0]) ** 2 + (nj - pref[1]) ** 2))
+                i, j = int(ni[k]), int(nj[k])
+                d = float(dist[i, j])
         r_cells = d - _HALF_DIAGONAL
         if r_cells <= 0 or r_cells * grid.cell < r_min:
             break
         x, y = grid.to_plane(i, j)
         out.append(Circle(float(x), float(y), r_cells * grid.cell))
-        # Only cells closer to the disk than their present distance change: within d + r of it.
-        reach = int(math.ceil(r_cells + d)) + 1
+        # Only cells closer to the disk than their present distance change: no cell is further
+        # than d_max from its nearest non-free cell, so only those within d_max + r of it.
+        reach = int(math.ceil(r_cells + d_max)) + 1
         i0, i1 = max(0, i - reach), min(rows, i + reach + 1)
         j0, j1 = max(0, j - reach), min(cols, j + reach + 1)
         ii = np.arange(i0, i1, dtype=np.float32)[:, None] - i

@@ -215,7 +215,9 @@ class SLZPipeline:
             fused = risk.fused_free(grid, free_grid, t)
         t4 = time.perf_counter()
         dist = distance_cells(fused)
-        proposals = propose(fused, grid, self.config.n_proposals, self.config.r0_m, dist)
+        # Near-ties go to the ground under the camera: proposals stay put as the view moves.
+        proposals = propose(fused, grid, self.config.n_proposals, self.config.r0_m, dist,
+                            prefer=proj.camera_xy)
         t5 = time.perf_counter()
         view_dist = distance_cells(seen[0])
 

@@ -26,6 +26,8 @@ DRONECROWD_FRAMES: dict[str, tuple[str, int]] = {
     **{f"img112{k:03d}": ("00112.mat", k - 1) for k in range(8, 13)},
     "img017012": ("00017.mat", 11),
 }
+#: The five of them the shipped model trained on; ``img017012`` (another sequence) is held out.
+DRONECROWD_TRAIN = [f"img112{k:03d}" for k in range(8, 13)]
 MALL_FIRST, MALL_LAST = 801, 2000
 #: Factors of the downscaled semantic-drone hold-out (real photos of smaller people; see ``scaled``).
 SEMANTIC_SCALES = (0.5, 0.25)

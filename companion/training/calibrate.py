@@ -29,7 +29,7 @@ from companion.evaluation import compositor as C
 from companion.evaluation import datasets as D
 from companion.evaluation.metrics import best_threshold, evaluate_set, overall_min_person_px
 from companion.pipeline.density import DensityModel
-from companion.training.export import set_metadata
+from companion.training.metadata import set_metadata
 
 log = logging.getLogger("companion.training.calibrate")
 

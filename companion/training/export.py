@@ -8,25 +8,10 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
-import onnx
 import torch
 
 from companion.training import model as M
-
-
-def set_metadata(path: Path, meta: Mapping[str, object]) -> None:
-    """Write (replace) ``companion.*`` style metadata_props of the ONNX file at ``path``."""
-    proto = onnx.load(str(path))
-    keep = [p for p in proto.metadata_props if p.key not in meta]
-    del proto.metadata_props[:]
-    proto.metadata_props.extend(keep)
-    for k, v in meta.items():
-        if v is None:
-            continue
-        entry = proto.metadata_props.add()
-        entry.key, entry.value = k, str(v)
-    onnx.checker.check_model(proto)
-    onnx.save(proto, str(path))
+from companion.training.metadata import set_metadata
 
 
 def base_metadata() -> dict[str, object]:

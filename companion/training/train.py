@@ -52,7 +52,7 @@ from companion.training.targets import box_target, point_target
 
 log = logging.getLogger("companion.training")
 
-TRAIN_DRONECROWD = [f"img112{k:03d}" for k in range(8, 13)]
+TRAIN_DRONECROWD = D.DRONECROWD_TRAIN
 
 
 class CropSource(Protocol):

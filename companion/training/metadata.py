@@ -1,0 +1,24 @@
+"""The ``companion.*`` metadata of an ONNX model file, written in place (onnx only, no torch:
+calibration and quantisation run without the training extra's torch)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import onnx
+
+
+def set_metadata(path: Path, meta: Mapping[str, object]) -> None:
+    """Write (replace) ``companion.*`` style metadata_props of the ONNX file at ``path``."""
+    proto = onnx.load(str(path))
+    keep = [p for p in proto.metadata_props if p.key not in meta]
+    del proto.metadata_props[:]
+    proto.metadata_props.extend(keep)
+    for k, v in meta.items():
+        if v is None:
+            continue
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = k, str(v)
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(path))

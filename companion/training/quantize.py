@@ -1,0 +1,116 @@
+"""int8 static quantisation of the density model (onnxruntime), then the same calibration.
+
+Issue 13 asks for int8 measured for its recall cost: this writes the quantised file, and
+``companion eval`` / ``companion bench --model`` measure it beside the float one.
+
+* Weights int8 per output channel, activations uint8 per tensor (QDQ format, what onnxruntime's
+  CPU provider fuses into integer convolutions), ranges from MinMax over calibration frames.
+* Calibration frames come **only from the training splits**: the semantic-drone photos outside
+  the held-out fifth, DroneCrowd's training frames and ShanghaiTech B train, each through the
+  model's own preprocessing (``DensityModel.preprocess``). Nothing the figures are reported on
+  sets a range.
+* The quantised file keeps the float model's ``companion.*`` metadata, then
+  ``companion.training.calibrate`` chooses its own threshold (the largest that keeps 99.2 % on
+  every validation set), count scale and ``min_person_px``: int8 moves the scores, so the float
+  model's threshold would not mean the same recall.
+
+    python -m companion.training.quantize --model companion/models/slz-density.onnx \\
+        --out /tmp/slz-density-int8.onnx --shared ../shared
+
+Needs the ``train`` extra (``onnx``); onnxruntime's quantiser is part of onnxruntime.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import onnx
+
+from companion.evaluation import datasets as D
+from companion.pipeline.density import DensityModel
+from companion.training.calibrate import calibrate
+from companion.training.metadata import set_metadata
+
+log = logging.getLogger("companion.training.quantize")
+
+#: Calibration frames per source (semantic drone, ShanghaiTech B; DroneCrowd gives its five).
+CALIB_PER_SOURCE = 24
+
+
+def calibration_frames(shared: Path, per_source: int = CALIB_PER_SOURCE) -> list[np.ndarray]:
+    """BGR frames from the training splits only, spread evenly over each source."""
+    if per_source < 1:
+        raise ValueError(f"per_source must be >= 1, got {per_source}")
+    train_sd = D.semantic_drone(shared, "train")
+    shb = D.shanghaitech_b(shared, "train")
+    dc = D.dronecrowd_frames(shared, D.DRONECROWD_TRAIN)
+    out: list[np.ndarray] = []
+    for samples in (train_sd, shb):
+        idx = np.linspace(0, len(samples) - 1, min(per_source, len(samples))).round().astype(int)
+        out += [samples[i].image() for i in sorted(set(idx.tolist()))]
+    out += [s.image() for s in dc]
+    return out
+
+
+class _Reader:
+    """onnxruntime's CalibrationDataReader protocol over preprocessed frames."""
+
+    def __init__(self, model: DensityModel, frames: list[np.ndarray], input_name: str):
+        self._it: Iterator[dict[str, np.ndarray]] = ({input_name: model.preprocess(f)} for f in frames)
+
+    def get_next(self) -> dict[str, np.ndarray] | None:
+        return next(self._it, None)
+
+
+def quantize(model_path: Path, out: Path, shared: Path, per_source: int = CALIB_PER_SOURCE,
+             threads: int = 2, calibrate_after: bool = True) -> dict[str, object]:
+    """Write the int8 model of ``model_path`` to ``out``; returns its calibration metadata."""
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    model_path, out = Path(model_path), Path(out)
+    fmodel = DensityModel(model_path, threads=threads)
+    frames = calibration_frames(shared, per_source)
+    log.info("calibrating activation ranges on %d training frames", len(frames))
+    src = onnx.load(str(model_path))
+    meta = {p.key: p.value for p in src.metadata_props}
+    input_name = src.graph.input[0].name
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        pre = Path(tmp) / "pre.onnx"
+        quant_pre_process(str(model_path), str(pre), skip_symbolic_shape=True)
+        quantize_static(str(pre), str(out), _Reader(fmodel, frames, input_name),
+                        quant_format=QuantFormat.QDQ, per_channel=True,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                        calibrate_method=CalibrationMethod.MinMax)
+    meta["companion.quantization"] = (f"int8 static (onnxruntime QDQ, weights per channel, activations "
+                                      f"uint8 MinMax over {len(frames)} training frames) of {model_path.name}")
+    set_metadata(out, meta)
+    if not calibrate_after:
+        return meta
+    return calibrate(out, shared, threads)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", default="companion/models/slz-density.onnx")
+    p.add_argument("--out", required=True, help="the int8 ONNX file to write")
+    p.add_argument("--shared", default="../shared")
+    p.add_argument("--per-source", type=int, default=CALIB_PER_SOURCE,
+                   help="calibration frames per training source (default %(default)s)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--no-calibrate", action="store_true", help="keep the float model's threshold")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    quantize(Path(args.model), Path(args.out), Path(args.shared), args.per_source, args.threads,
+             not args.no_calibrate)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

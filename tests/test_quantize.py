@@ -1,0 +1,51 @@
+"""int8 static quantisation of the density model (issue 13, item 6): a real quantised file from
+the shipped model, calibrated on training frames only, that the runner loads and that scores the
+real held-out frame almost as the float model does."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+
+from companion.evaluation import datasets as D
+from companion.pipeline.density import DensityModel
+from companion.pipeline.occupancy import OccupancyParams, occupancy_map
+from companion.training import quantize as Q
+
+
+def test_calibration_frames_come_from_the_training_splits_only(shared_dir):
+    frames = Q.calibration_frames(shared_dir, per_source=3)
+    # 3 semantic-drone training photos, 3 ShanghaiTech B train, DroneCrowd's 5 training frames.
+    assert len(frames) == 3 + 3 + len(D.DRONECROWD_TRAIN)
+    held = {s.name for s in D.semantic_drone(shared_dir, "val")}
+    train_names = {s.name for s in D.semantic_drone(shared_dir, "train")}
+    assert held and not (held & train_names)
+    assert "img017012" not in D.DRONECROWD_TRAIN
+    with pytest.raises(ValueError):
+        Q.calibration_frames(shared_dir, per_source=0)
+
+
+def test_the_int8_model_loads_keeps_its_metadata_and_scores_like_the_float_one(shared_dir, model_path, tmp_path):
+    SHIPPED = model_path
+    out = tmp_path / "int8.onnx"
+    meta = Q.quantize(SHIPPED, out, shared_dir, per_source=2, threads=1, calibrate_after=False)
+    proto = onnx.load(str(out))
+    ops = {n.op_type for n in proto.graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    assert any(init.data_type == onnx.TensorProto.INT8 for init in proto.graph.initializer)
+    props = {p.key: p.value for p in proto.metadata_props}
+    shipped = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
+    for key in ("companion.occupancy_threshold", "companion.stride", "companion.mean", "companion.color"):
+        assert props[key] == shipped[key]  # without --calibrate, the float model's own settings
+    assert "int8" in props["companion.quantization"] and meta["companion.quantization"] == props["companion.quantization"]
+
+    f32, i8 = DensityModel(SHIPPED, threads=1), DensityModel(out, threads=1)
+    frame = D.dronecrowd_frames(shared_dir, ["img017012"])[0].image()  # held out: not calibrated on
+    a, b = f32(frame), i8(frame)
+    assert a.shape == b.shape
+    assert float(np.abs(a - b).max()) < 0.1
+    params = OccupancyParams(threshold=float(f32.spec.occupancy_threshold))
+    free_a = occupancy_map(a, frame.shape[:2], params) > 0
+    free_b = occupancy_map(b, frame.shape[:2], params) > 0
+    assert float((free_a == free_b).mean()) > 0.97

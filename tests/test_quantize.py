@@ -32,7 +32,7 @@ def test_the_int8_model_loads_keeps_its_metadata_and_scores_like_the_float_one(s
     meta = Q.quantize(SHIPPED, out, shared_dir, per_source=2, threads=1, calibrate_after=False)
     proto = onnx.load(str(out))
     ops = {n.op_type for n in proto.graph.node}
-    assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    assert "QLinearConv" in ops and "Conv" not in ops
     assert any(init.data_type == onnx.TensorProto.INT8 for init in proto.graph.initializer)
     props = {p.key: p.value for p in proto.metadata_props}
     shipped = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
@@ -49,3 +49,12 @@ def test_the_int8_model_loads_keeps_its_metadata_and_scores_like_the_float_one(s
     free_a = occupancy_map(a, frame.shape[:2], params) > 0
     free_b = occupancy_map(b, frame.shape[:2], params) > 0
     assert float((free_a == free_b).mean()) > 0.97
+
+
+def test_the_qdq_form_and_a_bad_form(shared_dir, model_path, tmp_path):
+    out = tmp_path / "qdq.onnx"
+    Q.quantize(model_path, out, shared_dir, per_source=1, threads=1, calibrate_after=False, fmt="qdq")
+    ops = {n.op_type for n in onnx.load(str(out)).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    with pytest.raises(ValueError, match="format"):
+        Q.quantize(model_path, tmp_path / "x.onnx", shared_dir, fmt="int4")

@@ -3,8 +3,10 @@
 Issue 13 asks for int8 measured for its recall cost: this writes the quantised file, and
 ``companion eval`` / ``companion bench --model`` measure it beside the float one.
 
-* Weights int8 per output channel, activations uint8 per tensor (QDQ format, what onnxruntime's
-  CPU provider fuses into integer convolutions), ranges from MinMax over calibration frames.
+* Weights int8 per output channel, activations uint8 per tensor, ranges from MinMax over the
+  calibration frames; in onnxruntime's QOperator form (``QLinearConv`` nodes, the default) or QDQ
+  (``--format qdq``: QuantizeLinear/DequantizeLinear pairs the runtime fuses; other providers
+  prefer it). Which is faster is measured, not assumed: the model card has the figures.
 * Calibration frames come **only from the training splits**: the semantic-drone photos outside
   the held-out fifth, DroneCrowd's training frames and ShanghaiTech B train, each through the
   model's own preprocessing (``DensityModel.preprocess``). Nothing the figures are reported on
@@ -67,12 +69,18 @@ class _Reader:
         return next(self._it, None)
 
 
+FORMATS = ("qoperator", "qdq")
+
+
 def quantize(model_path: Path, out: Path, shared: Path, per_source: int = CALIB_PER_SOURCE,
-             threads: int = 2, calibrate_after: bool = True) -> dict[str, object]:
-    """Write the int8 model of ``model_path`` to ``out``; returns its calibration metadata."""
+             threads: int = 2, calibrate_after: bool = True, fmt: str = "qoperator") -> dict[str, object]:
+    """Write the int8 model of ``model_path`` to ``out`` in form ``fmt`` (``FORMATS``); returns
+    its metadata (after calibration, unless ``calibrate_after`` is false)."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {FORMATS}, got {fmt!r}")
     model_path, out = Path(model_path), Path(out)
     fmodel = DensityModel(model_path, threads=threads)
     frames = calibration_frames(shared, per_source)
@@ -85,10 +93,11 @@ def quantize(model_path: Path, out: Path, shared: Path, per_source: int = CALIB_
         pre = Path(tmp) / "pre.onnx"
         quant_pre_process(str(model_path), str(pre), skip_symbolic_shape=True)
         quantize_static(str(pre), str(out), _Reader(fmodel, frames, input_name),
-                        quant_format=QuantFormat.QDQ, per_channel=True,
+                        quant_format=QuantFormat.QDQ if fmt == "qdq" else QuantFormat.QOperator,
+                        per_channel=True,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         calibrate_method=CalibrationMethod.MinMax)
-    meta["companion.quantization"] = (f"int8 static (onnxruntime QDQ, weights per channel, activations "
+    meta["companion.quantization"] = (f"int8 static (onnxruntime {fmt}, weights per channel, activations "
                                       f"uint8 MinMax over {len(frames)} training frames) of {model_path.name}")
     set_metadata(out, meta)
     if not calibrate_after:
@@ -103,12 +112,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--shared", default="../shared")
     p.add_argument("--per-source", type=int, default=CALIB_PER_SOURCE,
                    help="calibration frames per training source (default %(default)s)")
+    p.add_argument("--format", choices=FORMATS, default="qoperator",
+                   help="QLinearConv nodes (default) or QuantizeLinear/DequantizeLinear pairs")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-calibrate", action="store_true", help="keep the float model's threshold")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     quantize(Path(args.model), Path(args.out), Path(args.shared), args.per_source, args.threads,
-             not args.no_calibrate)
+             not args.no_calibrate, args.format)
     return 0
 
 

@@ -201,10 +201,15 @@ def baseline_text(summary: dict[str, Any]) -> str:
 # ---- the results file ------------------------------------------------------------------------
 
 def row_key(row: dict[str, Any]) -> RowKey:
-    """What identifies a flight in a results file: its seed and the autopilot it flew with, and
-    ``"baseline"`` for a baseline flight (so neither kind ever stands for the other on resume)."""
-    key = (int(row["seed"]), str(row["flavour"]))
-    return (*key, BASELINE) if row.get("baseline") else key
+    """What identifies a flight in a results file: its seed and the autopilot it flew with,
+    ``"baseline"`` for a baseline flight (so neither kind ever stands for the other on resume), and
+    the service settings it flew with (``settings``, from ``--set``) when it had any."""
+    key: tuple[Any, ...] = (int(row["seed"]), str(row["flavour"]))
+    if row.get("baseline"):
+        key = (*key, BASELINE)
+    if row.get("settings"):
+        key = (*key, "set:" + ";".join(str(s) for s in row["settings"]))
+    return key
 
 
 def read_rows(path: Path) -> tuple[list[dict[str, Any]], int]:

@@ -41,6 +41,12 @@ appends each flight's row as it ends and, run again, flies only the seeds not in
 summary is then computed from the file. A flight whose service could not keep its frame rate is
 flagged **starved** and kept out of the clean counts.
 
+``--set KEY=VALUE`` (repeatable) flies every seed with that service setting, as ``companion run
+--set`` takes it (``--set model.path=my.onnx`` flies a researcher's own model in closed loop). A bad
+key or value, or a model file that is not there, is exit 2 before anything flies. Rows record the
+settings (``settings``), and a results file resumes a seed only from a row flown with the same
+settings, so two experiments never mix in one file.
+
 Exit status: 0 all flights clean and none unsafe; 1 an unsafe landing (starved or not); 2 bad
 arguments or no way to fan out; 3 no unsafe landing but the evidence is incomplete (a flight
 starved, or could not fly: run again with the same ``--out`` to retry those).
@@ -63,6 +69,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from companion import config as settings
 from companion.parallel import ParallelError, default_workers, fan_out
 from sim.evidence import (
     BASELINE,
@@ -162,6 +169,8 @@ class FlightJob:
     baseline: bool = False
     #: ``model.threads`` for the flight's service (None: the service's default, 2).
     threads: int | None = None
+    #: ``KEY=VALUE`` service settings (``--set``) the flight flies with; part of its key.
+    service_set: tuple[str, ...] = ()
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
@@ -169,14 +178,17 @@ class FlightJob:
             spec = dataclasses.replace(spec, companion=False)
         if self.overrides:
             spec = dataclasses.replace(spec, **dict(self.overrides))
+        if self.service_set:
+            spec = dataclasses.replace(spec, service_set=(*spec.service_set, *self.service_set))
         if self.threads is not None and not any(s.startswith("model.threads=") for s in spec.service_set):
             spec = dataclasses.replace(spec, service_set=(*spec.service_set, f"model.threads={self.threads}"))
         return spec
 
     def key(self) -> RowKey:
-        """Its key in a results file (``sim.evidence.row_key``): a baseline flight's is its own."""
-        base = (self.seed, self.spec().flavour)
-        return (*base, BASELINE) if self.baseline else base
+        """Its key in a results file (``sim.evidence.row_key``): a baseline flight's is its own,
+        and so is one flown with other settings."""
+        return row_key({"seed": self.seed, "flavour": self.spec().flavour, "baseline": self.baseline,
+                        "settings": list(self.service_set)})
 
 
 def _cpu_s() -> float:
@@ -194,7 +206,7 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     row = result.as_dict()
     row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
                wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
-               host=socket.gethostname(), model_threads=job.threads)
+               host=socket.gethostname(), model_threads=job.threads, settings=list(job.service_set))
     return row
 
 
@@ -236,6 +248,29 @@ def progress_line(done: int, total: int, flown: int, elapsed_s: float, unsafe: i
     return f"flights {done}/{total}, unsafe {unsafe}, starved {starved}, {eta}"
 
 
+#: Settings naming a file: made absolute here, since the flight's service runs elsewhere.
+_FILE_SETTINGS = ("model.path", "model.landability_path")
+
+
+def service_settings(items: list[str]) -> tuple[str, ...]:
+    """``--set`` items checked as the service would check them (ValueError with the reason: a bad
+    key or value, a model file that is not there), file paths made absolute, in a stable order."""
+    overrides: dict[str, Any] = {}
+    for item in items:
+        key, value = settings.parse_assignment(item)
+        if key in _FILE_SETTINGS:
+            path = Path(str(value)).expanduser().resolve()
+            if not path.is_file():
+                raise ValueError(f"{key}: no such file {path}")
+            value = str(path)
+        overrides[key] = value
+    try:
+        settings.load(None, overrides)
+    except settings.ConfigError as exc:
+        raise ValueError(str(exc)) from None
+    return tuple(f"{k}={json.dumps(v) if not isinstance(v, str) else v}" for k, v in sorted(overrides.items()))
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", default="1-10", help="seeds, e.g. 1-50 or 1,4,9-12 (default 1-10)")
     parser.add_argument("--flavour", choices=("ardupilot", "px4"), default=None,
@@ -245,6 +280,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baseline", action="store_true",
                         help="also fly every seed with the autopilot's own failsafe alone (no companion) "
                              "and report its strikes beside the companion's")
+    parser.add_argument("--set", dest="set_", action="append", default=[], metavar="KEY=VALUE",
+                        help="fly with this service setting, as 'companion run --set' (repeatable; "
+                             "e.g. model.path=my.onnx); recorded in each row")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -275,10 +313,16 @@ def run(args: argparse.Namespace) -> int:
     if workers < 1:
         print("companion sim-scenarios: --workers must be >= 1", file=sys.stderr)
         return 2
+    try:
+        service_set = service_settings(args.set_)
+    except ValueError as exc:
+        print(f"companion sim-scenarios: --set: {exc}", file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     jobs = [job for seed in dict.fromkeys(seeds)
-            for job in ([FlightJob(seed, args.flavour, threads=threads)]
-                        + ([FlightJob(seed, args.flavour, baseline=True, threads=threads)] if args.baseline else []))]
+            for job in ([FlightJob(seed, args.flavour, threads=threads, service_set=service_set)]
+                        + ([FlightJob(seed, args.flavour, baseline=True, threads=threads, service_set=service_set)]
+                           if args.baseline else []))]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress)
 

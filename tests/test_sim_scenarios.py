@@ -228,3 +228,50 @@ def test_baseline_rows_are_kept_apart_from_the_companions_on_resume(tmp_path, mo
     assert run_jobs(companion_only, workers=1, out=out, as_json=True) == 0 and flown == []
     s = json.loads(capsys.readouterr().out)
     assert "baseline" not in s and "strikes_vs_baseline" not in s and s["total"] == 2
+
+
+def test_service_settings_fly_with_every_seed_and_keep_their_rows_apart(tmp_path, monkeypatch, capsys, model_path):
+    # `--set model.path=...` flies a researcher's own model in closed loop; a results file never
+    # resumes a seed from a row flown with other settings.
+    own = tmp_path / "own.onnx"
+    own.write_bytes(model_path.read_bytes())
+    monkeypatch.chdir(tmp_path)
+    ss = scenarios.service_settings(["model.path=own.onnx", "controller.predict_people=true"])
+    assert ss == ("controller.predict_people=true", f"model.path={own}")  # sorted, the path absolute
+    job = FlightJob(1, "ardupilot", service_set=ss, threads=1)
+    assert set(ss) <= set(job.spec().service_set) and "model.threads=1" in job.spec().service_set
+    assert job.key() != FlightJob(1, "ardupilot").key()
+    assert job.key() == row_key({"seed": 1, "flavour": "ardupilot", "settings": list(ss)})
+
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append(_row(1, "safe"))  # seed 1 flown with the defaults: not this experiment's
+    flown: list[tuple[int, tuple[str, ...]]] = []
+
+    def fake(j: FlightJob) -> dict[str, Any]:
+        flown.append((j.seed, j.service_set))
+        return {**_row(j.seed, "safe"), "settings": list(j.service_set)}
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    jobs = [FlightJob(s, "ardupilot", service_set=ss) for s in (1, 2)]
+    assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0
+    assert flown == [(1, ss), (2, ss)]
+    s = json.loads(capsys.readouterr().out)
+    assert [(r["seed"], r["settings"]) for r in s["flights"]] == [(1, list(ss)), (2, list(ss))]
+    flown.clear()
+    assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0 and flown == []  # resumed
+
+
+@pytest.mark.parametrize("item, says", [
+    ("controller.no_such_key=1", "no_such_key"),
+    ("model.path=/nonexistent/model.onnx", "no such file"),
+    ("pipeline.r0_m=-1", "r0_m"),
+    ("justakey", "key=value"),
+])
+def test_a_bad_setting_is_exit_2_before_anything_flies(item, says, monkeypatch, capsys):
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--set", item]) == 2
+    err = capsys.readouterr().err
+    assert "--set" in err and says in err

@@ -72,7 +72,6 @@ from tqdm import tqdm
 from companion import config as settings
 from companion.parallel import ParallelError, default_workers, fan_out
 from sim.evidence import (
-    BASELINE,
     ResultsFile,
     RowKey,
     baseline_text,

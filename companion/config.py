@@ -179,6 +179,8 @@ class PipelineSettings:
     max_extent_m: float = _f(40.0, "half-width of the metric grid around the camera (m)", min=1.0, max=1000.0)
     n_proposals: int = _f(5, "landing-zone proposals per frame (N_p)", min=1, max=50)
     r0_m: float = _f(2.0, "smallest useful landing-zone radius (m)", min=0.1, max=100.0)
+    proposal_tie_m: float = _f(0.3, "a proposal may give up this much radius to sit nearer the ground under "
+                                    "the camera (m; 0 = the paper's first largest circle)", min=0.0, max=5.0)
     max_pose_age_s: float = _f(0.25, "a frame whose pose is further than this from its capture time "
                                      "is not used for decisions (s)", min=0.0, max=5.0, min_exclusive=True)
     fusion: str = _f("frame", "proposals from each frame alone, as in the paper (frame), or from the ground "
@@ -628,6 +630,7 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
                               min_iou=t.min_iou, mu_1=t.mu_1, mu_2=t.mu_2, max_tracks=p.n_proposals),
         head_height_m=p.head_height_m,
         r0_m=p.r0_m,
+        proposal_tie_m=p.proposal_tie_m,
         fusion=p.fusion,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
         risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,

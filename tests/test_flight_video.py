@@ -77,6 +77,27 @@ def test_the_video_is_h264_a_browser_plays_and_shows_the_decision(tmp_path: Path
     assert np.abs(footer_before.astype(int) - footer_after.astype(int)).sum() > 0
 
 
+def test_zones_carry_their_clearance_at_touchdown_from_the_flights_own_descent(tmp_path: Path) -> None:
+    # The label says what the controller judges: the zone's radius less what a walker covers
+    # while the vehicle comes down from this frame's height, with the recording's settings.
+    path = _recording(tmp_path / "rec")
+    frames = list(flight_video.frames(path))
+    assert len(frames) == 30
+    from companion import config as settings
+    from companion.replay import draw
+    profile = settings.descent_profile(settings.from_recording({"pipeline": {"head_height_m": 1.7}}))
+    c = profile.clearance_at_touchdown(4.0, 20.0)
+    tr = _track(3, 2.0, 1.0, 4.0)
+    assert draw._track_text(tr, c).endswith(f"{max(0.0, c):.1f} m at touchdown")
+    # Drawn without the settings the label is shorter: the frames differ right of the label.
+    pose = Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
+    proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)
+    grey = np.full((240, 320, 3), 90, np.uint8)
+    with_c = flight_video.annotate(grey, [tr], 3, proj, "APPROACH", "", 20.0, 1.0, profile)
+    without = flight_video.annotate(grey, [tr], 3, proj, "APPROACH", "", 20.0, 1.0, None)
+    assert np.abs(with_c.astype(int) - without.astype(int)).sum() > 0
+
+
 def test_a_frame_without_a_pose_is_drawn_without_zones(tmp_path: Path) -> None:
     rec = FlightRecorder(tmp_path / "rec", fps=10, queue_size=4, intrinsics=K, mount=Mount())
     path = rec.start()

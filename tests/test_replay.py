@@ -302,7 +302,10 @@ def test_recording_replays_with_its_poses(work: dict[str, Path], tmp_path: Path)
     out = tmp_path / "out"
     code = main(["replay", str(run_dir), "--model", str(work["model"]), "--threads", "1",
                  "--r0", "1", "--jsonl", str(out / "r.jsonl"), "--video-out", str(out / "r.avi"),
-                 "--summary-json", str(out / "s.json")])
+                 "--summary-json", str(out / "s.json"),
+                 # The paper's circle (the first largest): this checks the projection, and a
+                 # near-tie nearer the camera would move the centre off the drawn circle's.
+                 "--set", "pipeline.proposal_tie_m=0"])
     assert code == 0
     recs = _read_jsonl(out / "r.jsonl")
     assert [r["frame"] for r in recs] == list(range(5))

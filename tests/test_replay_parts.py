@@ -242,3 +242,20 @@ def test_skipped_frames_are_logged_a_few_times_per_reason_then_only_counted(capl
     assert any("counted in the summary only" in m for m in lines)
     assert any("frame 99 skipped: truncated JPEG" in m for m in lines)
     assert counts == {"geometry": LOGGED_SKIPS + 10, "unreadable": 1}
+
+
+def test_each_track_is_labelled_with_its_predicted_clearance_at_touchdown() -> None:
+    # Issue 11, item 6: the video shows what the controller judges, a zone's clearance at touchdown.
+    tr = Track(3, 15.0, 10.0, 4.0, 4.0, 7, 8, 0, 0.0, 1.0)
+    assert draw._track_text(tr) == "#3 age 7"
+    assert draw._track_text(tr, 1.44) == "#3 age 7, 1.4 m at touchdown"
+    assert draw._track_text(tr, -12.0) == "#3 age 7, 0.0 m at touchdown"  # a walker could be there
+    assert draw._track_text(tr, float("nan")) == "#3 age 7"
+    frame = np.full((200, 300, 3), 100, np.uint8)
+    free = np.full((200, 300), 255, np.uint8)
+    proj = PlaneProjection.nadir(0.1)
+    plain = draw.draw_image_view(frame, free, proj, [], [tr], target_id=None)
+    labelled = draw.draw_image_view(frame, free, proj, [], [tr], target_id=None, clearances={3: 1.4})
+    # The longer label writes further right of the zone's centre (150, 100) than the plain one.
+    right = (slice(80, 100), slice(230, 300))
+    assert (labelled[right] != 100).any() and not (plain[right] != 100).any()

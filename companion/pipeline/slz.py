@@ -29,7 +29,7 @@ from companion.pipeline.edges import edge_reason
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
-from companion.pipeline.proposals import clearance_at, distance_cells, propose
+from companion.pipeline.proposals import TIE_M, clearance_at, distance_cells, propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
@@ -59,6 +59,8 @@ class PipelineConfig:
     tracker: TrackerParams = field(default_factory=TrackerParams)
     head_height_m: float = 1.7
     r0_m: float = 2.0
+    #: Near-ties of the largest circle go to the ground under the camera (``proposals.propose``).
+    proposal_tie_m: float = TIE_M
     fusion: str = "frame"
     risk: RiskMapConfig = field(default_factory=RiskMapConfig)
     #: People followed on the ground over posed frames, for the controller's prediction
@@ -76,6 +78,8 @@ class PipelineConfig:
             raise ValueError(f"the risk map's cell ({self.risk.cell_m} m) must be the grid's ({self.grid.cell} m)")
         if not (math.isfinite(self.head_height_m) and 0 <= self.head_height_m < 5):
             raise ValueError(f"head_height_m must be in [0, 5) m, got {self.head_height_m!r}")
+        if not (math.isfinite(self.proposal_tie_m) and self.proposal_tie_m >= 0):
+            raise ValueError(f"proposal_tie_m must be >= 0 m, got {self.proposal_tie_m!r}")
         if not (math.isfinite(self.r0_m) and self.r0_m > 0):
             raise ValueError(f"r0_m must be > 0 m, got {self.r0_m!r}")
 
@@ -217,7 +221,7 @@ class SLZPipeline:
         dist = distance_cells(fused)
         # Near-ties go to the ground under the camera: proposals stay put as the view moves.
         proposals = propose(fused, grid, self.config.n_proposals, self.config.r0_m, dist,
-                            prefer=proj.camera_xy)
+                            prefer=proj.camera_xy, tie_m=self.config.proposal_tie_m)
         t5 = time.perf_counter()
         view_dist = distance_cells(seen[0])
 

@@ -10,7 +10,8 @@ points around each circle (ellipses under an oblique camera).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -81,16 +82,23 @@ def _label(img: np.ndarray, text: str, org: tuple[int, int], color: tuple[int, i
     cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
 
 
-def _track_text(tr: Track) -> str:
-    return f"#{tr.id} age {tr.age}"
+def _track_text(tr: Track, clearance_m: float | None = None) -> str:
+    """``#3 age 12``, and with its predicted clearance at touchdown (m) ``#3 age 12, 1.4 m at
+    touchdown`` (0 where a walker could reach its centre first)."""
+    text = f"#{tr.id} age {tr.age}"
+    if clearance_m is not None and math.isfinite(clearance_m):
+        text += f", {max(0.0, clearance_m):.1f} m at touchdown"
+    return text
 
 
 def draw_image_view(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,
                     proposals: Sequence[Circle], tracks: Sequence[Track],
                     target_id: int | None, surface_free: np.ndarray | None = None,
-                    people_free: np.ndarray | None = None) -> np.ndarray:
+                    people_free: np.ndarray | None = None,
+                    clearances: Mapping[int, float] | None = None) -> np.ndarray:
     """The annotated camera frame (same size as ``frame``); unlandable ground in magenta when
-    ``surface_free`` is given (see :func:`overlay_people`)."""
+    ``surface_free`` is given (see :func:`overlay_people`); each track labelled with its
+    predicted clearance at touchdown (m, by track id) when ``clearances`` gives it."""
     img = overlay_people(frame, occupancy_free, surface_free=surface_free, people_free=people_free)
     for c in proposals:
         poly = circle_in_image_polygon(proj, c.x, c.y, c.r)
@@ -107,7 +115,8 @@ def draw_image_view(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlanePr
         if np.isfinite(centre).all():
             u, v = int(round(centre[0])), int(round(centre[1]))
             cv2.drawMarker(img, (u, v), color, cv2.MARKER_CROSS, 10, thick)
-            _label(img, _track_text(tr) + (" TARGET" if target else ""), (u + 6, v - 6), color)
+            text = _track_text(tr, None if clearances is None else clearances.get(tr.id))
+            _label(img, text + (" TARGET" if target else ""), (u + 6, v - 6), color)
     return img
 
 
@@ -195,11 +204,12 @@ def figure(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,
            proposals: Sequence[Circle], tracks: Sequence[Track], target_id: int | None,
            free_grid: np.ndarray | None = None, grid: GridSpec | None = None,
            fused_grid: np.ndarray | None = None, surface_free: np.ndarray | None = None,
-           people_free: np.ndarray | None = None) -> np.ndarray:
+           people_free: np.ndarray | None = None, clearances: Mapping[int, float] | None = None) -> np.ndarray:
     """The full figure of one frame; the plane view is added when ``free_grid`` and ``grid`` are
     given (the replay passes them when the pose is known, so north is meaningful), with the risk
     map's held cells when ``fused_grid`` is given."""
-    view = draw_image_view(frame, occupancy_free, proj, proposals, tracks, target_id, surface_free, people_free)
+    view = draw_image_view(frame, occupancy_free, proj, proposals, tracks, target_id, surface_free, people_free,
+                           clearances)
     plane = None
     if free_grid is not None and grid is not None and free_grid.size:
         plane = draw_plane_view(free_grid, grid, proposals, tracks, target_id, frame.shape[0], fused_grid)

@@ -3,7 +3,9 @@
 Each recorded frame is drawn with the zones the service was tracking on it and the target it
 flew to (the ``zones`` events, matched to the frame by its camera index), the controller's phase
 and last message (the ``controller`` events), the height above home (the frame's recorded pose)
-and the time from the failsafe trigger (the ``trigger`` event). The recording holds no density
+and the time from the failsafe trigger (the ``trigger`` event); each zone is labelled with its
+predicted clearance at touchdown if the vehicle committed on that frame (the flight's own descent
+settings, ``companion.control.touchdown``). The recording holds no density
 or occupancy maps, so people are not marked: the picture is the decision, not the evidence;
 ``companion replay`` re-runs the pipeline when the evidence is wanted.
 
@@ -23,6 +25,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from companion import config as settings
+from companion.control.touchdown import DescentProfile
 from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.occupancy import FREE
 from companion.pipeline.tracker import Track
@@ -77,18 +81,24 @@ def _legend(img: np.ndarray) -> None:
     x, y = img.shape[1] - 200, HEADER_PX + 18
     cv2.rectangle(img, (x - 8, y - 14), (img.shape[1] - 4, y + 30), (40, 40, 40), -1)
     cv2.circle(img, (x + 6, y - 4), 6, draw.BLUE, 2, cv2.LINE_AA)
-    draw._label(img, "tracked zone #id age", (x + 18, y), draw.WHITE, 0.42)
+    draw._label(img, "zone #id age, m free", (x + 18, y), draw.WHITE, 0.42)
     cv2.circle(img, (x + 6, y + 18), 6, draw.YELLOW, 2, cv2.LINE_AA)
     draw._label(img, "target (flown to)", (x + 18, y + 22), draw.WHITE, 0.42)
 
 
 def annotate(frame_bgr: np.ndarray, tracks: list[Track], target_id: int | None, proj: PlaneProjection | None,
-             phase: str, message: str, height_m: float | None, t_rel: float | None) -> np.ndarray:
-    """One video frame: title bar, the frame with the tracks and target, a legend, and a status
+             phase: str, message: str, height_m: float | None, t_rel: float | None,
+             descent: DescentProfile | None = None) -> np.ndarray:
+    """One video frame: title bar, the frame with the tracks and target (each with its predicted
+    clearance at touchdown when ``descent`` and the height are known), a legend, and a status
     line (phase, height above home in metres, time from the trigger in seconds, last message)."""
     h, w = frame_bgr.shape[:2]
     if proj is not None:
-        view = draw.draw_image_view(frame_bgr, np.full((h, w), FREE, np.uint8), proj, [], tracks, target_id)
+        clearances = None
+        if descent is not None and height_m is not None:
+            clearances = {tr.id: descent.clearance_at_touchdown(tr.r, height_m) for tr in tracks}
+        view = draw.draw_image_view(frame_bgr, np.full((h, w), FREE, np.uint8), proj, [], tracks, target_id,
+                                    clearances=clearances)
     else:
         view = frame_bgr.copy()
     out = np.zeros((h + HEADER_PX + FOOTER_PX, w, 3), np.uint8)
@@ -112,6 +122,10 @@ def frames(recording: Path) -> Iterator[np.ndarray]:
     zones = {int(e["frame"]): e for e in events if e.get("kind") == "zones" and isinstance(e.get("frame"), int)}
     timeline = _Timeline(events)
     head = float(((reader.meta.get("config") or {}).get("pipeline") or {}).get("head_height_m", 1.7))
+    try:
+        descent: DescentProfile | None = settings.descent_profile(settings.from_recording(reader.meta.get("config") or {}))
+    except (settings.ConfigError, TypeError, ValueError):
+        descent = None  # a recording from another version: zones without their clearance
     for fr in reader.frames():
         z = zones.get(fr.index, {})
         tracks = [t for t in (_track(d) for d in z.get("tracks", []) if isinstance(d, dict)) if t is not None]
@@ -128,7 +142,7 @@ def frames(recording: Path) -> Iterator[np.ndarray]:
         if reader.intrinsics is not None and image.shape[:2] != (reader.intrinsics.height, reader.intrinsics.width):
             image = cv2.resize(image, (reader.intrinsics.width, reader.intrinsics.height))
         yield annotate(image, tracks, z.get("target") if isinstance(z.get("target"), int) else None,
-                       proj, phase, message, height, t_rel)
+                       proj, phase, message, height, t_rel, descent)
 
 
 def write_h264(recording: Path, out: Path, fps: float | None = None,

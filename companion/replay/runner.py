@@ -178,11 +178,15 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
                     raise ReplayOutputError(f"cannot write the mask {path}")
             if outputs.video is not None:
                 posed = use_pose and frame.pose is not None
+                clearances = None
+                if posed and frame.pose is not None:
+                    profile, height = descent or DescentProfile(), -frame.pose.down
+                    clearances = {tr.id: profile.clearance_at_touchdown(tr.r, height) for tr in result.tracks}
                 outputs.video.write(draw.figure(
                     frame.image, result.occupancy, result.projection, result.proposals,
                     result.tracks, target_id,
                     result.free_grid if posed else None, result.grid if posed else None,
-                    result.fused_grid if posed else None, result.surface, result.people_free))
+                    result.fused_grid if posed else None, result.surface, result.people_free, clearances))
             if on_result is not None:
                 on_result(frame, result)
         if source.skipped_upstream is not None:

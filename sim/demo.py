@@ -4,8 +4,11 @@ Starts the simulator (a multicopter speaking MAVLink as ArduPilot Copter or PX4,
 crowd of walking people) and its camera, starts the real service as a subprocess against them with
 the flight recorder on, raises a battery failsafe, and waits for the touchdown. The service's
 decisions are printed as it records them (trigger, target, hold, handback, landing). Then the
-recording becomes an H.264 video of what the service decided (zones, target, phase, height, time)
-and a summary judged on the simulator's truth: where it touched down, the distance from there to
+recording becomes an H.264 video of what the service decided (zones, target, phase, height, time,
+each zone's predicted clearance at touchdown), an evidence video (``companion replay`` of the
+recording with the ground risk map: the people seen, the head-plane view with the ground the map
+still holds in orange, the zones and their clearance at touchdown) and a summary judged on the
+simulator's truth: where it touched down, the distance from there to
 the nearest person at touchdown, and the time from the failsafe to touchdown.
 """
 
@@ -155,6 +158,17 @@ def _write_zones(recording: Path, path: Path) -> int:
     return n
 
 
+def evidence_video(recording: Path, out: Path) -> Path | None:
+    """``companion replay`` of ``recording`` with the ground risk map (``pipeline.fusion = "map"``,
+    whatever the flight used: the map is what is drawn) into the video ``out``: the evidence
+    behind the decisions, beside the decision video. None when the replay failed (said on stderr)."""
+    from companion.cli import main as companion_main
+
+    code = companion_main(["replay", str(recording), "--set", "pipeline.fusion=map", "--video-out", str(out),
+                           "--summary-json", str(out.with_suffix(".json")), "--no-progress"])
+    return out if code == 0 and out.is_file() else None
+
+
 def _have(module: str) -> bool:
     try:
         importlib.import_module(module)
@@ -207,6 +221,9 @@ def run(args: argparse.Namespace) -> int:
         print("demo: drawing the video of what the service decided, from its flight recording ...", flush=True)
         written = write_h264(recordings[-1], video, progress=print_progress())
         summary["video"] = str(written.path)
+        print("demo: replaying the recording with the ground risk map for the evidence video ...", flush=True)
+        evidence = evidence_video(recordings[-1], out / "evidence.mp4")
+        summary["evidence_video"] = None if evidence is None else str(evidence)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     td = result.touchdown
     line = f"demo: outcome {result.outcome.upper()}"
@@ -220,5 +237,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  nearest person at touchdown: {result.clearance_m:.1f} m (r_0 = {spec.r0_m:.1f} m)")
         print(f"  failsafe to touchdown: {result.time_to_touchdown_s:.1f} s")
     print(f"  summary: {out / 'summary.json'}; service log: {out / 'service.log'}"
-          + (f"; video: {summary.get('video')}" if summary.get("video") else ""))
+          + (f"; video: {summary.get('video')}" if summary.get("video") else "")
+          + (f"; evidence: {summary.get('evidence_video')}" if summary.get("evidence_video") else ""))
     return 0 if result.outcome == "safe" else 1

@@ -106,3 +106,30 @@ def test_a_frame_without_a_pose_is_drawn_without_zones(tmp_path: Path) -> None:
     rec.close()
     summary = flight_video.write_h264(path, tmp_path / "v.mp4")
     assert summary.frames == 3 and summary.frames_without_pose == 3
+
+
+def test_the_demo_evidence_video_replays_the_recording_with_the_risk_map(tmp_path: Path) -> None:
+    # Issue 11, item 6: the demo also shows the evidence, the fused map panel beside each frame,
+    # re-run by `companion replay` from the recording with the shipped model.
+    import cv2
+
+    from sim.demo import evidence_video
+
+    path = _recording(tmp_path / "rec", n=6)
+    out = evidence_video(path, tmp_path / "evidence.mp4")
+    assert out == tmp_path / "evidence.mp4"
+    cap = cv2.VideoCapture(str(out))
+    n, first = 0, None
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        first = img if first is None else first
+        n += 1
+    assert n == 6 and first is not None
+    assert first.shape[0] == 240 and first.shape[1] > 320 + 200  # the head-plane panel beside
+    import json
+    summary = json.loads((tmp_path / "evidence.json").read_text())
+    assert summary["frames"] == 6 and "pipeline.fusion=map" in summary["settings"]
+    # A recording that cannot be replayed gives None and the demo goes on.
+    assert evidence_video(tmp_path / "nothing-here", tmp_path / "x.mp4") is None

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import importlib
+import io
 import json
 import sys
 import time
@@ -164,8 +166,10 @@ def evidence_video(recording: Path, out: Path) -> Path | None:
     behind the decisions, beside the decision video. None when the replay failed (said on stderr)."""
     from companion.cli import main as companion_main
 
-    code = companion_main(["replay", str(recording), "--set", "pipeline.fusion=map", "--video-out", str(out),
-                           "--summary-json", str(out.with_suffix(".json")), "--no-progress"])
+    # Its summary goes to the JSON file; the demo's own lines stay the ones on the terminal.
+    with contextlib.redirect_stdout(io.StringIO()):
+        code = companion_main(["replay", str(recording), "--set", "pipeline.fusion=map", "--video-out", str(out),
+                               "--summary-json", str(out.with_suffix(".json")), "--no-progress"])
     return out if code == 0 and out.is_file() else None
 
 

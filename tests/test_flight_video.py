@@ -88,7 +88,7 @@ def test_zones_carry_their_clearance_at_touchdown_from_the_flights_own_descent(t
     profile = settings.descent_profile(settings.from_recording({"pipeline": {"head_height_m": 1.7}}))
     c = profile.clearance_at_touchdown(4.0, 20.0)
     tr = _track(3, 2.0, 1.0, 4.0)
-    assert draw._track_text(tr, c).endswith(f"{max(0.0, c):.1f} m at touchdown")
+    assert draw._track_text(tr, c).endswith(f"4.0 / {c:+.1f} m")
     # Drawn without the settings the label is shorter: the frames differ right of the label.
     pose = Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
     proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)

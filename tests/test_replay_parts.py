@@ -248,8 +248,8 @@ def test_each_track_is_labelled_with_its_predicted_clearance_at_touchdown() -> N
     # Issue 11, item 6: the video shows what the controller judges, a zone's clearance at touchdown.
     tr = Track(3, 15.0, 10.0, 4.0, 4.0, 7, 8, 0, 0.0, 1.0)
     assert draw._track_text(tr) == "#3 age 7"
-    assert draw._track_text(tr, 1.44) == "#3 age 7, 1.4 m at touchdown"
-    assert draw._track_text(tr, -12.0) == "#3 age 7, 0.0 m at touchdown"  # a walker could be there
+    assert draw._track_text(tr, 1.44) == "#3 age 7, 4.0 / +1.4 m"  # free now / at touchdown
+    assert draw._track_text(tr, -12.0) == "#3 age 7, 4.0 / -12.0 m"  # a walker could be there first
     assert draw._track_text(tr, float("nan")) == "#3 age 7"
     frame = np.full((200, 300, 3), 100, np.uint8)
     free = np.full((200, 300), 255, np.uint8)

@@ -83,11 +83,12 @@ def _label(img: np.ndarray, text: str, org: tuple[int, int], color: tuple[int, i
 
 
 def _track_text(tr: Track, clearance_m: float | None = None) -> str:
-    """``#3 age 12``, and with its predicted clearance at touchdown (m) ``#3 age 12, 1.4 m at
-    touchdown`` (0 where a walker could reach its centre first)."""
+    """``#3 age 12``, and with its predicted clearance at touchdown ``#3 age 12, 4.3 / -12.1 m``:
+    the radius free now, then the least clearance left at touchdown if the vehicle committed on
+    this frame (negative: a walker could reach the centre first; ``control.touchdown``)."""
     text = f"#{tr.id} age {tr.age}"
     if clearance_m is not None and math.isfinite(clearance_m):
-        text += f", {max(0.0, clearance_m):.1f} m at touchdown"
+        text += f", {tr.r:.1f} / {clearance_m:+.1f} m"
     return text
 
 

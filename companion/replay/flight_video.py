@@ -78,10 +78,10 @@ class _Timeline:
 
 
 def _legend(img: np.ndarray) -> None:
-    x, y = img.shape[1] - 200, HEADER_PX + 18
+    x, y = img.shape[1] - 232, HEADER_PX + 18
     cv2.rectangle(img, (x - 8, y - 14), (img.shape[1] - 4, y + 30), (40, 40, 40), -1)
     cv2.circle(img, (x + 6, y - 4), 6, draw.BLUE, 2, cv2.LINE_AA)
-    draw._label(img, "zone #id age, m free", (x + 18, y), draw.WHITE, 0.42)
+    draw._label(img, "zone #id age, r / at touchdown", (x + 18, y), draw.WHITE, 0.42)
     cv2.circle(img, (x + 6, y + 18), 6, draw.YELLOW, 2, cv2.LINE_AA)
     draw._label(img, "target (flown to)", (x + 18, y + 22), draw.WHITE, 0.42)
 

@@ -651,6 +651,13 @@ class LandingController:
         if self.phase != Phase.LAND or last is None or not gone or not last.view_limited or \
                 last.r_view >= BLIND_VIEW_M:
             return False
+        here = self._below_here()
+        if here is not None and here[0] < self.config.planner.r0_m and not here[1]:
+            # This frame sees somebody within r0 of the vehicle: the zone is lost, not out of
+            # view. "All free" was said of the track's centre, which drifts to the edge of the
+            # view while the vehicle comes down over the aim: ArduPilot seed 6 committed so at
+            # 7.5 m and landed 0.8 m from a person (a starved flight, 2026-11-25).
+            return False
         if not self._blind:
             self._blind = True
             h = "?" if self.status is None else f"{self.status.height:.1f}"

@@ -57,12 +57,25 @@ def bgr_frame(h: int, w: int, b: int = 10, g: int = 20, r: int = 30) -> np.ndarr
     return f
 
 
-# --- the shipped model ---------------------------------------------------------------------
+# --- the shipped models (float, and its int8 form when one is shipped) -------------------
+
+INT8 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-int8.onnx"
+
+
+@pytest.fixture(params=["float", "int8"])
+def shipped_model(request, model_path: Path) -> Path:
+    """Each density model the package ships: the runner tests hold for the int8 one too."""
+    if request.param == "float":
+        return model_path
+    if not INT8.is_file():
+        pytest.skip(f"no int8 model shipped ({INT8.name})")
+    return INT8
+
 
 
 @pytest.mark.parametrize("hw", [(480, 640), (720, 1280)])
-def test_shipped_model_gives_stride_4_map(model_path: Path, hw: tuple[int, int]) -> None:
-    m = DensityModel(model_path, threads=2)
+def test_shipped_model_gives_stride_4_map(shipped_model: Path, hw: tuple[int, int]) -> None:
+    m = DensityModel(shipped_model, threads=2)
     assert isinstance(m.spec, DensitySpec)
     assert m.spec.stride == 4 and m.spec.input_multiple == 4 and m.spec.color == "bgr"
     assert m.spec.occupancy_threshold is not None and 0 < m.spec.occupancy_threshold < 1
@@ -72,25 +85,25 @@ def test_shipped_model_gives_stride_4_map(model_path: Path, hw: tuple[int, int])
     assert np.isfinite(d).all() and d.min() >= 0 and d.max() <= 1  # sigmoid occupancy score
 
 
-def test_shipped_model_sees_people_in_a_drone_photo(model_path: Path, shared_dir: Path) -> None:
+def test_shipped_model_sees_people_in_a_drone_photo(shipped_model: Path, shared_dir: Path) -> None:
     from companion.evaluation.datasets import semantic_drone
 
     s = next(x for x in semantic_drone(shared_dir, "val") if len(x.points) >= 3)
     img = s.image()
-    d = DensityModel(model_path)(img)
+    d = DensityModel(shipped_model)(img)
     assert d.shape == (-(-img.shape[0] // 4), -(-img.shape[1] // 4))
     rows, cols = (s.points[:, 1] // 4).astype(int), (s.points[:, 0] // 4).astype(int)
     # People score far above the frame's median cell.
     assert np.median(d[rows, cols]) > 10 * np.median(d)
 
 
-def test_odd_frame_sizes_are_padded_and_cropped_back(model_path: Path) -> None:
-    d = DensityModel(model_path)(np.full((501, 750, 3), 128, np.uint8))
+def test_odd_frame_sizes_are_padded_and_cropped_back(shipped_model: Path) -> None:
+    d = DensityModel(shipped_model)(np.full((501, 750, 3), 128, np.uint8))
     assert d.shape == (126, 188)
 
 
-def test_grey_frame_runs_on_a_colour_model(model_path: Path) -> None:
-    assert DensityModel(model_path)(np.full((64, 64), 90, np.uint8)).shape == (16, 16)
+def test_grey_frame_runs_on_a_colour_model(shipped_model: Path) -> None:
+    assert DensityModel(shipped_model)(np.full((64, 64), 90, np.uint8)).shape == (16, 16)
 
 
 # --- the MCNN peer through overrides -----------------------------------------------------------

@@ -509,7 +509,8 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             await camera.start()
             proc = await asyncio.create_subprocess_exec(
                 *service_command(spec, link_port, camera.url, record_dir), stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=dict(env))
+                stdout=subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=dict(env),
+                preexec_fn=die_with_parent)
             pump = asyncio.create_task(_pump(proc.stderr, lines, sink))  # type: ignore[arg-type]
             if not await notify.wait_ready(proc, timeout=60.0):
                 result.outcome = "timeout"
@@ -578,6 +579,19 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     result.starved = starved(result.processed_fps, result.frame_ms_p95, spec.fps)
     result.outcome = judge(result, spec.r0_m)
     return result
+
+
+def die_with_parent() -> None:
+    """``preexec_fn`` of a flight's service: on Linux the kernel sends it SIGTERM when the process
+    that started it dies, so a killed ``sim-scenarios`` (SIGTERM, SIGKILL, a cancelled Ray task)
+    leaves no service running on, busy with a camera that is gone and eating a flight's CPU.
+    Elsewhere a no-op (the flight's own clean-up still stops it on a normal exit)."""
+    if sys.platform != "linux":
+        return
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def starved(processed_fps: float | None, frame_ms_p95: float | None, fps: float) -> bool:

@@ -547,7 +547,7 @@ def test_a_zone_out_of_view_never_commits_while_the_frame_sees_someone_within_r0
     # the vehicle this frame sees a person 0.8 m away: that is a lost zone, not a blind one.
     ctl = LandingController(CFG)
     t = _in_land(ctl, r_view=1.1)
-    for k in range(3):
+    for _ in range(3):
         ctl.on_state(status(t, 10, 0, 7.5, mode="LAND"))
         ctl.on_frame(t, [], pose(t, 10, 0, 7.5), GroundBelow(10.0, 0.0, 0.8, 4.0))
         t += 0.1
@@ -556,7 +556,7 @@ def test_a_zone_out_of_view_never_commits_while_the_frame_sees_someone_within_r0
     # The same with everything under the vehicle seen free: committed, as before.
     ctl = LandingController(CFG)
     t = _in_land(ctl, r_view=1.1)
-    for k in range(3):
+    for _ in range(3):
         ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
         ctl.on_frame(t, [], pose(t, 10, 0, 5.9), GroundBelow(10.0, 0.0, 1.2, 1.2))
         t += 0.1

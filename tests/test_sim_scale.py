@@ -320,3 +320,35 @@ def test_ray_auto_flies_seeds_as_ray_tasks(tmp_path: Path, model_path) -> None:
     assert summary["run"]["ray"] == "auto" and summary["could_not_fly"] == []
     assert all(r["outcome"] in ("safe", "unsafe", "handback", "timeout") for r in summary["flights"])
     assert len(read_rows(out)[0]) == 2
+
+
+def test_a_killed_runner_leaves_no_service_running(tmp_path):
+    # sim-scenarios killed mid-flight used to leave the flight's service running on, its camera
+    # gone, eating the CPU of the flights after it. The service now dies with its parent.
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = ("import subprocess, sys, time\n"
+            "from sim.flight import die_with_parent\n"
+            "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=die_with_parent)\n"
+            "print(p.pid, flush=True)\n"
+            "time.sleep(60)\n")
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    child = int(parent.stdout.readline())
+    os.kill(child, 0)  # running
+    parent.send_signal(signal.SIGKILL)  # no clean-up can run in the parent
+    parent.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        # Reap it if it became ours (it did not: it was the parent's); the init process reaps it.
+        time.sleep(0.05)
+    else:
+        os.kill(child, signal.SIGKILL)
+        raise AssertionError("the child outlived its parent")

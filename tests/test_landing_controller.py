@@ -632,8 +632,9 @@ def test_above_the_trust_height_the_candidate_is_approached_at_it_and_judged_bel
     assert land_alt == pytest.approx(6.0) and min(alts) == pytest.approx(6.0)
 
 
-#: The controller with the people prediction on (off by default: docs/design.md).
-PREDICT = dataclasses.replace(CFG, predict_people=True)
+#: The controller with the people prediction on (off by default: docs/design.md), judged from
+#: any height (the default judges it only predict_lead_s before the commit; its own test below).
+PREDICT = dataclasses.replace(CFG, predict_people=True, predict_lead_s=60.0)
 
 
 def _low_over_zone(ctl: LandingController) -> float:
@@ -702,6 +703,27 @@ def test_a_land_under_way_pauses_above_the_abort_height_and_is_committed_below_i
     assert ctl2.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 4.0), None,
                          [dataclasses.replace(coming, last_t=t)]) == []
     assert ctl2.phase == Phase.LAND
+
+
+def test_the_prediction_is_judged_only_when_the_commit_is_near():
+    # From 9.8 m the committed part starts 9.6 s ahead (down to land_abort_above_m = 5 m at 0.5
+    # m/s): a straight line that far ahead is not judged; the camera still watches. Within
+    # predict_lead_s (2 s, 6 m here) of the commit the same walker pauses the LAND.
+    cfg = dataclasses.replace(CFG, predict_people=True)
+    assert cfg.predict_lead_s == 2.0
+    ctl = LandingController(cfg)
+    t = _low_over_zone(ctl)
+    walker = Person(7, 10.0, -14.0, 0.0, 1.2, 0.1, 10, t)
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None, [walker])
+    assert ctl.pauses == 0
+    t += 0.1
+    near = Person(7, 10.0, -4.0, 0.0, 1.2, 0.1, 10, t)  # reaches the point in 3.3 s: committed by then
+    ctl.on_state(status(t, 10, 0, 6.0, mode="LAND"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 6.0), None, [near])
+    assert ctl.phase == Phase.DESCEND and ctl.pauses == 1 and isinstance(cmds[0], Goto)
+    with pytest.raises(ValueError, match="predict_lead_s"):
+        dataclasses.replace(CFG, predict_lead_s=0.0)
 
 
 def test_prediction_off_lands_as_before_and_broken_people_are_ignored():

@@ -141,12 +141,16 @@ class LandingConfig:
     predict_people: bool = False
     #: The vehicle's horizontal position error (m), taken off every predicted clearance.
     pose_uncertainty_m: float = 0.5
+    #: Judge the prediction only this long (s) before the landing is committed: until then the
+    #: camera still watches the zone every frame, and a straight line drawn further ahead sends
+    #: people who turn (most do) through the landing point.
+    predict_lead_s: float = 2.0
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
             raise ValueError(f"controller handback_action must be LAND or RTL, not {self.handback_action!r}")
         for name in ("select_timeout_s", "hold_timeout_s", "arrive_radius_m", "descend_alt_m", "descend_step_m",
-                     "hold_height_m", "max_takeover_s", "max_alt_m",
+                     "hold_height_m", "max_takeover_s", "max_alt_m", "predict_lead_s",
                      "max_pose_age_s", "state_timeout_s", "pose_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -407,6 +411,8 @@ class LandingController:
         if not math.isfinite(horizon):
             return math.inf, None
         blind_from = max(0.0, horizon - self.descent.time_to_touchdown(min(s.height, c.land_abort_above_m)))
+        if blind_from > c.predict_lead_s:
+            return math.inf, None  # not yet: the camera watches until the commit is near
         clear, worst = min(((predicted_clearance([q], north, east, self.now, horizon, blind_from), q)
                             for q in walkers), key=lambda pair: pair[0])
         return clear - c.pose_uncertainty_m, worst

@@ -52,7 +52,9 @@ def test_posed_pipeline_places_zones_in_world_metres():
     alt = 25.0
     pose = Pose(0.0, 100.0, -50.0, -alt, 0.0, 0.0, 0.0)
     scene = synthetic.crowd_scene(free=((420.0, 150.0, 80.0),), n_people=300, seed=3)
-    pipe = _pipeline_for(scene, config=PipelineConfig(r0_m=1.0), intrinsics=K, mount=Mount())
+    # The paper's circle (the first largest): this checks where it lands in the world, and a
+    # near-tie nearer the camera (proposal_tie_m) would move it toward the vehicle.
+    pipe = _pipeline_for(scene, config=PipelineConfig(r0_m=1.0, proposal_tie_m=0.0), intrinsics=K, mount=Mount())
     res = pipe.process(synthetic.render(scene), 0.0, pose)
     # Where the free circle's centre pixel lands on the head plane, in world NED.
     expect = res.projection.image_to_plane(np.array([[420.0, 150.0]]))[0]

@@ -21,13 +21,14 @@ import scipy.io
 
 Split = Literal["train", "val", "all"]
 
+#: The DroneCrowd frames the shipped model trained on (sequence 112, frames 8-12); ``img017012``
+#: (another sequence) is held out.
+DRONECROWD_TRAIN = [f"img112{k:03d}" for k in range(8, 13)]
 # The six real DroneCrowd frames kept in shared/: file stem -> (gt sequence file, 0-based frame).
 DRONECROWD_FRAMES: dict[str, tuple[str, int]] = {
-    **{f"img112{k:03d}": ("00112.mat", k - 1) for k in range(8, 13)},
+    **{name: ("00112.mat", int(name[-3:]) - 1) for name in DRONECROWD_TRAIN},
     "img017012": ("00017.mat", 11),
 }
-#: The five of them the shipped model trained on; ``img017012`` (another sequence) is held out.
-DRONECROWD_TRAIN = [f"img112{k:03d}" for k in range(8, 13)]
 MALL_FIRST, MALL_LAST = 801, 2000
 #: Factors of the downscaled semantic-drone hold-out (real photos of smaller people; see ``scaled``).
 SEMANTIC_SCALES = (0.5, 0.25)

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
+from companion.control.touchdown import DescentProfile
 from companion.geometry.camera import PlaneProjection
 from companion.pipeline.circles import Circle
 from companion.pipeline.headplane import GridSpec
@@ -90,6 +91,12 @@ def _track_text(tr: Track, clearance_m: float | None = None) -> str:
     if clearance_m is not None and math.isfinite(clearance_m):
         text += f", {tr.r:.1f} / {clearance_m:+.1f} m"
     return text
+
+
+def touchdown_clearances(tracks: Sequence[Track], descent: DescentProfile, height_m: float) -> dict[int, float]:
+    """Each track's least clearance at touchdown (m, by id) if the vehicle committed from
+    ``height_m`` now: the labels of :func:`draw_image_view` (replay and the demo's video)."""
+    return {tr.id: descent.clearance_at_touchdown(tr.r, height_m) for tr in tracks}
 
 
 def draw_image_view(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,

@@ -96,7 +96,7 @@ def annotate(frame_bgr: np.ndarray, tracks: list[Track], target_id: int | None, 
     if proj is not None:
         clearances = None
         if descent is not None and height_m is not None:
-            clearances = {tr.id: descent.clearance_at_touchdown(tr.r, height_m) for tr in tracks}
+            clearances = draw.touchdown_clearances(tracks, descent, height_m)
         view = draw.draw_image_view(frame_bgr, np.full((h, w), FREE, np.uint8), proj, [], tracks, target_id,
                                     clearances=clearances)
     else:

@@ -179,9 +179,8 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
             if outputs.video is not None:
                 posed = use_pose and frame.pose is not None
                 clearances = None
-                if posed and frame.pose is not None:
-                    profile, height = descent or DescentProfile(), -frame.pose.down
-                    clearances = {tr.id: profile.clearance_at_touchdown(tr.r, height) for tr in result.tracks}
+                if posed and frame.pose is not None:  # (posed says it; mypy needs it said here)
+                    clearances = draw.touchdown_clearances(result.tracks, descent or DescentProfile(), -frame.pose.down)
                 outputs.video.write(draw.figure(
                     frame.image, result.occupancy, result.projection, result.proposals,
                     result.tracks, target_id,

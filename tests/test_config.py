@@ -89,6 +89,8 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[camera]\nfps = nan\n", r"camera\.fps must be a finite number"),
         ("[controller]\nmin_person_px = -3\n", r"controller\.min_person_px must be >= 0"),
         ("[controller]\nlose_after_frames = 0\n", r"controller\.lose_after_frames must be >= 1"),
+        ("[pipeline]\nproposal_tie_m = -0.1\n", r"pipeline\.proposal_tie_m must be >= 0"),
+        ("[controller]\npredict_lead_s = 0\n", r"controller\.predict_lead_s must be >= 0\.1"),
     ],
 )
 def test_bad_values_name_the_key(tmp_path: Path, text: str, pattern: str) -> None:

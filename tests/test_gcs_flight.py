@@ -27,7 +27,7 @@ from companion.control.events import Phase, TargetChosen
 from companion.mavlink.link import MavLink
 from companion.recording import RecordingReader
 from companion.service.app import Service, load_model
-from companion.service.gcs import CONDITIONS
+from companion.service.gcs import CONDITIONS, PHASE_CODES
 from sim.flight import FlightSpec, build_scene, reserve_port
 from tests.mavpeer import join_statustexts
 
@@ -211,6 +211,10 @@ def test_the_ground_station_sees_readiness_the_shadow_decisions_and_the_numbers(
             values.setdefault(msg.name, []).append(msg.value)
     assert max(values["SLZ_ZONES"]) >= 1 and max(values["SLZ_FPS"]) > 2.0
     assert {0, 1} <= set(values["SLZ_PHASE"]) or {0, 2} <= set(values["SLZ_PHASE"]), values["SLZ_PHASE"]
+    # Every phase the controller went through is plotted, however briefly it lasted (a zone right
+    # under the camera passes SELECT and APPROACH within a frame, between two 1 Hz samples).
+    went = {PHASE_CODES[e.phase] for e in flight.svc.events if e.changed}
+    assert went <= set(values["SLZ_PHASE"]), (went, values["SLZ_PHASE"])
     assert any(r > 4.0 for r in values["SLZ_TGT_R"]), values["SLZ_TGT_R"]  # r0 + margin at least
     assert any(c == c for c in values["SLZ_CLEAR"])  # a number (not NaN) while there was a target
     states = [int(msg.system_status) for msg in from_companion(flight) if msg.get_type() == "HEARTBEAT"]

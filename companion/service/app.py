@@ -324,6 +324,11 @@ class Service:
             log.warning("landing controller: %s%s -> %s", "(shadow) " if self.shadow else "",
                         event.old.value, event.phase.value)
             self._record_event("phase", event.t, old=event.old.value, new=event.phase.value, **mark)
+            if self.cfg.gcs.values_hz > 0 and self.gcs.ready:
+                # Every phase reaches the ground station's plot, not only the one a 1 Hz sample
+                # happens to catch: a zone right under the camera goes SELECT -> APPROACH ->
+                # DESCEND within one frame.
+                self._send_values(event.phase)
         record = event.as_record()
         del record["t"]  # the recording's own time field
         self._record_event("controller", event.t, **record, **mark)
@@ -601,15 +606,19 @@ class Service:
         return (f"{shadow}{self.phase}  zones {len(result.tracks)}  {aim}  "
                 f"{time.strftime('%H:%M:%S')}")
 
+    def _send_values(self, phase: Phase) -> None:
+        """The ground station's numbers now, with ``phase`` as SLZ_PHASE."""
+        now = time.monotonic()
+        target, clearance = self._target_numbers()
+        result = self.last_result
+        self.gcs.values(now, phase=phase, zones=0 if result is None else len(result.tracks),
+                        health=self.health(now), target_r_m=None if target is None else target.r,
+                        clearance_m=clearance)
+
     async def _values_loop(self) -> None:
         period = 1.0 / self.cfg.gcs.values_hz
         while True:
-            now = time.monotonic()
-            target, clearance = self._target_numbers()
-            result = self.last_result
-            self.gcs.values(now, phase=Phase(self.phase), zones=0 if result is None else len(result.tracks),
-                            health=self.health(now), target_r_m=None if target is None else target.r,
-                            clearance_m=clearance)
+            self._send_values(Phase(self.phase))
             await asyncio.sleep(period)
 
     def status_json(self) -> dict[str, Any]:

@@ -164,3 +164,46 @@ def test_a_person_not_seen_since_is_reported_where_they_were_seen():
     (p,) = tracker.people()
     assert p.last_t == pytest.approx(0.9) and p.x == pytest.approx(0.9, abs=0.1)
     assert p.pos_std_m < 0.25  # its error when last seen, not grown with the time since
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_association_is_the_dense_hungarian_optimum(seed):
+    """The k-d tree association matches as many tracks as the Hungarian method on the full gated
+    cost matrix, at the same least total distance, each pair within its track's gate."""
+    from scipy.optimize import linear_sum_assignment
+
+    from companion.pipeline.people import associate
+
+    rng = np.random.default_rng(seed)
+    n, m = rng.integers(0, 40, 2)
+    tracks, points = rng.uniform(0, 10, (n, 2)), rng.uniform(0, 10, (m, 2))
+    gate = rng.uniform(0.3, 2.0, n)
+    rows, cols = associate(tracks, points, gate)
+    assert len(set(rows.tolist())) == len(rows) and len(set(cols.tolist())) == len(cols)
+    if n == 0 or m == 0:
+        assert len(rows) == 0
+        return
+    cost = np.hypot(tracks[:, None, 0] - points[None, :, 0], tracks[:, None, 1] - points[None, :, 1])
+    assert (cost[rows, cols] <= gate[rows]).all()
+    gated = np.where(cost <= gate[:, None], cost, 1e6)
+    r, c = linear_sum_assignment(gated)
+    ok = gated[r, c] < 1e6
+    assert len(rows) == ok.sum()
+    assert cost[rows, cols].sum() == pytest.approx(cost[r[ok], c[ok]].sum())
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_merging_keeps_the_stronger_of_every_close_pair_as_a_greedy_pass_would(seed):
+    rng = np.random.default_rng(seed)
+    pose = Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
+    proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)
+    uv = rng.uniform([100, 100], [540, 380], (60, 2))
+    strength = rng.uniform(0, 1, 60)
+    got = place_people(uv, strength, proj, merge_m=0.6)
+    # The rule written plainly: strongest first, kept unless a kept point is nearer than merge_m.
+    xy = proj.image_to_plane(uv)[np.argsort(-strength, kind="stable")]
+    keep: list[int] = []
+    for i in range(len(xy)):
+        if not keep or np.min(np.hypot(*(xy[keep] - xy[i]).T)) >= 0.6:
+            keep.append(i)
+    np.testing.assert_allclose(got, xy[keep])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from companion.pipeline.headplane import GridSpec
-from companion.pipeline.proposals import propose
+from companion.pipeline.proposals import distance_cells, propose
 
 
 def _random_map(seed, shape=(60, 80), n_blobs=25):
@@ -152,3 +152,26 @@ def test_a_preference_never_drops_a_circle_to_below_r_min():
     best = propose(free, grid, n_max=1, r_min=0.1)[0]
     c = propose(free, grid, n_max=1, r_min=best.r - 0.01, prefer=(0.0, 0.0), tie_m=1.0)
     assert len(c) == 1 and c[0].r >= best.r - 0.01
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_the_distance_read_at_points_equals_the_whole_transform(seed):
+    """``PointDistance`` (how far the view reaches, read at the zones' centres) gives exactly what
+    ``distance_cells`` gives, on random grids and on convex footprints, with the grid's edge
+    counted as non-free."""
+    import cv2
+
+    from companion.pipeline.proposals import PointDistance
+
+    rng = np.random.default_rng(seed)
+    h, w = (int(v) for v in rng.integers(1, 50, 2))
+    if seed % 3 == 0:
+        grid = np.zeros((h, w), np.uint8)
+        cv2.fillConvexPoly(grid, rng.uniform(-5, 55, (4, 2)).astype(np.int32), 255)
+    else:
+        grid = ((rng.random((h, w)) < rng.uniform(0.3, 1.0)) * 255).astype(np.uint8)
+    full, points = distance_cells(grid), PointDistance(grid)
+    assert points.shape == full.shape
+    for i in range(h):
+        for j in range(w):
+            assert points[i, j] == pytest.approx(float(full[i, j]), abs=1e-5)

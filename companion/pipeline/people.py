@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.occupancy import occupied_mask
@@ -131,12 +132,58 @@ def place_people(uv: np.ndarray, strength: np.ndarray, proj: PlaneProjection, me
     xy, strength = xy[ok], np.asarray(strength, dtype=float)[ok]
     if len(xy) < 2:
         return np.asarray(xy, dtype=float)
-    xy = xy[np.argsort(-strength)]
-    keep: list[int] = []
-    for i in range(len(xy)):
-        if not keep or np.min(np.hypot(*(xy[keep] - xy[i]).T)) >= merge_m:
-            keep.append(i)
+    xy = xy[np.argsort(-strength, kind="stable")]
+    # Greedy, strongest first: a point is dropped when a stronger point that is kept lies within
+    # merge_m. Most peaks have no neighbour that close (a crowd is a hundred isolated heads), so
+    # only the points of a close pair (found with a k-d tree) go through the loop.
+    pairs = cKDTree(xy).query_pairs(merge_m * (1.0 - 1e-9), output_type="ndarray")
+    keep = np.ones(len(xy), dtype=bool)
+    if len(pairs):
+        stronger: dict[int, list[int]] = {int(i): [] for i in np.unique(pairs)}
+        for a, b in pairs.tolist():
+            stronger[max(a, b)].append(min(a, b))
+        for i in sorted(stronger):
+            if keep[stronger[i]].any():
+                keep[i] = False
     return np.asarray(xy[keep], dtype=float)
+
+
+def associate(tracks: np.ndarray, points: np.ndarray, gate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Matched (track rows, point rows): the assignment that matches the most tracks ((N, 2) m) to
+    points ((M, 2) m) each within its track's ``gate`` ((N,) m), and of those the least total
+    distance (Hungarian, ``scipy.optimize.linear_sum_assignment``). The pairs within the gates come
+    from a k-d tree, not an N x M matrix: a crowd is hundreds of people, mostly one track near one
+    head, and the Hungarian method runs only on those with a choice to make."""
+    n, m = len(tracks), len(points)
+    none = (np.zeros(0, dtype=int), np.zeros(0, dtype=int))
+    if n == 0 or m == 0:
+        return none
+    gmax = float(np.max(gate))
+    if not math.isfinite(gmax) or gmax < 0:
+        return none
+    sparse = cKDTree(tracks).sparse_distance_matrix(cKDTree(points), gmax, output_type="ndarray")
+    i, j, dist = sparse["i"], sparse["j"], sparse["v"]
+    ok = dist <= gate[i]
+    i, j, dist = i[ok], j[ok], dist[ok]
+    if not len(i):
+        return none
+    # A pair whose track and point are in no other pair is a match with nothing to choose; the
+    # Hungarian method runs once, on the tracks and points left (the same optimum: the isolated
+    # pairs are independent of the rest).
+    single = (np.bincount(i, minlength=n)[i] == 1) & (np.bincount(j, minlength=m)[j] == 1)
+    rows, cols = [i[single]], [j[single]]
+    if not single.all():
+        rest = ~single
+        ti, ui = np.unique(i[rest], return_inverse=True)
+        pj, vj = np.unique(j[rest], return_inverse=True)
+        big = 1e6
+        cost = np.full((len(ti), len(pj)), big)
+        cost[ui, vj] = dist[rest]
+        r, c = linear_sum_assignment(cost)
+        good = cost[r, c] < big
+        rows.append(ti[r[good]])
+        cols.append(pj[c[good]])
+    return np.concatenate(rows).astype(int), np.concatenate(cols).astype(int)
 
 
 class PeopleTracker:
@@ -179,13 +226,8 @@ class PeopleTracker:
         matched_tracks = np.zeros(n, dtype=bool)
         used = np.zeros(len(pts), dtype=bool)
         if n and len(pts):
-            cost = np.hypot(self._x[:, None, 0] - pts[None, :, 0], self._x[:, None, 1] - pts[None, :, 1])
             gate = p.gate_m + p.walk_speed_mps * np.maximum(t - self._last, 0.0)
-            big = 1e6
-            cost_g = np.where(cost <= gate[:, None], cost, big)
-            rows, cols = linear_sum_assignment(cost_g)
-            ok = cost_g[rows, cols] < big
-            rows, cols = rows[ok], cols[ok]
+            rows, cols = associate(self._x[:, :2], pts, gate)
             self._correct(rows, pts[cols])
             self._std[rows] = np.sqrt(np.maximum(self._P[rows, 0, 0], self._P[rows, 1, 1]))
             self._hits[rows] += 1
@@ -232,9 +274,10 @@ class PeopleTracker:
         # but a person not matched since is reported as seen: the prediction moves them on).
         age = np.maximum((self._t or 0.0) - self._last, 0.0)
         seen_xy = self._x[:, :2] - self._x[:, 2:] * age[:, None]
-        return [Person(int(i), float(x[0]), float(x[1]), float(vu[0]), float(vu[1]), float(s), int(hh), float(lt))
-                for i, x, vu, s, hh, lt in zip(self._ids, seen_xy, v_used, self._std, self._hits, self._last,
-                                               strict=True)]
+        # tolist() converts to Python numbers in one call (a crowd is hundreds of people a frame).
+        return list(map(Person, self._ids.tolist(), seen_xy[:, 0].tolist(), seen_xy[:, 1].tolist(),
+                        v_used[:, 0].tolist(), v_used[:, 1].tolist(), self._std.tolist(), self._hits.tolist(),
+                        self._last.tolist()))
 
     # -- the filter ------------------------------------------------------------------------
 
@@ -255,15 +298,14 @@ class PeopleTracker:
     def _correct(self, rows: np.ndarray, z: np.ndarray) -> None:
         if not len(rows):
             return
-        H = np.zeros((2, 4))
-        H[0, 0] = H[1, 1] = 1.0
-        R = np.eye(2) * self.params.meas_std_m ** 2
+        # The measurement is the position (H = [I 0]): S = P_pp + R, K = P[:, :2]^T S^-1, written
+        # out instead of multiplied through H (hundreds of people a frame).
         P = self._P[rows]
-        S = H @ P @ H.T + R
-        K = P @ H.T @ np.linalg.inv(S)
+        S = P[:, :2, :2] + np.eye(2) * self.params.meas_std_m ** 2
+        K = P[:, :, :2] @ np.linalg.inv(S)
         y = z - self._x[rows][:, :2]
         self._x[rows] = self._x[rows] + np.einsum("nij,nj->ni", K, y)
-        self._P[rows] = (np.eye(4) - K @ H) @ P
+        self._P[rows] = P - K @ P[:, :2, :]
 
     def _keep(self, alive: np.ndarray) -> None:
         self._x, self._P = self._x[alive], self._P[alive]

@@ -46,7 +46,40 @@ def distance_cells(free_grid: np.ndarray) -> np.ndarray:
     return dist[1:-1, 1:-1]
 
 
-def clearance_at(dist: np.ndarray, grid: GridSpec, x: float, y: float) -> float:
+class PointDistance:
+    """``distance_cells(free_grid)`` read at a few cells, without the whole transform.
+
+    The nearest non-free cell to a free cell always has a free 4-neighbour (a non-free cell one
+    step nearer would be nearer still), so only those border cells need to be measured: a view's
+    footprint is a few hundred of them against tens of thousands of cells, and a frame asks for
+    a handful of points. The same values as the transform (exact Euclidean, float32), with
+    everything outside the grid non-free. Indexed like the array: ``d[i, j]``."""
+
+    def __init__(self, free_grid: np.ndarray) -> None:
+        if free_grid.ndim != 2:
+            raise ValueError(f"free grid must be 2-D, got shape {free_grid.shape}")
+        free = free_grid if free_grid.dtype == np.uint8 else (free_grid > 0).astype(np.uint8)
+        padded = cv2.copyMakeBorder(free, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+        cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+        # Dilating can only raise a cell: the difference is > 0 exactly on the border cells.
+        border = cv2.subtract(cv2.dilate(padded, cross, borderType=cv2.BORDER_CONSTANT, borderValue=0), padded)
+        at = cv2.findNonZero(border)
+        at = np.zeros((0, 2)) if at is None else np.asarray(at).reshape(-1, 2)  # (x, y) = (j, i)
+        bj, bi = at[:, 0], at[:, 1]
+        self._free = padded
+        self._bi = (bi - 1).astype(np.float32)
+        self._bj = (bj - 1).astype(np.float32)
+        self.shape: tuple[int, int] = (int(free_grid.shape[0]), int(free_grid.shape[1]))
+
+    def __getitem__(self, ij: tuple[int, int]) -> float:
+        i, j = ij
+        if not self._free[i + 1, j + 1] or not len(self._bi):
+            return 0.0
+        di, dj = self._bi - np.float32(i), self._bj - np.float32(j)
+        return float(np.sqrt(np.min(di * di + dj * dj)))
+
+
+def clearance_at(dist: np.ndarray | PointDistance, grid: GridSpec, x: float, y: float) -> float:
     """Radius in metres of the largest circle centred at plane point (x, y) that touches no
     non-free cell, from the distance map of ``distance_cells``; 0 outside the grid.
     (Given the distance map of the *seen* grid instead, it is how far the view reaches.)"""

@@ -29,7 +29,7 @@ from companion.pipeline.edges import edge_reason
 from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
-from companion.pipeline.proposals import TIE_M, clearance_at, distance_cells, propose
+from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
@@ -223,7 +223,8 @@ class SLZPipeline:
         proposals = propose(fused, grid, self.config.n_proposals, self.config.r0_m, dist,
                             prefer=proj.camera_xy, tie_m=self.config.proposal_tie_m)
         t5 = time.perf_counter()
-        view_dist = distance_cells(seen[0])
+        # How far the view reaches is asked at a few points only (the zones' centres).
+        view_dist = PointDistance(seen[0])
 
         def clearance(x: float, y: float) -> tuple[float, float]:
             c = clearance_at(dist, grid, x, y)

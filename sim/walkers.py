@@ -23,6 +23,9 @@ import numpy as np
 WALK_SPEED_MEAN = 1.3
 WALK_SPEED_STD = 0.15
 WALK_SPEED_RANGE = (1.0, 1.6)
+#: Metres beyond a keep-out circle (and its margin) that walkers' paths around it keep: room for
+#: the tangent line, so that walking it does not graze the circle.
+STEER_CLEARANCE_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -159,6 +162,8 @@ class GeneratedCrowd:
         self.lead_wait = rng.uniform(0.0, p.pause_s[1], n_lead) * (rng.random(n_lead) < 0.3)
         d = self.lead_goal - self.lead_pos
         self.lead_heading = np.arctan2(d[:, 1], d[:, 0])
+        # Drawn and no longer used (walkers now take the side nearer their goal): kept so that
+        # every seed draws the same world as before.
         self.tangent_side = np.where(rng.random(n_lead) < 0.5, 1.0, -1.0)
 
         # Followers: offsets in the leader's frame (forward, right), metres.
@@ -206,7 +211,7 @@ class GeneratedCrowd:
         d = self.lead_goal - self.lead_pos
         dist = np.hypot(d[:, 0], d[:, 1])
         direction = d / np.maximum(dist, 1e-9)[:, None]
-        direction = self._steer_around(self.lead_pos, direction)
+        direction = self._steer_around(self.lead_pos, direction, dist)
         step_len = np.minimum(self.lead_speed * dt, dist)
         move = ~waiting
         new = self.lead_pos + direction * (step_len * move)[:, None]
@@ -240,23 +245,44 @@ class GeneratedCrowd:
             self.stand_heading[turn] += rng.normal(0.0, 0.8, int(turn.sum()))
         self._enforce()
 
-    def _steer_around(self, pos: np.ndarray, direction: np.ndarray) -> np.ndarray:
-        """Directions bent along the tangent of keep-out circles the walker is heading into."""
+    def _steer_around(self, pos: np.ndarray, direction: np.ndarray, reach: np.ndarray | None = None) -> np.ndarray:
+        """Directions that walk around keep-out circles the way people walk around a lawn or a
+        fenced square: whoever's straight way to the goal crosses a circle (grown by the margin
+        and ``STEER_CLEARANCE_M``) heads for the tangent point on the side nearer the goal, in
+        a straight line, from as far away as they are; on the circle itself they follow it.
+
+        Straight lines that never enter the circle, rather than walking at it and turning away at
+        its edge: a walker's own straight-line future then never runs through the free area
+        unless they really are about to cross it. The earlier rule (head for the goal, turn only
+        2 m from the edge) made every walker heading that way look, to anyone extrapolating their
+        path, like someone about to cross the landing zone (docs/design.md, "People followed to
+        touchdown"). ``reach``: each walker's distance to their goal (m; None: unbounded)."""
         out = direction.copy()
+        ahead = np.full(len(out), np.inf) if reach is None else np.asarray(reach, float)
         for c in self.keep_out:
-            v = pos - c.centre
+            R = c.radius + self.params.keep_out_margin + STEER_CLEARANCE_M
+            v = c.centre - pos  # to the centre
             dist = np.hypot(v[:, 0], v[:, 1])
-            r = c.radius + self.params.keep_out_margin
-            near = dist < r + 2.0
-            inward = (out[:, 0] * v[:, 0] + out[:, 1] * v[:, 1]) < 0
-            bend = near & inward
-            if not bend.any():
+            # Does the way to the goal pass within R of the centre? (The segment's nearest point.)
+            along = out[:, 0] * v[:, 0] + out[:, 1] * v[:, 1]
+            t = np.clip(along, 0.0, ahead)
+            blocked = (along > 0) & (np.hypot(v[:, 0] - t * out[:, 0], v[:, 1] - t * out[:, 1]) < R)
+            if not blocked.any():
                 continue
-            radial = v[bend] / np.maximum(dist[bend], 1e-9)[:, None]
-            s = self.tangent_side[bend][:, None]
-            tangent = np.column_stack([-radial[:, 1], radial[:, 0]]) * s
-            out[bend] = tangent
+            idx = np.flatnonzero(blocked)
+            u = v[idx] / np.maximum(dist[idx], 1e-9)[:, None]
+            # The two tangent directions from the walker (on the circle: the two along it).
+            half = np.arcsin(np.clip(R / np.maximum(dist[idx], 1e-9), 0.0, 1.0))
+            cands = []
+            for sgn in (1.0, -1.0):
+                a = sgn * half
+                cands.append(np.column_stack([u[:, 0] * np.cos(a) - u[:, 1] * np.sin(a),
+                                              u[:, 0] * np.sin(a) + u[:, 1] * np.cos(a)]))
+            want = out[idx]
+            closer = (cands[0] * want).sum(axis=1) >= (cands[1] * want).sum(axis=1)
+            out[idx] = np.where(closer[:, None], cands[0], cands[1])
         return out
+
 
     def positions(self) -> np.ndarray:
         return np.vstack([self.lead_pos, self.fol_pos, self.stand_pos])

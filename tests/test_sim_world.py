@@ -142,3 +142,33 @@ def test_a_dense_crowd_can_keep_one_free_circle_out_of_the_first_view() -> None:
     assert np.count_nonzero(d < free.radius + 3.0) >= 20
     # Nowhere else within 20 m of the start is there room to land.
     assert world.largest_free_circle((10.0, 0.0), 18.0)[2] < 2.5
+
+
+@pytest.mark.parametrize("seed", [1, 3, 9])
+def test_walkers_go_around_the_free_area_on_paths_that_never_cross_it(seed: int) -> None:
+    """People walk around a free area on straight tangent paths, as round a lawn, not at it and
+    then away at its edge: the straight-line extrapolation of how anyone is moving (what a
+    tracker predicts) never runs through the middle of the free area. Before, walkers headed for
+    goals beyond it and turned 2 m from its edge, so extrapolated paths crossed it all the time."""
+    world = crowd_with_free_area(seed=seed)
+    (free,) = world.free_areas
+    prev = world.positions()
+    worst = np.inf
+    for _ in range(600):  # 1 minute
+        world.step(DT)
+        now = world.positions()
+        if len(now) == len(prev):
+            v = (now - prev) / DT
+            moving = np.hypot(v[:, 0], v[:, 1]) > 0.3
+            rel = free.centre - now[moving]
+            vm = v[moving]
+            vv = np.maximum((vm ** 2).sum(axis=1), 1e-12)
+            # The closest approach to the centre over the next 5 s of straight walking.
+            tau = np.clip((rel * vm).sum(axis=1) / vv, 0.0, 5.0)
+            d = np.hypot(rel[:, 0] - vm[:, 0] * tau, rel[:, 1] - vm[:, 1] * tau)
+            if len(d):
+                worst = min(worst, float(d.min()))
+        prev = now
+    # r_0 (2 m) around the centre is what a landing needs: nobody's extrapolated path comes
+    # within it (the closest are group members catching up with their group, at up to 1.8 m/s).
+    assert worst >= 2.5

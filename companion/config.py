@@ -255,6 +255,9 @@ class ControllerSettings:
     predict_lead_s: float = _f(2.0, "with predict_people, judge the prediction only this long before the "
                                     "landing is committed (s): until then the camera watches the zone", min=0.1,
                                max=120.0)
+    predict_min_height_m: float = _f(0.0, "with predict_people, no new prediction below this height (m) "
+                                          "unless a pause is on: low down the view is barely r0 wide and the "
+                                          "people at its edge seem to move with it", min=0.0, max=120.0)
     hold_height_m: float = _f(15.0, "on a lost zone the vehicle holds at least this high above the "
                               "ground, where the camera sees enough to confirm a zone again", min=2.0, max=120.0)
     max_takeover_s: float = _f(90.0, "not landed this long after the trigger: hand back to the "
@@ -672,7 +675,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
         lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         predict_people=c.predict_people, pose_uncertainty_m=c.pose_uncertainty_m,
-        predict_lead_s=c.predict_lead_s,
+        predict_lead_s=c.predict_lead_s, predict_min_height_m=c.predict_min_height_m,
         max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),

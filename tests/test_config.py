@@ -91,6 +91,7 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[controller]\nlose_after_frames = 0\n", r"controller\.lose_after_frames must be >= 1"),
         ("[pipeline]\nproposal_tie_m = -0.1\n", r"pipeline\.proposal_tie_m must be >= 0"),
         ("[controller]\npredict_lead_s = 0\n", r"controller\.predict_lead_s must be >= 0\.1"),
+        ("[controller]\npredict_min_height_m = -1\n", r"controller\.predict_min_height_m must be >= 0"),
     ],
 )
 def test_bad_values_name_the_key(tmp_path: Path, text: str, pattern: str) -> None:

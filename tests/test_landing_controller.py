@@ -739,3 +739,45 @@ def test_prediction_off_lands_as_before_and_broken_people_are_ignored():
     assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), None, [broken])
     with pytest.raises(ValueError, match="pose_uncertainty_m"):
         LandingConfig(pose_uncertainty_m=-1.0)
+
+
+def test_no_new_prediction_below_the_minimum_height_but_a_pause_already_on_is_judged_through():
+    """Below ``predict_min_height_m`` the view is barely r0 wide and people at its edge seem to
+    move with it: a walker first predicted there changes nothing. A pause that began higher up
+    is still judged low down, and lifts once they are past."""
+    cfg = dataclasses.replace(PREDICT, predict_min_height_m=8.0, land_abort_above_m=3.5)
+    ctl = LandingController(cfg)
+    t = _low_over_zone(ctl)
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8))
+    t += 0.1
+    # 15 m west, walking east: at the point in 12.5 s, inside the committed part of the descent
+    # from 6 m (5 s to 12 s ahead at 0.5 m/s below 3.5 m) as from 9 m (11 s to 18 s).
+    near = Person(7, 10.0, -15.0, 0.0, 1.2, 0.1, 10, t)
+    ctl.on_state(status(t, 10, 0, 6.0, mode="LAND"))
+    assert ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 6.0), None, [near]) == []
+    assert ctl.phase == Phase.LAND and ctl.pauses == 0
+    # The same walker seen from 9 m pauses the LAND ...
+    ctl2 = LandingController(cfg)
+    t = _low_over_zone(ctl2)
+    ctl2.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    assert Land() in ctl2.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8))
+    t += 0.1
+    ctl2.on_state(status(t, 10, 0, 9.0, mode="LAND"))
+    cmds = ctl2.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.0), None,
+                         [dataclasses.replace(near, last_t=t)])
+    assert ctl2.phase == Phase.DESCEND and ctl2.pauses == 1 and isinstance(cmds[0], Goto)
+    # ... and the pause, now at 7.5 m (below the minimum), still holds while they come ...
+    t += 0.1
+    ctl2.on_state(status(t, 10, 0, 7.5, mode="GUIDED"))
+    cmds = ctl2.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 7.5), None,
+                         [dataclasses.replace(near, y=-14.8, last_t=t)])
+    assert not any(isinstance(c, Land) for c in cmds) and ctl2.phase == Phase.DESCEND
+    # ... and lifts once they are past.
+    t += 0.1
+    ctl2.on_state(status(t, 10, 0, 7.5, mode="GUIDED"))
+    cmds = ctl2.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 7.5), None,
+                         [dataclasses.replace(near, y=6.0, last_t=t)])
+    assert Land() in cmds and any("past the landing point" in x for x in texts(ctl2))
+    with pytest.raises(ValueError, match="predict_min_height_m"):
+        dataclasses.replace(CFG, predict_min_height_m=-1.0)

@@ -145,6 +145,10 @@ class LandingConfig:
     #: camera still watches the zone every frame, and a straight line drawn further ahead sends
     #: people who turn (most do) through the landing point.
     predict_lead_s: float = 2.0
+    #: No new prediction below this height (m) unless a pause is on: low down the view is barely
+    #: r0 wide, the people in it are at its edge, partly seen, and their apparent motion is the
+    #: view's (density peaks moving over a body entering the frame), not theirs.
+    predict_min_height_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -155,7 +159,7 @@ class LandingConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
-        for name in ("search_s", "search_radius_m", "search_reserve_s"):
+        for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
@@ -406,6 +410,8 @@ class LandingController:
         c, s = self.config, self.status
         walkers = [q for q in self.people if q.speed_mps > 0]
         if not c.predict_people or s is None or not walkers:
+            return math.inf, None
+        if s.height < c.predict_min_height_m and self._paused_for is None:
             return math.inf, None
         horizon = self.descent.time_to_touchdown(s.height)
         if not math.isfinite(horizon):

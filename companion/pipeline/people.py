@@ -54,7 +54,8 @@ class PeopleParams:
     elapsed time; walk_speed_mps widens it with the time since the person was last matched.
     meas_std_m: a detection's position error. accel_std: the filter's process noise (m/s^2).
     max_missed_s / memory_s: how long a person not matched is kept in view / out of view.
-    min_hits: matched frames before a person's velocity is used."""
+    min_hits: matched frames before a person's velocity is used (10, about a second: a person
+    coming into the view is seen a part at a time, and the first frames' peaks move over them)."""
 
     window: int = 3
     merge_m: float = 0.4
@@ -64,7 +65,7 @@ class PeopleParams:
     accel_std: float = 1.0
     max_missed_s: float = 0.6
     memory_s: float = 5.0
-    min_hits: int = 3
+    min_hits: int = 10
 
     def __post_init__(self) -> None:
         if int(self.window) != self.window or self.window < 1 or self.window % 2 == 0:

@@ -64,11 +64,11 @@ log = logging.getLogger("sim.flight")
 WORLDS = ("free_area", "dense", "dense_beyond", "intrusion", "crossing", "dronecrowd", "uniform")
 OUTCOMES = ("safe", "unsafe", "handback", "timeout")
 UNIFORM_GROUND_BGR = (70, 140, 95)  # mown grass
-#: A flight is **starved** (its CPU, not the software under test, decided it) when its service
 #: Seconds the flight goes on after the land detector fires (touchdown), so that the service sees
 #: the landed state and records LANDED before it is stopped: EXTENDED_SYS_STATE comes at 2 Hz
 #: (ArduPilot) or 1 Hz (PX4), plus time for a loaded machine. 0.5 s lost LANDED on a loaded CI run.
 LANDED_GRACE_S = 1.5
+#: A flight is **starved** (its CPU, not the software under test, decided it) when its service
 #: processed frames at less than STARVED_SHARE of the camera's rate, from READY to touchdown (or to
 #: the end of the flight), or when the pipeline's time per frame (95th percentile) exceeded
 #: STARVED_FRAME_SHARE of the frame period. Measured on an otherwise idle 2-core machine, 34

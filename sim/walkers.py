@@ -162,9 +162,9 @@ class GeneratedCrowd:
         self.lead_wait = rng.uniform(0.0, p.pause_s[1], n_lead) * (rng.random(n_lead) < 0.3)
         d = self.lead_goal - self.lead_pos
         self.lead_heading = np.arctan2(d[:, 1], d[:, 0])
-        # Drawn and no longer used (walkers now take the side nearer their goal): kept so that
-        # every seed draws the same world as before.
-        self.tangent_side = np.where(rng.random(n_lead) < 0.5, 1.0, -1.0)
+        # Once each walker's side round a keep-out circle; walkers now take the side nearer their
+        # goal, but the draw stays so that every seed draws the same world as before.
+        rng.random(n_lead)
 
         # Followers: offsets in the leader's frame (forward, right), metres.
         fol_leader, fol_offset = [], []
@@ -245,7 +245,7 @@ class GeneratedCrowd:
             self.stand_heading[turn] += rng.normal(0.0, 0.8, int(turn.sum()))
         self._enforce()
 
-    def _steer_around(self, pos: np.ndarray, direction: np.ndarray, reach: np.ndarray | None = None) -> np.ndarray:
+    def _steer_around(self, pos: np.ndarray, direction: np.ndarray, reach: np.ndarray) -> np.ndarray:
         """Directions that walk around keep-out circles the way people walk around a lawn or a
         fenced square: whoever's straight way to the goal crosses a circle (grown by the margin
         and ``STEER_CLEARANCE_M``) heads for the tangent point on the side nearer the goal, in
@@ -256,16 +256,15 @@ class GeneratedCrowd:
         unless they really are about to cross it. The earlier rule (head for the goal, turn only
         2 m from the edge) made every walker heading that way look, to anyone extrapolating their
         path, like someone about to cross the landing zone (docs/design.md, "People followed to
-        touchdown"). ``reach``: each walker's distance to their goal (m; None: unbounded)."""
+        touchdown"). ``reach``: each walker's distance to their goal (m)."""
         out = direction.copy()
-        ahead = np.full(len(out), np.inf) if reach is None else np.asarray(reach, float)
         for c in self.keep_out:
             R = c.radius + self.params.keep_out_margin + STEER_CLEARANCE_M
             v = c.centre - pos  # to the centre
             dist = np.hypot(v[:, 0], v[:, 1])
             # Does the way to the goal pass within R of the centre? (The segment's nearest point.)
             along = out[:, 0] * v[:, 0] + out[:, 1] * v[:, 1]
-            t = np.clip(along, 0.0, ahead)
+            t = np.clip(along, 0.0, reach)
             blocked = (along > 0) & (np.hypot(v[:, 0] - t * out[:, 0], v[:, 1] - t * out[:, 1]) < R)
             if not blocked.any():
                 continue
@@ -282,7 +281,6 @@ class GeneratedCrowd:
             closer = (cands[0] * want).sum(axis=1) >= (cands[1] * want).sum(axis=1)
             out[idx] = np.where(closer[:, None], cands[0], cands[1])
         return out
-
 
     def positions(self) -> np.ndarray:
         return np.vstack([self.lead_pos, self.fol_pos, self.stand_pos])

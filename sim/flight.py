@@ -163,6 +163,7 @@ class FlightResult:
     processed_fps: float | None = None  # frames the service processed per second, READY to the end
     starved: bool = False  # the flight's CPU could not keep up (see :func:`starved`)
     frame_ms_p95: float | None = None  # the pipeline's time per frame (its "total"), 95th percentile
+    world_t_trigger: float | None = None  # the world's clock at the failsafe (s; about watch_s)
 
     @property
     def took_control(self) -> bool:
@@ -195,6 +196,7 @@ class FlightResult:
             "frame_ms_p95": None if self.frame_ms_p95 is None else round(self.frame_ms_p95, 1),
             "phases": self.phases, "messages": self.messages,
             "baseline": not self.spec.companion,
+            "world_t_trigger": None if self.world_t_trigger is None else round(self.world_t_trigger, 2),
         }
 
 
@@ -477,6 +479,10 @@ def build_scene(spec: FlightSpec, link_port: int, cam_port: int
 
 async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     world, free, sim, camera = build_scene(spec, link_port, cam_port)
+    # The world's clock starts when the service is ready (at once for the baseline), so the
+    # people at the failsafe are where they are in every run of the seed, however long the
+    # service took to start on a loaded machine, and the baseline meets the same crowd.
+    world.paused = spec.companion
     result = FlightResult(spec, "timeout",
                           free_circle=None if free is None else (free.north, free.east, free.radius))
     touchdown: dict[str, object] = {}
@@ -521,11 +527,13 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
                 result.log_tail = "\n".join(lines[-30:])
                 raise RuntimeError("the service did not become ready:\n" + result.log_tail)
             window["ready"] = time.monotonic()
+            world.paused = False
         if spec.packet_loss > 0 or spec.latency_ms > 0:
             sim.set_link_faults(loss=spec.packet_loss, latency_s=spec.latency_ms / 1000.0)
         await asyncio.sleep(spec.watch_s)
         t_trigger = time.monotonic()
         climb["trigger_alt"] = sim.vehicle.altitude
+        result.world_t_trigger = world.t
         sim.inject_failsafe(spec.failsafe)
         if spec.world == "intrusion" and free is not None:
             # Walkers reach the free circle while the companion approaches or descends into it.

@@ -3,7 +3,11 @@
 World frame: local NED metres, origin at home, ground at ``z = 0``; people are points
 ``(north, east)`` on the ground with a heading (radians from north toward east). The world has its
 own clock ``t`` (seconds), advanced only by :meth:`World.step` (the simulator steps it with its
-clock), so every run with the same seed and steps is identical.
+clock). The people move in fixed ticks of ``TICK_S`` whatever steps the clock is given, so the world
+at time ``t`` depends on the seed and ``t`` alone, not on how a loaded machine sliced the time:
+the same seed flown twice meets the same people at the same world time. A world can be
+``paused`` (its clock stands still): a flight starts the clock when the service is ready, so the
+people at the failsafe do not depend on how long the service took to start.
 
 Scenario builders for the SITL tests:
 
@@ -40,7 +44,7 @@ from sim.walkers import (
 
 __all__ = ["World", "Bounds", "Circle", "Crossing", "Intrusion", "default_world", "crowd_with_free_area",
            "dense_crowd", "dronecrowd_world", "largest_free_circle", "add_crossing_walkers",
-           "CROSSING_SPEEDS", "CROSSING_WINDOW_S"]
+           "CROSSING_SPEEDS", "CROSSING_WINDOW_S", "TICK_S"]
 
 #: Walking speeds of the ``crossing`` world's walkers, m/s, drawn uniformly: adults' preferred
 #: speeds are about 1.2-1.5 m/s (Bohannon 1997, Mohler et al. 2007), slower in a crowd.
@@ -50,6 +54,11 @@ CROSSING_SPEEDS = (1.0, 1.5)
 #: without holding (seeds 1-8 of docs/scale.md, "Measured"), and a walker at these speeds is
 #: inside a 5-8 m circle for up to 7-16 s.
 CROSSING_WINDOW_S = (4.0, 24.0)
+#: The people's fixed time step (s). Walkers draw random numbers every step (standing people
+#: turning, new goals), so steps of varying length gave varying draws and, a few seconds on,
+#: different crowds from the same seed: runs of one seed were not repeatable. At walking pace a
+#: tick moves a person 3 cm, about one pixel from 15 m.
+TICK_S = 0.02
 
 
 @dataclass
@@ -65,14 +74,28 @@ class World:
     free_areas: list[Circle] = field(default_factory=list)
     seed: int = 0
     t: float = 0.0
+    paused: bool = False
+    _ticks: int = field(default=0, init=False, repr=False)
+    _pending: float = field(default=0.0, init=False, repr=False)
 
     def step(self, dt: float) -> None:
-        """Advance every source by ``dt`` seconds (negative or zero does nothing)."""
-        if not math.isfinite(dt) or dt <= 0:
+        """Advance the clock by ``dt`` seconds and every source by the whole ``TICK_S`` ticks
+        that have passed (the rest carries over to the next step). Negative, zero or NaN does
+        nothing; so does any step while ``paused``. ``t`` is the time of the last tick."""
+        if not math.isfinite(dt) or dt <= 0 or self.paused:
             return
-        for s in self.sources:
-            s.step(dt)
-        self.t += dt
+        self._pending += dt
+        # The 1e-6 forgives float sums (0.3 / 0.02 is 14.999...): a tick is not lost to rounding.
+        n = int(math.floor(self._pending / TICK_S + 1e-6))
+        if n <= 0:
+            return
+        self._pending = max(0.0, self._pending - n * TICK_S)
+        for _ in range(n):
+            for s in self.sources:
+                s.step(TICK_S)
+        self._ticks += n
+        # From the tick count, not a running sum, so that t is the same however it was reached.
+        self.t = self._ticks * TICK_S
 
     def positions(self) -> np.ndarray:
         """(N, 2) float array of people's ground positions (north, east), metres."""

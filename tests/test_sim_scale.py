@@ -304,6 +304,9 @@ def test_two_workers_give_the_sequential_verdicts(tmp_path: Path, model_path, ca
     assert sorted(r["seed"] for r in rows) == [1, 6]
     verdicts = {r["seed"]: (r["outcome"], r["starved"], r["processed_fps"]) for r in rows}
     assert verdicts[6][0] == "safe" and verdicts[1][0] == "handback", verdicts
+    # Both met their world at the same world time (its clock starts when the service is ready),
+    # however long each service took to start beside the other.
+    assert all(abs(r["world_t_trigger"] - 4.0) <= 0.2 for r in rows), [r["world_t_trigger"] for r in rows]
 
 
 @pytest.mark.sitl

@@ -70,6 +70,48 @@ def test_same_seed_same_world_other_seed_other_world() -> None:
     assert pa.shape != pc.shape or not np.allclose(pa, pc)
 
 
+def test_the_same_seed_meets_the_same_crowd_however_its_time_was_sliced() -> None:
+    # A loaded machine steps the world at uneven intervals: the crowd at a world time must not
+    # depend on them (walkers draw random numbers every step; uneven steps used to give another
+    # crowd from the same seed within seconds, and runs of one seed were not repeatable).
+    even = crowd_with_free_area(seed=5)
+    uneven = crowd_with_free_area(seed=5)
+    rng = np.random.default_rng(0)
+    for _ in range(600):
+        even.step(0.05)
+    left = 30.0
+    while left > 1e-9:
+        dt = min(left, float(rng.uniform(0.001, 0.3)))
+        uneven.step(dt)
+        left -= dt
+    assert even.t == pytest.approx(30.0) and uneven.t == pytest.approx(30.0)
+    np.testing.assert_array_equal(even.positions(), uneven.positions())
+    np.testing.assert_array_equal(even.headings(), uneven.headings())
+    # The old way (each source stepped by whatever dt came) gives another crowd: the test has teeth.
+    raw = crowd_with_free_area(seed=5)
+    left = 30.0
+    rng = np.random.default_rng(0)
+    while left > 1e-9:
+        dt = min(left, float(rng.uniform(0.001, 0.3)))
+        for s in raw.sources:
+            s.step(dt)
+        left -= dt
+    assert np.abs(raw.positions() - even.positions()).max() > 1.0
+
+
+def test_a_paused_world_stands_still() -> None:
+    world = crowd_with_free_area(seed=2)
+    before = world.positions().copy()
+    world.paused = True
+    world.step(5.0)
+    assert world.t == 0.0
+    np.testing.assert_array_equal(world.positions(), before)
+    world.paused = False
+    world.step(0.5)
+    assert world.t == pytest.approx(0.5)
+    assert np.abs(world.positions() - before).max() > 0.1
+
+
 def test_free_area_stays_free_for_minutes() -> None:
     world = crowd_with_free_area(seed=3)
     (free,) = world.free_areas

@@ -27,3 +27,18 @@ def test_bench_with_a_missing_model_names_the_file(capsys, tmp_path):
     missing = tmp_path / "nope.onnx"
     assert main(["bench", "--frames", "1", "--model", str(missing)]) == 2
     assert "nope.onnx" in capsys.readouterr().err
+
+
+def test_bench_pauses_before_each_frame_when_asked(capsys):
+    import time
+
+    t0 = time.monotonic()
+    assert main(["bench", "--json", "--frames", "2", "--no-model", "--no-landability", "--pause-ms", "40"]) == 0
+    # 5 warm-up frames + 2 per resolution, each after a 40 ms sleep: at least 0.56 s in all.
+    assert time.monotonic() - t0 >= 14 * 0.04
+    assert set(json.loads(capsys.readouterr().out)) == {"640x480", "1280x720"}
+
+
+def test_bench_refuses_a_bad_pause(capsys):
+    assert main(["bench", "--frames", "1", "--no-model", "--pause-ms", "nan"]) == 2
+    assert "--pause-ms" in capsys.readouterr().err

@@ -22,6 +22,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing
 import os
+import sys
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
@@ -37,6 +38,22 @@ def default_workers(cpus_per_task: float = 1.0) -> int:
     """As many workers as the machine's CPUs hold at ``cpus_per_task`` each (at least 1)."""
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return max(1, int(cpus // max(cpus_per_task, 1e-9)))
+
+
+def die_with_parent() -> None:
+    """Make this process get SIGTERM when its parent dies (Linux; elsewhere a no-op, and a normal
+    exit still cleans up). Two users: a flight's service (its ``preexec_fn``), so a killed
+    ``sim-scenarios`` or cancelled Ray task leaves no service busy with a camera that is gone; and
+    the pool's workers (their initializer), so a ``--workers N`` run killed by SIGTERM or SIGKILL
+    no longer leaves its workers flying the seeds they held to the end (found on 2026-11-25: a
+    killed run's two flights went on, services and all)."""
+    if sys.platform != "linux":
+        return
+    import ctypes
+    import signal
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def fan_out(fn: Callable[[T], R], items: Sequence[T], *, workers: int = 1, ray_address: str | None = None,
@@ -55,7 +72,8 @@ def fan_out(fn: Callable[[T], R], items: Sequence[T], *, workers: int = 1, ray_a
                 yield item, exc
     else:
         ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=ctx) as pool:
+        with cf.ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=ctx,
+                                    initializer=die_with_parent) as pool:
             futures = {pool.submit(fn, item): item for item in items}
             try:
                 for fut in cf.as_completed(futures):

@@ -49,6 +49,7 @@ from typing import TextIO
 import numpy as np
 
 from companion.geometry.camera import Intrinsics, Mount
+from companion.parallel import die_with_parent  # also the preexec_fn of a flight's service
 from companion.recording import RecordingError, RecordingReader
 from sim.autopilot import AutopilotConfig
 from sim.camera_server import CameraServer
@@ -592,19 +593,6 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     result.starved = starved(result.processed_fps, result.frame_ms_p95, spec.fps)
     result.outcome = judge(result, spec.r0_m)
     return result
-
-
-def die_with_parent() -> None:
-    """``preexec_fn`` of a flight's service: on Linux the kernel sends it SIGTERM when the process
-    that started it dies, so a killed ``sim-scenarios`` (SIGTERM, SIGKILL, a cancelled Ray task)
-    leaves no service running on, busy with a camera that is gone and eating a flight's CPU.
-    Elsewhere a no-op (the flight's own clean-up still stops it on a normal exit)."""
-    if sys.platform != "linux":
-        return
-    import ctypes
-
-    PR_SET_PDEATHSIG = 1
-    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def starved(processed_fps: float | None, frame_ms_p95: float | None, fps: float) -> bool:

@@ -355,3 +355,40 @@ def test_a_killed_runner_leaves_no_service_running(tmp_path):
     else:
         os.kill(child, signal.SIGKILL)
         raise AssertionError("the child outlived its parent")
+
+
+def test_a_killed_runner_leaves_no_worker_flying(tmp_path):
+    # A --workers N run killed outright used to leave its pool's workers flying the seeds they
+    # held to the end (services and all). They now die with the runner.
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = ("import multiprocessing, threading, time\n"
+            "from companion.parallel import fan_out\n"
+            "threading.Thread(target=lambda: list(fan_out(time.sleep, [60, 60], workers=2)), daemon=True).start()\n"
+            "while len(multiprocessing.active_children()) < 2: time.sleep(0.05)\n"
+            "time.sleep(1.0)\n"  # the workers' initializer has run by now
+            "print(' '.join(str(p.pid) for p in multiprocessing.active_children()), flush=True)\n"
+            "time.sleep(60)\n")
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    workers = [int(p) for p in parent.stdout.readline().split()]
+    assert len(workers) == 2
+    for pid in workers:
+        os.kill(pid, 0)  # running
+    parent.send_signal(signal.SIGKILL)
+    parent.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    alive = set(workers)
+    while alive and time.monotonic() < deadline:
+        for pid in list(alive):
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                alive.discard(pid)
+        time.sleep(0.05)
+    for pid in alive:
+        os.kill(pid, signal.SIGKILL)
+    assert not alive, "a worker outlived the runner"

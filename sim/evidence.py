@@ -21,7 +21,12 @@ Counting (docs/scale.md says why):
   included (a bad number never disappears); ``median_time_to_touchdown_s`` is a performance
   figure and takes the clean flights, and so do ``median_phase_changes`` and
   ``max_phase_changes`` (a flight's phase changes: the controller's recorded phase-change events,
-  ``len(row["phases"])``; the controller changes phase only by emitting one).
+  ``len(row["phases"])``; the controller changes phase only by emitting one);
+- ``companion_landings_in_free_area`` of ``companion_landings_judged_for_area``: the clean
+  companion landings that came down on ground nobody walks into (``in_free_area``: the scene's
+  free circle, or beyond every crowd; ``sim.world.World.nobody_walks_at``), of those whose row
+  says either way. A landing in a gap of the crowd may be safe at touchdown and still was a
+  gamble on the walkers around it.
 
 **Baseline** rows (``baseline: true``: the same scene flown with the autopilot's own failsafe
 alone, no companion) have their own key in a results file (``row_key``) and their own summary
@@ -106,6 +111,7 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     times = [r["time_to_touchdown_s"] for r in clean if r.get("time_to_touchdown_s") is not None]
     climbs = [r["max_climb_m"] for r in rows if r.get("max_climb_m") is not None]
     changes = [phase_changes(r) for r in clean]
+    judged = [r for r in clean if r.get("outcome") in ("safe", "unsafe") and r.get("in_free_area") is not None]
     u, s, c = _proportion(unsafe, n), _proportion(strikes, n), _proportion(landings, n)
     return {
         "total": len(rows), "safe": count(clean, "safe"), "handbacks": count(clean, "handback"),
@@ -122,6 +128,8 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
         "clean_flights": n,
         "strikes": strikes,
         "companion_landings": landings,
+        "companion_landings_in_free_area": sum(bool(r["in_free_area"]) for r in judged),
+        "companion_landings_judged_for_area": len(judged),
         "unsafe_rate": u["rate"], "unsafe_rate_ci95": u["ci95"], "unsafe_rate_upper95": u["ci95"][1],
         "strike_rate": s["rate"], "strike_rate_ci95": s["ci95"], "strike_rate_upper95": s["ci95"][1],
         "companion_landing_rate": c["rate"], "companion_landing_rate_ci95": c["ci95"],
@@ -175,6 +183,9 @@ def summary_text(summary: dict[str, Any]) -> str:
                      f"(95 % exact interval {_pct(lo)} to {_pct(hi)})")
     lines.append(f"phase changes per flight: median {summary['median_phase_changes']}, "
                  f"most {summary['max_phase_changes']}")
+    if summary.get("companion_landings_judged_for_area"):
+        lines.append(f"companion landings on ground nobody walks into (the free area, or beyond the crowd): "
+                     f"{summary['companion_landings_in_free_area']} of {summary['companion_landings_judged_for_area']}")
     m = summary["clean_flights_to_unsafe_upper95_below_1pct"]
     lines.append("the unsafe rate's upper 95 % bound is under 1 %" if m == 0 else
                  f"{m} further clean flights would bring the unsafe rate's upper 95 % bound under 1 %")

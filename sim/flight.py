@@ -165,6 +165,10 @@ class FlightResult:
     starved: bool = False  # the flight's CPU could not keep up (see :func:`starved`)
     frame_ms_p95: float | None = None  # the pipeline's time per frame (its "total"), 95th percentile
     world_t_trigger: float | None = None  # the world's clock at the failsafe (s; about watch_s)
+    # Touched down on ground nobody walks into (the scene's free area, or beyond every crowd:
+    # World.nobody_walks_at), rather than in a gap of the crowd that walkers may cross at any
+    # time; None without a touchdown, or where the world cannot tell.
+    in_free_area: bool | None = None
 
     @property
     def took_control(self) -> bool:
@@ -198,6 +202,7 @@ class FlightResult:
             "phases": self.phases, "messages": self.messages,
             "baseline": not self.spec.companion,
             "world_t_trigger": None if self.world_t_trigger is None else round(self.world_t_trigger, 2),
+            "in_free_area": self.in_free_area,
         }
 
 
@@ -493,7 +498,8 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             tr = sim.truth
             point = (float(tr.position[0]), float(tr.position[1]))
             touchdown.update(t=time.monotonic(), point=point,
-                             clearance=world.nearest_person_distance(point))
+                             clearance=world.nearest_person_distance(point),
+                             free_ground=world.nobody_walks_at(point))
 
     sim.on_touchdown(on_touchdown)
     climb: dict[str, float] = {}
@@ -552,6 +558,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
         if "t" in touchdown:
             result.touchdown = touchdown["point"]  # type: ignore[assignment]
             result.clearance_m = float(touchdown["clearance"])  # type: ignore[arg-type]
+            result.in_free_area = touchdown["free_ground"]  # type: ignore[assignment]
             result.time_to_touchdown_s = float(touchdown["t"]) - t_trigger  # type: ignore[arg-type]
         # Let the last events of the landing (LANDED) be recorded before stopping the service:
         # the landed state reaches it in EXTENDED_SYS_STATE, which the autopilots send at 1-2 Hz.

@@ -137,6 +137,18 @@ class World:
         p = self.positions()
         return int(np.count_nonzero(circle.distance(p) < circle.radius)) if len(p) else 0
 
+    def nobody_walks_at(self, point: tuple[float, float]) -> bool | None:
+        """Whether ``point`` (north, east, m) is ground nobody walks into: inside a free area, or
+        outside the bounds every crowd keeps to. Scripted crossers and intruders do not count (they
+        are the test). None when a source has no bounds to tell by (real DroneCrowd motion)."""
+        q = np.asarray(point, float).reshape(1, 2)
+        if any(float(c.distance(q)[0]) <= c.radius for c in self.free_areas):
+            return True
+        crowds = [s for s in self.sources if not isinstance(s, ScriptedWalkers)]
+        if any(not hasattr(s, "bounds") for s in crowds):
+            return None
+        return not any(bool(s.bounds.contains(q)[0]) for s in crowds)  # type: ignore[attr-defined]
+
     def add_source(self, source: MotionSource) -> None:
         """Add people (the source's own clock is taken as already at ``self.t``)."""
         self.sources.append(source)

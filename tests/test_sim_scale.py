@@ -170,6 +170,36 @@ def test_summarise_keeps_its_figures_for_flight_results() -> None:
     assert s["starved"] == 1 and s["safe"] == 0 and s["total"] == 1
 
 
+def test_landings_on_ground_nobody_walks_into_are_counted_apart_from_gaps_in_the_crowd() -> None:
+    from sim.flight import FlightResult
+    from sim.walkers import Circle as WCircle
+    from sim.world import crowd_with_free_area, dense_crowd
+
+    world = crowd_with_free_area(seed=3, free=WCircle(10.0, 20.0, 6.0), half_size=40.0)
+    assert world.nobody_walks_at((14.0, 23.0)) is True  # on the lawn
+    assert world.nobody_walks_at((17.0, 20.5)) is False  # 7 m from its centre: in the crowd
+    assert world.nobody_walks_at((60.0, 0.0)) is True  # beyond the crowd's square
+    beyond = dense_crowd(seed=1)
+    assert beyond.nobody_walks_at((0.0, 0.0)) is False and beyond.nobody_walks_at((0.0, 45.0)) is True
+
+    def flight(seed: int, outcome: str, on_free: bool | None, world: str = "free_area") -> dict:
+        return FlightResult(FlightSpec(seed=seed, world=world), outcome, touchdown=(0.0, 0.0), clearance_m=4.0,
+                            in_free_area=on_free).as_dict()
+
+    rows = [flight(1, "safe", True), flight(2, "safe", False), flight(3, "handback", False),
+            flight(4, "safe", None, "dronecrowd")]
+    assert [r["in_free_area"] for r in rows] == [True, False, False, None]
+    s = summarise_rows(rows)
+    # Of the three companion landings, two can be judged (the real DroneCrowd motion cannot say),
+    # one of them on the lawn; the handback is not a companion landing.
+    assert (s["companion_landings"], s["companion_landings_judged_for_area"], s["companion_landings_in_free_area"]) == (3, 2, 1)
+    assert "nobody walks into" in summary_text(s) and "1 of 2" in summary_text(s)
+    # Rows of older runs (no in_free_area) are left out of both figures, never guessed.
+    old = [{k: v for k, v in r.items() if k != "in_free_area"} for r in rows]
+    assert summarise_rows(old)["companion_landings_judged_for_area"] == 0
+    assert "nobody walks into" not in summary_text(summarise_rows(old))
+
+
 def test_a_flights_model_threads_follow_the_cpus_it_is_given() -> None:
     # N flights at once never run more onnxruntime threads than the CPUs they were given.
     assert [scenarios.model_threads(c) for c in (0.5, 1.0, 1.9, 2.0, 4.0)] == [1, 1, 1, 2, 4]

@@ -77,6 +77,10 @@ class World:
     paused: bool = False
     _ticks: int = field(default=0, init=False, repr=False)
     _pending: float = field(default=0.0, init=False, repr=False)
+    _t0: float = field(default=0.0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._t0 = self.t  # a world made at a later time keeps counting from it
 
     def step(self, dt: float) -> None:
         """Advance the clock by ``dt`` seconds and every source by the whole ``TICK_S`` ticks
@@ -95,7 +99,7 @@ class World:
                 s.step(TICK_S)
         self._ticks += n
         # From the tick count, not a running sum, so that t is the same however it was reached.
-        self.t = self._ticks * TICK_S
+        self.t = self._t0 + self._ticks * TICK_S
 
     def positions(self) -> np.ndarray:
         """(N, 2) float array of people's ground positions (north, east), metres."""

@@ -99,6 +99,12 @@ def test_the_same_seed_meets_the_same_crowd_however_its_time_was_sliced() -> Non
     assert np.abs(raw.positions() - even.positions()).max() > 1.0
 
 
+def test_a_world_made_at_a_later_time_counts_on_from_it() -> None:
+    world = World(t=12.0)
+    world.step(0.5)
+    assert world.t == pytest.approx(12.5)
+
+
 def test_a_paused_world_stands_still() -> None:
     world = crowd_with_free_area(seed=2)
     before = world.positions().copy()

@@ -74,28 +74,27 @@ def test_the_same_seed_meets_the_same_crowd_however_its_time_was_sliced() -> Non
     # A loaded machine steps the world at uneven intervals: the crowd at a world time must not
     # depend on them (walkers draw random numbers every step; uneven steps used to give another
     # crowd from the same seed within seconds, and runs of one seed were not repeatable).
+    def uneven_steps(total: float) -> list[float]:
+        rng, left, steps = np.random.default_rng(0), total, []
+        while left > 1e-9:
+            steps.append(min(left, float(rng.uniform(0.001, 0.3))))
+            left -= steps[-1]
+        return steps
+
     even = crowd_with_free_area(seed=5)
     uneven = crowd_with_free_area(seed=5)
-    rng = np.random.default_rng(0)
     for _ in range(600):
         even.step(0.05)
-    left = 30.0
-    while left > 1e-9:
-        dt = min(left, float(rng.uniform(0.001, 0.3)))
+    for dt in uneven_steps(30.0):
         uneven.step(dt)
-        left -= dt
     assert even.t == pytest.approx(30.0) and uneven.t == pytest.approx(30.0)
     np.testing.assert_array_equal(even.positions(), uneven.positions())
     np.testing.assert_array_equal(even.headings(), uneven.headings())
     # The old way (each source stepped by whatever dt came) gives another crowd: the test has teeth.
     raw = crowd_with_free_area(seed=5)
-    left = 30.0
-    rng = np.random.default_rng(0)
-    while left > 1e-9:
-        dt = min(left, float(rng.uniform(0.001, 0.3)))
+    for dt in uneven_steps(30.0):
         for s in raw.sources:
             s.step(dt)
-        left -= dt
     assert np.abs(raw.positions() - even.positions()).max() > 1.0
 
 

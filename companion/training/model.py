@@ -86,3 +86,44 @@ def fold_batchnorm(net: NetT) -> NetT:
 
 def count_parameters(net: nn.Module) -> int:
     return sum(p.numel() for p in net.parameters())
+
+
+class _Res(nn.Module):
+    """Two 3x3 conv-BN layers with an identity shortcut."""
+
+    def __init__(self, c: int, dilation: int = 1) -> None:
+        super().__init__()
+        self.a = _cbr(c, c, 3, dilation=dilation)
+        self.b = nn.Sequential(nn.Conv2d(c, c, 3, 1, dilation, dilation=dilation, bias=False), nn.BatchNorm2d(c))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(x + self.b(self.a(x)))
+
+
+class TeacherNet(nn.Module):
+    """The large teacher for distillation (about 5.6 M parameters; trained on a GPU, never shipped).
+
+    Same input and output contract as :class:`SLZDensityNet` (normalised BGR in, stride-4 logits
+    out) so a student learns its map cell for cell. A small U-Net: full-resolution 3x3 stem, residual
+    stages at strides 4, 8 and 16 (the last dilated, a receptive field of a few hundred pixels, to
+    tell a person from a roof vent by what surrounds it), then back up to stride 4 with skips.
+    """
+
+    def __init__(self, c: int = 64) -> None:
+        super().__init__()
+        self.stem = nn.Sequential(_cbr(3, 32, 3), _cbr(32, 48, 3, 2), _cbr(48, c, 3, 2), _Res(c), _Res(c))
+        self.down8 = nn.Sequential(_cbr(c, 2 * c, 3, 2), _Res(2 * c), _Res(2 * c), _Res(2 * c))
+        self.down16 = nn.Sequential(_cbr(2 * c, 4 * c, 3, 2), _Res(4 * c), _Res(4 * c, 2), _Res(4 * c, 4))
+        self.up8 = _cbr(4 * c + 2 * c, 2 * c, 3)
+        self.up4 = nn.Sequential(_cbr(2 * c + c, c, 3), _Res(c))
+        self.head = nn.Conv2d(c, 1, 1)
+        assert self.head.bias is not None
+        nn.init.constant_(self.head.bias, -4.0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        s4 = self.stem(x)
+        s8 = self.down8(s4)
+        s16 = self.down16(s8)
+        u8 = self.up8(torch.cat([s8, nn.functional.interpolate(s16, size=s8.shape[-2:], mode="nearest")], 1))
+        u4 = self.up4(torch.cat([s4, nn.functional.interpolate(u8, size=s4.shape[-2:], mode="nearest")], 1))
+        return self.head(u4)

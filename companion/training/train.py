@@ -110,7 +110,12 @@ class NegativeSource:
 
 def load_sources(shared: Path, max_images: int = 0) -> list[Source]:
     """The real sources; ``max_images`` > 0 keeps only the first N images of each (quick runs)."""
+    from companion.training.pack import shb_scale
+
     t0 = time.monotonic()
+    # A training pack (companion.training.pack) holds ShanghaiTech B downscaled by f: widen its
+    # scale range and target sigmas by 1/f so the crops cover the same person sizes (f = 1 here).
+    f = shb_scale(shared)
     sd = D.semantic_drone(shared, "train")
     dc = D.dronecrowd_frames(shared, TRAIN_DRONECROWD)
     shb = D.shanghaitech_b(shared, "train")
@@ -137,7 +142,8 @@ def load_sources(shared: Path, max_images: int = 0) -> list[Source]:
         # Tiny people from 40-60 m (20 px head boxes at 1920x1080).
         build("dronecrowd", dc, lambda s, hw: point_target(hw, s.points, sigma=5.0), GeomAug((0.7, 1.4), True, 0.7), 0.2),
         # Dense street crowds, shrunk toward the size of people seen from a drone.
-        build("shanghaitech_b", shb, lambda s, hw: point_target(hw, s.points), GeomAug((0.25, 0.9), True, 0.6), 0.35),
+        build("shanghaitech_b", shb, lambda s, hw: point_target(hw, s.points, sigma_range=(3.0 * f, 24.0 * f)),
+              GeomAug((0.25 / f, 0.9 / f), True, 0.6), 0.35),
     ]
     log.info("loaded %s in %.0f s", {s.name: len(s.images) for s in sources}, time.monotonic() - t0)
     return sources
@@ -180,20 +186,33 @@ def all_sources(shared: Path, synthetic_share: float, negative_share: float, max
     return out
 
 
-def make_batch(sources: list[CropSource], batch: int, size: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def raw_batch(sources: list[CropSource], batch: int, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3, size, size) uint8 BGR crops after photometric augmentation, and their (N, 1, size/4,
+    size/4) float32 targets; the crops' sources drawn by weight. Un-normalised, so worker processes
+    hand a GPU run a quarter of the bytes (:func:`normalise` there)."""
     w = np.array([s.weight for s in sources])
-    xs = np.empty((batch, 3, size, size), np.float32)
+    xs = np.empty((batch, 3, size, size), np.uint8)
     ys = np.empty((batch, 1, size // M.STRIDE, size // M.STRIDE), np.float32)
-    mean = np.array(M.MEAN, np.float32)[:, None, None]
-    std = np.array(M.STD, np.float32)[:, None, None]
     for b in range(batch):
         src = sources[rng.choice(len(sources), p=w / w.sum())]
         img, tgt = src.crop(size, rng)
-        img = photometric(img, rng)
-        xs[b] = (img.transpose(2, 0, 1).astype(np.float32) * M.SCALE - mean) / std
+        xs[b] = photometric(img, rng).transpose(2, 0, 1)
         # Max over each 4x4 cell: a cell touching a person is a person cell (errs toward occupied).
         ys[b, 0] = tgt.reshape(size // M.STRIDE, M.STRIDE, size // M.STRIDE, M.STRIDE).max(axis=(1, 3))
-    return torch.from_numpy(xs), torch.from_numpy(ys)
+    return xs, ys
+
+
+def normalise(xs: np.ndarray) -> np.ndarray:
+    """uint8 NCHW BGR -> the network's float32 input (``(x * SCALE - MEAN) / STD``)."""
+    mean = np.array(M.MEAN, np.float32)[:, None, None]
+    std = np.array(M.STD, np.float32)[:, None, None]
+    out: np.ndarray = (xs.astype(np.float32) * M.SCALE - mean) / std
+    return out
+
+
+def make_batch(sources: list[CropSource], batch: int, size: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    xs, ys = raw_batch(sources, batch, size, rng)
+    return torch.from_numpy(normalise(xs)), torch.from_numpy(ys)
 
 
 def loss(logits: torch.Tensor, target: torch.Tensor, pos_weight: float) -> torch.Tensor:

@@ -1,0 +1,309 @@
+"""Train a large teacher, then distil CPU-sized students from it, on many crops (GPU or CPU).
+
+    python -m companion.training.distill --shared .pack/shared --device cuda --workers 15 \\
+        --teacher-seconds 210 --student-seconds 200 --out-dir /tmp/distill
+
+Two phases over one stream of training crops (the sources of :mod:`companion.training.train`:
+the real photos, the synthetic top-down crowds and the hard negatives, at the given shares):
+
+1. **Teacher** (:class:`companion.training.model.TeacherNet`, about 5.6 M parameters) and every
+   student learn the ground-truth maps with the weighted cross-entropy of the shipped model
+   (:func:`companion.training.train.loss`, biased toward "occupied").
+2. **Distillation**: the teacher is frozen; each student named ``d<width>`` learns
+   ``alpha`` x that loss on the ground truth plus ``1 - alpha`` x the plain cross-entropy toward the
+   teacher's probability map; each student named ``g<width>`` (the control) keeps learning the
+   ground truth alone, so the two differ only by the teacher.
+
+Each phase stops at its step count or its wall-clock budget, whichever comes first, with a cosine
+learning rate over that progress (a time budget makes the run fit a lent GPU's lease; steps make it
+deterministic). Crops are made on the CPU in ``--workers`` processes (the synthetic compositor is
+the bottleneck: about 12-22 ms per 256x256 crop on one core), so a GPU run is bound by crop making.
+
+Writes to ``--out-dir``: ``teacher.pt`` (half-precision state dict), ``students.pt`` (every student's
+state dict, width and steps), ``history.json`` (losses and crops per second) and, per student,
+``slz-<name>.onnx`` unless ``--no-export``. The ONNX files carry no threshold: calibrate them
+(:mod:`companion.training.calibrate`) on the machine that holds ``../shared``'s validation sets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from companion.evaluation import datasets as D
+from companion.training import model as M
+from companion.training.export import export_onnx
+from companion.training.train import CropSource, all_sources, check_shares, loss, raw_batch, resolve_device
+
+log = logging.getLogger("companion.training.distill")
+
+
+class CropStream(torch.utils.data.IterableDataset):
+    """Endless batches from ``sources`` (uint8 crops, float targets: see ``raw_batch``); each worker
+    process draws from its own seeded generator."""
+
+    def __init__(self, sources: list[CropSource], batch: int, crop: int, seed: int) -> None:
+        super().__init__()
+        self.sources, self.batch, self.crop, self.seed = sources, batch, crop, seed
+
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        torch.set_num_threads(1)
+        info = torch.utils.data.get_worker_info()
+        rng = np.random.default_rng([self.seed, 0 if info is None else info.id + 1])
+        while True:
+            xs, ys = raw_batch(self.sources, self.batch, self.crop, rng)
+            yield torch.from_numpy(xs), torch.from_numpy(ys)
+
+
+def normalise(x: torch.Tensor) -> torch.Tensor:
+    """uint8 NCHW BGR on any device -> the network's float32 input, as ``train.normalise``."""
+    mean = torch.tensor(M.MEAN, dtype=torch.float32, device=x.device).view(1, 3, 1, 1)
+    std = torch.tensor(M.STD, dtype=torch.float32, device=x.device).view(1, 3, 1, 1)
+    return (x.float() * M.SCALE - mean) / std
+
+
+def batches(stream: CropStream, workers: int, pin: bool) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    if workers == 0:
+        yield from stream
+        return
+    ctx = "fork" if "fork" in torch.multiprocessing.get_all_start_methods() else None
+    loader = torch.utils.data.DataLoader(stream, batch_size=None, num_workers=workers, pin_memory=pin,
+                                         prefetch_factor=4, persistent_workers=True, multiprocessing_context=ctx)
+    yield from loader
+
+
+@dataclass
+class Learner:
+    """One network, its optimiser and its running record."""
+
+    name: str
+    net: torch.nn.Module
+    lr: float
+    opt: torch.optim.Optimizer = field(init=False)
+    steps: int = 0
+    losses: list[float] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.opt = torch.optim.AdamW(self.net.parameters(), lr=self.lr, weight_decay=1e-4)
+
+    def step(self, batch_loss: torch.Tensor, lr_factor: float) -> None:
+        for g in self.opt.param_groups:
+            g["lr"] = self.lr * lr_factor
+        self.opt.zero_grad(set_to_none=True)
+        batch_loss.backward()
+        self.opt.step()
+        self.steps += 1
+        self.losses.append(float(batch_loss.detach()))
+
+
+def lr_factor(progress: float, step: int, warm: int) -> float:
+    """Linear warm-up over ``warm`` steps, then cosine from 1 to 0 over ``progress`` in [0, 1]."""
+    return min(1.0, (step + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+
+
+def distill_loss(student: torch.Tensor, target: torch.Tensor, teacher_p: torch.Tensor, pos_weight: float,
+                 alpha: float) -> torch.Tensor:
+    """``alpha`` x the shipped loss on the ground truth + ``1 - alpha`` x BCE toward the teacher's map.
+
+    The teacher learnt the same weighted loss, so its probability already leans toward "occupied"
+    (see :func:`companion.training.train.loss`); the second term is unweighted so the lean is not
+    applied twice.
+    """
+    return alpha * loss(student, target, pos_weight) + (1 - alpha) * F.binary_cross_entropy_with_logits(
+        student, teacher_p)
+
+
+def parse_students(spec: str) -> list[tuple[str, int]]:
+    """``"d40,g40,d64"`` -> [("d40", 40), ...]: ``d`` distilled, ``g`` ground truth only; width 8-256."""
+    out = []
+    for item in (s.strip() for s in spec.split(",") if s.strip()):
+        if item[0] not in "dg" or not item[1:].isdigit() or not 8 <= int(item[1:]) <= 256:
+            raise ValueError(f"--students: {item!r} is not d<width> or g<width> with a width of 8-256")
+        out.append((item, int(item[1:])))
+    if len({n for n, _ in out}) != len(out):
+        raise ValueError(f"--students names a student twice: {spec!r}")
+    return out
+
+
+class Phase:
+    """Progress of one phase: done at ``steps`` or ``seconds`` (0 = no limit), whichever first."""
+
+    def __init__(self, steps: int, seconds: float) -> None:
+        if steps <= 0 and seconds <= 0:
+            raise ValueError("a phase needs a step count or a time budget")
+        self.steps, self.seconds, self.t0, self.k = steps, seconds, time.monotonic(), 0
+
+    @property
+    def progress(self) -> float:
+        p = [self.k / self.steps] if self.steps > 0 else []
+        p += [(time.monotonic() - self.t0) / self.seconds] if self.seconds > 0 else []
+        return max(p)
+
+    def done(self) -> bool:
+        return self.progress >= 1.0
+
+
+def run(args: argparse.Namespace) -> dict[str, object]:
+    device = resolve_device(args.device)
+    cuda = device.type == "cuda"
+    torch.manual_seed(args.seed)
+    if cuda:
+        torch.backends.cudnn.benchmark = True
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.monotonic()
+    # OpenCV's and torch's thread pools do not survive fork(): single-threaded OpenCV before the
+    # data is loaded, and the crop workers started (first batch drawn) before any network exists.
+    cv2.setNumThreads(1)
+    sources = all_sources(Path(args.shared), args.synthetic_share, args.negative_share, args.max_images, args.seed)
+    t_load = time.monotonic() - t_start
+    stream = batches(CropStream(sources, args.batch, args.crop, args.seed), args.workers, cuda)
+    first: tuple[torch.Tensor, torch.Tensor] | None = next(stream)
+    torch.set_num_threads(args.threads)
+    teacher = Learner("teacher", M.TeacherNet(args.teacher_width).to(device), args.teacher_lr)
+    students = [Learner(name, M.SLZDensityNet(w).to(device), args.lr) for name, w in parse_students(args.students)]
+    mem = torch.channels_last if cuda else torch.contiguous_format
+    for lrn in [teacher, *students]:
+        lrn.net.to(memory_format=mem).train()
+    log.info("teacher %d parameters; students %s", M.count_parameters(teacher.net),
+             {s.name: M.count_parameters(s.net) for s in students})
+    amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else torch.autocast("cpu", enabled=False)
+    history: dict[str, object] = {"load_s": round(t_load, 1), "args": vars(args)}
+
+    def save_students(tag: str) -> None:
+        torch.save({s.name: {"state_dict": {k: v.cpu() for k, v in s.net.state_dict().items()},
+                             "width": int(s.name[1:]), "steps": s.steps, "tag": tag} for s in students},
+                   out / "students.pt")
+
+    for phase_no, (steps, seconds) in enumerate(((args.teacher_steps, args.teacher_seconds),
+                                                 (args.student_steps, args.student_seconds)), 1):
+        ph = Phase(steps, seconds)
+        if phase_no == 2:
+            teacher.net.eval()
+        crops = 0
+        t_save = time.monotonic()
+        while not ph.done():
+            x, y = first if first is not None else next(stream)
+            first = None
+            x = normalise(x.to(device, non_blocking=True)).contiguous(memory_format=mem)
+            y = y.to(device, non_blocking=True)
+            f = lr_factor(ph.progress, ph.k, args.warmup)
+            with amp:  # forward passes in bf16 on a GPU; losses and backward passes outside autocast
+                if phase_no == 1:
+                    t_logits = teacher.net(x)
+                else:
+                    with torch.no_grad():
+                        t_p = torch.sigmoid(teacher.net(x).float())
+                s_logits = [s.net(x) for s in students]
+            if phase_no == 1:
+                teacher.step(loss(t_logits.float(), y, args.pos_weight), f)
+            for s, logits in zip(students, s_logits):
+                if phase_no == 2 and s.name.startswith("d"):
+                    s.step(distill_loss(logits.float(), y, t_p, args.pos_weight, args.alpha), f)
+                else:
+                    s.step(loss(logits.float(), y, args.pos_weight), f)
+            ph.k += 1
+            crops += len(x)
+            if ph.k % args.log_every == 0:
+                el = time.monotonic() - ph.t0
+                recent = {lrn.name: round(float(np.mean(lrn.losses[-args.log_every:])), 4)
+                          for lrn in ([teacher] if phase_no == 1 else []) + students}
+                log.info("phase %d step %d %.0f%% %.0f crops/s lr x%.2f %s", phase_no, ph.k, 100 * ph.progress,
+                         crops / el, f, recent)
+            if time.monotonic() - t_save > args.save_every_s:
+                save_students(f"phase {phase_no} step {ph.k}")
+                t_save = time.monotonic()
+        el = time.monotonic() - ph.t0
+        history[f"phase{phase_no}"] = {"steps": ph.k, "seconds": round(el, 1), "crops": crops,
+                                       "crops_per_s": round(crops / max(el, 1e-9), 1)}
+        log.info("phase %d done: %d steps, %d crops in %.0f s", phase_no, ph.k, crops, el)
+        if phase_no == 1:
+            torch.save({k: v.half().cpu() for k, v in teacher.net.state_dict().items()}, out / "teacher.pt")
+        save_students(f"phase {phase_no} done")
+    history["losses"] = {lrn.name: [round(float(np.mean(lrn.losses[i:i + 50])), 4)
+                                    for i in range(0, len(lrn.losses), 50)] for lrn in [teacher, *students]}
+    history["device"] = torch.cuda.get_device_name(device) if cuda else f"cpu ({os.cpu_count()} cores)"
+    history["total_s"] = round(time.monotonic() - t_start, 1)
+    (out / "history.json").write_text(json.dumps(history, indent=1) + "\n")
+    if not args.no_export:
+        for s in students:
+            net = s.net.float().cpu().eval().to(memory_format=torch.contiguous_format)
+            note = (f"distill {s.name} teacher_steps={history['phase1']['steps']} "  # type: ignore[index]
+                    f"student_steps={s.steps} batch={args.batch} synthetic_share={args.synthetic_share} "
+                    f"negative_share={args.negative_share} alpha={args.alpha} device={history['device']}")
+            try:
+                export_onnx(net, out / f"slz-{s.name}.onnx", {"companion.training": note})  # type: ignore[arg-type]
+            except Exception as exc:  # the state dicts are saved: export again where torch.onnx works
+                log.warning("export of %s failed (%s); students.pt holds its weights", s.name, exc)
+    log.info("total %.0f s", history["total_s"])
+    return history
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--shared", default="../shared", help="the shared data, or a pack of it (training.pack)")
+    p.add_argument("--out-dir", default="/tmp/slz-distill")
+    p.add_argument("--device", default="cpu", help="cpu (default) or cuda[:N]")
+    p.add_argument("--workers", type=int, default=0, help="crop-making processes (0: in this process)")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--students", default="d40,g40,d64",
+                   help="d<width>: distilled; g<width>: ground truth only (the control); comma-separated")
+    p.add_argument("--teacher-width", type=int, default=64)
+    p.add_argument("--teacher-steps", type=int, default=0, help="0: no step limit (then --teacher-seconds)")
+    p.add_argument("--teacher-seconds", type=float, default=0.0)
+    p.add_argument("--student-steps", type=int, default=0)
+    p.add_argument("--student-seconds", type=float, default=0.0)
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--crop", type=int, default=256)
+    p.add_argument("--lr", type=float, default=3e-3, help="students' peak learning rate")
+    p.add_argument("--teacher-lr", type=float, default=2e-3)
+    p.add_argument("--warmup", type=int, default=200, help="warm-up steps of each phase")
+    p.add_argument("--pos-weight", type=float, default=4.0)
+    p.add_argument("--alpha", type=float, default=0.5, help="weight of the ground truth in distillation")
+    p.add_argument("--synthetic-share", type=float, default=0.35)
+    p.add_argument("--negative-share", type=float, default=0.1)
+    p.add_argument("--max-images", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--log-every", type=int, default=50)
+    p.add_argument("--save-every-s", type=float, default=60.0)
+    p.add_argument("--no-export", action="store_true")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    try:
+        resolve_device(args.device)
+        check_shares(args.synthetic_share, args.negative_share, args.max_images)
+        parse_students(args.students)
+        Phase(args.teacher_steps, args.teacher_seconds)
+        Phase(args.student_steps, args.student_seconds)
+        if not 0 <= args.alpha <= 1:
+            raise ValueError(f"--alpha must be in [0, 1], got {args.alpha}")
+        if args.crop % M.STRIDE or args.crop < 32 or args.batch < 1 or args.workers < 0:
+            raise ValueError("--crop must be a multiple of 4 and >= 32, --batch >= 1, --workers >= 0")
+    except ValueError as exc:
+        print(f"companion.training.distill: {exc}", file=sys.stderr)
+        return 2
+    try:
+        run(args)
+    except D.DatasetError as exc:
+        print(f"companion.training.distill: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

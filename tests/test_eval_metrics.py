@@ -45,6 +45,35 @@ def test_best_threshold_is_the_largest_meeting_recall_on_every_set() -> None:
     assert best_threshold([res([0.5, 0.4, 0.3])], 0.99) is None
 
 
+def test_best_threshold_takes_one_minimum_per_set() -> None:
+    """The drone calibration rule: each set held to its own recall (Mall, street-level, to less)."""
+    from companion.evaluation.metrics import SetResult
+
+    def res(name, recalls):
+        return SetResult(name, 1, 0, 0, 0, 1,
+                         [{"threshold": t, "recall": r, "free": 0.0} for t, r in zip([0, 1, 2], recalls)])
+
+    sets = [res("drone", [1, 0.996, 0.99]), res("mall", [1, 0.991, 0.985])]
+    assert best_threshold(sets, {"drone": 0.995, "mall": 0.99}) == 1
+    assert best_threshold(sets, {"drone": 0.995, "mall": 0.995}) == 0  # Mall held to 99.5 % would limit it
+    with pytest.raises(KeyError):
+        best_threshold(sets, {"drone": 0.995})  # every set must be named
+
+
+def test_calibration_rules_and_their_bad_values(capsys) -> None:
+    from companion.training.calibrate import RULES, main, rule_minimums
+
+    assert rule_minimums("drone") == {"dronecrowd6": 0.995, "semantic_drone_val": 0.995, "synthetic_val": 0.995,
+                                      "mall": 0.99}
+    assert rule_minimums("v1") == {"dronecrowd6": 0.992, "semantic_drone_val": 0.992, "mall": 0.992}
+    assert set(rule_minimums("v1", 0.99).values()) == {0.99}
+    assert sorted(RULES) == ["drone", "v1"]
+    for argv, says in ((["--rule", "drone", "--min-recall", "0.99"], "v1 rule only"),
+                       (["--rule", "v1", "--min-recall", "1.5"], "(0, 1]")):
+        assert main(["--model", "nowhere.onnx", *argv]) == 2
+        assert says in capsys.readouterr().err
+
+
 def test_loaders_read_the_documented_formats(shared_dir: Path) -> None:
     assert len(D.shanghaitech_b(shared_dir, "test")) == 100
     assert len(D.mall(shared_dir, 100)) == 12

@@ -20,7 +20,7 @@ DroneCrowd's 20x20 head boxes, Mall and ShanghaiTech give head points only, so t
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -248,12 +248,14 @@ def bench_frame(source: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
     return cv2.resize(source, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
 
 
-def best_threshold(results: Iterable[SetResult], min_recall: float) -> float | None:
-    """Largest curve threshold whose recall is >= ``min_recall`` on every one of ``results``."""
+def best_threshold(results: Iterable[SetResult], min_recall: float | Mapping[str, float]) -> float | None:
+    """Largest curve threshold whose recall is >= ``min_recall`` on every one of ``results``;
+    ``min_recall`` is one figure for all, or one per set name (every set must be named)."""
     results = list(results)
+    need = {r.name: (min_recall[r.name] if isinstance(min_recall, Mapping) else min_recall) for r in results}
     ok = None
     for i, c in enumerate(results[0].curve):
-        if all(r.curve[i]["recall"] >= min_recall for r in results):
+        if all(r.curve[i]["recall"] >= need[r.name] for r in results):
             ok = c["threshold"]
     return ok
 

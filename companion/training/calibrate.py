@@ -1,10 +1,16 @@
 """Calibrate an exported model and store the results in its ONNX metadata.
 
 * ``companion.occupancy_threshold``: the largest threshold (on the evaluation curve's grid) at
-  which head recall is at least ``--min-recall`` (default 99.2 %, a margin over the 99 % target)
-  on EACH of the three validation sets: the six DroneCrowd frames, the held-out fifth of the
-  semantic drone photos and Mall 801-2000 (every 5th frame). These are the sets the model card
-  reports on, so its figures at this threshold are validation figures, not blind test figures.
+  which head recall reaches its minimum on EACH validation set of the rule (``--rule``):
+
+  - ``drone`` (the default; issue 13's targets): 99.5 % on the six DroneCrowd frames, the held-out
+    fifth of the semantic drone photos and the synthetic hold-out, 99 % on Mall 801-2000 (every 5th
+    frame: street-level, so held to the lower figure the issue sets for it);
+  - ``v1`` (how the first shipped model was calibrated): ``--min-recall`` (99.2 %, a margin over
+    99 %) on the six DroneCrowd frames, the semantic fifth and Mall every 5th frame.
+
+  These are sets the model card reports on, so its figures on them at this threshold are
+  validation figures, not blind test figures; the card names the sets that did not choose it.
 * ``companion.count_scale``: people per unit of map sum, fitted on every 4th ShanghaiTech B
   *training* image (the map is an occupancy score, not a density, so its sum needs a scale to
   read as a count; the test images stay untouched).
@@ -21,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -33,16 +41,25 @@ from companion.training.metadata import set_metadata
 
 log = logging.getLogger("companion.training.calibrate")
 
-MIN_RECALL = 0.992
+MIN_RECALL = 0.992  # the v1 rule's
 MALL_STEP = 5
+#: Per rule, the least head recall each validation set must keep at the chosen threshold.
+RULES: dict[str, dict[str, float]] = {
+    "drone": {"dronecrowd6": 0.995, "semantic_drone_val": 0.995, "synthetic_val": 0.995, "mall": 0.99},
+    "v1": {"dronecrowd6": MIN_RECALL, "semantic_drone_val": MIN_RECALL, "mall": MIN_RECALL},
+}
+DEFAULT_RULE = "drone"
 
 
-def validation_sets(shared: Path, mall_step: int = MALL_STEP) -> dict[str, list[D.Sample]]:
-    return {
-        "dronecrowd6": D.dronecrowd_frames(shared),
-        "semantic_drone_val": D.semantic_drone(shared, "val"),
-        "mall": D.mall(shared, mall_step),
+def validation_sets(shared: Path, mall_step: int = MALL_STEP, names: Iterable[str] = tuple(RULES["v1"])
+                    ) -> dict[str, list[D.Sample]]:
+    make = {
+        "dronecrowd6": lambda: D.dronecrowd_frames(shared),
+        "semantic_drone_val": lambda: D.semantic_drone(shared, "val"),
+        "mall": lambda: D.mall(shared, mall_step),
+        "synthetic_val": lambda: C.synthetic_set(shared),
     }
+    return {n: make[n]() for n in names}
 
 
 def size_sets(shared: Path) -> dict[str, list[D.Sample]]:
@@ -55,17 +72,29 @@ def size_sets(shared: Path) -> dict[str, list[D.Sample]]:
     }
 
 
-def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float = MIN_RECALL) -> dict[str, object]:
+def rule_minimums(rule: str, min_recall: float | None = None) -> dict[str, float]:
+    """The rule's per-set minimum recall; ``min_recall`` replaces the v1 rule's 99.2 %."""
+    if rule not in RULES:
+        raise ValueError(f"calibration rule must be one of {sorted(RULES)}, got {rule!r}")
+    if min_recall is not None and rule != "v1":
+        raise ValueError("--min-recall applies to the v1 rule only")
+    if min_recall is not None and not 0 < min_recall <= 1:
+        raise ValueError(f"--min-recall must be in (0, 1], got {min_recall}")
+    return {k: min_recall for k in RULES[rule]} if min_recall is not None else dict(RULES[rule])
+
+
+def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float | None = None,
+              rule: str = DEFAULT_RULE) -> dict[str, object]:
+    need = rule_minimums(rule, min_recall)
     model = DensityModel(path, threads=threads, overrides={"count_scale": 1.0})
     shb = D.shanghaitech_b(shared, "train")[::4]
     sums = np.array([float(model(s.image()).sum(dtype=np.float64)) for s in shb])
     counts = np.array([len(s.points) for s in shb])
     count_scale = float(counts.sum() / max(sums.sum(), 1e-9))
-    results = [evaluate_set(n, s, model, 0.0) for n, s in validation_sets(shared).items()]
-    thr = best_threshold(results, min_recall)
+    results = [evaluate_set(n, s, model, 0.0) for n, s in validation_sets(shared, names=need).items()]
+    thr = best_threshold(results, need)
     if thr is None:
-        log.warning("no threshold reaches %.1f %% recall on every validation set; storing 0 (the paper's)",
-                    100 * min_recall)
+        log.warning("no threshold reaches %s on every validation set; storing 0 (the paper's)", need)
         thr = 0.0
     sized = [evaluate_set(n, s, model, thr) for n, s in size_sets(shared).items()]
     min_px = overall_min_person_px(sized)
@@ -76,8 +105,9 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float = MI
         "companion.occupancy_threshold": f"{thr:.6g}",
         "companion.min_person_px": None if min_px is None else f"{min_px:g}",
         "companion.count_scale": f"{count_scale:.6g}",
-        "companion.calibration": f"threshold: largest with recall >= {min_recall} on dronecrowd6, "
-        f"semantic_drone_val, mall/{MALL_STEP}; count_scale: shanghaitech_b train[::4]; "
+        "companion.calibration": f"threshold ({rule} rule): largest with recall >= "
+        + ", ".join(f"{v:g} on {k}" + (f"/{MALL_STEP}" if k == "mall" else "") for k, v in need.items())
+        + "; count_scale: shanghaitech_b train[::4]; "
         "min_person_px: recall >= 0.995 per size bin from there up on semantic_drone_val (x1, x0.5, x0.25) "
         "and synthetic_val",
     }
@@ -94,10 +124,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", default="companion/models/slz-density.onnx")
     p.add_argument("--shared", default="../shared")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--min-recall", type=float, default=MIN_RECALL)
+    p.add_argument("--rule", choices=sorted(RULES), default=DEFAULT_RULE,
+                   help="which sets choose the threshold, at what recall (see the module's doc)")
+    p.add_argument("--min-recall", type=float, default=None, help=f"v1 rule only (default {MIN_RECALL})")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    calibrate(Path(args.model), Path(args.shared), args.threads, args.min_recall)
+    try:
+        rule_minimums(args.rule, args.min_recall)
+    except ValueError as exc:
+        print(f"companion.training.calibrate: {exc}", file=sys.stderr)
+        return 2
+    calibrate(Path(args.model), Path(args.shared), args.threads, args.min_recall, args.rule)
     return 0
 
 

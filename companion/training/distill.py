@@ -179,7 +179,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     students = [Learner(name, M.SLZDensityNet(w).to(device), args.lr) for name, w in parse_students(args.students)]
     mem = torch.channels_last if cuda else torch.contiguous_format
     for lrn in [teacher, *students]:
-        lrn.net.to(memory_format=mem).train()
+        lrn.net.to(memory_format=mem).train()  # type: ignore[call-overload]  # torch's stubs lack it
     log.info("teacher %d parameters; students %s", M.count_parameters(teacher.net),
              {s.name: M.count_parameters(s.net) for s in students})
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else torch.autocast("cpu", enabled=False)
@@ -242,12 +242,12 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     (out / "history.json").write_text(json.dumps(history, indent=1) + "\n")
     if not args.no_export:
         for s in students:
-            net = s.net.float().cpu().eval().to(memory_format=torch.contiguous_format)
+            net = s.net.float().cpu().eval().to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]
             note = (f"distill {s.name} teacher_steps={history['phase1']['steps']} "  # type: ignore[index]
                     f"student_steps={s.steps} batch={args.batch} synthetic_share={args.synthetic_share} "
                     f"negative_share={args.negative_share} alpha={args.alpha} device={history['device']}")
             try:
-                export_onnx(net, out / f"slz-{s.name}.onnx", {"companion.training": note})  # type: ignore[arg-type]
+                export_onnx(net, out / f"slz-{s.name}.onnx", {"companion.training": note})
             except Exception as exc:  # the state dicts are saved: export again where torch.onnx works
                 log.warning("export of %s failed (%s); students.pt holds its weights", s.name, exc)
     log.info("total %.0f s", history["total_s"])

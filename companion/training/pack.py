@@ -56,7 +56,8 @@ def _write_shb_gt(path: Path, points: np.ndarray) -> None:
     scipy.io.savemat(path, {"image_info": cell}, do_compression=True)
 
 
-def pack(shared: Path, out: Path, shb_scale: float = 0.5, shb_quality: int = 75, layout_step: int = 10) -> dict:
+def pack(shared: Path, out: Path, shb_scale: float = 0.5, shb_quality: int = 75,
+         layout_step: int = 10) -> dict[str, object]:
     """Write the pack; return its manifest (also written to ``out/pack.json``)."""
     if not 0 < shb_scale <= 1:
         raise ValueError(f"--shb-scale must be in (0, 1], got {shb_scale}")
@@ -112,14 +113,13 @@ def pack(shared: Path, out: Path, shb_scale: float = 0.5, shb_quality: int = 75,
         (shb_dst / "images" / f"{s.name}.jpg").write_bytes(buf.tobytes())
         _write_shb_gt(shb_dst / "ground-truth" / f"GT_{s.name}.mat", s.points * np.array([fx, fy], np.float32))
 
-    manifest = {
+    manifest: dict[str, object] = {
         "from": str(Path(shared).resolve()),
         "shanghaitech_b": {"scale": shb_scale, "quality": shb_quality, "images": len(samples)},
         "dronecrowd": {"layout_step": layout_step, "sequences": n_layouts, "frames": list(D.DRONECROWD_TRAIN)},
         "semantic_drone": {"images": len(list((sd_dst / "images").glob("*.jpg")))},
     }
     (Path(out) / PACK_MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
-    manifest["bytes"] = _tree_bytes(Path(out))
     return manifest
 
 
@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, D.DatasetError) as exc:
         print(f"companion.training.pack: {exc}", file=sys.stderr)
         return 2
-    print(f"{args.out}: {m['bytes'] / 2**20:.1f} MiB ({json.dumps({k: v for k, v in m.items() if k != 'bytes'})})")
+    print(f"{args.out}: {_tree_bytes(args.out) / 2**20:.1f} MiB ({json.dumps(m)})")
     return 0
 
 

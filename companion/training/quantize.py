@@ -12,9 +12,9 @@ Issue 13 asks for int8 measured for its recall cost: this writes the quantised f
   model's own preprocessing (``DensityModel.preprocess``). Nothing the figures are reported on
   sets a range.
 * The quantised file keeps the float model's ``companion.*`` metadata, then
-  ``companion.training.calibrate`` chooses its own threshold (the largest that keeps 99.2 % on
-  every validation set), count scale and ``min_person_px``: int8 moves the scores, so the float
-  model's threshold would not mean the same recall.
+  ``companion.training.calibrate`` chooses its own threshold (by its default rule, the drone
+  rule), count scale and ``min_person_px``: int8 moves the scores, so the float model's threshold
+  would not mean the same recall.
 
     python -m companion.training.quantize --model companion/models/slz-density.onnx \\
         --out /tmp/slz-density-int8.onnx --shared ../shared

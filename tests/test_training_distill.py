@@ -1,0 +1,130 @@
+"""The GPU training path, run on the CPU: the data pack and teacher-student distillation (issue 13)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.evaluation import datasets as D
+
+
+@pytest.fixture(scope="module")
+def pack_dir(tmp_path_factory: pytest.TempPathFactory, shared_dir: Path) -> Path:
+    from companion.training.pack import pack
+
+    out = tmp_path_factory.mktemp("pack") / "shared"
+    pack(shared_dir, out, shb_scale=0.5, shb_quality=75, layout_step=10)
+    return out
+
+
+def test_pack_is_read_by_the_same_loaders_with_the_same_splits(pack_dir: Path, shared_dir: Path) -> None:
+    from companion.evaluation.compositor import load_layouts
+    from companion.training.pack import shb_scale
+
+    assert shb_scale(pack_dir) == 0.5 and shb_scale(shared_dir) == 1.0
+    # The semantic-drone split is by sorted index: the same photos train, the same are held out.
+    for split in ("train", "val"):
+        assert [s.name for s in D.semantic_drone(pack_dir, split)] == [s.name for s in D.semantic_drone(shared_dir, split)]
+    # ShanghaiTech B: every training photo, half the size, head points scaled alike.
+    full, half = D.shanghaitech_b(shared_dir, "train"), D.shanghaitech_b(pack_dir, "train")
+    assert [s.name for s in half] == [s.name for s in full]
+    assert half[7].image().shape[:2] == (full[7].image().shape[0] // 2, full[7].image().shape[1] // 2)
+    np.testing.assert_allclose(half[7].points, full[7].points * 0.5, atol=1e-3)
+    # DroneCrowd: the training frames with their own head points; layouts of the training split only.
+    assert [len(s.points) for s in D.dronecrowd_frames(pack_dir, D.DRONECROWD_TRAIN)] == \
+        [len(s.points) for s in D.dronecrowd_frames(shared_dir, D.DRONECROWD_TRAIN)]
+    assert sorted(load_layouts(pack_dir, "train").sequences) == sorted(load_layouts(shared_dir, "train").sequences)
+    assert not (pack_dir / "data" / "dronecrowd" / "frames" / "img017").exists()  # the held-out frame stays out
+    assert not (pack_dir / "data" / "mall").exists() and not (pack_dir / "data" / "shanghaitech_b" / "test_data").exists()
+    manifest = json.loads((pack_dir / "pack.json").read_text())
+    assert manifest["shanghaitech_b"] == {"scale": 0.5, "quality": 75, "images": 400}
+    assert sum(p.stat().st_size for p in pack_dir.rglob("*") if p.is_file()) < 58 * 2**20  # fits a GPU call
+
+
+def test_training_from_a_pack_covers_the_same_person_sizes(pack_dir: Path) -> None:
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training.train import load_sources
+
+    shb = {s.name: s for s in load_sources(pack_dir, max_images=2)}["shanghaitech_b"]
+    assert shb.aug.scale == pytest.approx((0.5, 1.8))  # 0.25-0.9 of the full-size photo
+
+
+def test_pack_rejects_bad_arguments_and_a_bad_manifest(tmp_path: Path, shared_dir: Path, capsys) -> None:
+    from companion.training.pack import main, shb_scale
+
+    assert main(["--shared", str(shared_dir), "--out", str(tmp_path / "p"), "--shb-scale", "0"]) == 2
+    assert "--shb-scale" in capsys.readouterr().err
+    assert main(["--shared", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p")]) == 2
+    assert "missing" in capsys.readouterr().err
+    (tmp_path / "pack.json").write_text('{"shanghaitech_b": {}}')
+    with pytest.raises(D.DatasetError, match="not a training pack"):
+        shb_scale(tmp_path)
+
+
+def test_distillation_runs_both_phases_on_cpu_and_exports_students(tmp_path: Path, pack_dir: Path) -> None:
+    """The GPU command's code path on the CPU, with crop-making worker processes: a teacher, one
+    distilled student and its control; every student exports and loads through the runner."""
+    torch = pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    import onnx
+
+    from companion.pipeline.density import DensityModel
+    from companion.training.distill import main
+    from companion.training.model import SLZDensityNet
+
+    out = tmp_path / "d"
+    rc = main(["--shared", str(pack_dir), "--out-dir", str(out), "--workers", "1", "--threads", "1",
+               "--students", "d16,g16", "--teacher-width", "8", "--teacher-steps", "3", "--student-steps", "2",
+               "--batch", "2", "--crop", "64", "--max-images", "3", "--log-every", "1"])
+    assert rc == 0
+    hist = json.loads((out / "history.json").read_text())
+    assert hist["phase1"]["steps"] == 3 and hist["phase2"]["steps"] == 2 and hist["phase1"]["crops"] == 6
+    assert len(hist["losses"]["teacher"]) == 1 and np.isfinite(hist["losses"]["d16"]).all()
+    students = torch.load(out / "students.pt")
+    assert {k: (v["width"], v["steps"]) for k, v in students.items()} == {"d16": (16, 5), "g16": (16, 5)}
+    net = SLZDensityNet(16)
+    net.load_state_dict(students["d16"]["state_dict"])  # the saved weights are a whole student
+    assert (out / "teacher.pt").is_file()
+    for name in ("d16", "g16"):
+        m = DensityModel(out / f"slz-{name}.onnx", threads=1)
+        assert m(np.zeros((64, 96, 3), np.uint8)).shape == (16, 24)
+        note = {p.key: p.value for p in onnx.load(str(out / f"slz-{name}.onnx")).metadata_props}["companion.training"]
+        assert f"distill {name}" in note and "device=cpu" in note
+
+
+def test_distillation_loss_pulls_toward_the_teacher() -> None:
+    torch = pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training.distill import distill_loss
+
+    target = torch.zeros(1, 1, 4, 4)
+    teacher = torch.full((1, 1, 4, 4), 0.3)
+    # With alpha = 0 the optimum is the teacher's probability; with alpha = 1 it ignores the teacher.
+    logits = torch.zeros(1, 1, 4, 4, requires_grad=True)
+    opt = torch.optim.SGD([logits], lr=5.0)
+    for _ in range(300):
+        opt.zero_grad()
+        distill_loss(logits, target, teacher, 4.0, 0.0).backward()
+        opt.step()
+    assert float(torch.sigmoid(logits.detach()).mean()) == pytest.approx(0.3, abs=0.01)
+    a = distill_loss(torch.zeros(1, 1, 4, 4), target, teacher, 4.0, 1.0)
+    b = distill_loss(torch.zeros(1, 1, 4, 4), target, torch.full((1, 1, 4, 4), 0.9), 4.0, 1.0)
+    assert float(a) == pytest.approx(float(b))
+
+
+def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training.distill import main, parse_students
+
+    assert parse_students("d40, g40,d64") == [("d40", 40), ("g40", 40), ("d64", 64)]
+    base = ["--shared", str(tmp_path), "--out-dir", str(tmp_path / "o"), "--teacher-steps", "1", "--student-steps", "1"]
+    for extra, says in ((["--students", "x40"], "d<width>"), (["--students", "d40,d40"], "twice"),
+                        (["--students", "d4"], "8-256"), (["--alpha", "2"], "--alpha"),
+                        (["--crop", "30"], "--crop"), (["--teacher-steps", "0"], "a phase needs"),
+                        (["--synthetic-share", "0.9", "--negative-share", "0.2"], "must be <= 1")):
+        assert main([*base, *extra]) == 2
+        assert says in capsys.readouterr().err
+    assert main(base) == 2  # no data at --shared: a clear error before any training
+    assert "missing" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "students.pt").exists()

@@ -57,19 +57,22 @@ def bgr_frame(h: int, w: int, b: int = 10, g: int = 20, r: int = 30) -> np.ndarr
     return f
 
 
-# --- the shipped models (float, and its int8 form when one is shipped) -------------------
+# --- the shipped models (float, its int8 form and the GPU-trained version 2, when shipped) ---
 
 INT8 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-int8.onnx"
+V2 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v2.onnx"
 
 
-@pytest.fixture(params=["float", "int8"])
+@pytest.fixture(params=["float", "int8", "v2"])
 def shipped_model(request, model_path: Path) -> Path:
-    """Each density model the package ships: the runner tests hold for the int8 one too."""
+    """Each density model the package ships: the runner tests hold for the int8 one and for
+    version 2 (beside the default, not yet it) too."""
     if request.param == "float":
         return model_path
-    if not INT8.is_file():
-        pytest.skip(f"no int8 model shipped ({INT8.name})")
-    return INT8
+    extra = {"int8": INT8, "v2": V2}[request.param]
+    if not extra.is_file():
+        pytest.skip(f"no {request.param} model shipped ({extra.name})")
+    return extra
 
 
 

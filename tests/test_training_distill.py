@@ -92,6 +92,7 @@ def test_distillation_runs_both_phases_on_cpu_and_exports_students(tmp_path: Pat
         assert m(np.zeros((64, 96, 3), np.uint8)).shape == (16, 24)
         note = {p.key: p.value for p in onnx.load(str(out / f"slz-{name}.onnx")).metadata_props}["companion.training"]
         assert f"distill {name}" in note and "device=cpu" in note
+        assert ("alpha=0.5" in note) == (name == "d16") and ("no teacher" in note) == (name == "g16")
 
 
 def test_distillation_loss_pulls_toward_the_teacher() -> None:

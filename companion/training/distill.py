@@ -243,9 +243,10 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     if not args.no_export:
         for s in students:
             net = s.net.float().cpu().eval().to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]
+            how = f"alpha={args.alpha}" if s.name.startswith("d") else "ground truth only (no teacher)"
             note = (f"distill {s.name} teacher_steps={history['phase1']['steps']} "  # type: ignore[index]
                     f"student_steps={s.steps} batch={args.batch} synthetic_share={args.synthetic_share} "
-                    f"negative_share={args.negative_share} alpha={args.alpha} device={history['device']}")
+                    f"negative_share={args.negative_share} {how} device={history['device']}")
             try:
                 export_onnx(net, out / f"slz-{s.name}.onnx", {"companion.training": note})
             except Exception as exc:  # the state dicts are saved: export again where torch.onnx works

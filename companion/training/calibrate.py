@@ -62,13 +62,14 @@ def validation_sets(shared: Path, mall_step: int = MALL_STEP, names: Iterable[st
     return {n: make[n]() for n in names}
 
 
-def size_sets(shared: Path) -> dict[str, list[D.Sample]]:
-    """The validation sets that give person sizes (for ``min_person_px``)."""
+def size_sets(shared: Path, synthetic: list[D.Sample] | None = None) -> dict[str, list[D.Sample]]:
+    """The validation sets that give person sizes (for ``min_person_px``); ``synthetic``: the
+    synthetic hold-out when the caller already built it (the drone rule's validation sets hold it)."""
     val = D.semantic_drone(shared, "val")
     return {
         "semantic_drone_val": val,
         **{f"semantic_drone_val_x{f:g}": D.scaled(val, f, f"_x{f:g}") for f in D.SEMANTIC_SCALES},
-        "synthetic_val": C.synthetic_set(shared),
+        "synthetic_val": synthetic if synthetic is not None else C.synthetic_set(shared),
     }
 
 
@@ -91,12 +92,13 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float | No
     sums = np.array([float(model(s.image()).sum(dtype=np.float64)) for s in shb])
     counts = np.array([len(s.points) for s in shb])
     count_scale = float(counts.sum() / max(sums.sum(), 1e-9))
-    results = [evaluate_set(n, s, model, 0.0) for n, s in validation_sets(shared, names=need).items()]
+    val = validation_sets(shared, names=need)
+    results = [evaluate_set(n, s, model, 0.0) for n, s in val.items()]
     thr = best_threshold(results, need)
     if thr is None:
         log.warning("no threshold reaches %s on every validation set; storing 0 (the paper's)", need)
         thr = 0.0
-    sized = [evaluate_set(n, s, model, thr) for n, s in size_sets(shared).items()]
+    sized = [evaluate_set(n, s, model, thr) for n, s in size_sets(shared, val.get("synthetic_val")).items()]
     min_px = overall_min_person_px(sized)
     for r in sized:
         log.info("%s: recall >= 99.5 %% from %s px; by size %s", r.name, r.min_person_px,

@@ -46,7 +46,7 @@ import torch.nn.functional as F
 from companion.evaluation import datasets as D
 from companion.training import model as M
 from companion.training.export import export_onnx
-from companion.training.train import CropSource, all_sources, check_shares, loss, raw_batch, resolve_device
+from companion.training.train import CropSource, all_sources, check_shares, loss, normalise, raw_batch, resolve_device
 
 log = logging.getLogger("companion.training.distill")
 
@@ -66,13 +66,6 @@ class CropStream(torch.utils.data.IterableDataset):
         while True:
             xs, ys = raw_batch(self.sources, self.batch, self.crop, rng)
             yield torch.from_numpy(xs), torch.from_numpy(ys)
-
-
-def normalise(x: torch.Tensor) -> torch.Tensor:
-    """uint8 NCHW BGR on any device -> the network's float32 input, as ``train.normalise``."""
-    mean = torch.tensor(M.MEAN, dtype=torch.float32, device=x.device).view(1, 3, 1, 1)
-    std = torch.tensor(M.STD, dtype=torch.float32, device=x.device).view(1, 3, 1, 1)
-    return (x.float() * M.SCALE - mean) / std
 
 
 def batches(stream: CropStream, workers: int, pin: bool) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:

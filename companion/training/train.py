@@ -48,6 +48,7 @@ from companion.training import model as M
 from companion.training.augment import GeomAug, photometric, random_crop
 from companion.training.export import export_onnx
 from companion.training.negatives import HardNegatives, class_indices
+from companion.training.pack import shb_scale
 from companion.training.targets import box_target, point_target
 
 log = logging.getLogger("companion.training")
@@ -110,8 +111,6 @@ class NegativeSource:
 
 def load_sources(shared: Path, max_images: int = 0) -> list[Source]:
     """The real sources; ``max_images`` > 0 keeps only the first N images of each (quick runs)."""
-    from companion.training.pack import shb_scale
-
     t0 = time.monotonic()
     # A training pack (companion.training.pack) holds ShanghaiTech B downscaled by f: widen its
     # scale range and target sigmas by 1/f so the crops cover the same person sizes (f = 1 here).
@@ -202,17 +201,17 @@ def raw_batch(sources: list[CropSource], batch: int, size: int, rng: np.random.G
     return xs, ys
 
 
-def normalise(xs: np.ndarray) -> np.ndarray:
-    """uint8 NCHW BGR -> the network's float32 input (``(x * SCALE - MEAN) / STD``)."""
-    mean = np.array(M.MEAN, np.float32)[:, None, None]
-    std = np.array(M.STD, np.float32)[:, None, None]
-    out: np.ndarray = (xs.astype(np.float32) * M.SCALE - mean) / std
-    return out
+def normalise(x: torch.Tensor) -> torch.Tensor:
+    """uint8 NCHW BGR on any device -> the network's float32 input (``(x * SCALE - MEAN) / STD``);
+    on the CPU, in the data loader, or on the GPU after the uint8 crops are copied there."""
+    mean = torch.tensor(M.MEAN, dtype=torch.float32, device=x.device).view(1, 3, 1, 1)
+    std = torch.tensor(M.STD, dtype=torch.float32, device=x.device).view(1, 3, 1, 1)
+    return (x.float() * M.SCALE - mean) / std
 
 
 def make_batch(sources: list[CropSource], batch: int, size: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     xs, ys = raw_batch(sources, batch, size, rng)
-    return torch.from_numpy(normalise(xs)), torch.from_numpy(ys)
+    return normalise(torch.from_numpy(xs)), torch.from_numpy(ys)
 
 
 def loss(logits: torch.Tensor, target: torch.Tensor, pos_weight: float) -> torch.Tensor:

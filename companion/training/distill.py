@@ -37,6 +37,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -172,7 +173,8 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     students = [Learner(name, M.SLZDensityNet(w).to(device), args.lr) for name, w in parse_students(args.students)]
     mem = torch.channels_last if cuda else torch.contiguous_format
     for lrn in [teacher, *students]:
-        lrn.net.to(memory_format=mem).train()  # type: ignore[call-overload]  # torch's stubs lack it
+        # Module.to accepts memory_format, but torch's stubs list no overload with it.
+        cast(Any, lrn.net).to(memory_format=mem).train()
     log.info("teacher %d parameters; students %s", M.count_parameters(teacher.net),
              {s.name: M.count_parameters(s.net) for s in students})
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else torch.autocast("cpu", enabled=False)
@@ -235,7 +237,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     (out / "history.json").write_text(json.dumps(history, indent=1) + "\n")
     if not args.no_export:
         for s in students:
-            net = s.net.float().cpu().eval().to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]
+            net = cast(Any, s.net).float().cpu().eval().to(memory_format=torch.contiguous_format)
             how = f"alpha={args.alpha}" if s.name.startswith("d") else "ground truth only (no teacher)"
             note = (f"distill {s.name} teacher_steps={history['phase1']['steps']} "  # type: ignore[index]
                     f"student_steps={s.steps} batch={args.batch} synthetic_share={args.synthetic_share} "

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.geometry.camera import GeometryError, Intrinsics, Mount, Pose
+from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.headplane import GridSpec
 from companion.pipeline.proposals import clearance_at, distance_cells, propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError
@@ -172,3 +172,121 @@ def test_fused_free_grid_feeds_the_same_proposal_rule():
     assert np.array_equal(fused, free)  # nothing older than this frame: the frame's own grid
     circles = propose(fused, GRID, 3, 2.0)
     assert circles and all(math.hypot(c.x, c.y) >= c.r for c in circles)
+
+
+def test_calm_is_how_long_the_disc_has_been_watched_free_and_restarts_on_a_sighting():
+    """A lawn nobody enters grows calm for as long as it is watched; a gap a walker has just
+    crossed is calm only since the walker left it."""
+    risk = GroundRiskMap(RiskMapConfig(watch_gap_s=1.0))
+    empty, seen = frame_grids([])
+    assert risk.calm_s(0.0, 0.0, 3.0, 0.0) == 0.0  # no frame yet: nothing watched
+    for k in range(51):  # 5 s at 10 Hz, nobody anywhere
+        risk.update(GRID, empty, seen, 100.0 + 0.1 * k)
+    assert risk.calm_s(0.0, 0.0, 3.0, 105.0) == pytest.approx(5.0, abs=1e-3)
+    # A walker passes 2.5 m from (5, 0), inside its 3 m disc, at t = 105.1; (-5, 0) stays calm.
+    walker, _ = frame_grids([(5.0, 2.5)], radius=0.2)
+    risk.update(GRID, walker, seen, 105.1)
+    for k in range(2, 31):
+        risk.update(GRID, empty, seen, 105.0 + 0.1 * k)
+    assert risk.calm_s(5.0, 0.0, 3.0, 108.0) == pytest.approx(2.9, abs=1e-3)
+    assert risk.calm_s(-5.0, 0.0, 3.0, 108.0) == pytest.approx(8.0, abs=1e-3)
+    # Further than the radius (plus half a cell's diagonal) does not count.
+    assert risk.calm_s(5.0, -1.0, 3.0, 108.0) == pytest.approx(8.0, abs=1e-3)
+
+
+def test_calm_needs_the_whole_disc_in_view_now_and_an_unbroken_watch():
+    risk = GroundRiskMap(RiskMapConfig(watch_gap_s=1.0))
+    west = np.zeros(GRID.shape, np.uint8)
+    west[:, :100] = 255  # columns are x: the camera sees x < 0 only
+    empty, seen = frame_grids([])
+    for k in range(30):
+        risk.update(GRID, empty, seen, 0.1 * k)
+    # Watched 2.9 s, then the view moves west for 3 s: the east was out of view, anybody could
+    # have walked there unseen.
+    free_w, seen_w = frame_grids([], seen=west)
+    for k in range(30, 60):
+        risk.update(GRID, free_w, seen_w, 0.1 * k)
+    assert risk.calm_s(5.0, 0.0, 3.0, 5.9) == 0.0  # not in view now
+    assert risk.calm_s(-0.5, 0.0, 3.0, 5.9) == 0.0  # the disc straddles the view's edge
+    assert risk.calm_s(-5.0, 0.0, 3.0, 5.9) == pytest.approx(5.9, abs=1e-3)
+    # Back in view: the east's watch starts again now, not at t = 0.
+    for k in range(60, 71):
+        risk.update(GRID, empty, seen, 0.1 * k)
+    assert risk.calm_s(5.0, 0.0, 3.0, 7.0) == pytest.approx(1.0, abs=1e-3)
+    # A point whose disc leaves the map is not calm; nor is a non-finite one.
+    assert GroundRiskMap(RiskMapConfig(half_extent_m=5.0)).calm_s(0.0, 0.0, 3.0, 0.0) == 0.0
+    assert risk.calm_s(math.nan, 0.0, 3.0, 7.0) == 0.0
+    with pytest.raises(ValueError, match="watch_gap_s"):
+        RiskMapConfig(watch_gap_s=0.0)
+
+
+def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones():
+    """Under the paper's per-frame fusion the map only measures calm: the proposals are the
+    frame's own, and each posed frame's tracks and ground below carry calm_s."""
+    base = np.zeros((240, 320), np.float32)
+    frame = np.zeros((240, 320, 3), np.uint8)
+    pipe = _pipeline("frame", lambda _f: base)
+    ref = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"),
+                      intrinsics=Intrinsics.from_fov(320, 240, 70.0), mount=Mount())
+    for k in range(30):
+        t = 0.1 * k
+        pose = Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
+        res = pipe.process(frame, t, pose)
+        assert res.proposals == ref.process(frame, t, pose).proposals
+        assert res.fused_grid is None
+    assert res.below is not None and res.below.calm_s == pytest.approx(2.9, abs=1e-3)
+    centre = [tr for tr in res.tracks if math.hypot(tr.x, tr.y) < 0.5]
+    assert centre and centre[0].calm_s == pytest.approx(2.9, abs=1e-3)
+    # Zones whose disc reaches past the edge of the view are not calm: part of it is unwatched.
+    assert all(tr.calm_s == 0.0 for tr in res.tracks if math.hypot(tr.x, tr.y) > 4.0)
+    # Without a pose (a fixed projection) nothing is measured: NaN, never "calm".
+    fixed = SLZPipeline(lambda _f: base, PipelineConfig(), projection=PlaneProjection.nadir(0.05))
+    for k in range(5):
+        out = fixed.process(frame, 0.1 * k)
+    assert out.tracks and all(math.isnan(tr.calm_s) for tr in out.tracks)
+
+
+def test_a_trail_keeps_ground_walked_over_recently_out_of_where_zones_are_placed():
+    """With trail_s a gap a walker crossed 5 s ago is not free on the trail grid (a path, not a
+    lawn), ground nobody entered is; the fused grid and the clearance are the hold's alone."""
+    risk = GroundRiskMap(RiskMapConfig(hold_s=1.0, trail_s=8.0))
+    empty, seen = frame_grids([])
+    walker, _ = frame_grids([(3.0, 0.0)], radius=0.3)
+    risk.update(GRID, walker, seen, 0.0)
+    for k in range(1, 51):
+        risk.update(GRID, empty, seen, 0.1 * k)
+    t = 5.0
+    trail = risk.trail_free(GRID, empty, t)
+    assert trail[100, 130] == 0  # (x 3, y 0): walked over 5 s ago
+    assert trail[100, 60] == 255  # nobody ever there
+    assert risk.fused_free(GRID, empty, t)[100, 130] == 255  # the hold alone forgot it
+    assert risk.clearance_now(-4.0, 0.0, t, 5.0) == 5.0  # no growth from a 5 s old sighting
+    assert risk.trail_free(GRID, empty, 9.0)[100, 130] == 255  # 9 s later: off the trail
+    with pytest.raises(ValueError, match="trail_s"):
+        RiskMapConfig(trail_s=20.0, memory_s=10.0)
+
+
+def test_the_trail_moves_proposals_off_a_path_but_not_the_zones_measure():
+    """Per-frame fusion with a trail: a person crossing under the camera and gone leaves no
+    proposal on their path for trail_s, while the frame's own grid still measures the zones."""
+    person = np.zeros((240, 320), np.float32)
+    person[115:125, 155:165] = 1.0  # under the camera
+    base = np.zeros((240, 320), np.float32)
+    frame = np.zeros((240, 320, 3), np.uint8)
+    K = Intrinsics.from_fov(320, 240, 70.0)
+    results = {}
+    for trail in (0.0, 8.0):
+        cfg = PipelineConfig(fusion="frame", risk=RiskMapConfig(trail_s=trail))
+        pipe = SLZPipeline(lambda _f: base, cfg, intrinsics=K, mount=Mount())
+        for k in range(20):
+            pipe.density = (lambda _f: person) if k < 3 else (lambda _f: base)
+            t = 0.1 * k
+            results[trail] = pipe.process(frame, t, Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    on_path = results[8.0].projection.image_to_plane(np.array([[160.0, 120.0]]))[0]
+
+    def covers(res) -> bool:
+        return any(math.hypot(c.x - on_path[0], c.y - on_path[1]) < c.r for c in res.proposals)
+
+    assert covers(results[0.0])  # 1.7 s after they left, the frame's rule proposes over their path
+    assert results[8.0].proposals and not covers(results[8.0])
+    assert np.array_equal(results[8.0].free_grid, results[0.0].free_grid)

@@ -5,6 +5,7 @@ The tracker associates landing-zone proposals to tracks by circle IoU (docs/desi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,12 +32,15 @@ class GroundBelow:
     r: how far the ground around it is free on the grid proposals are made on (m; 0 when it is
         occupied or out of the grid; unseen ground is not free, so ``r <= r_view``).
     r_view: how far the camera's view reaches around it (m).
+    calm_s: how long the ground around it (r0 plus a margin) has been watched and seen free (s,
+        ``riskmap.GroundRiskMap.calm_s``); NaN when not measured (a frame without a pose).
     """
 
     x: float
     y: float
     r: float
     r_view: float
+    calm_s: float = math.nan
 
     @property
     def view_limited(self) -> bool:

@@ -13,6 +13,12 @@ in seconds on the capture-time clock. From these, for a frame:
   free now *and* it was not seen occupied within ``hold_s``. A person the network misses in a few
   frames (up to ``hold_s`` of them) stays occupied, and a gap a walker has just left is not free.
   Cells the camera does not see now are not free (unknown), as in the per-frame pipeline.
+- **trail grid** (``trail_free``; where zones are *proposed*, under either fusion): the frame's
+  free grid less every cell seen occupied within ``trail_s``: somebody walked there a moment ago,
+  so it is a path, not a lawn (a gap a walker crossed 5 s ago is otherwise as free as ground
+  nobody enters, and the largest circle of a frame may reach from a lawn into a sparse crowd).
+  It does not grow, and it only places zones: whether a zone still holds is measured on the
+  frame's (or the fused) grid, where a path walked 8 s ago 1.9 m away is no reason to abort.
 - **clearance now** at a point, ``C0``: the distance to the nearest place a person may be *now*,
   where a person last seen ``a`` seconds ago (``a <= hold_s``) may have walked ``walk_speed * a``
   metres since, and anybody outside the view may be at its edge. At a later time ``now + tau``
@@ -20,6 +26,12 @@ in seconds on the capture-time clock. From these, for a frame:
   walking lets them. That subtraction is the controller's: it knows ``tau``.
 - **unknown**: a cell never seen, or not seen for longer than ``memory_s``, is unknown and never
   free (``known_free`` answers for ground outside the current view, for the search).
+- **calm** at a point, ``calm_s``: how long the camera has watched every cell within a radius
+  without a break of more than ``watch_gap_s`` and seen nobody there. A gap in a walking crowd is
+  free on the frame it opens; a lawn nobody walks into stays calm for as long as it is watched.
+  Only ground watched now counts (a cell out of view may have been walked over unseen): calm is 0
+  where any cell of the disc is not in view. Per cell the map keeps ``seen_since``, when its
+  present unbroken watch began.
 
 Walking speed: 1.5 m/s by default, above the 1.34 m/s mean free walking speed of pedestrians
 (Weidmann, "Transporttechnik der Fussgaenger", ETH Zurich, 1993), so that brisk walkers are
@@ -66,12 +78,20 @@ class RiskMapConfig:
     memory_s: float = 10.0
     max_jump_m: float = 15.0
     max_jump_s: float = 0.5
+    #: A cell not seen for longer than this (s) starts a new watch: its calm starts again at 0.
+    watch_gap_s: float = 1.0
+    #: Ground seen occupied within this (s) is not free on the trail grid where zones are proposed
+    #: (see the module docstring); 0: no trail.
+    trail_s: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("cell_m", "half_extent_m", "walk_speed_mps", "memory_s", "max_jump_m", "max_jump_s"):
+        for name in ("cell_m", "half_extent_m", "walk_speed_mps", "memory_s", "max_jump_m", "max_jump_s",
+                     "watch_gap_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"risk map {name} must be a positive number, got {v!r}")
+        if not (math.isfinite(self.trail_s) and 0 <= self.trail_s <= self.memory_s):
+            raise ValueError(f"risk map trail_s must be in [0, memory_s], got {self.trail_s!r}")
         if not (math.isfinite(self.hold_s) and 0 <= self.hold_s <= self.memory_s):
             raise ValueError(f"risk map hold_s must be in [0, memory_s], got {self.hold_s!r}")
         if self.half_extent_m / self.cell_m > MAX_HALF_CELLS:
@@ -115,6 +135,7 @@ class GroundRiskMap:
         # for hours, half the memory of float64 (a 1,201-cell square is 11 MiB for both).
         self.last_seen = np.full((n, n), NEVER, np.float32)
         self.last_occ = np.full((n, n), NEVER, np.float32)
+        self.seen_since = np.full((n, n), NEVER, np.float32)
         self.epoch: float | None = None
         self._origin: tuple[int, int] | None = None  # world cell (row, col) of array [0, 0]
         self._last: tuple[float, float, float] | None = None  # (t, x, y) of the previous grid centre
@@ -136,7 +157,7 @@ class GroundRiskMap:
         new = (row - half, col - half)
         if self._origin is not None:
             dr, dc = new[0] - self._origin[0], new[1] - self._origin[1]
-            for a in (self.last_seen, self.last_occ):
+            for a in (self.last_seen, self.last_occ, self.seen_since):
                 shifted = np.full_like(a, NEVER)
                 n = self.size
                 src_r = slice(max(0, dr), min(n, n + dr))
@@ -194,8 +215,12 @@ class GroundRiskMap:
             occupied = free_grid[w.grid_rows, w.grid_cols] == 0
             occupied &= seen
             rel = np.float32(t - self.epoch)
+            last_seen = self.last_seen[w.map_rows, w.map_cols]
+            # A cell seen now after a break longer than watch_gap_s starts a new watch.
+            restart = seen & (last_seen < rel - np.float32(self.config.watch_gap_s))
             # copyto with a mask writes in place without building index arrays (the hot path).
-            np.copyto(self.last_seen[w.map_rows, w.map_cols], rel, where=seen)
+            np.copyto(self.seen_since[w.map_rows, w.map_cols], rel, where=restart)
+            np.copyto(last_seen, rel, where=seen)
             np.copyto(self.last_occ[w.map_rows, w.map_cols], rel, where=occupied)
         self._last = (t, cx, cy)
         self.t = t
@@ -227,11 +252,19 @@ class GroundRiskMap:
     def fused_free(self, grid: GridSpec, free_grid: np.ndarray, t: float) -> np.ndarray:
         """This frame's free grid less every cell seen occupied within ``hold_s`` of ``t``
         (uint8, 255 free, 0 not free). Call after ``update`` with the same frame."""
+        return self._less_recent(grid, free_grid, t, self.config.hold_s)
+
+    def trail_free(self, grid: GridSpec, free_grid: np.ndarray, t: float) -> np.ndarray:
+        """``free_grid`` (the frame's or the fused one) less every cell seen occupied within
+        ``trail_s`` of ``t``: where zones are proposed (see the module docstring)."""
+        return self._less_recent(grid, free_grid, t, self.config.trail_s)
+
+    def _less_recent(self, grid: GridSpec, free_grid: np.ndarray, t: float, keep_s: float) -> np.ndarray:
         out = np.zeros(grid.shape, np.uint8)
         w = self._window(grid)
         if w is None:
             return out
-        recent = self.last_occ[w.map_rows, w.map_cols] >= np.float32(self._rel(t) - self.config.hold_s)
+        recent = self.last_occ[w.map_rows, w.map_cols] >= np.float32(self._rel(t) - keep_s)
         view = out[w.grid_rows, w.grid_cols]
         np.copyto(view, free_grid[w.grid_rows, w.grid_cols])
         np.copyto(view, 0, where=recent)
@@ -280,3 +313,29 @@ class GroundRiskMap:
         free = (seen >= now - self.config.memory_s) & (occ < seen) & (occ < now - self.config.hold_s)
         out[w.grid_rows, w.grid_cols] = np.where(free, 255, 0)
         return out
+
+    def calm_s(self, x: float, y: float, radius_m: float, t: float) -> float:
+        """How long (s, at time ``t``) every cell within ``radius_m`` of plane point (x, y) has
+        been watched without a break of more than ``watch_gap_s`` and seen free: the time since the
+        latest of those watches began or anybody was last seen there. 0 where any cell of the
+        disc is not watched now (out of view, outside the map, never seen), or on a map with no
+        frame; never more than the time since the map's first frame."""
+        cfg = self.config
+        if self._origin is None or self.t is None or not all(math.isfinite(v) for v in (x, y, radius_m, t)):
+            return 0.0
+        c = cfg.cell_m
+        row = int(round(y / c)) - self._origin[0]
+        col = int(round(x / c)) - self._origin[1]
+        k = int(math.ceil(max(radius_m, 0.0) / c))
+        if row - k < 0 or col - k < 0 or row + k >= self.size or col + k >= self.size:
+            return 0.0  # part of the disc lies outside the map: not watched
+        rows = slice(row - k, row + k + 1)
+        cols = slice(col - k, col + k + 1)
+        off = np.arange(-k, k + 1) * c
+        # Cells whose square reaches into the disc (centre within radius plus half a diagonal).
+        disc = np.hypot(off[:, None], off[None, :]) <= radius_m + c * math.sqrt(0.5)
+        now = self._rel(t)
+        if np.any(self.last_seen[rows, cols][disc] < np.float32(now - cfg.watch_gap_s)):
+            return 0.0
+        start = max(float(np.max(self.last_occ[rows, cols][disc])), float(np.max(self.seen_since[rows, cols][disc])))
+        return max(0.0, now - start)

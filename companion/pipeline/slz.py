@@ -30,7 +30,7 @@ from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sa
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, propose
-from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig
+from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
 DensityFn = Callable[[np.ndarray], np.ndarray]
@@ -67,8 +67,13 @@ class PipelineConfig:
     #: (``controller.predict_people``); None: not followed, and not paid for.
     people: PeopleParams | None = None
     surface_threshold: float | None = None
+    #: Each zone's and the ground-below's ``calm_s`` is measured over ``r0_m`` plus this (m)
+    #: around their centre (``riskmap.GroundRiskMap.calm_s``).
+    calm_margin_m: float = 1.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.calm_margin_m) and self.calm_margin_m >= 0):
+            raise ValueError(f"calm_margin_m must be >= 0 m, got {self.calm_margin_m!r}")
         if self.surface_threshold is not None and not (
                 math.isfinite(self.surface_threshold) and 0.0 <= self.surface_threshold < 1.0):
             raise ValueError(f"surface_threshold must be in [0, 1), got {self.surface_threshold!r}")
@@ -146,7 +151,9 @@ class SLZPipeline:
         self.mount = mount or Mount()
         self.fixed_projection = projection
         self.tracker = ZoneTracker(config.tracker)
-        self.risk = GroundRiskMap(config.risk) if config.fusion == "map" else None
+        # The map runs under either fusion: with "frame" it only measures how long the ground
+        # has been calm (``calm_s``), and proposals come from the frame alone.
+        self.risk = GroundRiskMap(config.risk)
         self.people = PeopleTracker(config.people) if config.people is not None else None
         self._undistort = (intrinsics.undistort_maps()
                            if intrinsics is not None and intrinsics.has_distortion else None)
@@ -210,17 +217,29 @@ class SLZPipeline:
         t3 = time.perf_counter()
         # Only posed frames are in the world frame: under a fixed projection (a video without
         # poses) plane coordinates move with the camera, and a map would smear people across it.
-        risk = self.risk if pose is not None else None
+        calm_map = self.risk if pose is not None else None
+        risk = calm_map if self.config.fusion == "map" else None
         fused = free_grid
         if risk is not None:
             # Raises RiskMapError (a GeometryError: the frame is counted and dropped) on a pose
             # jump or time going back, before any zone is made from the frame.
             risk.update(grid, free_grid, seen[0], t, proj.camera_xy)
             fused = risk.fused_free(grid, free_grid, t)
+        elif calm_map is not None:
+            try:
+                calm_map.update(grid, free_grid, seen[0], t, proj.camera_xy)
+            except RiskMapError:
+                calm_map = None  # counted by the map; this frame's zones are not calm (0 s)
+        place = fused
+        if calm_map is not None and calm_map.config.trail_s > 0:
+            # Zones are placed away from where people walked lately (the trail), and measured,
+            # kept and lost on the grid above (``riskmap``, "trail grid").
+            place = calm_map.trail_free(grid, fused, t)
         t4 = time.perf_counter()
         dist = distance_cells(fused)
         # Near-ties go to the ground under the camera: proposals stay put as the view moves.
-        proposals = propose(fused, grid, self.config.n_proposals, self.config.r0_m, dist,
+        proposals = propose(place, grid, self.config.n_proposals, self.config.r0_m,
+                            dist if place is fused else distance_cells(place),
                             prefer=proj.camera_xy, tie_m=self.config.proposal_tie_m)
         t5 = time.perf_counter()
         # How far the view reaches is asked at a few points only (the zones' centres).
@@ -234,6 +253,13 @@ class SLZPipeline:
             return c, clearance_at(view_dist, grid, x, y)
 
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
+        calm_r = self.config.r0_m + self.config.calm_margin_m
+
+        def calm(x: float, y: float) -> float:
+            return 0.0 if calm_map is None else calm_map.calm_s(x, y, calm_r, t)
+
+        if pose is not None:
+            tracks = [replace(tr, calm_s=calm(tr.x, tr.y)) if tr.misses == 0 else tr for tr in tracks]
 
         edges: list[str] = []
         if surface_grid is not None:
@@ -248,7 +274,8 @@ class SLZPipeline:
         if proj.camera_xy is not None:
             bx, by = (float(v) for v in proj.camera_xy)
             if math.isfinite(bx) and math.isfinite(by):
-                below = GroundBelow(bx, by, *clearance(bx, by))
+                below = GroundBelow(bx, by, *clearance(bx, by),
+                                    calm_s=calm(bx, by) if pose is not None else math.nan)
         t6 = time.perf_counter()
         followed: list[Person] = []
         if self.people is not None and pose is not None:

@@ -77,6 +77,9 @@ class Track:
     edge: what bounds the zone on the latest frame, set by the pipeline
     (``companion.pipeline.edges``: "people", "surface" or "view"; "" when not judged).
     born_t, last_t: capture times (s) of the birth and of the last confirming frame.
+    calm_s: on the confirming frame, how long the ground within r0 plus a margin of the centre
+    had been watched and seen free (s, set by the pipeline from its risk map,
+    ``riskmap.GroundRiskMap.calm_s``); NaN when not measured (a frame without a pose).
     """
 
     id: int
@@ -92,6 +95,7 @@ class Track:
     view_limited: bool = False
     r_view: float = math.inf
     edge: str = ""
+    calm_s: float = math.nan
 
     @property
     def confirmed(self) -> bool:

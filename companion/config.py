@@ -191,8 +191,13 @@ class PipelineSettings:
                                min=0.1, max=15.0)
     occupied_hold_s: float = _f(1.0, "ground seen occupied stays occupied this long although now seen free "
                                      "(s; a person the network misses in a few frames)", min=0.0, max=30.0)
+    occupied_trail_s: float = _f(0.0, "zones are proposed only on ground nobody was seen on within this (s; "
+                                      "under either fusion): a path people walk is not a lawn; whether a zone "
+                                      "still holds is measured without it; 0 = off", min=0.0, max=600.0)
     map_memory_s: float = _f(10.0, "ground not seen for longer than this is unknown again (s)", min=0.1, max=600.0)
     map_half_extent_m: float = _f(60.0, "the risk map covers this far around the vehicle (m)", min=5.0, max=400.0)
+    calm_margin_m: float = _f(1.0, "a zone is calm when nobody has been seen within r0 plus this of it while "
+                                   "watched (m; controller.min_calm_s)", min=0.0, max=50.0)
     unlandable_levels: list[str] = _f([], "risk levels of the landability model that keep zones off the ground; "
                                           "empty = every level but the model's landable one")
     unlandable_threshold: float = _f(-1.0, "probability of the unlandable levels above which a cell is "
@@ -221,6 +226,11 @@ class ControllerSettings:
     min_track_age_s: float = _f(1.0, "a zone must have been tracked this long to be a target (s)", min=0.0)
     min_track_hits: int = _f(3, "a zone must have been matched this many times", min=1)
     zone_max_age_s: float = _f(1.0, "a zone not confirmed for this long is stale (s)", min=0.05, max=30.0)
+    min_calm_s: float = _f(0.0, "the ground around a landing point (r0 plus pipeline.calm_margin_m) must have "
+                                "been watched and seen free this long before the LAND; calm zones are chosen "
+                                "first (s; 0 = not required; docs/design.md)", min=0.0, max=120.0)
+    calm_wait_s: float = _f(15.0, "with min_calm_s, wait at most this long over a zone for it to be calm, then "
+                                  "give it up for the takeover (s)", min=0.5, max=300.0)
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen, and to commit to LAND: walkers keep moving during the last metres of the descent (m)", min=0.0)
     select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: hand back (s)", min=0.5)
     hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: hand back (s)", min=0.5)
@@ -496,6 +506,9 @@ def _cross_checks(cfg: Config) -> None:
     if -1.0 < p.unlandable_threshold < 0.0:
         raise ConfigError(f"pipeline.unlandable_threshold must be -1 (the model's) or in [0, 1), "
                           f"got {p.unlandable_threshold!r}")
+    if p.occupied_trail_s > p.map_memory_s:
+        raise ConfigError(f"pipeline.occupied_trail_s ({p.occupied_trail_s} s) must not exceed "
+                          f"pipeline.map_memory_s ({p.map_memory_s} s)")
     if p.occupied_hold_s > p.map_memory_s:
         raise ConfigError(f"pipeline.occupied_hold_s ({p.occupied_hold_s} s) must not exceed "
                           f"pipeline.map_memory_s ({p.map_memory_s} s)")
@@ -638,10 +651,11 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         r0_m=p.r0_m,
         proposal_tie_m=p.proposal_tie_m,
         fusion=p.fusion,
+        calm_margin_m=p.calm_margin_m,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
         risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,
                            walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,
-                           memory_s=p.map_memory_s),
+                           memory_s=p.map_memory_s, trail_s=p.occupied_trail_s),
         # Followed only for the controller's prediction (it costs about 0.7 ms a frame).
         people=PeopleParams(walk_speed_mps=p.walk_speed_mps) if cfg.controller.predict_people else None,
     )
@@ -659,7 +673,7 @@ def planner_config(cfg: Config) -> PlannerConfig:
     c = cfg.controller
     return PlannerConfig(r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
                          min_track_age_s=c.min_track_age_s, min_track_hits=c.min_track_hits,
-                         zone_max_age_s=c.zone_max_age_s)
+                         zone_max_age_s=c.zone_max_age_s, min_calm_s=c.min_calm_s)
 
 
 def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> LandingConfig:
@@ -676,7 +690,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         predict_people=c.predict_people, pose_uncertainty_m=c.pose_uncertainty_m,
         predict_lead_s=c.predict_lead_s, predict_min_height_m=c.predict_min_height_m,
-        max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
+        calm_wait_s=c.calm_wait_s, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),

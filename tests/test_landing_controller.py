@@ -781,3 +781,71 @@ def test_no_new_prediction_below_the_minimum_height_but_a_pause_already_on_is_ju
     assert Land() in cmds and any("past the landing point" in x for x in texts(ctl2))
     with pytest.raises(ValueError, match="predict_min_height_m"):
         dataclasses.replace(CFG, predict_min_height_m=-1.0)
+
+
+#: The controller that waits for calm ground before the LAND (off by default: docs/design.md).
+CALM = dataclasses.replace(CFG, planner=dataclasses.replace(CFG.planner, min_calm_s=6.0), calm_wait_s=3.0)
+
+
+def below(t: float, calm: float, north: float = 10.0, east: float = 0.0) -> GroundBelow:
+    return GroundBelow(north, east, 6.0, 6.0, calm_s=calm)
+
+
+def test_the_land_waits_for_calm_ground_under_the_vehicle_and_says_so_once():
+    """Over the zone, low enough: a gap a walker left 2 s ago is free but not calm; the vehicle
+    hovers (a Note, no phase change) and commands the LAND once the ground has been watched free
+    for min_calm_s, the calm it had written into the LAND event."""
+    ctl = LandingController(CALM)
+    t = _low_over_zone(ctl)
+    texts(ctl)
+    for calm in (2.0, 2.1, 2.2, math.nan):  # NaN: not measured, never calm
+        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), below(t, calm))
+        assert not any(isinstance(c, Land) for c in cmds) and ctl.phase == Phase.DESCEND
+        t += 0.1
+    notes = texts(ctl)
+    assert len(notes) == 1 and "watched free for 2.0 s, not 6 s: waiting before the LAND" in notes[0]
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), below(t, 6.3))
+    land = [e for e in ctl.pop_events() if e.phase == Phase.LAND]
+    assert land and land[0].as_record()["calm_s"] == 6.3
+
+
+def test_a_zone_that_never_becomes_calm_is_given_up_for_another_and_not_chosen_again():
+    ctl = LandingController(CALM)  # calm_wait_s = 3 s
+    t = _low_over_zone(ctl)
+    other = zone(2, -20, 5, t, born=-4)
+    while t < 3.5:
+        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8), dataclasses.replace(other, last_t=t)],
+                            pose(t, 10, 0, 9.8), below(t, 1.0))
+        assert not any(isinstance(c, Land) for c in cmds)
+        t += 0.1
+    assert ctl.phase == Phase.APPROACH and ctl.target is not None and ctl.target.id == 2
+    assert any("zone 1 lost (not calm after 3 s over it: people keep passing near it); re-targeting zone 2" in x
+               for x in texts(ctl))
+    # Zone 2 lost in turn: zone 1, older and still free, is not chosen again; the vehicle holds.
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), below(t, 9.0))
+    assert ctl.phase == Phase.HOLD and ctl.target is None
+
+
+def test_calm_off_lands_as_before_whatever_the_ground_below_says():
+    ctl = LandingController(CFG)
+    t = _low_over_zone(ctl)
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), below(t, 0.0))
+    with pytest.raises(ValueError, match="min_calm_s"):
+        PlannerConfig(min_calm_s=-1.0)
+    with pytest.raises(ValueError, match="calm_wait_s"):
+        LandingConfig(calm_wait_s=0.0)
+
+
+def test_the_planner_chooses_calm_zones_first_then_the_oldest():
+    planner = ZonePlanner(dataclasses.replace(CFG.planner, min_calm_s=5.0))
+    old_gap = dataclasses.replace(zone(1, 0, 0, 10.0, born=0.0), calm_s=1.0)
+    young_lawn = dataclasses.replace(zone(2, 20, 0, 10.0, born=6.0), calm_s=8.0)
+    unmeasured = zone(3, 40, 0, 10.0, born=-5.0)  # calm_s NaN: not measured, not calm
+    assert planner.choose([old_gap, young_lawn, unmeasured], 10.0).id == 2
+    assert planner.choose([old_gap, unmeasured], 10.0).id == 3  # none calm: the oldest, as before
+    assert ZonePlanner(CFG.planner).choose([old_gap, young_lawn], 10.0).id == 1  # calm off: the paper's rule

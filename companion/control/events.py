@@ -65,6 +65,8 @@ class PhaseChanged(Event):
     kind: ClassVar[str] = "phase"
     zone_id: int | None = None
     touchdown_clearance_m: float | None = None  # see TargetChosen
+    #: On LAND: how long the ground under the vehicle had been watched and seen free (s).
+    calm_s: float | None = None
 
 
 @dataclass(frozen=True)

@@ -149,12 +149,16 @@ class LandingConfig:
     #: r0 wide, the people in it are at its edge, partly seen, and their apparent motion is the
     #: view's (density peaks moving over a body entering the frame), not theirs.
     predict_min_height_m: float = 0.0
+    #: With ``planner.min_calm_s`` > 0: over the zone, low enough to LAND, the vehicle waits at
+    #: most this long (s) for the ground under it to be calm; then the zone is given up for the
+    #: rest of the takeover (people keep passing near it) and another is chosen.
+    calm_wait_s: float = 15.0
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
             raise ValueError(f"controller handback_action must be LAND or RTL, not {self.handback_action!r}")
         for name in ("select_timeout_s", "hold_timeout_s", "arrive_radius_m", "descend_alt_m", "descend_step_m",
-                     "hold_height_m", "max_takeover_s", "max_alt_m", "predict_lead_s",
+                     "hold_height_m", "max_takeover_s", "max_alt_m", "predict_lead_s", "calm_wait_s",
                      "max_pose_age_s", "state_timeout_s", "pose_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -253,6 +257,8 @@ class LandingController:
         self._search_t = math.nan  # when the search started
         self._dwell_until = -math.inf  # hovering at a reached search waypoint until then
         self._investigated: set[int] = set()  # zones the search flew over that never qualified
+        self._restless: set[int] = set()  # zones given up because they never became calm
+        self._calm_wait: tuple[int, float] | None = None  # (zone id, since when) waiting for calm
         self._over_lead: tuple[int, float] | None = None  # (zone id, since when) the search hovers over
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
@@ -506,7 +512,7 @@ class LandingController:
     def _select(self) -> list[Command]:
         if not self._status_fresh() or self.ceiling_m is None:
             return []
-        zone = self.planner.choose(self.tracks, self.now)
+        zone = self.planner.choose(self.tracks, self.now, exclude=tuple(self._restless))
         if zone is None:
             return []
         return self._approach(zone, "landing at")
@@ -635,11 +641,18 @@ class LandingController:
             self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m", zone_id=track.id)
         if self.phase == Phase.DESCEND:
             low = s.height <= min(c.descend_alt_m, c.trust_height_m) + c.alt_tolerance_m
-            if s.on_ground or (dist <= c.arrive_radius_m and low and
-                               not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
+            over = dist <= c.arrive_radius_m and low
+            if over and not s.on_ground and not self._calm_below(track):
+                if self._calm_wait is not None and self.now - self._calm_wait[1] > c.calm_wait_s:
+                    self._restless.add(track.id)
+                    return self._lost(f"not calm after {c.calm_wait_s:g} s over it: people keep passing near it")
+                return self._goto(aim[0], aim[1], self._level, track.id)
+            if s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
+                calm = self.below.calm_s if self.below is not None else math.nan
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",
-                                zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track))
+                                zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track),
+                                calm_s=round(calm, 1) if math.isfinite(calm) else None)
                 return [Land()]
             # The plan's next step: one step down once the vehicle has reached the current level
             # over the zone, so a lost zone never leaves the vehicle committed to a long descent.
@@ -651,6 +664,21 @@ class LandingController:
                 self._level = max(self._level - c.descend_step_m, floor)
             return self._goto(aim[0], aim[1], self._level, track.id)
         return []
+
+    def _calm_below(self, track: Track) -> bool:
+        """Whether the ground under the vehicle (the latest frame's ``GroundBelow``) has been
+        watched and seen free for ``planner.min_calm_s``; when it has not, says once per zone that
+        the LAND waits for it (a Note) and starts that zone's wait."""
+        p = self.config.planner
+        calm = self.below.calm_s if self.below is not None else math.nan
+        if p.is_calm(calm):
+            return True
+        if self._calm_wait is None or self._calm_wait[0] != track.id:
+            self._calm_wait = (track.id, self.now)
+            seen = f"{calm:.1f} s" if math.isfinite(calm) else "not yet"
+            self._event(f"zone {track.id}: ground around the landing point watched free for {seen}, "
+                        f"not {p.min_calm_s:g} s: waiting before the LAND")
+        return False
 
     def _out_of_view(self, track: Track | None) -> bool:
         """In LAND, a zone last seen all free with a view of under ``BLIND_VIEW_M`` that then
@@ -682,7 +710,8 @@ class LandingController:
         s = self.status
         if self.phase == Phase.LAND and s is not None and s.height <= self.config.land_abort_above_m:
             return []  # committed: too low to fly away safely; the autopilot finishes the landing
-        other = self.planner.choose(self.tracks, self.now, exclude=(lost.id,)) if self._status_fresh() else None
+        other = (self.planner.choose(self.tracks, self.now, exclude=(lost.id, *self._restless))
+                 if self._status_fresh() else None)
         if other is not None:
             return self._approach(other, f"zone {lost.id} lost ({why}); re-targeting", lost_id=lost.id)
         self.target = None

@@ -11,7 +11,11 @@ A zone is **eligible** as a new target when it is
 - fresh: ``now - last_t <= zone_max_age_s``;
 - large: ``r >= r0_m + radius_margin_m``.
 
-The target among eligible zones is the oldest (earliest ``born_t``, then lowest id), as in the paper.
+The target among eligible zones is the oldest (earliest ``born_t``, then lowest id), as in the paper,
+calm zones first: with ``min_calm_s`` > 0, a zone whose ground (r0 plus a margin around its
+centre) has been watched and seen free for ``min_calm_s`` (``Track.calm_s``) comes before one
+that has not (a gap a walker has just left, a lawn's busy edge). The controller also waits for
+that calm under the vehicle before it commits the LAND (``companion.control.landing``).
 A zone already targeted is **kept** with a looser test (hysteresis, so a radius flickering around
 the threshold does not make the vehicle dither): present, ``r >= r0_m``, and confirmed within
 ``zone_max_age_s``. A kept zone with ``misses > 0`` is *unconfirmed*: no new command goes toward it
@@ -42,9 +46,17 @@ class PlannerConfig:
     min_track_age_s: float = 1.0
     min_track_hits: int = 3
     zone_max_age_s: float = 1.0
+    #: Seconds the ground around a landing point must have been watched and seen free before the
+    #: LAND (0: not required; see the module docstring).
+    min_calm_s: float = 0.0
+
+    def is_calm(self, calm_s: float) -> bool:
+        """Whether ground watched and seen free for ``calm_s`` seconds is calm enough (NaN, not
+        measured, is not)."""
+        return self.min_calm_s <= 0 or calm_s >= self.min_calm_s
 
     def __post_init__(self) -> None:
-        for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s"):
+        for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s", "min_calm_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a finite number >= 0, not {value!r}")
@@ -87,7 +99,7 @@ class ZonePlanner:
         eligible = [t for t in tracks if t.id not in exclude and self.why_not_eligible(t, now) is None]
         if not eligible:
             return None
-        return min(eligible, key=lambda t: (t.born_t, t.id))
+        return min(eligible, key=lambda t: (not self.config.is_calm(t.calm_s), t.born_t, t.id))
 
     def check_target(self, target_id: int, tracks: Iterable[Track], now: float) -> tuple[ZoneCheck, Track | None, str]:
         """Whether the zone being flown to still holds: (verdict, its latest snapshot, reason)."""

@@ -346,6 +346,26 @@ def test_training_runs_a_few_steps_and_exports_a_loadable_model(tmp_path: Path, 
     assert m(np.zeros((64, 64, 3), np.uint8)).shape == (7, 8, 8)
     assert T.main(["--shared", str(shared_dir), "--out", str(out), "--crop", "60"]) == 2
     assert T.main(["--shared", str(shared_dir), "--out", str(out), "--device", "cuda:99"]) == 2
+    for bad in (["--width", "0"], ["--workers", "-1"], ["--seconds", "-1"], ["--seconds", "nan"]):
+        assert T.main(["--shared", str(shared_dir), "--out", str(out), *bad]) == 2, bad
+
+
+def test_training_by_time_with_worker_processes_and_another_width(tmp_path: Path, shared_dir: Path) -> None:
+    """The GPU form of the command (``--seconds``, ``--workers``, ``--width``) on the CPU: crops
+    made in a worker process, stopped by the clock, the width and the run written into the file."""
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training import landability as T
+
+    out = tmp_path / "w.onnx"
+    rc = T.main(["--shared", str(shared_dir), "--out", str(out), "--seconds", "2", "--workers", "1",
+                 "--width", "8", "--batch", "2", "--crop", "64", "--max-images", "9"])
+    assert rc == 0
+    m = LandabilityModel(out, threads=1)
+    assert m(np.zeros((64, 64, 3), np.uint8)).shape == (7, 8, 8)
+    import onnxruntime as ort
+    meta = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"]).get_modelmeta().custom_metadata_map
+    assert "width=8 workers=1 seconds=2" in meta["companion.training"]
+    assert int(meta["companion.parameters"]) < 39015  # narrower than the shipped width 32
 
 
 def test_the_grouping_covers_every_class_once(shared_dir: Path) -> None:

@@ -30,6 +30,7 @@ import logging
 import math
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -171,6 +172,21 @@ def make_batch(photos: Photos, batch: int, size: int, rng: np.random.Generator) 
     return torch.from_numpy(xs), torch.from_numpy(ys)
 
 
+class BatchStream(torch.utils.data.IterableDataset):
+    """Endless training batches made by ``make_batch`` (``--workers``: in DataLoader worker
+    processes, each with its own random stream drawn from the seed and its worker id)."""
+
+    def __init__(self, photos: Photos, batch: int, size: int, seed: int) -> None:
+        self.photos, self.batch, self.size, self.seed = photos, batch, size, seed
+
+    def __iter__(self) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        info = torch.utils.data.get_worker_info()
+        cv2.setNumThreads(1)
+        rng = np.random.default_rng([self.seed, 0 if info is None else info.id + 1])
+        while True:
+            yield make_batch(self.photos, self.batch, self.size, rng)
+
+
 def loss(logits: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Soft-label cross-entropy, each level's term weighted (``weights`` (L,))."""
     logp = F.log_softmax(logits, dim=1)
@@ -250,31 +266,55 @@ def train(args: argparse.Namespace) -> Path:
     train_set, val_set = load_photos(Path(args.shared), args.max_images)
     log.info("loaded %d training and %d validation photos in %.0f s", len(train_set.images),
              len(val_set.images), time.monotonic() - t0)
-    net = LandabilityNet().to(device)
+    net = LandabilityNet(width=args.width).to(device)
     log.info("parameters: %d", M.count_parameters(net))
     weights = torch.tensor(LEVEL_WEIGHTS, dtype=torch.float32, device=device)
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
     warm = min(100, max(1, args.steps // 10))
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda k: min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(k, args.steps) / args.steps)))
+    budget = float(args.seconds)
+
+    def factor(k: int, progress: float) -> float:
+        """Linear warm-up over ``warm`` steps, then a cosine over the run's progress (0..1)."""
+        return min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
+
+    # By steps: the LambdaLR of the shipped model (reproduced as it was); by seconds: the same
+    # shape over the time spent, set by hand at each step.
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: factor(k, min(k, args.steps) / args.steps))
+    batches = None
+    if args.workers:
+        batches = iter(torch.utils.data.DataLoader(
+            BatchStream(train_set, args.batch, args.crop, args.seed), batch_size=None,
+            num_workers=args.workers, prefetch_factor=4, persistent_workers=True,
+            pin_memory=device.type == "cuda"))
     t0 = time.monotonic()
     running = 0.0
     net.train()
-    for step in range(1, args.steps + 1):
-        x, y = make_batch(train_set, args.batch, args.crop, rng)
+    step = 0
+    while True:
+        el = time.monotonic() - t0
+        if (budget and el >= budget) or (not budget and step >= args.steps):
+            break
+        step += 1
+        if budget:
+            for g in opt.param_groups:
+                g["lr"] = args.lr * factor(step - 1, el / budget)
+        x, y = next(batches) if batches is not None else make_batch(train_set, args.batch, args.crop, rng)
         if device.type != "cpu":
-            x, y = x.to(device), y.to(device)
+            x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
         batch_loss = loss(net(x), y, weights)
         opt.zero_grad(set_to_none=True)
         batch_loss.backward()
         opt.step()
-        sched.step()
+        if not budget:
+            sched.step()
         running += batch_loss.item()
-        if step % 50 == 0 or step == args.steps:
+        if step % 50 == 0 or (not budget and step == args.steps):
             el = time.monotonic() - t0
-            log.info("step %d/%d loss %.4f lr %.2e %.2f s/step elapsed %.1f min", step, args.steps,
-                     running / (50 if step % 50 == 0 else step % 50), sched.get_last_lr()[0], el / step, el / 60)
+            log.info("step %d%s loss %.4f lr %.2e %.3f s/step elapsed %.1f min", step,
+                     "" if budget else f"/{args.steps}", running / (50 if step % 50 == 0 else step % 50),
+                     opt.param_groups[0]["lr"], el / step, el / 60)
             running = 0.0
+    log.info("trained %d steps, %d crops, in %.1f min", step, step * args.batch, (time.monotonic() - t0) / 60)
     net = net.cpu().eval()
     probs = [predict(net, img) for img in val_set.images]
     pix = [cv2.resize(p.transpose(1, 2, 0), (lv.shape[1], lv.shape[0]), interpolation=cv2.INTER_NEAREST)
@@ -285,7 +325,8 @@ def train(args: argparse.Namespace) -> Path:
                  c["threshold"], c["precision"], c["landable"])
     log.info("threshold %.3f (largest with landable precision >= %.3f on %d validation photos)", thr,
              LANDABLE_PRECISION, len(val_set.images))
-    note = (f"steps={args.steps} batch={args.batch} crop={args.crop} lr={args.lr} seed={args.seed} "
+    note = (f"steps={step} batch={args.batch} crop={args.crop} lr={args.lr} seed={args.seed} width={args.width} "
+            f"workers={args.workers} seconds={args.seconds:g} "
             f"threads={args.threads} device={args.device} minutes={(time.monotonic() - t0) / 60:.1f}; "
             f"threshold: largest with landable precision >= {LANDABLE_PRECISION} on every {VAL_EVERY}th "
             "training-split photo (held out of training)")
@@ -304,6 +345,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda[:N]")
+    p.add_argument("--width", type=int, default=32, help="channels of the network (default 32, the shipped model)")
+    p.add_argument("--seconds", type=float, default=0.0,
+                   help="train for this long instead of --steps (the learning-rate cosine follows the time)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="make the crops in this many worker processes (0: in the training loop)")
     p.add_argument("--max-images", type=int, default=0,
                    help="use only the first N photos of the training split (quick runs and tests; 0: all)")
 
@@ -313,9 +359,11 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         resolve_device(args.device)
-        for key in ("steps", "batch", "threads"):
+        for key in ("steps", "batch", "threads", "width"):
             if getattr(args, key) < 1:
                 raise ValueError(f"--{key} must be >= 1, got {getattr(args, key)}")
+        if args.workers < 0 or not (math.isfinite(args.seconds) and args.seconds >= 0):
+            raise ValueError(f"--workers and --seconds must be >= 0, got {args.workers} and {args.seconds}")
         if args.crop < STRIDE or args.crop % STRIDE:
             raise ValueError(f"--crop must be a positive multiple of {STRIDE}, got {args.crop}")
         if args.max_images < 0:

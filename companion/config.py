@@ -651,7 +651,7 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         r0_m=p.r0_m,
         proposal_tie_m=p.proposal_tie_m,
         fusion=p.fusion,
-        calm_margin_m=p.calm_margin_m,
+        calm=cfg.controller.min_calm_s > 0, calm_margin_m=p.calm_margin_m,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
         risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,
                            walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,

@@ -221,18 +221,21 @@ def test_calm_needs_the_whole_disc_in_view_now_and_an_unbroken_watch():
 
 
 def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones():
-    """Under the paper's per-frame fusion the map only measures calm: the proposals are the
-    frame's own, and each posed frame's tracks and ground below carry calm_s."""
+    """Under the paper's per-frame fusion the map only measures calm (when asked): the proposals
+    are the frame's own, and each posed frame's tracks and ground below carry calm_s. Not asked,
+    the map does not run and nothing is measured (NaN)."""
     base = np.zeros((240, 320), np.float32)
     frame = np.zeros((240, 320, 3), np.uint8)
-    pipe = _pipeline("frame", lambda _f: base)
+    K = Intrinsics.from_fov(320, 240, 70.0)
+    pipe = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True), intrinsics=K, mount=Mount())
     ref = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"),
                       intrinsics=Intrinsics.from_fov(320, 240, 70.0), mount=Mount())
     for k in range(30):
         t = 0.1 * k
         pose = Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
         res = pipe.process(frame, t, pose)
-        assert res.proposals == ref.process(frame, t, pose).proposals
+        plain = ref.process(frame, t, pose)
+        assert res.proposals == plain.proposals
         assert res.fused_grid is None
     assert res.below is not None and res.below.calm_s == pytest.approx(2.9, abs=1e-3)
     centre = [tr for tr in res.tracks if math.hypot(tr.x, tr.y) < 0.5]
@@ -240,7 +243,9 @@ def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones(
     # Zones whose disc reaches past the edge of the view are not calm: part of it is unwatched.
     assert all(tr.calm_s == 0.0 for tr in res.tracks if math.hypot(tr.x, tr.y) > 4.0)
     # Without a pose (a fixed projection) nothing is measured: NaN, never "calm".
-    fixed = SLZPipeline(lambda _f: base, PipelineConfig(), projection=PlaneProjection.nadir(0.05))
+    assert ref.risk is None and plain.tracks and all(math.isnan(tr.calm_s) for tr in plain.tracks)
+    assert plain.below is not None and math.isnan(plain.below.calm_s)
+    fixed = SLZPipeline(lambda _f: base, PipelineConfig(calm=True), projection=PlaneProjection.nadir(0.05))
     for k in range(5):
         out = fixed.process(frame, 0.1 * k)
     assert out.tracks and all(math.isnan(tr.calm_s) for tr in out.tracks)

@@ -67,8 +67,11 @@ class PipelineConfig:
     #: (``controller.predict_people``); None: not followed, and not paid for.
     people: PeopleParams | None = None
     surface_threshold: float | None = None
-    #: Each zone's and the ground-below's ``calm_s`` is measured over ``r0_m`` plus this (m)
-    #: around their centre (``riskmap.GroundRiskMap.calm_s``).
+    #: Measure each posed frame's zones' and ground-below's ``calm_s`` over ``r0_m`` plus
+    #: ``calm_margin_m`` (m) around their centre (``riskmap.GroundRiskMap.calm_s``); off, they
+    #: stay NaN and, under fusion "frame" without a trail, the map is not run at all (0.2-0.4 ms
+    #: a frame at 640x480 that nobody would read).
+    calm: bool = False
     calm_margin_m: float = 1.0
 
     def __post_init__(self) -> None:
@@ -151,9 +154,10 @@ class SLZPipeline:
         self.mount = mount or Mount()
         self.fixed_projection = projection
         self.tracker = ZoneTracker(config.tracker)
-        # The map runs under either fusion: with "frame" it only measures how long the ground
-        # has been calm (``calm_s``), and proposals come from the frame alone.
-        self.risk = GroundRiskMap(config.risk)
+        # Under fusion "frame" the map runs only to measure calm (``calm_s``) or keep the trail
+        # (``risk.trail_s``); the zones are still measured on the frame alone.
+        needed = config.fusion == "map" or config.calm or config.risk.trail_s > 0
+        self.risk = GroundRiskMap(config.risk) if needed else None
         self.people = PeopleTracker(config.people) if config.people is not None else None
         self._undistort = (intrinsics.undistort_maps()
                            if intrinsics is not None and intrinsics.has_distortion else None)
@@ -258,7 +262,8 @@ class SLZPipeline:
         def calm(x: float, y: float) -> float:
             return 0.0 if calm_map is None else calm_map.calm_s(x, y, calm_r, t)
 
-        if pose is not None:
+        measure = pose is not None and self.config.calm
+        if measure:
             tracks = [replace(tr, calm_s=calm(tr.x, tr.y)) if tr.misses == 0 else tr for tr in tracks]
 
         edges: list[str] = []
@@ -275,7 +280,7 @@ class SLZPipeline:
             bx, by = (float(v) for v in proj.camera_xy)
             if math.isfinite(bx) and math.isfinite(by):
                 below = GroundBelow(bx, by, *clearance(bx, by),
-                                    calm_s=calm(bx, by) if pose is not None else math.nan)
+                                    calm_s=calm(bx, by) if measure else math.nan)
         t6 = time.perf_counter()
         followed: list[Person] = []
         if self.people is not None and pose is not None:

@@ -46,6 +46,7 @@ from companion.pipeline.landability import OUTPUT_KIND, RiskLevel
 from companion.pipeline.occupancy import FREE, OccupancyParams, surface_free_map
 from companion.training import model as M
 from companion.training.augment import photometric
+from companion.training.distill import Phase, lr_factor
 from companion.training.export import set_metadata
 
 log = logging.getLogger("companion.training.landability")
@@ -272,32 +273,23 @@ def train(args: argparse.Namespace) -> Path:
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
     warm = min(100, max(1, args.steps // 10))
     budget = float(args.seconds)
-
-    def factor(k: int, progress: float) -> float:
-        """Linear warm-up over ``warm`` steps, then a cosine over the run's progress (0..1)."""
-        return min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(progress, 1.0)))
-
-    # By steps: the LambdaLR of the shipped model (reproduced as it was); by seconds: the same
-    # shape over the time spent, set by hand at each step.
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: factor(k, min(k, args.steps) / args.steps))
+    # By steps: the LambdaLR of the shipped model, as it was (its rounding reproduces the file);
+    # by seconds: the distillation run's Phase and lr_factor, the same shape over the time spent.
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda k: min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(k, args.steps) / args.steps)))
     batches = None
     if args.workers:
         batches = iter(torch.utils.data.DataLoader(
             BatchStream(train_set, args.batch, args.crop, args.seed), batch_size=None,
             num_workers=args.workers, prefetch_factor=4, persistent_workers=True,
             pin_memory=device.type == "cuda"))
-    t0 = time.monotonic()
+    phase = Phase(0 if budget else args.steps, budget)
     running = 0.0
     net.train()
-    step = 0
-    while True:
-        el = time.monotonic() - t0
-        if (budget and el >= budget) or (not budget and step >= args.steps):
-            break
-        step += 1
+    while not phase.done():
         if budget:
             for g in opt.param_groups:
-                g["lr"] = args.lr * factor(step - 1, el / budget)
+                g["lr"] = args.lr * lr_factor(phase.progress, phase.k, warm)
         x, y = next(batches) if batches is not None else make_batch(train_set, args.batch, args.crop, rng)
         if device.type != "cpu":
             x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
@@ -308,12 +300,15 @@ def train(args: argparse.Namespace) -> Path:
         if not budget:
             sched.step()
         running += batch_loss.item()
+        phase.k += 1
+        step = phase.k
         if step % 50 == 0 or (not budget and step == args.steps):
-            el = time.monotonic() - t0
+            el = time.monotonic() - phase.t0
             log.info("step %d%s loss %.4f lr %.2e %.3f s/step elapsed %.1f min", step,
                      "" if budget else f"/{args.steps}", running / (50 if step % 50 == 0 else step % 50),
                      opt.param_groups[0]["lr"], el / step, el / 60)
             running = 0.0
+    step, t0 = phase.k, phase.t0
     log.info("trained %d steps, %d crops, in %.1f min", step, step * args.batch, (time.monotonic() - t0) / 60)
     net = net.cpu().eval()
     probs = [predict(net, img) for img in val_set.images]

@@ -506,12 +506,10 @@ def _cross_checks(cfg: Config) -> None:
     if -1.0 < p.unlandable_threshold < 0.0:
         raise ConfigError(f"pipeline.unlandable_threshold must be -1 (the model's) or in [0, 1), "
                           f"got {p.unlandable_threshold!r}")
-    if p.occupied_trail_s > p.map_memory_s:
-        raise ConfigError(f"pipeline.occupied_trail_s ({p.occupied_trail_s} s) must not exceed "
-                          f"pipeline.map_memory_s ({p.map_memory_s} s)")
-    if p.occupied_hold_s > p.map_memory_s:
-        raise ConfigError(f"pipeline.occupied_hold_s ({p.occupied_hold_s} s) must not exceed "
-                          f"pipeline.map_memory_s ({p.map_memory_s} s)")
+    for key in ("occupied_hold_s", "occupied_trail_s"):
+        if getattr(p, key) > p.map_memory_s:
+            raise ConfigError(f"pipeline.{key} ({getattr(p, key)} s) must not exceed "
+                              f"pipeline.map_memory_s ({p.map_memory_s} s)")
     if p.map_half_extent_m / p.cell_size_m > MAX_HALF_CELLS:
         raise ConfigError(f"pipeline.map_half_extent_m / pipeline.cell_size_m must be at most {MAX_HALF_CELLS} "
                           f"cells (memory), got {p.map_half_extent_m / p.cell_size_m:.0f}")

@@ -92,6 +92,12 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[pipeline]\nproposal_tie_m = -0.1\n", r"pipeline\.proposal_tie_m must be >= 0"),
         ("[controller]\npredict_lead_s = 0\n", r"controller\.predict_lead_s must be >= 0\.1"),
         ("[controller]\npredict_min_height_m = -1\n", r"controller\.predict_min_height_m must be >= 0"),
+        ("[controller]\nmin_calm_s = -1\n", r"controller\.min_calm_s must be >= 0"),
+        ("[controller]\ncalm_wait_s = 0\n", r"controller\.calm_wait_s must be >= 0\.5"),
+        ("[pipeline]\ncalm_margin_m = -1\n", r"pipeline\.calm_margin_m must be >= 0"),
+        ("[pipeline]\noccupied_trail_s = 20\n", r"pipeline\.occupied_trail_s \(20\.0 s\) must not exceed "
+                                                r"pipeline\.map_memory_s"),
+        ("[pipeline]\noccupied_hold_s = 20\n", r"pipeline\.occupied_hold_s \(20\.0 s\) must not exceed"),
     ],
 )
 def test_bad_values_name_the_key(tmp_path: Path, text: str, pattern: str) -> None:

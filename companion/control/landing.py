@@ -649,7 +649,7 @@ class LandingController:
                 return self._goto(aim[0], aim[1], self._level, track.id)
             if s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
-                calm = self.below.calm_s if self.below is not None else math.nan
+                calm = self._calm_here()
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",
                                 zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track),
                                 calm_s=round(calm, 1) if math.isfinite(calm) else None)
@@ -670,7 +670,7 @@ class LandingController:
         watched and seen free for ``planner.min_calm_s``; when it has not, says once per zone that
         the LAND waits for it (a Note) and starts that zone's wait."""
         p = self.config.planner
-        calm = self.below.calm_s if self.below is not None else math.nan
+        calm = self._calm_here()
         if p.is_calm(calm):
             return True
         if self._calm_wait is None or self._calm_wait[0] != track.id:
@@ -679,6 +679,10 @@ class LandingController:
             self._event(f"zone {track.id}: ground around the landing point watched free for {seen}, "
                         f"not {p.min_calm_s:g} s: waiting before the LAND")
         return False
+
+    def _calm_here(self) -> float:
+        """The latest frame's calm under the camera (s; NaN when not measured)."""
+        return self.below.calm_s if self.below is not None else math.nan
 
     def _out_of_view(self, track: Track | None) -> bool:
         """In LAND, a zone last seen all free with a view of under ``BLIND_VIEW_M`` that then

@@ -44,6 +44,7 @@ leave it. An update touches only the frame grid's cells. Pure numpy/OpenCV, no I
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -331,11 +332,20 @@ class GroundRiskMap:
             return 0.0  # part of the disc lies outside the map: not watched
         rows = slice(row - k, row + k + 1)
         cols = slice(col - k, col + k + 1)
-        off = np.arange(-k, k + 1) * c
-        # Cells whose square reaches into the disc (centre within radius plus half a diagonal).
-        disc = np.hypot(off[:, None], off[None, :]) <= radius_m + c * math.sqrt(0.5)
+        disc = _disc(k, radius_m, c)
         now = self._rel(t)
         if np.any(self.last_seen[rows, cols][disc] < np.float32(now - cfg.watch_gap_s)):
             return 0.0
         start = max(float(np.max(self.last_occ[rows, cols][disc])), float(np.max(self.seen_since[rows, cols][disc])))
         return max(0.0, now - start)
+
+
+@functools.lru_cache(maxsize=8)
+def _disc(k: int, radius_m: float, cell_m: float) -> np.ndarray:
+    """(2k+1, 2k+1) bool: the cells whose square reaches within ``radius_m`` of the middle cell's
+    centre (centre within the radius plus half a diagonal). Cached: a pipeline asks for one radius
+    every frame, for each zone. Read-only."""
+    off = np.arange(-k, k + 1) * cell_m
+    disc: np.ndarray = np.hypot(off[:, None], off[None, :]) <= radius_m + cell_m * math.sqrt(0.5)
+    disc.flags.writeable = False
+    return disc

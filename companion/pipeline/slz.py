@@ -69,8 +69,8 @@ class PipelineConfig:
     surface_threshold: float | None = None
     #: Measure each posed frame's zones' and ground-below's ``calm_s`` over ``r0_m`` plus
     #: ``calm_margin_m`` (m) around their centre (``riskmap.GroundRiskMap.calm_s``); off, they
-    #: stay NaN and, under fusion "frame" without a trail, the map is not run at all (0.2-0.4 ms
-    #: a frame at 640x480 that nobody would read).
+    #: stay NaN and, under fusion "frame" without a trail, the map is not run at all (its update
+    #: is the bench's ``fusion`` stage, about 0.3 ms a frame at 640x480, nobody would read it).
     calm: bool = False
     calm_margin_m: float = 1.0
 

@@ -262,7 +262,10 @@ async def test_px4_battery_low_only_warns() -> None:
         assert text.severity == mav.MAV_SEVERITY_WARNING
         bat = await c.wait("BATTERY_STATUS", since=since, timeout=3.0)
         assert bat.charge_state == mav.MAV_BATTERY_CHARGE_STATE_LOW
-        await asyncio.sleep(1.0)
+        # Two heartbeats after the warning (1 Hz: a fixed sleep raced their phase, and CI once
+        # saw only one), each still POSCTL.
+        first = await c.wait("HEARTBEAT", since=since, timeout=3.0)
+        await c.wait("HEARTBEAT", lambda m: m is not first, since=since, timeout=3.0)
         hbs = [m for _, m in c.log[since:] if m.get_type() == "HEARTBEAT"]
         assert len(hbs) >= 2 and all(m.custom_mode == POSCTL for m in hbs)
         assert all(m.system_status == mav.MAV_STATE_ACTIVE for m in hbs[1:])  # a warning, no failsafe

@@ -226,9 +226,9 @@ class ControllerSettings:
     min_track_age_s: float = _f(1.0, "a zone must have been tracked this long to be a target (s)", min=0.0)
     min_track_hits: int = _f(3, "a zone must have been matched this many times", min=1)
     zone_max_age_s: float = _f(1.0, "a zone not confirmed for this long is stale (s)", min=0.05, max=30.0)
-    min_calm_s: float = _f(0.0, "the ground around a landing point (r0 plus pipeline.calm_margin_m) must have "
+    min_calm_s: float = _f(5.0, "the ground around a landing point (r0 plus pipeline.calm_margin_m) must have "
                                 "been watched and seen free this long before the LAND; calm zones are chosen "
-                                "first (s; 0 = not required; docs/design.md)", min=0.0, max=120.0)
+                                "first (s; 0 = not required, the paper's rule; docs/design.md)", min=0.0, max=120.0)
     calm_wait_s: float = _f(15.0, "with min_calm_s, wait at most this long over a zone for it to be calm, then "
                                   "give it up for the takeover (s)", min=0.5, max=300.0)
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen (m); once chosen it is kept, and the LAND commanded, while r0 stays free around the landing point, and its landing point stays put while the zone holds r0 plus this around it", min=0.0)

@@ -372,7 +372,8 @@ async def _fly_once(tmp_path: Path) -> tuple[str, Any, list[str], Any]:
             return handle(msg, link)
 
         sim.autopilot.handle_message = spy  # type: ignore[method-assign]
-        cfg = _write_config(tmp_path, port, cam.url, "[controller]\nselect_timeout_s = 30.0\n")
+        # A 45 s takeover budget (90 s by default) keeps a flight that cannot land short (CI's time).
+        cfg = _write_config(tmp_path, port, cam.url, "[controller]\nselect_timeout_s = 30.0\nmax_takeover_s = 45.0\n")
         svc = Service(["--config", str(cfg)], _env(notify, 5_000_000), tmp_path / "svc.log")
         try:
             await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)

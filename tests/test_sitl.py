@@ -12,7 +12,6 @@ from sim.flight import FlightSpec, fly
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
-FLAVOURS = ["ardupilot", "px4"]
 # A shorter takeover budget than the 90 s default keeps a flight that cannot land short.
 FAST_BUDGET = ("controller.max_takeover_s=45",)
 
@@ -32,7 +31,10 @@ def _explain(r) -> str:
             + r.log_tail)
 
 
-@pytest.mark.parametrize("flavour", FLAVOURS)
+# ArduPilot only (CI's 20 minutes): PX4 flies the same world, seed and checks with packet loss
+# below, and the walkers' world too; its way of being commanded is tested in
+# tests/test_px4_target_frames.py and tests/test_service_inprocess.py.
+@pytest.mark.parametrize("flavour", ["ardupilot"])
 def test_failsafe_over_a_free_area_takes_over_and_never_lands_near_anyone(flavour, model_path):
     # Over a crowd with a free area in view the companion must act on the failsafe. The loop runs
     # on wall-clock time on a shared machine and zones are lost to passing walkers, so a flight

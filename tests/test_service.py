@@ -475,7 +475,8 @@ async def _take_over(sim: Any, svc: Service, notify: NotifySocket, external: str
     try:
         await sim.wait_for(lambda t: t.mode == external, 20)  # the companion took over
     except (TimeoutError, asyncio.TimeoutError) as e:
-        raise AssertionError(f"{e}\n--- service log tail ---\n{svc.log()[-6000:]}") from None
+        said = "\n".join(line for line in svc.log().splitlines() if " DEBUG " not in line)
+        raise AssertionError(f"{e}\n--- service log (no DEBUG), tail ---\n{said[-6000:]}") from None
 
 
 @pytest.mark.parametrize("flavour, external, land", [("ardupilot", "GUIDED", "LAND"),

@@ -849,3 +849,33 @@ def test_the_planner_chooses_calm_zones_first_then_the_oldest():
     assert planner.choose([old_gap, young_lawn, unmeasured], 10.0).id == 2
     assert planner.choose([old_gap, unmeasured], 10.0).id == 3  # none calm: the oldest, as before
     assert ZonePlanner(CFG.planner).choose([old_gap, young_lawn], 10.0).id == 1  # calm off: the paper's rule
+
+
+@pytest.mark.parametrize("recentre, view_limited, moves", [(1.0, False, True), (0.0, False, False),
+                                                            (1.0, True, False)])
+def test_over_a_zone_bounded_by_people_the_landing_point_moves_to_its_centre(recentre, view_limited, moves):
+    """``recentre_m``: the zone's centre moves 1.5 m while the zone still holds r0 plus the margin
+    around the old landing point. Bounded by people, the descent follows it to the centre; with
+    the setting off, or over a zone bounded by the view (uniform ground), the point stays put."""
+    ctl = LandingController(dataclasses.replace(CFG, recentre_m=recentre))
+    ctl.on_state(status(0.0, mode="RTL"))
+    ctl.on_trigger(trigger(0.0))
+    assert isinstance(ctl.on_frame(0.1, [zone(3, 12.0, 0.0, 0.1, r=6.0)], pose(0.1))[0], Goto)
+    t = 0.2
+    ctl.on_state(status(t, 12.0, 0.0, 30.0, mode="GUIDED"))
+    ctl.on_frame(t, [zone(3, 12.0, 0.0, t, r=6.0)], pose(t, 12.0, 0.0))
+    assert ctl.phase == Phase.DESCEND
+    t = 0.3
+    moved = dataclasses.replace(zone(3, 13.5, 0.0, t, r=6.0), view_limited=view_limited, r_view=6.0)
+    ctl.on_state(status(t, 12.0, 0.0, 27.0, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [moved], pose(t, 12.0, 0.0, 27.0))
+    gotos = [c for c in cmds if isinstance(c, Goto)]
+    assert gotos and ctl.phase == Phase.DESCEND
+    lat, lon = expected_latlon(13.5 if moves else 12.0, 0.0)
+    assert gotos[-1].target.lat_deg == pytest.approx(lat, abs=1e-9)
+    assert gotos[-1].target.lon_deg == pytest.approx(lon, abs=1e-9)
+
+
+def test_recentre_refuses_a_negative_distance():
+    with pytest.raises(ValueError, match="recentre_m"):
+        LandingConfig(recentre_m=-1.0)

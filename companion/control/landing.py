@@ -37,7 +37,9 @@ it over the zone, re-checking the zone at every frame, so a lost zone stops the 
 step. The landing point (the *aim*) is the zone's centre when chosen, and it stays put while the
 zone still holds ``r0_m + radius_margin_m`` around it (a zone bounded by the view: while the view
 still shows ``MIN_VIEW_M`` around it): such a zone moves with the camera, and following its centre
-would chase it across uniform free ground for ever. At ``descend_alt_m`` above home over the zone
+would chase it across uniform free ground for ever. With ``recentre_m`` > 0, a zone bounded by
+people (not by the view) moves the aim to its centre, the point farthest from them, once the aim
+is more than that far from it (APPROACH and DESCEND; never in LAND). At ``descend_alt_m`` above home over the zone
 it commands the autopilot's LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
 sequence is used for both autopilots so that the descent down to ``descend_alt_m`` is always
 re-checked. During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends
@@ -153,6 +155,13 @@ class LandingConfig:
     #: most this long (s) for the ground under it to be calm; then the zone is given up for the
     #: rest of the takeover (people keep passing near it) and another is chosen.
     calm_wait_s: float = 15.0
+    #: Over a zone bounded by people or unlandable ground (not by the view), in APPROACH and
+    #: DESCEND, the landing point moves to the zone's centre once it is more than this far from
+    #: it (m; 0 = only when the zone no longer holds r0 plus the margin around the point). The
+    #: centre of a circle bounded by what was seen is the point farthest from it: a point kept
+    #: where the zone was first seen, at its side, came down near the lawn's edge, where walkers
+    #: going round it pass (docs/design.md, "Where the landing point goes").
+    recentre_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -163,7 +172,7 @@ class LandingConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
-        for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m"):
+        for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
@@ -624,7 +633,13 @@ class LandingController:
         # MIN_VIEW_M around it: low down the view is smaller than r0 plus the margin.
         aim = self._aim
         room = MIN_VIEW_M if seen_all_free else c.planner.r0_m + c.planner.radius_margin_m
-        if aim is None or track.r - math.hypot(aim[0] - track.x, aim[1] - track.y) < room:
+        off = math.inf if aim is None else math.hypot(aim[0] - track.x, aim[1] - track.y)
+        if aim is None or track.r - off < room:
+            aim = self._aim = (track.x, track.y)
+        elif c.recentre_m > 0 and off > c.recentre_m and not track.view_limited and \
+                self.phase in (Phase.APPROACH, Phase.DESCEND):
+            # Bounded by what the camera saw, not by its view: the centre is the farthest point
+            # from it. Never in LAND (the autopilot lands where the vehicle is).
             aim = self._aim = (track.x, track.y)
         dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
         if self.phase == Phase.LAND and s.height > c.land_abort_above_m and \

@@ -358,10 +358,69 @@ async def test_ready_watchdog_status_on_faults_and_clean_sigterm(tmp_path: Path)
     assert all(isinstance(e["roll"], float) and e["t"] > 0 for e in att)
 
 
-# The whole loop over a crowd (hover, the battery failsafe, takeover, landing judged on the
-# simulator's truth) is flown by tests/test_sitl.py with the service as a subprocess, every
-# phase by tests/test_service_inprocess.py, and what the ground station hears by
-# tests/test_gcs_flight.py; this file's copy of that flight (75-85 s) went for CI's 20 minutes.
+async def _fly_once(tmp_path: Path) -> tuple[str, Any, list[str], Any]:
+    """One hover-failsafe-landing flight: (service log, truth at the end, STATUSTEXTs, world)."""
+    port = _free_udp_port()
+    notify = NotifySocket(tmp_path / "notify.sock")
+    async with simulated_vehicle(port, altitude=20.0) as (sim, cam, world):
+        heard: list[str] = []
+        handle = sim.autopilot.handle_message
+
+        def spy(msg, link):  # the ground-station side of the real packets the service sent
+            if msg.get_type() == "STATUSTEXT":
+                heard.append(msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace"))
+            return handle(msg, link)
+
+        sim.autopilot.handle_message = spy  # type: ignore[method-assign]
+        # A 45 s takeover budget (90 s by default) keeps a flight that cannot land short (CI's time).
+        cfg = _write_config(tmp_path, port, cam.url, "[controller]\nselect_timeout_s = 30.0\nmax_takeover_s = 45.0\n")
+        svc = Service(["--config", str(cfg)], _env(notify, 5_000_000), tmp_path / "svc.log")
+        try:
+            await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)
+            await sim.wait_for(lambda t: t.position[2] < -18.0, 40)
+            await _until(lambda: notify.has("STATUS=MONITOR: oldest stable zone"), 40,
+                         "a stable zone before the failsafe", svc)
+            sim.inject_failsafe("battery_critical")
+            await _until(lambda: "-> APPROACH" in svc.log(), 30, "the controller to take over", svc)
+            truth = await sim.wait_for(lambda t: t.landed or (t.on_ground and not t.armed), 150)
+        finally:
+            log = svc.log()
+            if svc.proc.poll() is None:
+                svc.proc.send_signal(signal.SIGTERM)
+                assert await asyncio.to_thread(svc.proc.wait, 5) == 0
+            svc.stop()
+            notify.close()
+        return log, truth, heard, world
+
+
+async def test_service_lands_the_vehicle_away_from_people(tmp_path: Path) -> None:
+    """The whole loop: hover over a crowd, the autopilot's battery failsafe fires, the service
+    takes over and the vehicle lands, either in the zone the service flew to (LANDED, nobody
+    within r_0) or, when zones kept being lost, after a clean handback to the autopilot's own LAND
+    (HANDBACK; see the README's known limitation); the ground station hears STATUSTEXTs."""
+    if not SHIPPED_MODEL.is_file():
+        # The stand-in peer model (MCNN, ShanghaiTech B) sees the simulator's people poorly: zones
+        # keep shrinking and the controller (rightly) holds instead of landing.
+        pytest.skip(f"needs the shipped model {SHIPPED_MODEL} (not committed yet)")
+    log, truth, heard, world = await _fly_once(tmp_path)
+    where = (float(truth.position[0]), float(truth.position[1]))
+    clearance = world.nearest_person_distance(where)
+    assert truth.landed or (truth.on_ground and not truth.armed)
+    story = "\n".join(line for line in log.splitlines() if "SLZ:" in line)
+    after = log.split("-> APPROACH", 1)[1]
+    assert "-> LAND" in after or "-> HANDBACK" in after, log[-3000:]
+    if "-> HANDBACK" in after:
+        # Handed back: the autopilot's own LAND touched down wherever the vehicle was, which the
+        # companion does not choose (the README's known limitation; issue 11 is the fix). Such a
+        # touchdown is a strike to count over many flights (companion sim-scenarios), not a
+        # guarantee one flight can check; the handback itself must have been clean.
+        assert "handing back to the autopilot (LAND)" in story, story
+        print(f"handed back; the autopilot landed {clearance:.1f} m from the nearest person")
+    else:
+        # The companion chose the touchdown: nobody within r_0 (2 m), ever.
+        assert clearance >= 2.0, f"landed {clearance:.2f} m from a person at {where}:\n{story}"
+    assert any(h.startswith("SLZ") or "zone" in h for h in heard), heard
+    print(f"landed at {where}, {clearance:.1f} m from the nearest person; STATUSTEXT: {heard}")
 
 
 def _health(log: str) -> list[dict[str, int]]:

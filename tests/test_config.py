@@ -94,6 +94,7 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[controller]\npredict_min_height_m = -1\n", r"controller\.predict_min_height_m must be >= 0"),
         ("[controller]\nmin_calm_s = -1\n", r"controller\.min_calm_s must be >= 0"),
         ("[controller]\ncalm_wait_s = 0\n", r"controller\.calm_wait_s must be >= 0\.5"),
+        ("[controller]\nrecentre_m = -1\n", r"controller\.recentre_m must be >= 0"),
         ("[pipeline]\ncalm_margin_m = -1\n", r"pipeline\.calm_margin_m must be >= 0"),
         ("[pipeline]\noccupied_trail_s = 20\n", r"pipeline\.occupied_trail_s \(20\.0 s\) must not exceed "
                                                 r"pipeline\.map_memory_s"),

@@ -228,8 +228,7 @@ def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones(
     frame = np.zeros((240, 320, 3), np.uint8)
     K = Intrinsics.from_fov(320, 240, 70.0)
     pipe = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True), intrinsics=K, mount=Mount())
-    ref = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"),
-                      intrinsics=Intrinsics.from_fov(320, 240, 70.0), mount=Mount())
+    ref = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
     for k in range(30):
         t = 0.1 * k
         pose = Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)

@@ -67,13 +67,17 @@ class NotifySocket:
                 return self.messages
             self.messages.append((time.monotonic(), data.decode()))
 
+    def lines(self, prefix: str) -> list[str]:
+        """Every line received so far that starts with ``prefix`` (e.g. "STATUS="), in order."""
+        return [line for _, m in self.drain() for line in m.split("\n") if line.startswith(prefix)]
+
     def has(self, prefix: str) -> bool:
-        return any(any(line.startswith(prefix) for line in m.split("\n")) for _, m in self.drain())
+        return bool(self.lines(prefix))
 
     def latest(self, prefix: str) -> str | None:
-        """The last line that starts with ``prefix`` (e.g. "STATUS="), or None."""
-        lines = [line for _, m in self.drain() for line in m.split("\n") if line.startswith(prefix)]
-        return lines[-1] if lines else None
+        """The last line that starts with ``prefix``, or None."""
+        found = self.lines(prefix)
+        return found[-1] if found else None
 
     def times(self, prefix: str) -> list[float]:
         return [t for t, m in self.drain() if any(line.startswith(prefix) for line in m.split("\n"))]

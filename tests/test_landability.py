@@ -338,16 +338,36 @@ def test_training_runs_a_few_steps_and_exports_a_loadable_model(tmp_path: Path, 
 
     out = tmp_path / "l.onnx"
     rc = T.main(["--shared", str(shared_dir), "--out", str(out), "--steps", "3", "--batch", "2",
-                 "--crop", "64", "--max-images", "9"])
+                 "--crop", "64", "--max-images", "9", "--level-weight", "obstacles=3"])
     assert rc == 0 and out.is_file() and out.stat().st_size < 1_000_000
+    import onnx
+    note = {p.key: p.value for p in onnx.load(str(out)).metadata_props}["companion.training"]
+    assert "level_weights=1,3,3,3,1.5,3,1 " in note  # the change is recorded with the model
     m = LandabilityModel(out, threads=1)
     assert m.landability.names == tuple(lv.name for lv in T.LEVELS)
     assert m.landability.threshold in T.THRESHOLDS
     assert m(np.zeros((64, 64, 3), np.uint8)).shape == (7, 8, 8)
     assert T.main(["--shared", str(shared_dir), "--out", str(out), "--crop", "60"]) == 2
     assert T.main(["--shared", str(shared_dir), "--out", str(out), "--device", "cuda:99"]) == 2
-    for bad in (["--width", "0"], ["--workers", "-1"], ["--seconds", "-1"], ["--seconds", "nan"]):
+    for bad in (["--width", "0"], ["--workers", "-1"], ["--seconds", "-1"], ["--seconds", "nan"],
+                ["--level-weight", "roofs=3"], ["--level-weight", "obstacles=0"]):
         assert T.main(["--shared", str(shared_dir), "--out", str(out), *bad]) == 2, bad
+
+
+def test_level_weights_take_changes_by_name_and_refuse_bad_ones() -> None:
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training import landability as T
+
+    assert T.weights_with([]) == T.LEVEL_WEIGHTS
+    changed = T.weights_with(["obstacles=4", "water=5.5"])
+    names = [lv.name for lv in T.LEVELS]
+    assert changed[names.index("obstacles")] == 4.0 and changed[names.index("water")] == 5.5
+    assert [w for n, w in zip(names, changed) if n not in ("obstacles", "water")] == \
+        [w for n, w in zip(names, T.LEVEL_WEIGHTS) if n not in ("obstacles", "water")]
+    for bad, words in (("roof=2", "LEVEL one of"), ("obstacles", "LEVEL one of"), ("obstacles=-1", "positive"),
+                       ("obstacles=inf", "positive"), ("obstacles=x", "positive")):
+        with pytest.raises(ValueError, match=words):
+            T.weights_with([bad])
 
 
 def test_training_by_time_with_worker_processes_and_another_width(tmp_path: Path, shared_dir: Path) -> None:

@@ -269,7 +269,9 @@ def train(args: argparse.Namespace) -> Path:
              len(val_set.images), time.monotonic() - t0)
     net = LandabilityNet(width=args.width).to(device)
     log.info("parameters: %d", M.count_parameters(net))
-    weights = torch.tensor(LEVEL_WEIGHTS, dtype=torch.float32, device=device)
+    level_weights = weights_with(args.level_weight)
+    log.info("level weights: %s", ", ".join(f"{lv.name} {w:g}" for lv, w in zip(LEVELS, level_weights)))
+    weights = torch.tensor(level_weights, dtype=torch.float32, device=device)
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
     warm = min(100, max(1, args.steps // 10))
     budget = float(args.seconds)
@@ -322,12 +324,34 @@ def train(args: argparse.Namespace) -> Path:
              LANDABLE_PRECISION, len(val_set.images))
     note = (f"steps={step} batch={args.batch} crop={args.crop} lr={args.lr} seed={args.seed} width={args.width} "
             f"workers={args.workers} seconds={args.seconds:g} "
+            f"level_weights={','.join(f'{w:g}' for w in level_weights)} "
             f"threads={args.threads} device={args.device} minutes={(time.monotonic() - t0) / 60:.1f}; "
             f"threshold: largest with landable precision >= {LANDABLE_PRECISION} on every {VAL_EVERY}th "
             "training-split photo (held out of training)")
     out = export(net, Path(args.out), thr, note)
     log.info("exported %s (%.1f min)", out, (time.monotonic() - t0) / 60)
     return out
+
+
+def weights_with(changes: list[str] | None) -> tuple[float, ...]:
+    """:data:`LEVEL_WEIGHTS` with ``LEVEL=WEIGHT`` changes (``--level-weight``) applied, in the
+    levels' order. A level that is not one of :data:`LEVELS`, or a weight that is not a positive
+    finite number, is a ValueError naming it."""
+    names = [lv.name for lv in LEVELS]
+    weights = list(LEVEL_WEIGHTS)
+    for change in changes or []:
+        name, sep, value = change.partition("=")
+        if not sep or name not in names:
+            raise ValueError(f"--level-weight takes LEVEL=WEIGHT with LEVEL one of {', '.join(names)}; "
+                             f"got {change!r}")
+        try:
+            w = float(value)
+        except ValueError:
+            w = math.nan
+        if not (math.isfinite(w) and w > 0):
+            raise ValueError(f"--level-weight {name}: the weight must be a positive number, got {value!r}")
+        weights[names.index(name)] = w
+    return tuple(weights)
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -347,6 +371,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="make the crops in this many worker processes (0: in the training loop)")
     p.add_argument("--max-images", type=int, default=0,
                    help="use only the first N photos of the training split (quick runs and tests; 0: all)")
+    p.add_argument("--level-weight", action="append", default=[], metavar="LEVEL=WEIGHT",
+                   help="weigh this risk level's loss term so (repeatable; default "
+                        + ", ".join(f"{lv.name} {w:g}" for lv, w in zip(LEVELS, LEVEL_WEIGHTS)) + ")")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -363,6 +390,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--crop must be a positive multiple of {STRIDE}, got {args.crop}")
         if args.max_images < 0:
             raise ValueError(f"--max-images must be >= 0, got {args.max_images}")
+        weights_with(args.level_weight)
         train(args)
     except (ValueError, D.DatasetError) as exc:
         print(f"companion train-landability: {exc}", file=sys.stderr)

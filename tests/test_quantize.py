@@ -58,3 +58,14 @@ def test_the_qdq_form_and_a_bad_form(shared_dir, model_path, tmp_path):
     assert {"QuantizeLinear", "DequantizeLinear"} <= ops
     with pytest.raises(ValueError, match="format"):
         Q.quantize(model_path, tmp_path / "x.onnx", shared_dir, fmt="int4")
+
+
+def test_a_bad_calibration_rule_stops_before_anything_is_written(shared_dir, model_path, tmp_path, capsys):
+    out = tmp_path / "x.onnx"
+    with pytest.raises(ValueError, match="calibration rule"):
+        Q.quantize(model_path, out, shared_dir, rule="v9")
+    # the drone rule takes no --min-recall (it is the v1 rule's): exit 2, said, nothing written
+    assert Q.main(["--model", str(model_path), "--out", str(out), "--shared", str(shared_dir),
+                   "--min-recall", "0.99"]) == 2
+    assert "--min-recall applies to the v1 rule only" in capsys.readouterr().err
+    assert not out.exists()

@@ -12,12 +12,13 @@ Issue 13 asks for int8 measured for its recall cost: this writes the quantised f
   model's own preprocessing (``DensityModel.preprocess``). Nothing the figures are reported on
   sets a range.
 * The quantised file keeps the float model's ``companion.*`` metadata, then
-  ``companion.training.calibrate`` chooses its own threshold (by its default rule, the drone
-  rule), count scale and ``min_person_px``: int8 moves the scores, so the float model's threshold
-  would not mean the same recall.
+  ``companion.training.calibrate`` chooses its own threshold (by ``--rule``, the calibration's
+  rules: ``drone`` by default, ``v1`` for the first shipped model and its int8 file), count scale
+  and ``min_person_px``: int8 moves the scores, so the float model's threshold would not mean the
+  same recall.
 
     python -m companion.training.quantize --model companion/models/slz-density.onnx \\
-        --out /tmp/slz-density-int8.onnx --shared ../shared
+        --out /tmp/slz-density-int8.onnx --shared ../shared --rule v1
 
 Needs the ``train`` extra (``onnx``); onnxruntime's quantiser is part of onnxruntime.
 """
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,7 +37,7 @@ import onnx
 
 from companion.evaluation import datasets as D
 from companion.pipeline.density import DensityModel
-from companion.training.calibrate import calibrate
+from companion.training.calibrate import DEFAULT_RULE, RULES, calibrate, rule_minimums
 from companion.training.metadata import set_metadata
 
 log = logging.getLogger("companion.training.quantize")
@@ -73,14 +75,18 @@ FORMATS = ("qoperator", "qdq")
 
 
 def quantize(model_path: Path, out: Path, shared: Path, per_source: int = CALIB_PER_SOURCE,
-             threads: int = 2, calibrate_after: bool = True, fmt: str = "qoperator") -> dict[str, object]:
+             threads: int = 2, calibrate_after: bool = True, fmt: str = "qoperator",
+             rule: str = DEFAULT_RULE, min_recall: float | None = None) -> dict[str, object]:
     """Write the int8 model of ``model_path`` to ``out`` in form ``fmt`` (``FORMATS``); returns
-    its metadata (after calibration, unless ``calibrate_after`` is false)."""
+    its metadata (after calibration by ``rule`` and ``min_recall``, as
+    ``companion.training.calibrate`` takes them, unless ``calibrate_after`` is false). A bad form
+    or rule is a ValueError before anything is written."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {FORMATS}, got {fmt!r}")
+    rule_minimums(rule, min_recall)
     model_path, out = Path(model_path), Path(out)
     fmodel = DensityModel(model_path, threads=threads)
     frames = calibration_frames(shared, per_source)
@@ -102,7 +108,7 @@ def quantize(model_path: Path, out: Path, shared: Path, per_source: int = CALIB_
     set_metadata(out, meta)
     if not calibrate_after:
         return meta
-    return calibrate(out, shared, threads)
+    return calibrate(out, shared, threads, min_recall, rule)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -116,10 +122,18 @@ def main(argv: list[str] | None = None) -> int:
                    help="QLinearConv nodes (default) or QuantizeLinear/DequantizeLinear pairs")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-calibrate", action="store_true", help="keep the float model's threshold")
+    p.add_argument("--rule", choices=sorted(RULES), default=DEFAULT_RULE,
+                   help="the calibration rule that chooses the int8 file's threshold "
+                        "(companion.training.calibrate; v1 for the first shipped model)")
+    p.add_argument("--min-recall", type=float, default=None, help="v1 rule only (as calibrate takes it)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    quantize(Path(args.model), Path(args.out), Path(args.shared), args.per_source, args.threads,
-             not args.no_calibrate, args.format)
+    try:
+        quantize(Path(args.model), Path(args.out), Path(args.shared), args.per_source, args.threads,
+                 not args.no_calibrate, args.format, args.rule, args.min_recall)
+    except ValueError as exc:
+        print(f"companion.training.quantize: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

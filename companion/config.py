@@ -241,6 +241,12 @@ class ControllerSettings:
                                 min=0.1, max=20.0)
     descend_alt_m: float = _f(10.0, "altitude above home at which LAND is commanded (m): where the camera "
                                      "still sees r0 plus radius_margin_m all round at the commit", min=1.0, max=200.0)
+    land_alt_m: float = _f(0.0, "height at which the autopilot's LAND takes over (m): once the zone is judged "
+                                "at descend_alt_m (calm ground), the companion's own stepped descent goes on "
+                                "over it to this height, the ground under the vehicle re-checked every frame "
+                                "(somebody within r0: HOLD); a shorter slow LAND leaves walkers less time to "
+                                "reach the landing point; 0 = LAND at descend_alt_m (docs/design.md)",
+                          min=0.0, max=200.0)
     descend_speed_mps: float = _f(1.5, "how fast the stepped descent comes down (m/s; ArduPilot WPNAV_SPEED_DN, "
                                        "PX4 MPC_Z_VEL_MAX_DN): the time to touchdown", min=0.1, max=10.0)
     land_speed_mps: float = _f(0.5, "the autopilot's LAND descent speed (m/s; ArduPilot LAND_SPEED 50 cm/s, "
@@ -486,6 +492,10 @@ def _cross_checks(cfg: Config) -> None:
         if len(getattr(cfg.camera, name).encode()) > 32:
             raise ConfigError(f"camera.{name} must be at most 32 bytes (MAVLink's CAMERA_INFORMATION), "
                               f"got {getattr(cfg.camera, name)!r}")
+    if cfg.controller.land_alt_m > cfg.controller.descend_alt_m:
+        raise ConfigError(f"controller.land_alt_m ({cfg.controller.land_alt_m:g} m) must not be above "
+                          f"controller.descend_alt_m ({cfg.controller.descend_alt_m:g} m), where the zone is "
+                          "judged before it")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")
@@ -665,7 +675,7 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
 def descent_profile(cfg: Config) -> DescentProfile:
     """How long a descent from a height takes, and how far a walker gets meanwhile."""
     c = cfg.controller
-    return DescentProfile(descend_speed_mps=c.descend_speed_mps, land_alt_m=c.descend_alt_m,
+    return DescentProfile(descend_speed_mps=c.descend_speed_mps, land_alt_m=c.land_alt_m or c.descend_alt_m,
                           land_speed_mps=c.land_speed_mps, walk_speed_mps=cfg.pipeline.walk_speed_mps)
 
 
@@ -691,7 +701,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         predict_people=c.predict_people, pose_uncertainty_m=c.pose_uncertainty_m,
         predict_lead_s=c.predict_lead_s, predict_min_height_m=c.predict_min_height_m,
-        calm_wait_s=c.calm_wait_s, recentre_m=c.recentre_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
+        calm_wait_s=c.calm_wait_s, recentre_m=c.recentre_m, land_alt_m=c.land_alt_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),

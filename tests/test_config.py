@@ -95,6 +95,9 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[controller]\nmin_calm_s = -1\n", r"controller\.min_calm_s must be >= 0"),
         ("[controller]\ncalm_wait_s = 0\n", r"controller\.calm_wait_s must be >= 0\.5"),
         ("[controller]\nrecentre_m = -1\n", r"controller\.recentre_m must be >= 0"),
+        ("[controller]\nland_alt_m = -1\n", r"controller\.land_alt_m must be >= 0"),
+        ("[controller]\nland_alt_m = 12\n", r"controller\.land_alt_m \(12 m\) must not be above "
+                                             r"controller\.descend_alt_m \(10 m\)"),
         ("[pipeline]\ncalm_margin_m = -1\n", r"pipeline\.calm_margin_m must be >= 0"),
         ("[pipeline]\noccupied_trail_s = 20\n", r"pipeline\.occupied_trail_s \(20\.0 s\) must not exceed "
                                                 r"pipeline\.map_memory_s"),

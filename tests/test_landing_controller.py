@@ -811,6 +811,91 @@ def test_the_land_waits_for_calm_ground_under_the_vehicle_and_says_so_once():
     assert land and land[0].as_record()["calm_s"] == 6.3
 
 
+#: Judged (calm) at descend_alt_m, then the companion's own descent down to 4 m before the LAND.
+LOW = dataclasses.replace(CALM, land_alt_m=4.0)
+
+
+def _descend_low(ctl: LandingController, t: float, zone_r: float = 4.1, until_alt: float = 0.0,
+                 calm_at_top: float = 6.3, alt: float = 9.8) -> tuple[float, float, list[float], list]:
+    """From ``alt`` (9.8 m) over zone 1, follow the controller's targets down (the vehicle reaches each),
+    the ground below calm at the top only (NaN below: the calm disc no longer fits in the view).
+    Stops at a LAND, at a phase other than DESCEND, or below ``until_alt``. Returns the time, the
+    altitude, the targets' altitudes and the last commands."""
+    alts: list[float] = []
+    cmds: list = []
+    while t < 20.0:
+        ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+        calm = calm_at_top if alt >= 9.5 else math.nan
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, r=zone_r)], pose(t, 10, 0, alt), below(t, calm))
+        t += 0.1
+        if any(isinstance(c, Land) for c in cmds) or ctl.phase != Phase.DESCEND:
+            break
+        for c in cmds:
+            if isinstance(c, Goto):
+                if not alts or c.target.rel_alt_m != alts[-1]:
+                    alts.append(c.target.rel_alt_m)
+                alt = c.target.rel_alt_m
+        if alt < until_alt:
+            break
+    return t, alt, alts, cmds
+
+
+def test_a_judged_zone_is_flown_down_to_land_alt_before_the_land_watched_all_the_way():
+    """land_alt_m: the zone is judged calm at 9.8 m, then the companion's own stepped descent goes
+    on to 4 m (no second calm wait below, where the calm disc no longer fits in the view), and
+    the autopilot's LAND is commanded only there: its slow descent is 4 m long, not 10."""
+    ctl = LandingController(LOW)
+    t = _low_over_zone(ctl)
+    texts(ctl)
+    t, alt, alts, cmds = _descend_low(ctl, t)
+    assert cmds == [Land()] and ctl.phase == Phase.LAND
+    assert alts == [7.0, 4.0] and alt == pytest.approx(4.0)
+    events = ctl.pop_events()
+    said = [e.text for e in events]
+    assert said[0] == "SLZ: zone 1 judged at 9.8 m (calm 6.3 s): descending over it to 4 m before the LAND"
+    assert not any("waiting before the LAND" in x for x in said)
+    land = [e for e in events if e.phase == Phase.LAND]
+    assert land and land[0].text.startswith("SLZ: LAND over zone 1 at 4.0 m")
+    # The time to touchdown that every clearance is judged against follows the new profile.
+    assert LOW.descent.time_to_touchdown(10.0) == pytest.approx(10.0 / LOW.descent.land_speed_mps)
+    low_profile = dataclasses.replace(LOW.descent, land_alt_m=4.0)
+    assert low_profile.time_to_touchdown(10.0) == pytest.approx(6.0 / 1.5 + 4.0 / 0.5)
+
+
+def test_somebody_within_r0_during_the_low_descent_sends_it_back_up_and_the_zone_is_judged_again():
+    ctl = LandingController(LOW)
+    t = _low_over_zone(ctl)
+    t, alt, alts, _ = _descend_low(ctl, t, until_alt=7.5)
+    assert alts == [7.0] and ctl.phase == Phase.DESCEND
+    texts(ctl)
+    cmds: list = []
+    for _ in range(CFG.lose_after_frames):  # a person walks in: 1.5 m free around the vehicle
+        ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, r=1.5)], pose(t, 10, 0, alt),
+                            GroundBelow(10, 0, 1.5, 1.5 + 0.1, calm_s=0.0))
+        t += 0.1
+    assert ctl.phase == Phase.HOLD and not any(isinstance(c, Land) for c in cmds)
+    goto = [c for c in cmds if isinstance(c, Goto)]
+    assert goto and goto[0].target.rel_alt_m >= LOW.hold_height_m  # back up to where it sees enough
+    assert any("zone 1 lost" in x for x in texts(ctl))
+    # The vehicle climbs back (it follows its targets), the zone is free again: down again to the
+    # judging height, where it is judged again (not calm yet this time: it waits there).
+    ctl.on_state(status(t, 10, 0, goto[0].target.rel_alt_m, mode="GUIDED"))
+    ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, goto[0].target.rel_alt_m), below(t, 1.0))
+    assert ctl.phase in (Phase.APPROACH, Phase.DESCEND)
+    t, alt, alts, cmds = _descend_low(ctl, t + 0.1, calm_at_top=1.0, alt=goto[0].target.rel_alt_m)
+    assert not any(isinstance(c, Land) for c in cmds) and alt == pytest.approx(10.0)
+    assert any("waiting before the LAND" in x for x in texts(ctl))
+
+
+def test_land_alt_m_off_or_above_the_judging_height():
+    assert dataclasses.replace(CALM, land_alt_m=0.0).land_alt_m == 0.0  # 0: LAND at descend_alt_m
+    with pytest.raises(ValueError, match="land_alt_m"):
+        dataclasses.replace(CFG, land_alt_m=12.0)  # above descend_alt_m (10 m)
+    with pytest.raises(ValueError, match="land_alt_m"):
+        dataclasses.replace(CFG, land_alt_m=-1.0)
+
+
 def test_a_zone_that_never_becomes_calm_is_given_up_for_another_and_not_chosen_again():
     ctl = LandingController(CALM)  # calm_wait_s = 3 s
     t = _low_over_zone(ctl)

@@ -40,7 +40,10 @@ still shows ``MIN_VIEW_M`` around it): such a zone moves with the camera, and fo
 would chase it across uniform free ground for ever. With ``recentre_m`` > 0, a zone bounded by
 people (not by the view) moves the aim to its centre, the point farthest from them, once the aim
 is more than that far from it (APPROACH and DESCEND; never in LAND). At ``descend_alt_m`` above home over the zone
-it commands the autopilot's LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
+the zone is judged (calm ground, the walkers' prediction) and, with ``land_alt_m`` set below it,
+the same stepped descent goes on over the judged zone to ``land_alt_m``, every frame re-checking
+the ground under the vehicle as above (a lost zone: HOLD). There it
+commands the autopilot's LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
 sequence is used for both autopilots so that the descent down to ``descend_alt_m`` is always
 re-checked. During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends
 the vehicle back to HOLD; below it the landing is committed. It is committed too when the zone,
@@ -155,6 +158,14 @@ class LandingConfig:
     #: most this long (s) for the ground under it to be calm; then the zone is given up for the
     #: rest of the takeover (people keep passing near it) and another is chosen.
     calm_wait_s: float = 15.0
+    #: The height (m above the ground) at which the autopilot's LAND takes over. 0: at
+    #: ``descend_alt_m``, as the paper's sequence does. Lower: once the zone is judged at
+    #: ``descend_alt_m`` (calm, the walkers), the companion's own stepped descent goes on over it
+    #: down to this height, every frame re-checking the ground under the vehicle and sending it
+    #: back to HOLD when somebody is seen within r0; only then the LAND. The autopilot's LAND is
+    #: slow (ArduPilot 0.5 m/s, PX4 0.7 m/s) against its guided descent (1.5 m/s), and the time
+    #: to touchdown is what a walker has to reach the landing point (``touchdown``).
+    land_alt_m: float = 0.0
     #: Over a zone bounded by people or unlandable ground (not by the view), in APPROACH and
     #: DESCEND, the landing point moves to the zone's centre once it is more than this far from
     #: it (m; 0 = only when the zone no longer holds r0 plus the margin around the point). The
@@ -172,10 +183,14 @@ class LandingConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
-        for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m"):
+        for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m",
+                     "land_alt_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
+        if self.land_alt_m > self.descend_alt_m:
+            raise ValueError(f"controller land_alt_m ({self.land_alt_m:g} m) must not be above "
+                             f"descend_alt_m ({self.descend_alt_m:g} m): the zone is judged there first")
         if not (math.isfinite(self.view_ratio) and self.view_ratio > 0):
             raise ValueError(f"controller view_ratio must be > 0, not {self.view_ratio!r}")
         if not (self.trust_height_m > 0):  # NaN too
@@ -268,6 +283,10 @@ class LandingController:
         self._investigated: set[int] = set()  # zones the search flew over that never qualified
         self._restless: set[int] = set()  # zones given up because they never became calm
         self._calm_wait: tuple[int, float] | None = None  # (zone id, since when) waiting for calm
+        # The zone judged at the judging height (calm, walkers) whose descent goes on below it,
+        # under the companion's control, to land_alt_m: below the judging height the calm disc no
+        # longer fits in the view, so the judgement is kept, not asked again.
+        self._judged: int | None = None
         self._over_lead: tuple[int, float] | None = None  # (zone id, since when) the search hovers over
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
@@ -655,12 +674,35 @@ class LandingController:
                 return self._goto(aim[0], aim[1], self._level, track.id)
             self._set_phase(Phase.DESCEND, f"over zone {track.id}, descending from {s.alt:.1f} m", zone_id=track.id)
         if self.phase == Phase.DESCEND:
-            low = s.height <= min(c.descend_alt_m, c.trust_height_m) + c.alt_tolerance_m
+            judge = min(c.descend_alt_m, c.trust_height_m)
+            low = s.height <= judge + c.alt_tolerance_m
             over = dist <= c.arrive_radius_m and low
-            if over and not s.on_ground and not self._calm_below(track):
+            judged = self._judged == track.id
+            if over and not s.on_ground and not judged and not self._calm_below(track):
                 if self._calm_wait is not None and self.now - self._calm_wait[1] > c.calm_wait_s:
                     self._restless.add(track.id)
                     return self._lost(f"not calm after {c.calm_wait_s:g} s over it: people keep passing near it")
+                return self._goto(aim[0], aim[1], self._level, track.id)
+            land_at = min(c.land_alt_m, judge) if c.land_alt_m > 0 else judge
+            if not s.on_ground and over and s.height > land_at + c.alt_tolerance_m:
+                # Judged (calm, nobody predicted in the way): the companion's own descent goes on
+                # to land_at, the ground under the vehicle re-checked every frame above (a person
+                # within r0 sends it back to HOLD); a walker predicted in the way pauses it.
+                if self._walker_in_the_way(s.north, s.east, "pausing the descent" if judged
+                                           else "waiting before the LAND"):
+                    if judged:
+                        self._level = max(self._level, s.alt)
+                    return self._goto(aim[0], aim[1], self._level, track.id)
+                if not judged:
+                    self._judged = track.id
+                    calm = self._calm_here()
+                    self._event(f"zone {track.id} judged at {s.height:.1f} m"
+                                + (f" (calm {calm:.1f} s)" if math.isfinite(calm) else "")
+                                + f": descending over it to {land_at:g} m before the LAND")
+                floor = s.alt - s.height + land_at
+                self._raise_level(floor)
+                if dist <= 2 * c.arrive_radius_m and s.alt <= self._level + c.alt_tolerance_m:
+                    self._level = max(self._level - c.descend_step_m, floor)
                 return self._goto(aim[0], aim[1], self._level, track.id)
             if s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
@@ -672,8 +714,9 @@ class LandingController:
             # The plan's next step: one step down once the vehicle has reached the current level
             # over the zone, so a lost zone never leaves the vehicle committed to a long descent.
             # Never below descend_alt_m above the ground under the vehicle (a rangefinder may show
-            # the ground rising): the plan's floor, from terrain, not from the vehicle's altitude.
-            floor = s.alt - s.height + min(c.descend_alt_m, c.trust_height_m)
+            # the ground rising): the plan's floor, from terrain, not from the vehicle's altitude;
+            # once the zone is judged, land_at (off the point, it re-centres without climbing).
+            floor = s.alt - s.height + (land_at if judged else judge)
             self._raise_level(floor)
             if dist <= 2 * c.arrive_radius_m and s.alt <= self._level + c.alt_tolerance_m:
                 self._level = max(self._level - c.descend_step_m, floor)
@@ -878,6 +921,8 @@ class LandingController:
         """Enter ``phase`` (or stay in it), reporting it as one ``event`` of the given type: the
         only way the phase changes, so no change goes unreported."""
         old = self.phase
+        if phase not in (Phase.DESCEND, Phase.LAND):
+            self._judged = None  # a zone flown to again is judged again
         if phase != old:
             log.info("landing: %s -> %s", old.value, phase.value)
             self.phase = phase

@@ -239,9 +239,10 @@ class ControllerSettings:
     hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: hand back (s)", min=0.5)
     arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",
                                 min=0.1, max=20.0)
-    descend_alt_m: float = _f(10.0, "altitude above home at which LAND is commanded (m): where the camera "
-                                     "still sees r0 plus radius_margin_m all round at the commit", min=1.0, max=200.0)
-    land_alt_m: float = _f(0.0, "height at which the autopilot's LAND takes over (m): once the zone is judged "
+    descend_alt_m: float = _f(10.0, "altitude above home at which the zone is judged (calm ground) before the "
+                                     "LAND (m): where the camera still sees r0 plus radius_margin_m all round; "
+                                     "the LAND itself is commanded at land_alt_m", min=1.0, max=200.0)
+    land_alt_m: float = _f(4.0, "height at which the autopilot's LAND takes over (m): once the zone is judged "
                                 "at descend_alt_m (calm ground), the companion's own stepped descent goes on "
                                 "over it to this height, the ground under the vehicle re-checked every frame "
                                 "(somebody within r0: HOLD); a shorter slow LAND leaves walkers less time to "
@@ -495,7 +496,8 @@ def _cross_checks(cfg: Config) -> None:
     if cfg.controller.land_alt_m > cfg.controller.descend_alt_m:
         raise ConfigError(f"controller.land_alt_m ({cfg.controller.land_alt_m:g} m) must not be above "
                           f"controller.descend_alt_m ({cfg.controller.descend_alt_m:g} m), where the zone is "
-                          "judged before it")
+                          "judged before it; set controller.land_alt_m at or below it (0: the LAND at "
+                          "controller.descend_alt_m)")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")

@@ -320,10 +320,11 @@ def test_recording_replays_with_its_poses(work: dict[str, Path], tmp_path: Path)
     assert math.hypot(best["x"] - north, best["y"] - east) < 12 * gsd
     assert math.hypot(best["u"] - u0, best["v"] - FREE[1]) < 12
     assert best["r_px"] == pytest.approx(best["r"] / gsd, rel=0.02)
-    # Each track's clearance at touchdown from 25 m: (25 - 10) m at 1.5 m/s, then 10 m of LAND at
-    # 0.5 m/s, 30 s in all, 45 m of walking at 1.5 m/s (the default profile and walking speed).
+    # Each track's clearance at touchdown from 25 m: (25 - 4) m at 1.5 m/s, then 4 m of LAND at
+    # 0.5 m/s (controller.land_alt_m), 22 s in all, 33 m of walking at 1.5 m/s (the default
+    # profile and walking speed).
     tracks = [t for r in recs for t in r["tracks"]]
-    walked = 1.5 * (15.0 / 1.5 + 10.0 / 0.5)
+    walked = 1.5 * (21.0 / 1.5 + 4.0 / 0.5)
     assert tracks and all(t["clearance_m"] == pytest.approx(t["r"] - walked, abs=1e-6) for t in tracks)
     assert all("fusion" in r["timing_ms"] for r in recs)
     summary = json.loads((out / "s.json").read_text())

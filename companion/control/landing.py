@@ -686,25 +686,21 @@ class LandingController:
             land_at = min(c.land_alt_m, judge) if c.land_alt_m > 0 else judge
             if not s.on_ground and over and s.height > land_at + c.alt_tolerance_m:
                 # Judged (calm, nobody predicted in the way): the companion's own descent goes on
-                # to land_at, the ground under the vehicle re-checked every frame above (a person
-                # within r0 sends it back to HOLD); a walker predicted in the way pauses it.
+                # to land_at by the plan's steps below, the ground under the vehicle re-checked
+                # every frame above (a person within r0 sends it back to HOLD); a walker predicted
+                # in the way pauses it.
                 if self._walker_in_the_way(s.north, s.east, "pausing the descent" if judged
                                            else "waiting before the LAND"):
                     if judged:
                         self._level = max(self._level, s.alt)
                     return self._goto(aim[0], aim[1], self._level, track.id)
                 if not judged:
-                    self._judged = track.id
+                    judged, self._judged = True, track.id
                     calm = self._calm_here()
                     self._event(f"zone {track.id} judged at {s.height:.1f} m"
                                 + (f" (calm {calm:.1f} s)" if math.isfinite(calm) else "")
                                 + f": descending over it to {land_at:g} m before the LAND")
-                floor = s.alt - s.height + land_at
-                self._raise_level(floor)
-                if dist <= 2 * c.arrive_radius_m and s.alt <= self._level + c.alt_tolerance_m:
-                    self._level = max(self._level - c.descend_step_m, floor)
-                return self._goto(aim[0], aim[1], self._level, track.id)
-            if s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
+            elif s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 calm = self._calm_here()
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",

@@ -40,7 +40,7 @@ from companion.pipeline.occupancy import OccupancyParams
 from companion.pipeline.people import PeopleParams
 from companion.pipeline.riskmap import MAX_HALF_CELLS, RiskMapConfig
 from companion.pipeline.slz import FUSIONS, PipelineConfig
-from companion.pipeline.tracker import TrackerParams
+from companion.pipeline.tracker import MOTIONS, TrackerParams
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -164,6 +164,10 @@ class TrackerSettings:
     min_iou: float = _f(0.3, "least circle IoU for a proposal to match a track", min=0.0, max=0.99)
     mu_1: int = _f(3, "a track missed more than this many frames is deleted", min=0, max=1000)
     mu_2: int = _f(3, "an unmatched proposal seen this many frames starts a track", min=1, max=1000)
+    motion: str = _f("velocity", "zone motion model: velocity (the paper's constant velocity) or position (a zone is "
+                                 "ground: no velocity, a random walk of sigma_v)", choices=MOTIONS)
+    sigma_v: float = _f(0.3, "with motion = position, how far a zone's centre and radius wander (m per "
+                             "square-root second)", min=0.0, min_exclusive=True)
 
 
 @dataclass(frozen=True)
@@ -659,7 +663,8 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
                                   kernel=p.dilate_kernel, iterations=p.dilate_iterations),
         grid=GridParams(cell=p.cell_size_m, max_extent=p.max_extent_m),
         tracker=TrackerParams(sigma_a=t.sigma_a, r_std=(t.r_std[0], t.r_std[1], t.r_std[2]),
-                              min_iou=t.min_iou, mu_1=t.mu_1, mu_2=t.mu_2, max_tracks=p.n_proposals),
+                              min_iou=t.min_iou, mu_1=t.mu_1, mu_2=t.mu_2, max_tracks=p.n_proposals,
+                              motion=t.motion, sigma_v=t.sigma_v),
         head_height_m=p.head_height_m,
         r0_m=p.r0_m,
         proposal_tie_m=p.proposal_tie_m,

@@ -107,7 +107,8 @@ def test_radius_never_negative():
 
 
 @pytest.mark.parametrize("kw", [dict(sigma_a=0), dict(r_std=(1, 1)), dict(min_iou=1.5),
-                                dict(mu_2=0), dict(max_tracks=0)])
+                                dict(mu_2=0), dict(max_tracks=0), dict(motion="drift"),
+                                dict(sigma_v=0.0), dict(sigma_v=math.nan)])
 def test_bad_parameters_are_clear_errors(kw):
     with pytest.raises(ValueError, match="tracker"):
         TrackerParams(**kw)
@@ -165,3 +166,24 @@ def test_a_view_smaller_than_the_zone_confirms_what_it_sees():
     tr2.update([Circle(0.0, 0.0, 4.0)], 0.0)
     (t,) = tr2.update([], 0.1, clearance=lambda x, y: (0.5, 0.5), r_min=2.0)
     assert t.misses == 1
+
+
+def test_a_zone_that_is_ground_does_not_coast_on_a_velocity():
+    """World frame (motion "position"): proposals that slide 1 m/s for 2 s (the view moving over a
+    zone bounded by it) pull the zone only part of the way, and when they stop coming the zone
+    stays where it was last seen; the paper's constant velocity learns the slide and keeps
+    carrying the zone away (12-13 m in 4 s in a flight, docs/design.md "Zones are ground")."""
+    ends = {}
+    for motion in ("velocity", "position"):
+        tr = ZoneTracker(TrackerParams(mu_2=2, mu_1=30, motion=motion, sigma_v=0.1))
+        _run(tr, [[Circle(0.0, 0.0, 4.0)]] * 10)
+        _run(tr, [[Circle(1.0 * k * DT, 0.0, 4.0)] for k in range(1, 21)], t0=1.0)
+        (last_seen,) = tr.tracks()
+        _run(tr, [[]] * 20, t0=3.0)  # missed for 2 s: the filter alone moves it
+        (track,) = tr.tracks()
+        ends[motion] = (last_seen.x, track.x)
+    seen_v, end_v = ends["velocity"]
+    seen_p, end_p = ends["position"]
+    assert end_v - seen_v > 1.0  # coasting on the slide
+    assert end_p == pytest.approx(seen_p, abs=1e-9)  # ground stays put
+    assert seen_p < 2.0 * 0.75  # and it lagged the slide (2 m) rather than followed it

@@ -28,6 +28,8 @@ MIN_DT = 1e-3
 # A zone is confirmed by a view that is smaller than the zone only if the view still reaches this
 # far (m) around its centre: a camera that sees next to nothing confirms nothing.
 _MIN_VIEW = 0.75
+#: The zones' motion models (``TrackerParams.motion``).
+MOTIONS = ("velocity", "position")
 
 
 @dataclass(frozen=True)
@@ -36,7 +38,13 @@ class TrackerParams:
     [[dt^4/4 I, dt^3/2 I], [dt^3/2 I, dt^2 I]]``). r_std: measurement standard deviation of x, y
     and r in metres (R = diag(r_std^2)). min_iou: assignments below this IoU are refused.
     mu_1: a track missed more than this many consecutive frames is deleted. mu_2: consecutive
-    frames a proposal must be seen before it becomes a track. max_tracks: N_p."""
+    frames a proposal must be seen before it becomes a track. max_tracks: N_p.
+    motion: "velocity", the paper's constant-velocity model (zones on a plane that moves with
+    the camera), or "position": a zone is a piece of ground, its centre and radius only wander
+    (a random walk of ``sigma_v`` m per square-root second) and it has no velocity to coast on.
+    In the world frame (posed frames) the velocity let a zone slide with its proposals as the
+    view moved, and keep sliding: 12-13 m in 4 s into the crowd (docs/design.md, "Zones are
+    ground")."""
 
     sigma_a: float = 0.5
     r_std: tuple[float, float, float] = (0.3, 0.3, 0.3)
@@ -44,8 +52,14 @@ class TrackerParams:
     mu_1: int = 3
     mu_2: int = 3
     max_tracks: int = 5
+    motion: str = "velocity"
+    sigma_v: float = 0.3
 
     def __post_init__(self) -> None:
+        if self.motion not in MOTIONS:
+            raise ValueError(f"tracker motion must be one of {MOTIONS}, got {self.motion!r}")
+        if not (math.isfinite(self.sigma_v) and self.sigma_v > 0):
+            raise ValueError(f"tracker sigma_v must be > 0, got {self.sigma_v!r}")
         if not (math.isfinite(self.sigma_a) and self.sigma_a > 0):
             raise ValueError(f"tracker sigma_a must be > 0, got {self.sigma_a!r}")
         if len(self.r_std) != 3 or not all(math.isfinite(s) and s > 0 for s in self.r_std):
@@ -105,6 +119,14 @@ class Track:
         return Circle(self.x, self.y, self.r)
 
 
+def _cp_matrices(dt: float, sigma_v: float) -> tuple[np.ndarray, np.ndarray]:
+    """Constant position: (x, y, r) a random walk of sigma_v m per square-root second; the
+    velocity half of the state stays zero (no process noise, zero initial covariance)."""
+    Q = np.zeros((6, 6))
+    Q[0:3, 0:3] = sigma_v**2 * dt * np.eye(3)
+    return np.eye(6), Q
+
+
 def _cv_matrices(dt: float, sigma_a: float) -> tuple[np.ndarray, np.ndarray]:
     F = np.eye(6)
     F[0:3, 3:6] = dt * np.eye(3)
@@ -123,7 +145,8 @@ class _ZoneFilter:
         kf.R = np.diag(np.square(params.r_std))
         # Position known to the measurement's accuracy; velocity unknown (a zone drifts at most
         # at walking pace, ~2 m/s).
-        kf.P = np.diag([*np.square(params.r_std), 4.0, 4.0, 4.0])
+        self.still = params.motion == "position"
+        kf.P = np.diag([*np.square(params.r_std), *((0.0,) * 3 if self.still else (4.0,) * 3)])
         self.kf = kf
         self.id = track_id
         self.age = 0
@@ -135,8 +158,8 @@ class _ZoneFilter:
         self.clear: float | None = None
         self.view: float = math.inf
 
-    def predict(self, dt: float, sigma_a: float) -> None:
-        F, Q = _cv_matrices(dt, sigma_a)
+    def predict(self, dt: float, params: TrackerParams) -> None:
+        F, Q = _cp_matrices(dt, params.sigma_v) if self.still else _cv_matrices(dt, params.sigma_a)
         self.kf.predict(F=F, Q=Q)
         self._guard_radius()
 
@@ -225,7 +248,7 @@ class ZoneTracker:
         dt = MIN_DT if self._t is None else min(max(t - self._t, MIN_DT), MAX_DT)
         self._t = t
         for f in self._filters:
-            f.predict(dt, p.sigma_a)
+            f.predict(dt, p)
             f.age += 1
 
         props = np.array([c.as_array() for c in proposals], dtype=float).reshape(-1, 3)

@@ -202,6 +202,8 @@ class PipelineSettings:
     map_half_extent_m: float = _f(60.0, "the risk map covers this far around the vehicle (m)", min=5.0, max=400.0)
     calm_margin_m: float = _f(1.0, "a zone is calm when nobody has been seen within r0 plus this of it while "
                                    "watched (m; controller.min_calm_s)", min=0.0, max=50.0)
+    quiet_margin_m: float = _f(2.0, "the quiet disc around a landing point is r0 plus this (m; "
+                                    "controller.min_quiet_s)", min=0.0, max=50.0)
     unlandable_levels: list[str] = _f([], "risk levels of the landability model that keep zones off the ground; "
                                           "empty = every level but the model's landable one")
     unlandable_threshold: float = _f(-1.0, "probability of the unlandable levels above which a cell is "
@@ -233,6 +235,10 @@ class ControllerSettings:
     min_calm_s: float = _f(5.0, "the ground around a landing point (r0 plus pipeline.calm_margin_m) must have "
                                 "been watched and seen free this long before the LAND; calm zones are chosen "
                                 "first (s; 0 = not required, the paper's rule; docs/design.md)", min=0.0, max=120.0)
+    min_quiet_s: float = _f(0.0, "with min_calm_s, nobody may have been seen within r0 plus pipeline.quiet_margin_m "
+                                 "of the landing point this long before the LAND, on the 80 % or more of that disc "
+                                 "seen within pipeline.map_memory_s (s; 0 = not required; docs/design.md, 'Quiet ground')",
+                            min=0.0, max=120.0)
     recentre_m: float = _f(0.0, "over a zone bounded by people (not by the view), the landing point moves to the "
                                 "zone's centre once it is more than this far from it (m; 0 = only when the zone "
                                 "no longer holds r0 plus the margin around it)", min=0.0, max=50.0)
@@ -669,7 +675,8 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         r0_m=p.r0_m,
         proposal_tie_m=p.proposal_tie_m,
         fusion=p.fusion,
-        calm=cfg.controller.min_calm_s > 0, calm_margin_m=p.calm_margin_m,
+        calm=cfg.controller.min_calm_s > 0 or cfg.controller.min_quiet_s > 0, calm_margin_m=p.calm_margin_m,
+        quiet=cfg.controller.min_quiet_s > 0, quiet_margin_m=p.quiet_margin_m,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
         risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,
                            walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,
@@ -691,7 +698,8 @@ def planner_config(cfg: Config) -> PlannerConfig:
     c = cfg.controller
     return PlannerConfig(r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
                          min_track_age_s=c.min_track_age_s, min_track_hits=c.min_track_hits,
-                         zone_max_age_s=c.zone_max_age_s, min_calm_s=c.min_calm_s)
+                         zone_max_age_s=c.zone_max_age_s, min_calm_s=c.min_calm_s,
+                         min_quiet_s=c.min_quiet_s)
 
 
 def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> LandingConfig:

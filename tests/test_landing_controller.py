@@ -964,3 +964,40 @@ def test_over_a_zone_bounded_by_people_the_landing_point_moves_to_its_centre(rec
 def test_recentre_refuses_a_negative_distance():
     with pytest.raises(ValueError, match="recentre_m"):
         LandingConfig(recentre_m=-1.0)
+
+
+#: Calm, and nobody seen within the wider quiet disc for min_quiet_s (docs/design.md, "Quiet ground").
+QUIET = dataclasses.replace(CALM, planner=dataclasses.replace(CALM.planner, min_quiet_s=8.0), calm_wait_s=30.0)
+
+
+def test_the_land_also_waits_for_quiet_ground_and_says_why():
+    """Calm under the vehicle (nobody within r0 plus 1 m for 6.5 s) but somebody seen within the
+    wider quiet disc 3 s ago, as in a gap of a walking crowd: no LAND, one Note naming the quiet
+    wait; once nobody has been seen there for 8 s the zone is judged, both measures in the note."""
+    ctl = LandingController(dataclasses.replace(QUIET, land_alt_m=4.0))
+    t = _low_over_zone(ctl)
+    texts(ctl)
+    for quiet in (3.0, 3.1, math.nan):  # NaN: not measured, never quiet
+        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8),
+                            GroundBelow(10, 0, 6.0, 6.0, calm_s=6.5, quiet_s=quiet))
+        assert Land() not in cmds and ctl.phase == Phase.DESCEND
+        assert all(c.target.rel_alt_m >= 9.8 - 0.5 for c in cmds if isinstance(c, Goto))  # no step down
+        t += 0.1
+    notes = texts(ctl)
+    assert notes == ["SLZ: zone 1: nobody seen near the landing point for 3.0 s, not 8 s: waiting before the LAND"]
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8),
+                 GroundBelow(10, 0, 6.0, 6.0, calm_s=6.8, quiet_s=8.2))
+    assert texts(ctl) == ["SLZ: zone 1 judged at 9.8 m (calm 6.8 s, quiet 8.2 s): descending over it to 4 m before the LAND"]
+
+
+def test_quiet_off_by_setting_and_bad_values_refused():
+    ctl = LandingController(CALM)  # min_quiet_s 0: calm alone judges, whatever the quiet
+    t = _low_over_zone(ctl)
+    ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8),
+                                  GroundBelow(10, 0, 6.0, 6.0, calm_s=6.5, quiet_s=0.0))
+    assert QUIET.planner.is_quiet(8.0) and not QUIET.planner.is_quiet(7.9) and not QUIET.planner.is_quiet(math.nan)
+    with pytest.raises(ValueError, match="min_quiet_s"):
+        PlannerConfig(min_quiet_s=-1.0)

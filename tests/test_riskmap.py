@@ -227,7 +227,8 @@ def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones(
     base = np.zeros((240, 320), np.float32)
     frame = np.zeros((240, 320, 3), np.uint8)
     K = Intrinsics.from_fov(320, 240, 70.0)
-    pipe = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True), intrinsics=K, mount=Mount())
+    pipe = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True, quiet=True), intrinsics=K,
+                       mount=Mount())
     ref = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
     for k in range(30):
         t = 0.1 * k
@@ -237,13 +238,17 @@ def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones(
         assert res.proposals == plain.proposals
         assert res.fused_grid is None
     assert res.below is not None and res.below.calm_s == pytest.approx(2.9, abs=1e-3)
+    assert res.below.quiet_s == pytest.approx(2.9, abs=1e-3)  # nobody seen since the first frame
     centre = [tr for tr in res.tracks if math.hypot(tr.x, tr.y) < 0.5]
     assert centre and centre[0].calm_s == pytest.approx(2.9, abs=1e-3)
     # Zones whose disc reaches past the edge of the view are not calm: part of it is unwatched.
     assert all(tr.calm_s == 0.0 for tr in res.tracks if math.hypot(tr.x, tr.y) > 4.0)
     # Without a pose (a fixed projection) nothing is measured: NaN, never "calm".
     assert ref.risk is None and plain.tracks and all(math.isnan(tr.calm_s) for tr in plain.tracks)
-    assert plain.below is not None and math.isnan(plain.below.calm_s)
+    assert plain.below is not None and math.isnan(plain.below.calm_s) and math.isnan(plain.below.quiet_s)
+    calm_only = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True), intrinsics=K, mount=Mount())
+    out = calm_only.process(frame, 0.0, Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    assert out.below is not None and out.below.calm_s == 0.0 and math.isnan(out.below.quiet_s)  # not asked
     fixed = SLZPipeline(lambda _f: base, PipelineConfig(calm=True), projection=PlaneProjection.nadir(0.05))
     for k in range(5):
         out = fixed.process(frame, 0.1 * k)
@@ -294,3 +299,37 @@ def test_the_trail_moves_proposals_off_a_path_but_not_the_zones_measure():
     assert covers(results[0.0])  # 1.7 s after they left, the frame's rule proposes over their path
     assert results[8.0].proposals and not covers(results[8.0])
     assert np.array_equal(results[8.0].free_grid, results[0.0].free_grid)
+
+
+def test_quiet_is_the_time_since_anybody_was_seen_on_the_remembered_disc():
+    """A gap in a crowd: a walker 3.5 m from the point 3 s ago is outside the 3 m calm disc but
+    inside the 4 m quiet one. The disc need not be in view now (low down it is wider than the
+    view): what the map remembers of it counts, as long as 80 % of it is remembered."""
+    risk = GroundRiskMap(RiskMapConfig(memory_s=10.0))
+    empty, seen = frame_grids([])
+    assert risk.quiet_s(0.0, 0.0, 4.0, 0.0) == 0.0  # no frame yet
+    walker, _ = frame_grids([(3.5, 0.0)], radius=0.2)
+    risk.update(GRID, empty, seen, 0.0)
+    risk.update(GRID, walker, seen, 2.0)
+    for k in range(21, 51):
+        risk.update(GRID, empty, seen, 0.1 * k)
+    assert risk.quiet_s(0.0, 0.0, 4.0, 5.0) == pytest.approx(3.0, abs=1e-3)
+    assert risk.quiet_s(0.0, 0.0, 3.0, 5.0) == pytest.approx(5.0, abs=1e-3)  # the walker was outside 3 m
+    # The view narrows to |y| < 3.5 m for 12 s (the vehicle low over the point): the disc's rim
+    # (y beyond 3.5 m, under 10 % of it) is forgotten; the rest still measures.
+    narrow = np.zeros(GRID.shape, np.uint8)
+    ys = GRID.y0 + GRID.cell * np.arange(GRID.rows)
+    narrow[np.abs(ys) < 3.5, :] = 255
+    free_n, seen_n = frame_grids([], seen=narrow)
+    for k in range(51, 171):
+        risk.update(GRID, free_n, seen_n, 0.1 * k)
+    assert risk.quiet_s(0.0, 0.0, 4.0, 17.0) == pytest.approx(15.0, abs=1e-3)
+    # Narrower still (|y| < 2 m): most of the disc unknown, no quiet at all.
+    narrow[:] = 0
+    narrow[np.abs(ys) < 2.0, :] = 255
+    free_n, seen_n = frame_grids([], seen=narrow)
+    for k in range(171, 291):
+        risk.update(GRID, free_n, seen_n, 0.1 * k)
+    assert risk.quiet_s(0.0, 0.0, 4.0, 29.0) == 0.0
+    assert GroundRiskMap(RiskMapConfig(half_extent_m=3.0)).quiet_s(0.0, 0.0, 4.0, 0.0) == 0.0
+    assert risk.quiet_s(math.nan, 0.0, 4.0, 29.0) == 0.0

@@ -696,9 +696,10 @@ class LandingController:
                     return self._goto(aim[0], aim[1], self._level, track.id)
                 if not judged:
                     judged, self._judged = True, track.id
-                    calm = self._calm_here()
+                    calm, quiet = self._calm_here(), self._quiet_here()
                     self._event(f"zone {track.id} judged at {s.height:.1f} m"
-                                + (f" (calm {calm:.1f} s)" if math.isfinite(calm) else "")
+                                + (f" (calm {calm:.1f} s" + (f", quiet {quiet:.1f} s" if math.isfinite(quiet) else "")
+                                   + ")" if math.isfinite(calm) else "")
                                 + f": descending over it to {land_at:g} m before the LAND")
             elif s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
@@ -721,22 +722,31 @@ class LandingController:
 
     def _calm_below(self, track: Track) -> bool:
         """Whether the ground under the vehicle (the latest frame's ``GroundBelow``) has been
-        watched and seen free for ``planner.min_calm_s``; when it has not, says once per zone that
-        the LAND waits for it (a Note) and starts that zone's wait."""
+        watched and seen free for ``planner.min_calm_s``, and nobody seen within its wider quiet
+        disc for ``planner.min_quiet_s``; when not, says once per zone that the LAND waits for it
+        (a Note) and starts that zone's wait."""
         p = self.config.planner
-        calm = self._calm_here()
-        if p.is_calm(calm):
+        calm, quiet = self._calm_here(), self._quiet_here()
+        if p.is_calm(calm) and p.is_quiet(quiet):
             return True
         if self._calm_wait is None or self._calm_wait[0] != track.id:
             self._calm_wait = (track.id, self.now)
-            seen = f"{calm:.1f} s" if math.isfinite(calm) else "not yet"
-            self._event(f"zone {track.id}: ground around the landing point watched free for {seen}, "
-                        f"not {p.min_calm_s:g} s: waiting before the LAND")
+            if not p.is_calm(calm):
+                seen = f"{calm:.1f} s" if math.isfinite(calm) else "not yet"
+                why = f"ground around the landing point watched free for {seen}, not {p.min_calm_s:g} s"
+            else:
+                seen = f"{quiet:.1f} s" if math.isfinite(quiet) else "not yet"
+                why = f"nobody seen near the landing point for {seen}, not {p.min_quiet_s:g} s"
+            self._event(f"zone {track.id}: {why}: waiting before the LAND")
         return False
 
     def _calm_here(self) -> float:
         """The latest frame's calm under the camera (s; NaN when not measured)."""
         return self.below.calm_s if self.below is not None else math.nan
+
+    def _quiet_here(self) -> float:
+        """The latest frame's quiet under the camera (s; NaN when not measured)."""
+        return self.below.quiet_s if self.below is not None else math.nan
 
     def _out_of_view(self, track: Track | None) -> bool:
         """In LAND, a zone last seen all free with a view of under ``BLIND_VIEW_M`` that then

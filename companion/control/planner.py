@@ -49,14 +49,24 @@ class PlannerConfig:
     #: Seconds the ground around a landing point must have been watched and seen free before the
     #: LAND (0: not required; see the module docstring).
     min_calm_s: float = 0.0
+    #: Seconds nobody must have been seen within the wider quiet disc around the landing point
+    #: (``GroundBelow.quiet_s``) before the LAND (0: not required). Checked with calm, below the
+    #: vehicle, where the zone is judged.
+    min_quiet_s: float = 0.0
 
     def is_calm(self, calm_s: float) -> bool:
         """Whether ground watched and seen free for ``calm_s`` seconds is calm enough (NaN, not
         measured, is not)."""
         return self.min_calm_s <= 0 or calm_s >= self.min_calm_s
 
+    def is_quiet(self, quiet_s: float) -> bool:
+        """Whether ground where nobody was seen for ``quiet_s`` seconds is quiet enough (NaN, not
+        measured, is not)."""
+        return self.min_quiet_s <= 0 or quiet_s >= self.min_quiet_s
+
     def __post_init__(self) -> None:
-        for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s", "min_calm_s"):
+        for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s", "min_calm_s",
+                     "min_quiet_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a finite number >= 0, not {value!r}")

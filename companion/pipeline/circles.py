@@ -34,6 +34,9 @@ class GroundBelow:
     r_view: how far the camera's view reaches around it (m).
     calm_s: how long the ground around it (r0 plus a margin) has been watched and seen free (s,
         ``riskmap.GroundRiskMap.calm_s``); NaN when not measured (a frame without a pose).
+    quiet_s: how long nobody has been seen within a wider disc around it (r0 plus the quiet
+        margin), all of it seen within the map's memory (s, ``riskmap.GroundRiskMap.quiet_s``);
+        NaN when not measured.
     """
 
     x: float
@@ -41,6 +44,7 @@ class GroundBelow:
     r: float
     r_view: float
     calm_s: float = math.nan
+    quiet_s: float = math.nan
 
     @property
     def view_limited(self) -> bool:

@@ -54,6 +54,8 @@ from companion.geometry.camera import GeometryError
 from companion.pipeline.headplane import GridSpec
 
 NEVER = -np.inf
+#: ``quiet_s`` needs at least this share of its disc remembered (seen within ``memory_s``).
+QUIET_KNOWN = 0.8
 #: At most this many cells from the centre to an edge: 2,049 cells a side, 32 MiB of float32 times.
 MAX_HALF_CELLS = 1024
 
@@ -338,6 +340,35 @@ class GroundRiskMap:
             return 0.0
         start = max(float(np.max(self.last_occ[rows, cols][disc])), float(np.max(self.seen_since[rows, cols][disc])))
         return max(0.0, now - start)
+
+    def quiet_s(self, x: float, y: float, radius_m: float, t: float) -> float:
+        """How long (s, at time ``t``) nobody has been seen within ``radius_m`` of plane point
+        (x, y): the time since a person was last seen on a cell of that disc that the map still
+        remembers (seen within ``memory_s``). Unlike ``calm_s`` the disc need not be in view now:
+        it may be wider than the view low down, and what was seen of it from higher up counts. A
+        measure of how busy the ground around a point is, not a guarantee: 0 where less than
+        ``QUIET_KNOWN`` of the disc is remembered (a vehicle hovering at 10 m sees a 4 m disc
+        whole only when right above it, and forgets its rim after ``memory_s``), where any of it
+        lies outside the map, or on a map with no frame; never more than the time since the
+        map's first frame."""
+        cfg = self.config
+        if self._origin is None or self.t is None or not all(math.isfinite(v) for v in (x, y, radius_m, t)):
+            return 0.0
+        c = cfg.cell_m
+        row = int(round(y / c)) - self._origin[0]
+        col = int(round(x / c)) - self._origin[1]
+        k = int(math.ceil(max(radius_m, 0.0) / c))
+        if row - k < 0 or col - k < 0 or row + k >= self.size or col + k >= self.size:
+            return 0.0  # part of the disc lies outside the map: unknown
+        rows = slice(row - k, row + k + 1)
+        cols = slice(col - k, col + k + 1)
+        disc = _disc(k, radius_m, c)
+        now = self._rel(t)
+        known = self.last_seen[rows, cols][disc] >= np.float32(now - cfg.memory_s)
+        if np.count_nonzero(known) < QUIET_KNOWN * known.size:
+            return 0.0
+        last = max(float(np.max(self.last_occ[rows, cols][disc][known])), 0.0)
+        return max(0.0, now - last)
 
 
 @functools.lru_cache(maxsize=8)

@@ -73,10 +73,16 @@ class PipelineConfig:
     #: is the bench's ``fusion`` stage, about 0.3 ms a frame at 640x480, nobody would read it).
     calm: bool = False
     calm_margin_m: float = 1.0
+    #: With ``calm`` and ``quiet``, the ground below's ``quiet_s`` is measured over ``r0_m`` plus
+    #: ``quiet_margin_m`` (m) around the point under the camera (``riskmap.GroundRiskMap.quiet_s``).
+    quiet: bool = False
+    quiet_margin_m: float = 2.0
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.calm_margin_m) and self.calm_margin_m >= 0):
-            raise ValueError(f"calm_margin_m must be >= 0 m, got {self.calm_margin_m!r}")
+        for name in ("calm_margin_m", "quiet_margin_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be >= 0 m, got {v!r}")
         if self.surface_threshold is not None and not (
                 math.isfinite(self.surface_threshold) and 0.0 <= self.surface_threshold < 1.0):
             raise ValueError(f"surface_threshold must be in [0, 1), got {self.surface_threshold!r}")
@@ -262,6 +268,10 @@ class SLZPipeline:
         def calm(x: float, y: float) -> float:
             return 0.0 if calm_map is None else calm_map.calm_s(x, y, calm_r, t)
 
+        def quiet(x: float, y: float) -> float:
+            r = self.config.r0_m + self.config.quiet_margin_m
+            return 0.0 if calm_map is None else calm_map.quiet_s(x, y, r, t)
+
         measure = pose is not None and self.config.calm
         if measure:
             tracks = [replace(tr, calm_s=calm(tr.x, tr.y)) if tr.misses == 0 else tr for tr in tracks]
@@ -280,7 +290,8 @@ class SLZPipeline:
             bx, by = (float(v) for v in proj.camera_xy)
             if math.isfinite(bx) and math.isfinite(by):
                 below = GroundBelow(bx, by, *clearance(bx, by),
-                                    calm_s=calm(bx, by) if measure else math.nan)
+                                    calm_s=calm(bx, by) if measure else math.nan,
+                                    quiet_s=quiet(bx, by) if measure and self.config.quiet else math.nan)
         t6 = time.perf_counter()
         followed: list[Person] = []
         if self.people is not None and pose is not None:

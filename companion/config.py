@@ -164,9 +164,10 @@ class TrackerSettings:
     min_iou: float = _f(0.3, "least circle IoU for a proposal to match a track", min=0.0, max=0.99)
     mu_1: int = _f(3, "a track missed more than this many frames is deleted", min=0, max=1000)
     mu_2: int = _f(3, "an unmatched proposal seen this many frames starts a track", min=1, max=1000)
-    motion: str = _f("velocity", "zone motion model: velocity (the paper's constant velocity) or position (a zone is "
-                                 "ground: no velocity, a random walk of sigma_v)", choices=MOTIONS)
-    sigma_v: float = _f(0.3, "with motion = position, how far a zone's centre and radius wander (m per "
+    motion: str = _f("position", "zone motion model: position (a zone is ground: no velocity, a random walk of "
+                                 "sigma_v; docs/design.md, 'Zones are ground') or velocity (the paper's constant "
+                                 "velocity, for frames without a pose)", choices=MOTIONS)
+    sigma_v: float = _f(0.1, "with motion = position, how far a zone's centre and radius wander (m per "
                              "square-root second)", min=0.0, min_exclusive=True)
 
 

@@ -696,10 +696,11 @@ class LandingController:
                     return self._goto(aim[0], aim[1], self._level, track.id)
                 if not judged:
                     judged, self._judged = True, track.id
-                    calm, quiet = self._calm_here(), self._quiet_here()
+                    measured = [f"{name} {v:.1f} s" for name, v in (("calm", self._calm_here()),
+                                                                    ("quiet", self._quiet_here()))
+                                if math.isfinite(v)]
                     self._event(f"zone {track.id} judged at {s.height:.1f} m"
-                                + (f" (calm {calm:.1f} s" + (f", quiet {quiet:.1f} s" if math.isfinite(quiet) else "")
-                                   + ")" if math.isfinite(calm) else "")
+                                + (f" ({', '.join(measured)})" if measured else "")
                                 + f": descending over it to {land_at:g} m before the LAND")
             elif s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.

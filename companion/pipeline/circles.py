@@ -35,8 +35,8 @@ class GroundBelow:
     calm_s: how long the ground around it (r0 plus a margin) has been watched and seen free (s,
         ``riskmap.GroundRiskMap.calm_s``); NaN when not measured (a frame without a pose).
     quiet_s: how long nobody has been seen within a wider disc around it (r0 plus the quiet
-        margin), all of it seen within the map's memory (s, ``riskmap.GroundRiskMap.quiet_s``);
-        NaN when not measured.
+        margin), on what the map remembers of it (s, ``riskmap.GroundRiskMap.quiet_s``); NaN when
+        not measured.
     """
 
     x: float

@@ -323,20 +323,12 @@ class GroundRiskMap:
         latest of those watches began or anybody was last seen there. 0 where any cell of the
         disc is not watched now (out of view, outside the map, never seen), or on a map with no
         frame; never more than the time since the map's first frame."""
-        cfg = self.config
-        if self._origin is None or self.t is None or not all(math.isfinite(v) for v in (x, y, radius_m, t)):
-            return 0.0
-        c = cfg.cell_m
-        row = int(round(y / c)) - self._origin[0]
-        col = int(round(x / c)) - self._origin[1]
-        k = int(math.ceil(max(radius_m, 0.0) / c))
-        if row - k < 0 or col - k < 0 or row + k >= self.size or col + k >= self.size:
-            return 0.0  # part of the disc lies outside the map: not watched
-        rows = slice(row - k, row + k + 1)
-        cols = slice(col - k, col + k + 1)
-        disc = _disc(k, radius_m, c)
+        found = self._disc_at(x, y, radius_m, t)
+        if found is None:
+            return 0.0  # no frame yet, not finite, or part of the disc outside the map: not watched
+        rows, cols, disc = found
         now = self._rel(t)
-        if np.any(self.last_seen[rows, cols][disc] < np.float32(now - cfg.watch_gap_s)):
+        if np.any(self.last_seen[rows, cols][disc] < np.float32(now - self.config.watch_gap_s)):
             return 0.0
         start = max(float(np.max(self.last_occ[rows, cols][disc])), float(np.max(self.seen_since[rows, cols][disc])))
         return max(0.0, now - start)
@@ -351,24 +343,31 @@ class GroundRiskMap:
         whole only when right above it, and forgets its rim after ``memory_s``), where any of it
         lies outside the map, or on a map with no frame; never more than the time since the
         map's first frame."""
-        cfg = self.config
-        if self._origin is None or self.t is None or not all(math.isfinite(v) for v in (x, y, radius_m, t)):
-            return 0.0
-        c = cfg.cell_m
-        row = int(round(y / c)) - self._origin[0]
-        col = int(round(x / c)) - self._origin[1]
-        k = int(math.ceil(max(radius_m, 0.0) / c))
-        if row - k < 0 or col - k < 0 or row + k >= self.size or col + k >= self.size:
-            return 0.0  # part of the disc lies outside the map: unknown
-        rows = slice(row - k, row + k + 1)
-        cols = slice(col - k, col + k + 1)
-        disc = _disc(k, radius_m, c)
+        found = self._disc_at(x, y, radius_m, t)
+        if found is None:
+            return 0.0  # no frame yet, not finite, or part of the disc outside the map: unknown
+        rows, cols, disc = found
         now = self._rel(t)
-        known = self.last_seen[rows, cols][disc] >= np.float32(now - cfg.memory_s)
+        known = self.last_seen[rows, cols][disc] >= np.float32(now - self.config.memory_s)
         if np.count_nonzero(known) < QUIET_KNOWN * known.size:
             return 0.0
         last = max(float(np.max(self.last_occ[rows, cols][disc][known])), 0.0)
         return max(0.0, now - last)
+
+    def _disc_at(self, x: float, y: float, radius_m: float, t: float) -> tuple[slice, slice, np.ndarray] | None:
+        """The map's window around plane point (x, y) and the mask of its cells within
+        ``radius_m`` (``_disc``): what ``calm_s`` and ``quiet_s`` read. None on a map with no
+        frame, for a non-finite point, radius or time, or when part of the disc lies outside
+        the map."""
+        if self._origin is None or self.t is None or not all(math.isfinite(v) for v in (x, y, radius_m, t)):
+            return None
+        c = self.config.cell_m
+        row = int(round(y / c)) - self._origin[0]
+        col = int(round(x / c)) - self._origin[1]
+        k = int(math.ceil(max(radius_m, 0.0) / c))
+        if row - k < 0 or col - k < 0 or row + k >= self.size or col + k >= self.size:
+            return None
+        return slice(row - k, row + k + 1), slice(col - k, col + k + 1), _disc(k, radius_m, c)
 
 
 @functools.lru_cache(maxsize=8)

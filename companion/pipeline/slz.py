@@ -264,13 +264,13 @@ class SLZPipeline:
 
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
         calm_r = self.config.r0_m + self.config.calm_margin_m
+        quiet_r = self.config.r0_m + self.config.quiet_margin_m
 
         def calm(x: float, y: float) -> float:
             return 0.0 if calm_map is None else calm_map.calm_s(x, y, calm_r, t)
 
         def quiet(x: float, y: float) -> float:
-            r = self.config.r0_m + self.config.quiet_margin_m
-            return 0.0 if calm_map is None else calm_map.quiet_s(x, y, r, t)
+            return 0.0 if calm_map is None else calm_map.quiet_s(x, y, quiet_r, t)
 
         measure = pose is not None and self.config.calm
         if measure:

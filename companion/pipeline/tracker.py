@@ -144,7 +144,7 @@ class _ZoneFilter:
         kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
         kf.R = np.diag(np.square(params.r_std))
         # Position known to the measurement's accuracy; velocity unknown (a zone drifts at most
-        # at walking pace, ~2 m/s).
+        # at walking pace, ~2 m/s), or, for a zone that is ground, known to be zero.
         self.still = params.motion == "position"
         kf.P = np.diag([*np.square(params.r_std), *((0.0,) * 3 if self.still else (4.0,) * 3)])
         self.kf = kf

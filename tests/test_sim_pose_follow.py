@@ -58,16 +58,19 @@ async def _frame(url: str, after_index: int) -> tuple[int, np.ndarray]:
     return await asyncio.wait_for(asyncio.to_thread(read), 10.0)
 
 
-async def _pose_near(vehicle: ExternalPose, north: float, east: float, alt: float) -> Pose:
+async def _pose_near(vehicle: ExternalPose, north: float, east: float, alt: float, yaw: float) -> Pose:
+    # Position and yaw arrive in two messages (GLOBAL_POSITION_INT, then ATTITUDE): wait for both,
+    # or a pose polled between them pairs the new position with the old yaw.
     for _ in range(100):
         try:
             p = vehicle.pose()
-            if abs(p.north - north) < 0.05 and abs(p.east - east) < 0.05 and abs(-p.down - alt) < 0.05:
+            if (abs(p.north - north) < 0.05 and abs(p.east - east) < 0.05 and abs(-p.down - alt) < 0.05
+                    and abs(math.remainder(p.yaw - yaw, 2 * math.pi)) < 1e-3):
                 return p
         except NoPose:
             pass
         await asyncio.sleep(0.05)
-    raise AssertionError(f"no pose near N {north} E {east} alt {alt}: {vehicle.state.position}")
+    raise AssertionError(f"no pose near N {north} E {east} alt {alt} yaw {yaw}: {vehicle.state.position}")
 
 
 async def test_the_served_frame_follows_the_external_vehicles_pose() -> None:
@@ -84,11 +87,11 @@ async def test_the_served_frame_follows_the_external_vehicles_pose() -> None:
     world = default_world(seed=3)
     camera = CameraServer(vehicle.pose, world, K, Mount(), fps=10, ground=ProceduralGround(3), noise_sigma=0.0)
     try:
-        first_pose = await _pose_near(vehicle, 0.0, 0.0, 20.0)
+        first_pose = await _pose_near(vehicle, 0.0, 0.0, 20.0, 0.0)
         async with camera:
             i1, img1 = await _frame(camera.url, -1)
             sim.north, sim.east, sim.alt, sim.yaw = 25.0, -30.0, 35.0, math.radians(90)
-            moved_pose = await _pose_near(vehicle, 25.0, -30.0, 35.0)
+            moved_pose = await _pose_near(vehicle, 25.0, -30.0, 35.0, math.radians(90))
             _, img2 = await _frame(camera.url, i1 + 1)
     finally:
         streamer.cancel()

@@ -243,6 +243,10 @@ class ControllerSettings:
     recentre_m: float = _f(0.0, "over a zone bounded by people (not by the view), the landing point moves to the "
                                 "zone's centre once it is more than this far from it (m; 0 = only when the zone "
                                 "no longer holds r0 plus the margin around it)", min=0.0, max=50.0)
+    avoid_lost_s: float = _f(0.0, "a landing point lost because people came within r0 of it is avoided this "
+                                  "long (s): no zone whose centre lies within r0 plus radius_margin_m of it is "
+                                  "chosen or searched meanwhile (0 = not avoided; docs/design.md, 'Avoiding "
+                                  "where people walked')", min=0.0, max=600.0)
     calm_wait_s: float = _f(15.0, "with min_calm_s, wait at most this long over a zone for it to be calm, then "
                                   "give it up for the takeover (s)", min=0.5, max=300.0)
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen (m); once chosen it is kept, and the LAND commanded, while r0 stays free around the landing point, and its landing point stays put while the zone holds r0 plus this around it", min=0.0)
@@ -717,7 +721,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         predict_people=c.predict_people, pose_uncertainty_m=c.pose_uncertainty_m,
         predict_lead_s=c.predict_lead_s, predict_min_height_m=c.predict_min_height_m,
-        calm_wait_s=c.calm_wait_s, recentre_m=c.recentre_m, land_alt_m=c.land_alt_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
+        calm_wait_s=c.calm_wait_s, avoid_lost_s=c.avoid_lost_s, recentre_m=c.recentre_m, land_alt_m=c.land_alt_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),

@@ -85,6 +85,7 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[pipeline.tracker]\nmotion = 'constant'\n", r"pipeline\.tracker\.motion must be one of 'velocity', 'position'"),
         ("[pipeline.tracker]\nsigma_v = 0\n", r"pipeline\.tracker\.sigma_v must be > 0"),
         ("[controller]\nmin_quiet_s = -1\n", r"controller\.min_quiet_s must be >= 0"),
+        ("[controller]\navoid_lost_s = -1\n", r"controller\.avoid_lost_s must be >= 0"),
         ("[pipeline]\nquiet_margin_m = -1\n", r"pipeline\.quiet_margin_m must be >= 0"),
         ("[pipeline]\ndilate_kernel = 4\n", r"pipeline\.dilate_kernel must be odd"),
         ("[link]\nsigning_key = 'abc'\n", r"link\.signing_key must be 64 hexadecimal"),

@@ -1001,3 +1001,81 @@ def test_quiet_off_by_setting_and_bad_values_refused():
     assert QUIET.planner.is_quiet(8.0) and not QUIET.planner.is_quiet(7.9) and not QUIET.planner.is_quiet(math.nan)
     with pytest.raises(ValueError, match="min_quiet_s"):
         PlannerConfig(min_quiet_s=-1.0)
+
+
+def _people_walk_in(ctl: LandingController, t: float, alt: float) -> tuple[float, list]:
+    """Over zone 1 (north 10, east 0) low down: a person within r0 of the vehicle on
+    ``lose_after_frames`` frames, the zone too small; returns the time reached and the commands."""
+    cmds: list = []
+    for _ in range(ctl.config.lose_after_frames):
+        ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, r=1.5)], pose(t, 10, 0, alt),
+                            GroundBelow(10, 0, 1.5, 1.6, calm_s=0.0))
+        t += 0.1
+    return t, cmds
+
+
+def test_a_landing_point_people_walked_into_is_avoided_for_avoid_lost_s_then_chosen_again():
+    """A person walks within r0 of the landing point low down: the zone is lost, and with
+    avoid_lost_s a new zone over the same ground (a gap walkers cross, tracked again once they
+    have passed) is not chosen for that long; a zone further than r0 plus the margin (3 m here)
+    is. Without the setting the same ground is chosen again at once."""
+    avoiding = dataclasses.replace(LOW, avoid_lost_s=3.0)
+    for config in (avoiding, LOW):
+        ctl = LandingController(config)
+        t = _low_over_zone(ctl)
+        t, alt, _, _ = _descend_low(ctl, t, until_alt=7.5)
+        t, cmds = _people_walk_in(ctl, t, alt)
+        assert ctl.phase == Phase.HOLD
+        notes = texts(ctl)
+        said = [x for x in notes if "zone 1 lost" in x and "its ground avoided" in x]
+        same = zone(5, 10.5, 1.0, t, born=t - 2)  # 1.1 m from the lost point: the same gap
+        ctl.on_state(status(t, 10, 0, 15, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [same], pose(t, 10, 0, 15))
+        if config is LOW:
+            assert not said and ctl.phase == Phase.APPROACH and ctl.target is not None and ctl.target.id == 5
+            continue
+        assert said == ["SLZ: zone 1 lost (shrank to r 1.5 m < r0 2 m; its ground avoided for 3 s); holding"]
+        lost_t = t
+        while t < lost_t + 2.5:  # held: the same ground is not chosen, and no command goes toward it
+            ctl.on_state(status(t, 10, 0, 15, mode="GUIDED"))
+            cmds = ctl.on_frame(t, [dataclasses.replace(same, last_t=t)], pose(t, 10, 0, 15))
+            assert ctl.phase == Phase.HOLD and not any(isinstance(c, Goto) and c.zone_id == 5 for c in cmds)
+            t += 0.1
+        # Ground 3.2 m away is another place: chosen while the first is still avoided (until 2.9 s).
+        ctl.on_state(status(t, 10, 0, 15, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [dataclasses.replace(same, last_t=t), zone(6, 10, 3.2, t, born=t - 2)],
+                            pose(t, 10, 0, 15))
+        assert ctl.phase == Phase.APPROACH and ctl.target is not None and ctl.target.id == 6
+        assert [c.zone_id for c in cmds if isinstance(c, Goto)] == [6]
+
+
+def test_an_avoided_point_expires_and_the_ground_is_chosen_again():
+    ctl = LandingController(dataclasses.replace(LOW, avoid_lost_s=2.0))
+    t = _low_over_zone(ctl)
+    t, alt, _, _ = _descend_low(ctl, t, until_alt=7.5)
+    t, _ = _people_walk_in(ctl, t, alt)
+    assert ctl.phase == Phase.HOLD
+    lost_t, chosen_t = t, None
+    while t < lost_t + 3.5 and chosen_t is None:  # within hold_timeout_s (4 s)
+        ctl.on_state(status(t, 10, 0, 15, mode="GUIDED"))
+        ctl.on_frame(t, [zone(5, 10.5, 1.0, t, born=lost_t)], pose(t, 10, 0, 15))
+        if ctl.phase == Phase.APPROACH:
+            chosen_t = t
+        t += 0.1
+    assert chosen_t is not None and lost_t + 1.8 <= chosen_t <= lost_t + 2.2
+    assert ctl.target is not None and ctl.target.id == 5
+
+
+def test_avoid_lost_s_must_be_a_number_at_least_0():
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="avoid_lost_s"):
+            dataclasses.replace(CFG, avoid_lost_s=bad)
+
+
+def test_the_planner_does_not_choose_a_zone_near_a_point_to_avoid():
+    planner = ZonePlanner(CFG.planner)  # r0 2 m + margin 1 m: 3 m
+    near, far = zone(1, 2.9, 0, 10.0, born=0.0), zone(2, 0, 3.1, 10.0, born=1.0)
+    assert planner.choose([near, far], 10.0) is near  # the oldest
+    assert planner.choose([near, far], 10.0, avoid=[(0.0, 0.0)]) is far
+    assert planner.choose([near], 10.0, avoid=[(0.0, 0.0), (50.0, 50.0)]) is None

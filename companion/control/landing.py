@@ -173,6 +173,13 @@ class LandingConfig:
     #: where the zone was first seen, at its side, came down near the lawn's edge, where walkers
     #: going round it pass (docs/design.md, "Where the landing point goes").
     recentre_m: float = 0.0
+    #: A landing point lost because people came within r0 of it (a zone seen too small over it,
+    #: or never calm) is avoided this long (s; 0 = not at all): no zone whose centre lies within
+    #: ``r0_m + radius_margin_m`` of it is chosen meanwhile, nor flown over by the search. A gap in
+    #: a crowd that walkers cross is otherwise chosen again the moment they have passed (the
+    #: simulator's free-area seed 18 lost the same gap four times in 90 s, and PX4 seed 28 landed
+    #: in it 1.4 m from a walker on the second try).
+    avoid_lost_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -184,7 +191,7 @@ class LandingConfig:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
         for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m",
-                     "land_alt_m"):
+                     "land_alt_m", "avoid_lost_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
@@ -282,6 +289,7 @@ class LandingController:
         self._dwell_until = -math.inf  # hovering at a reached search waypoint until then
         self._investigated: set[int] = set()  # zones the search flew over that never qualified
         self._restless: set[int] = set()  # zones given up because they never became calm
+        self._avoid: list[tuple[float, float, float]] = []  # (north, east, until): see avoid_lost_s
         self._calm_wait: tuple[int, float] | None = None  # (zone id, since when) waiting for calm
         # The zone judged at the judging height (calm, walkers) whose descent goes on below it,
         # under the companion's control, to land_alt_m: below the judging height the calm disc no
@@ -540,7 +548,7 @@ class LandingController:
     def _select(self) -> list[Command]:
         if not self._status_fresh() or self.ceiling_m is None:
             return []
-        zone = self.planner.choose(self.tracks, self.now, exclude=tuple(self._restless))
+        zone = self.planner.choose(self.tracks, self.now, exclude=tuple(self._restless), avoid=self._avoided())
         if zone is None:
             return []
         return self._approach(zone, "landing at")
@@ -643,7 +651,7 @@ class LandingController:
             if self._failing < c.lose_after_frames:
                 self.failures_tolerated += 1
                 return []
-            return self._lost(why)
+            return self._lost(why, people=True)
         self._failing = 0
         self.target = track
         # The landing point stays where it is while the zone still holds r0 plus the margin around
@@ -681,7 +689,8 @@ class LandingController:
             if over and not s.on_ground and not judged and not self._calm_below(track):
                 if self._calm_wait is not None and self.now - self._calm_wait[1] > c.calm_wait_s:
                     self._restless.add(track.id)
-                    return self._lost(f"not calm after {c.calm_wait_s:g} s over it: people keep passing near it")
+                    return self._lost(f"not calm after {c.calm_wait_s:g} s over it: people keep passing near it",
+                                      people=True)
                 return self._goto(aim[0], aim[1], self._level, track.id)
             land_at = min(c.land_alt_m, judge) if c.land_alt_m > 0 else judge
             if not s.on_ground and over and s.height > land_at + c.alt_tolerance_m:
@@ -773,14 +782,24 @@ class LandingController:
             self._event(f"zone {last.id} out of view at {h} m, last seen all free: landing committed")
         return True
 
-    def _lost(self, why: str) -> list[Command]:
+    def _lost(self, why: str, people: bool = False) -> list[Command]:
+        """Give up the target (``why``: the reason, for the pilot): another eligible zone, else
+        HOLD. ``people``: it was lost because people came within r0 of the landing point, which
+        is then avoided for ``avoid_lost_s``."""
         assert self.target is not None
         lost = self.target
         s = self.status
         if self.phase == Phase.LAND and s is not None and s.height <= self.config.land_abort_above_m:
             return []  # committed: too low to fly away safely; the autopilot finishes the landing
-        other = (self.planner.choose(self.tracks, self.now, exclude=(lost.id, *self._restless))
+        if people and self.config.avoid_lost_s > 0:
+            north, east = self._aim if self._aim is not None else (lost.x, lost.y)
+            if math.isfinite(north) and math.isfinite(east):
+                self._avoid.append((north, east, self.now + self.config.avoid_lost_s))
+        other = (self.planner.choose(self.tracks, self.now, exclude=(lost.id, *self._restless),
+                                     avoid=self._avoided())
                  if self._status_fresh() else None)
+        if people and self.config.avoid_lost_s > 0:
+            why += f"; its ground avoided for {self.config.avoid_lost_s:g} s"
         if other is not None:
             return self._approach(other, f"zone {lost.id} lost ({why}); re-targeting", lost_id=lost.id)
         self.target = None
@@ -795,6 +814,11 @@ class LandingController:
         self._aim = None
         self._raise_level(s.alt - s.height + self.config.hold_height_m)
         return self._goto(s.north, s.east, self._level, None)
+
+    def _avoided(self) -> tuple[tuple[float, float], ...]:
+        """The landing points still avoided now (north, east; see ``avoid_lost_s``)."""
+        self._avoid = [a for a in self._avoid if a[2] > self.now]
+        return tuple((n, e) for n, e, _ in self._avoid)
 
     # -- search ------------------------------------------------------------------------------
 
@@ -875,8 +899,10 @@ class LandingController:
     def _search_lead(self) -> Track | None:
         """The largest zone the latest frame confirmed that may not be chosen yet (smaller than
         ``r0_m + radius_margin_m``, or young) and has not been looked at already, or None."""
+        avoid = self._avoided()
         leads = [t for t in self.tracks if t.misses == 0 and t.id not in self._investigated
-                 and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.planner.r0_m]
+                 and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.planner.r0_m
+                 and not self.planner.near(t, avoid)]
         return max(leads, key=lambda t: t.r, default=None)
 
     def _search_dwell_s(self) -> float:

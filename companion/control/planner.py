@@ -15,7 +15,9 @@ The target among eligible zones is the oldest (earliest ``born_t``, then lowest 
 calm zones first: with ``min_calm_s`` > 0, a zone whose ground (r0 plus a margin around its
 centre) has been watched and seen free for ``min_calm_s`` (``Track.calm_s``) comes before one
 that has not (a gap a walker has just left, a lawn's busy edge). The controller also waits for
-that calm under the vehicle before it commits the LAND (``companion.control.landing``).
+that calm under the vehicle before it commits the LAND (``companion.control.landing``). The
+controller may also name points to *avoid* (where people walked within r0 of a landing point a
+moment ago): a zone near one is not chosen.
 A zone already targeted is **kept** with a looser test (hysteresis, so a radius flickering around
 the threshold does not make the vehicle dither): present, ``r >= r0_m``, and confirmed within
 ``zone_max_age_s``. A kept zone with ``misses > 0`` is *unconfirmed*: no new command goes toward it
@@ -104,12 +106,23 @@ class ZonePlanner:
             return f"small (r {track.r:.1f} m < {c.r0_m + c.radius_margin_m:.1f} m)"
         return None
 
-    def choose(self, tracks: Iterable[Track], now: float, exclude: Sequence[int] = ()) -> Track | None:
-        """The oldest eligible zone not in ``exclude``, or None."""
-        eligible = [t for t in tracks if t.id not in exclude and self.why_not_eligible(t, now) is None]
+    def choose(self, tracks: Iterable[Track], now: float, exclude: Sequence[int] = (),
+               avoid: Sequence[tuple[float, float]] = ()) -> Track | None:
+        """The oldest eligible zone not in ``exclude`` and not near a point of ``avoid``, or None.
+
+        ``avoid``: points (north, east, m) where people came within r0 of a landing point; a zone
+        whose centre lies within ``r0_m + radius_margin_m`` of one (the disc it must hold free to
+        be chosen reaches it) is not chosen."""
+        eligible = [t for t in tracks if t.id not in exclude and self.why_not_eligible(t, now) is None
+                    and not self.near(t, avoid)]
         if not eligible:
             return None
         return min(eligible, key=lambda t: (not self.config.is_calm(t.calm_s), t.born_t, t.id))
+
+    def near(self, track: Track, points: Sequence[tuple[float, float]]) -> bool:
+        """Whether ``track``'s centre lies within ``r0_m + radius_margin_m`` of any of ``points``."""
+        reach = self.config.r0_m + self.config.radius_margin_m
+        return any(math.hypot(track.x - n, track.y - e) < reach for n, e in points)
 
     def check_target(self, target_id: int, tracks: Iterable[Track], now: float) -> tuple[ZoneCheck, Track | None, str]:
         """Whether the zone being flown to still holds: (verdict, its latest snapshot, reason)."""

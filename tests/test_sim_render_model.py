@@ -8,6 +8,7 @@ the frame free. Skips, naming the file, until the trained model is committed.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -64,3 +65,22 @@ def test_model_finds_rendered_people_and_leaves_free_space(model, altitude: floa
     recall = hits / views
     assert recall >= 0.95, f"{altitude} m: heads on occupied pixels {recall:.3f} (free {np.mean(free):.3f})"
     assert np.mean(free) > 0.20, f"{altitude} m: free share {np.mean(free):.3f} (recall {recall:.3f})"
+
+
+def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m sim.false_positives``: seed 18's lawn (grass, no path across it) seen from 20 m
+    with nobody in the world is left free by the shipped model; a dense world has no lawn to
+    measure; the command prints one JSON row per seed and height, and refuses bad input."""
+    from sim.false_positives import lawn_false_positives, main
+
+    fig = lawn_false_positives(model, 18, 20.0)
+    assert fig is not None and fig.world == "free_area" and fig.height_m == 20.0
+    assert 0.0 <= fig.circle_pct <= 1.0 and 0.0 <= fig.frame_pct <= 100.0
+    assert lawn_false_positives(model, 16, 20.0) is None  # dense: no free circle
+    assert main(["--seeds", "18", "--heights", "20", "--model", str(MODEL), "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [(r["seed"], r["height_m"]) for r in rows] == [(18, 20.0)] and rows[0]["circle_pct"] == fig.circle_pct
+    assert main(["--seeds", "5-1"]) == 2
+    assert main(["--heights", "1.0"]) == 2  # below the head plane
+    assert main(["--model", "/nonexistent.onnx"]) == 2
+    assert "error" in capsys.readouterr().err

@@ -1,0 +1,108 @@
+"""How much of each scenario's lawn a density model marks as people when nobody is there.
+
+``python -m sim.false_positives --seeds 1-34 --heights 10,20 [--model FILE.onnx]``
+
+For every seed with a free circle (``sim.flight.build_world``), the seed's procedural ground is
+rendered straight down over the circle's centre from each height with *nobody* in the world, the
+model runs at its own threshold (``occupancy_threshold`` in its metadata) through the service's
+occupancy step, and the share of the free circle's head-plane area marked occupied is printed
+(plus the share of the whole frame). Anything marked is a false positive: paths across lawns,
+benches, trees. A zone's landing point can only be as central as the lawn the model leaves free
+(docs/design.md, "Why landing points sit at a lawn's edge").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
+from companion.pipeline.density import DensityModel
+from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map
+from sim.flight import build_world
+from sim.ground import ProceduralGround
+from sim.render import render_world
+from sim.scenarios import parse_seeds, scenario
+from sim.world import World
+
+SHIPPED = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
+K = Intrinsics.from_fov(640, 480, 70.0)
+HEAD_M = 1.7
+#: Sample every STEP-th pixel in both directions (the occupancy map is smooth at that scale).
+STEP = 4
+
+
+@dataclass(frozen=True)
+class LawnFigure:
+    """One seed seen from one height: percentages of the free circle and of the frame marked
+    occupied on an empty world."""
+
+    seed: int
+    world: str
+    height_m: float
+    circle_pct: float
+    frame_pct: float
+
+
+def lawn_false_positives(model: DensityModel, seed: int, height_m: float) -> LawnFigure | None:
+    """The figure of ``seed`` from ``height_m`` (m above the ground), or None for a world
+    without a free circle."""
+    spec = scenario(seed, "ardupilot")  # the scene does not depend on the flavour
+    _world, free, _start = build_world(spec)
+    if free is None:
+        return None
+    pose = Pose(0.0, free.north, free.east, -height_m, 0.0, 0.0, 0.0)
+    img = render_world(World(seed=seed), pose, K, Mount(), ProceduralGround(seed))
+    threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
+    occ = occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
+    vv, uu = np.mgrid[0:K.height:STEP, 0:K.width:STEP]
+    xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M).image_to_plane(
+        np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float))
+    inside = np.hypot(xy[:, 0] - free.north, xy[:, 1] - free.east) < free.radius
+    marked = occ[vv.ravel(), uu.ravel()]
+    circle = float(marked[inside].mean()) if inside.any() else float("nan")
+    return LawnFigure(seed, spec.world, height_m, round(100 * circle, 2), round(100 * float(marked.mean()), 2))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m sim.false_positives", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", default="1-34", help="seeds, e.g. 1-34 or 5,6,28 (default 1-34)")
+    ap.add_argument("--heights", default="10,20", help="heights above the ground in m (default 10,20)")
+    ap.add_argument("--model", type=Path, default=SHIPPED, help="ONNX density model (default: the shipped one)")
+    ap.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
+    args = ap.parse_args(argv)
+    try:
+        seeds = parse_seeds(args.seeds)
+        heights = [float(h) for h in args.heights.split(",")]
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not all(0.0 < h - HEAD_M < 500.0 for h in heights):
+        print(f"error: heights must lie between {HEAD_M} m (the head plane) and 500 m", file=sys.stderr)
+        return 2
+    if not args.model.is_file():
+        print(f"error: no model at {args.model}", file=sys.stderr)
+        return 2
+    model = DensityModel(args.model, threads=2)
+    for seed in seeds:
+        figures = [f for h in heights if (f := lawn_false_positives(model, seed, h)) is not None]
+        if not figures:
+            continue
+        if args.json:
+            for f in figures:
+                print(json.dumps(asdict(f)), flush=True)
+        else:
+            cells = "  ".join(f"{f.height_m:g} m: lawn {f.circle_pct:5.1f} %, frame {f.frame_pct:4.1f} %"
+                              for f in figures)
+            print(f"seed {seed:>3} {figures[0].world:<13} {cells}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

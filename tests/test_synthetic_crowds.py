@@ -209,3 +209,22 @@ def test_compositor_command_times_and_writes_samples(shared_dir: Path, tmp_path:
 def test_compositor_command_without_the_data(tmp_path: Path, capsys) -> None:
     assert C.main(["--shared", str(tmp_path), "--n", "1"]) == 2
     assert "missing" in capsys.readouterr().err
+
+
+def test_path_edge_negatives_are_the_band_where_paving_meets_grass() -> None:
+    """A paved strip across grass: the ``path-edge`` kind is the band EDGE_PX pixels either side
+    of both its edges, never the middle of the strip or of the lawn; a photo without paving next
+    to grass has none."""
+    from companion.training.negatives import EDGE_PX, HardNegatives, kind_mask
+
+    classes = np.full((100, 120), GRASS, np.uint8)
+    classes[:, 50:70] = CLASSES["paved-area"]  # a path 20 px wide, edges at columns 50 and 70
+    ground = C.Background("park", np.full((100, 120, 3), 100, np.uint8), classes, 30.0)
+    band = kind_mask("path-edge", ground, CLASSES)
+    cols = np.nonzero(band.any(axis=0))[0]
+    assert set(cols) == set(range(50 - EDGE_PX, 50 + EDGE_PX)) | set(range(70 - EDGE_PX, 70 + EDGE_PX))
+    assert band[:, 50 - EDGE_PX].all() and not band[:, 60].any() and not band[:, 10].any()
+    lawn = C.Background("lawn", ground.bgr, np.full((100, 120), GRASS, np.uint8), 30.0)
+    assert not kind_mask("path-edge", lawn, CLASSES).any()
+    neg = HardNegatives.build([ground], CLASSES)
+    assert "path-edge" in neg.kinds

@@ -8,7 +8,10 @@ has an all-zero target. numpy / OpenCV only.
 
 Kinds are named as in ``labels/classes.txt`` (looked up by name, so a renumbered class list fails
 loudly). ``road-marking`` is not a class there: it is the brightest 2 % of an image's paved-area
-pixels (painted lines and symbols are brighter than the asphalt or paving around them).
+pixels (painted lines and symbols are brighter than the asphalt or paving around them). Nor is
+``path-edge``: the band ``EDGE_PX`` pixels either side of where paved area meets grass. The shipped
+model marks one edge of a paved path across a lawn as people (docs/design.md, "Why landing points
+sit at a lawn's edge"; ``python -m sim.false_positives``).
 """
 
 from __future__ import annotations
@@ -24,10 +27,12 @@ from companion.evaluation.compositor import PERSON, Background
 from companion.evaluation.datasets import DatasetError
 from companion.training.augment import GeomAug, random_crop
 
-KINDS = ("roof", "wall", "window", "car", "obstacle", "tree", "bald-tree", "fence", "fence-pole", "road-marking")
+KINDS = ("roof", "wall", "window", "car", "obstacle", "tree", "bald-tree", "fence", "fence-pole", "road-marking",
+         "path-edge")
 EMPTY = "no-person-photo"
 POINTS_PER_IMAGE = 64  # candidate centres kept per (image, kind): enough variety, little memory
 MIN_PIXELS = 30  # a kind with fewer pixels in an image is noise in the class map there
+EDGE_PX = 4  # half the width of a path-edge band (pixels of the photo, about 0.1 m on the ground)
 
 
 def class_indices(shared: Path) -> dict[str, int]:
@@ -51,6 +56,11 @@ def kind_mask(kind: str, ground: Background, classes: dict[str, int]) -> np.ndar
             return np.zeros_like(paved)
         grey = cv2.cvtColor(ground.bgr, cv2.COLOR_BGR2GRAY)
         return paved & (grey > np.percentile(grey[paved], 98))
+    if kind == "path-edge":
+        paved = (ground.classes == classes["paved-area"]).astype(np.uint8)
+        grass = (ground.classes == classes["grass"]).astype(np.uint8)
+        near = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
+        return (cv2.dilate(paved, near) & cv2.dilate(grass, near) & (paved | grass)).astype(bool)
     return np.asarray(ground.classes == classes[kind])
 
 
@@ -70,7 +80,7 @@ class HardNegatives:
     def build(cls, grounds: Sequence[Background], classes: dict[str, int], seed: int = 0) -> HardNegatives:
         """Index the candidate centres of every kind in ``grounds`` (a ground whose class map has
         no person pixel at all is also an ``EMPTY`` photo)."""
-        missing = [k for k in (*KINDS, "paved-area") if k not in classes and k != "road-marking"]
+        missing = [k for k in (*KINDS, "paved-area", "grass") if k not in classes and k not in ("road-marking", "path-edge")]
         if missing:
             raise DatasetError(f"labels/classes.txt has no class named {', '.join(missing)}")
         rng = np.random.default_rng(seed)

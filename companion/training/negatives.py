@@ -57,10 +57,12 @@ def kind_mask(kind: str, ground: Background, classes: dict[str, int]) -> np.ndar
         grey = cv2.cvtColor(ground.bgr, cv2.COLOR_BGR2GRAY)
         return paved & (grey > np.percentile(grey[paved], 98))
     if kind == "path-edge":
-        paved = (ground.classes == classes["paved-area"]).astype(np.uint8)
-        grass = (ground.classes == classes["grass"]).astype(np.uint8)
+        paved = ground.classes == classes["paved-area"]
+        grass = ground.classes == classes["grass"]
         near = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
-        return (cv2.dilate(paved, near) & cv2.dilate(grass, near) & (paved | grass)).astype(bool)
+        near_paved = cv2.dilate(paved.astype(np.uint8), near) > 0
+        near_grass = cv2.dilate(grass.astype(np.uint8), near) > 0
+        return np.asarray(near_paved & near_grass & (paved | grass))
     return np.asarray(ground.classes == classes[kind])
 
 

@@ -795,11 +795,10 @@ class LandingController:
             north, east = self._aim if self._aim is not None else (lost.x, lost.y)
             if math.isfinite(north) and math.isfinite(east):
                 self._avoid.append((north, east, self.now + self.config.avoid_lost_s))
+                why += f"; its ground avoided for {self.config.avoid_lost_s:g} s"
         other = (self.planner.choose(self.tracks, self.now, exclude=(lost.id, *self._restless),
                                      avoid=self._avoided())
                  if self._status_fresh() else None)
-        if people and self.config.avoid_lost_s > 0:
-            why += f"; its ground avoided for {self.config.avoid_lost_s:g} s"
         if other is not None:
             return self._approach(other, f"zone {lost.id} lost ({why}); re-targeting", lost_id=lost.id)
         self.target = None

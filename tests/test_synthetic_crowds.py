@@ -228,3 +228,13 @@ def test_path_edge_negatives_are_the_band_where_paving_meets_grass() -> None:
     assert not kind_mask("path-edge", lawn, CLASSES).any()
     neg = HardNegatives.build([ground], CLASSES)
     assert "path-edge" in neg.kinds
+
+
+def test_hard_negatives_refuse_a_class_list_without_a_class_a_kind_needs() -> None:
+    from companion.evaluation.datasets import DatasetError
+    from companion.training.negatives import HardNegatives
+
+    _, grounds, _ = drawn_bank()
+    no_grass = {k: v for k, v in CLASSES.items() if k != "grass"}  # path-edge is made from grass
+    with pytest.raises(DatasetError, match="no class named grass"):
+        HardNegatives.build(grounds, no_grass)

@@ -29,6 +29,8 @@ from companion.training.augment import GeomAug, random_crop
 
 KINDS = ("roof", "wall", "window", "car", "obstacle", "tree", "bald-tree", "fence", "fence-pole", "road-marking",
          "path-edge")
+#: Kinds made from other classes (``kind_mask``), not classes of their own, and the classes they need.
+DERIVED = {"road-marking": ("paved-area",), "path-edge": ("paved-area", "grass")}
 EMPTY = "no-person-photo"
 POINTS_PER_IMAGE = 64  # candidate centres kept per (image, kind): enough variety, little memory
 MIN_PIXELS = 30  # a kind with fewer pixels in an image is noise in the class map there
@@ -82,7 +84,8 @@ class HardNegatives:
     def build(cls, grounds: Sequence[Background], classes: dict[str, int], seed: int = 0) -> HardNegatives:
         """Index the candidate centres of every kind in ``grounds`` (a ground whose class map has
         no person pixel at all is also an ``EMPTY`` photo)."""
-        missing = [k for k in (*KINDS, "paved-area", "grass") if k not in classes and k not in ("road-marking", "path-edge")]
+        needed = {c for k in KINDS for c in DERIVED.get(k, (k,))}
+        missing = sorted(c for c in needed if c not in classes)
         if missing:
             raise DatasetError(f"labels/classes.txt has no class named {', '.join(missing)}")
         rng = np.random.default_rng(seed)

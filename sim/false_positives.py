@@ -50,24 +50,29 @@ class LawnFigure:
     frame_pct: float
 
 
-def lawn_false_positives(model: DensityModel, seed: int, height_m: float) -> LawnFigure | None:
-    """The figure of ``seed`` from ``height_m`` (m above the ground), or None for a world
+def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[float]) -> list[LawnFigure]:
+    """The figures of ``seed`` from each of ``heights_m`` (m above the ground); none for a world
     without a free circle."""
     spec = scenario(seed, "ardupilot")  # the scene does not depend on the flavour
     _world, free, _start = build_world(spec)
     if free is None:
-        return None
-    pose = Pose(0.0, free.north, free.east, -height_m, 0.0, 0.0, 0.0)
-    img = render_world(World(seed=seed), pose, K, Mount(), ProceduralGround(seed))
+        return []
+    empty, ground = World(seed=seed), ProceduralGround(seed)
     threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
-    occ = occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
     vv, uu = np.mgrid[0:K.height:STEP, 0:K.width:STEP]
-    xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M).image_to_plane(
-        np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float))
-    inside = np.hypot(xy[:, 0] - free.north, xy[:, 1] - free.east) < free.radius
-    marked = occ[vv.ravel(), uu.ravel()]
-    circle = float(marked[inside].mean()) if inside.any() else float("nan")
-    return LawnFigure(seed, spec.world, height_m, round(100 * circle, 2), round(100 * float(marked.mean()), 2))
+    pixels = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)
+    figures = []
+    for height_m in heights_m:
+        pose = Pose(0.0, free.north, free.east, -height_m, 0.0, 0.0, 0.0)
+        img = render_world(empty, pose, K, Mount(), ground)
+        occ = occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
+        xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M).image_to_plane(pixels)
+        inside = np.hypot(xy[:, 0] - free.north, xy[:, 1] - free.east) < free.radius
+        marked = occ[vv.ravel(), uu.ravel()]
+        circle = float(marked[inside].mean()) if inside.any() else float("nan")
+        figures.append(LawnFigure(seed, spec.world, height_m, round(100 * circle, 2),
+                                  round(100 * float(marked.mean()), 2)))
+    return figures
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -91,7 +96,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     model = DensityModel(args.model, threads=2)
     for seed in seeds:
-        figures = [f for h in heights if (f := lawn_false_positives(model, seed, h)) is not None]
+        figures = lawn_false_positives(model, seed, heights)
         if not figures:
             continue
         if args.json:

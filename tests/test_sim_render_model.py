@@ -73,10 +73,12 @@ def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys:
     measure; the command prints one JSON row per seed and height, and refuses bad input."""
     from sim.false_positives import lawn_false_positives, main
 
-    fig = lawn_false_positives(model, 18, 20.0)
-    assert fig is not None and fig.world == "free_area" and fig.height_m == 20.0
+    figures = lawn_false_positives(model, 18, [20.0])
+    assert len(figures) == 1
+    fig = figures[0]
+    assert fig.world == "free_area" and fig.height_m == 20.0
     assert 0.0 <= fig.circle_pct <= 1.0 and 0.0 <= fig.frame_pct <= 100.0
-    assert lawn_false_positives(model, 16, 20.0) is None  # dense: no free circle
+    assert lawn_false_positives(model, 16, [20.0]) == []  # dense: no free circle
     assert main(["--seeds", "18", "--heights", "20", "--model", str(MODEL), "--json"]) == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [(r["seed"], r["height_m"]) for r in rows] == [(18, 20.0)] and rows[0]["circle_pct"] == fig.circle_pct

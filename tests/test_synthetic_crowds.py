@@ -238,3 +238,26 @@ def test_hard_negatives_refuse_a_class_list_without_a_class_a_kind_needs() -> No
     no_grass = {k: v for k, v in CLASSES.items() if k != "grass"}  # path-edge is made from grass
     with pytest.raises(DatasetError, match="no class named grass"):
         HardNegatives.build(grounds, no_grass)
+
+
+def test_hard_negatives_of_chosen_kinds_only() -> None:
+    """``kinds`` keeps only the named kinds (to train on one alone); an unknown or repeated name,
+    or kinds none of the photos hold, are refused naming them."""
+    from companion.evaluation.datasets import DatasetError
+    from companion.training.negatives import EMPTY, HardNegatives, check_kinds
+
+    _, grounds, _ = drawn_bank()
+    empty = C.Background("nobody", np.full((200, 200, 3), 90, np.uint8), np.full((200, 200), GRASS, np.uint8), 30.0)
+    neg = HardNegatives.build([*grounds, empty], CLASSES, kinds=["roof", EMPTY])
+    assert neg.kinds == sorted(["roof", EMPTY])
+    rng = np.random.default_rng(0)
+    assert {neg.crop(32, rng)[2] for _ in range(30)} == {"roof", EMPTY}
+    assert HardNegatives.build(grounds, CLASSES, kinds=["car"]).kinds == ["car"]
+    with pytest.raises(ValueError, match="unknown hard-negative kind 'puddle'"):
+        check_kinds(["roof", "puddle"])
+    with pytest.raises(ValueError, match="without repeats"):
+        check_kinds(["roof", "roof"])
+    with pytest.raises(ValueError, match="non-empty"):
+        check_kinds([])
+    with pytest.raises(DatasetError, match="no hard negative of the kinds path-edge"):
+        HardNegatives.build(grounds, CLASSES, kinds=["path-edge"])  # the drawn ground has no paving

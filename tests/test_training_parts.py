@@ -118,6 +118,10 @@ def test_training_rejects_bad_shares_and_a_missing_cuda(tmp_path: Path, shared_d
     assert "negative share must be in [0, 1]" in capsys.readouterr().err
     assert main([*base, "--max-images", "-1"]) == 2
     assert "max images must be >= 0" in capsys.readouterr().err
+    assert main([*base, "--negative-share", "0.1", "--negative-kinds", "path-edge,puddle"]) == 2
+    assert "unknown hard-negative kind 'puddle'" in capsys.readouterr().err
+    assert main([*base, "--negative-kinds", "path-edge"]) == 2  # kinds of a share of 0: a mistake
+    assert "needs --negative-share > 0" in capsys.readouterr().err
     assert main([*base, "--device", "tpu"]) == 2
     assert "--device" in capsys.readouterr().err
     if not torch.cuda.is_available():

@@ -37,6 +37,20 @@ MIN_PIXELS = 30  # a kind with fewer pixels in an image is noise in the class ma
 EDGE_PX = 4  # half the width of a path-edge band (pixels of the photo, about 0.1 m on the ground)
 
 
+def check_kinds(kinds: Sequence[str] | None) -> tuple[str, ...]:
+    """The hard-negative kinds to draw: ``kinds`` checked against ``KINDS`` and ``EMPTY`` (None:
+    all of them). ValueError naming an unknown or repeated kind, or an empty list."""
+    if kinds is None:
+        return (*KINDS, EMPTY)
+    known = (*KINDS, EMPTY)
+    unknown = [k for k in kinds if k not in known]
+    if unknown:
+        raise ValueError(f"unknown hard-negative kind {', '.join(map(repr, unknown))}; known: {', '.join(known)}")
+    if not kinds or len(set(kinds)) != len(kinds):
+        raise ValueError(f"hard-negative kinds must be a non-empty list without repeats, got {list(kinds)}")
+    return tuple(kinds)
+
+
 def class_indices(shared: Path) -> dict[str, int]:
     """``labels/classes.txt`` as name -> index."""
     path = Path(shared) / "data" / "semantic_drone" / "labels" / "classes.txt"
@@ -81,25 +95,33 @@ class HardNegatives:
     aug: GeomAug = GeomAug((0.4, 1.6), True, 1.0)
 
     @classmethod
-    def build(cls, grounds: Sequence[Background], classes: dict[str, int], seed: int = 0) -> HardNegatives:
+    def build(cls, grounds: Sequence[Background], classes: dict[str, int], seed: int = 0,
+              kinds: Sequence[str] | None = None) -> HardNegatives:
         """Index the candidate centres of every kind in ``grounds`` (a ground whose class map has
-        no person pixel at all is also an ``EMPTY`` photo)."""
-        needed = {c for k in KINDS for c in DERIVED.get(k, (k,))}
+        no person pixel at all is also an ``EMPTY`` photo). ``kinds``: only these (names from
+        ``KINDS`` or ``EMPTY``; None: all), to train on one kind alone and measure what it costs."""
+        chosen = check_kinds(kinds)
+        needed = {c for k in chosen if k != EMPTY for c in DERIVED.get(k, (k,))}
         missing = sorted(c for c in needed if c not in classes)
         if missing:
             raise DatasetError(f"labels/classes.txt has no class named {', '.join(missing)}")
         rng = np.random.default_rng(seed)
-        centres: dict[str, list[tuple[int, np.ndarray]]] = {k: [] for k in (*KINDS, EMPTY)}
+        centres: dict[str, list[tuple[int, np.ndarray]]] = {k: [] for k in chosen}
         for gi, g in enumerate(grounds):
             for kind in KINDS:
+                if kind not in centres:
+                    continue
                 ys, xs = np.nonzero(kind_mask(kind, g, classes))
                 if len(xs) >= MIN_PIXELS:
                     pick = rng.choice(len(xs), min(POINTS_PER_IMAGE, len(xs)), replace=False)
                     centres[kind].append((gi, np.stack([xs[pick], ys[pick]], axis=1).astype(np.float32)))
-            if not (g.classes == PERSON).any():
+            if EMPTY in centres and not (g.classes == PERSON).any():
                 h, w = g.classes.shape
                 centres[EMPTY].append((gi, np.array([[w / 2, h / 2]], np.float32)))
-        return cls(list(grounds), {k: v for k, v in centres.items() if v})
+        found = {k: v for k, v in centres.items() if v}
+        if not found:
+            raise DatasetError(f"no hard negative of the kinds {', '.join(chosen)} in {len(grounds)} photos")
+        return cls(list(grounds), found)
 
     @property
     def kinds(self) -> list[str]:

@@ -32,7 +32,7 @@ import logging
 import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -47,7 +47,7 @@ from companion.evaluation import datasets as D
 from companion.training import model as M
 from companion.training.augment import GeomAug, photometric, random_crop
 from companion.training.export import export_onnx
-from companion.training.negatives import HardNegatives, class_indices
+from companion.training.negatives import HardNegatives, check_kinds, class_indices
 from companion.training.pack import shb_scale
 from companion.training.targets import box_target, point_target
 
@@ -160,7 +160,7 @@ def check_shares(synthetic_share: float, negative_share: float, max_images: int 
 
 
 def all_sources(shared: Path, synthetic_share: float, negative_share: float, max_images: int = 0,
-                seed: int = 0) -> list[CropSource]:
+                seed: int = 0, negative_kinds: Sequence[str] | None = None) -> list[CropSource]:
     """The real sources scaled to ``1 - synthetic_share - negative_share`` of the crops, plus the
     synthetic and hard-negative sources at their shares (each loaded only when its share is > 0).
     With both shares 0 this is exactly :func:`load_sources` (the shipped configuration)."""
@@ -179,7 +179,8 @@ def all_sources(shared: Path, synthetic_share: float, negative_share: float, max
             comp = C.Compositor(cutouts, grounds, C.load_layouts(shared, "train"))
             out.append(SyntheticSource(comp, synthetic_share))
         if negative_share > 0:
-            out.append(NegativeSource(HardNegatives.build(grounds, class_indices(shared), seed), negative_share))
+            out.append(NegativeSource(HardNegatives.build(grounds, class_indices(shared), seed, negative_kinds),
+                                      negative_share))
         log.info("synthetic share %.2f, hard-negative share %.2f: %d people, %d grounds in %.0f s",
                  synthetic_share, negative_share, len(cutouts), len(grounds), time.monotonic() - t0)
     return out
@@ -243,7 +244,8 @@ def train(args: argparse.Namespace) -> Path:
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(1)
     rng = np.random.default_rng(args.seed)
-    sources = all_sources(Path(args.shared), args.synthetic_share, args.negative_share, args.max_images, args.seed)
+    sources = all_sources(Path(args.shared), args.synthetic_share, args.negative_share, args.max_images, args.seed,
+                          args.negative_kinds)
     net = M.SLZDensityNet().to(device)
     log.info("parameters: %d", M.count_parameters(net))
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
@@ -277,6 +279,8 @@ def train(args: argparse.Namespace) -> Path:
     note = f"steps={args.steps} seed={args.seed} pos_weight={args.pos_weight}"
     if args.synthetic_share or args.negative_share or args.device != "cpu":
         note += f" synthetic_share={args.synthetic_share} negative_share={args.negative_share} device={args.device}"
+    if args.negative_kinds is not None:
+        note += f" negative_kinds={','.join(args.negative_kinds)}"
     out = export_onnx(net, Path(args.out), {"companion.training": note})
     log.info("exported %s (%.1f min)", out, (time.monotonic() - t0) / 60)
     return out
@@ -298,6 +302,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="share of crops drawn from synthetic top-down crowds (0-1; default 0)")
     p.add_argument("--negative-share", type=float, default=0.0,
                    help="share of crops drawn from hard negatives: roofs, cars, trees, ... (0-1; default 0)")
+    p.add_argument("--negative-kinds", type=lambda v: [k.strip() for k in v.split(",") if k.strip()],
+                   default=None, help="comma-separated hard-negative kinds to draw (default: all; "
+                   "companion.training.negatives.KINDS, or no-person-photo)")
     p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda[:N]")
     p.add_argument("--max-images", type=int, default=0,
                    help="use only the first N images of each source (quick runs and tests; 0: all)")
@@ -307,6 +314,10 @@ def main(argv: list[str] | None = None) -> int:
     try:  # bad flags and missing data: a clear message and exit 2 before any training
         resolve_device(args.device)
         check_shares(args.synthetic_share, args.negative_share, args.max_images)
+        if args.negative_kinds is not None:
+            check_kinds(args.negative_kinds)
+            if args.negative_share <= 0:
+                raise ValueError("--negative-kinds needs --negative-share > 0")
     except ValueError as exc:
         print(f"companion.training.train: {exc}", file=sys.stderr)
         return 2

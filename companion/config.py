@@ -240,6 +240,9 @@ class ControllerSettings:
                                  "of the landing point this long before the LAND, on the 80 % or more of that disc "
                                  "seen within pipeline.map_memory_s (s; 0 = not required; docs/design.md, 'Quiet ground')",
                             min=0.0, max=120.0)
+    prefer_unwalked: bool = _f(False, "among calm zones, choose first the one whose ground (r0 plus "
+                                      "pipeline.calm_margin_m) has gone longest without anybody seen on it since "
+                                      "the camera first saw it, then the oldest (docs/design.md, 'Unwalked ground')")
     recentre_m: float = _f(0.0, "over a zone bounded by people (not by the view), the landing point moves to the "
                                 "zone's centre once it is more than this far from it (m; 0 = only when the zone "
                                 "no longer holds r0 plus the margin around it)", min=0.0, max=50.0)
@@ -682,6 +685,7 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         fusion=p.fusion,
         calm=cfg.controller.min_calm_s > 0 or cfg.controller.min_quiet_s > 0, calm_margin_m=p.calm_margin_m,
         quiet=cfg.controller.min_quiet_s > 0, quiet_margin_m=p.quiet_margin_m,
+        unwalked=cfg.controller.prefer_unwalked,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
         risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,
                            walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,
@@ -704,7 +708,7 @@ def planner_config(cfg: Config) -> PlannerConfig:
     return PlannerConfig(r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
                          min_track_age_s=c.min_track_age_s, min_track_hits=c.min_track_hits,
                          zone_max_age_s=c.zone_max_age_s, min_calm_s=c.min_calm_s,
-                         min_quiet_s=c.min_quiet_s)
+                         min_quiet_s=c.min_quiet_s, prefer_unwalked=c.prefer_unwalked)
 
 
 def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> LandingConfig:

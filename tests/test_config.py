@@ -86,6 +86,7 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[pipeline.tracker]\nsigma_v = 0\n", r"pipeline\.tracker\.sigma_v must be > 0"),
         ("[controller]\nmin_quiet_s = -1\n", r"controller\.min_quiet_s must be >= 0"),
         ("[controller]\navoid_lost_s = -1\n", r"controller\.avoid_lost_s must be >= 0"),
+        ("[controller]\nprefer_unwalked = 1\n", r"controller\.prefer_unwalked must be true or false"),
         ("[pipeline]\nquiet_margin_m = -1\n", r"pipeline\.quiet_margin_m must be >= 0"),
         ("[pipeline]\ndilate_kernel = 4\n", r"pipeline\.dilate_kernel must be odd"),
         ("[link]\nsigning_key = 'abc'\n", r"link\.signing_key must be 64 hexadecimal"),
@@ -182,3 +183,12 @@ def test_the_trust_height_comes_from_the_setting_or_else_the_model() -> None:
     assert config.landing_config(mine, spec).trust_height_m == pytest.approx(1.7 + fx * 0.4 / 8.0)
     assert config.landing_config(mine, dataclasses.replace(spec, min_person_px=None)).trust_height_m == \
         pytest.approx(1.7 + fx * 0.4 / 8.0)
+
+
+def test_prefer_unwalked_reaches_the_planner_and_has_the_pipeline_measure_it() -> None:
+    plain = config.load(None)
+    assert not config.planner_config(plain).prefer_unwalked
+    assert not config.pipeline_config(plain).unwalked
+    on = config.load(None, {"controller.prefer_unwalked": True})
+    assert config.planner_config(on).prefer_unwalked
+    assert config.pipeline_config(on).unwalked

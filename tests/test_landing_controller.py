@@ -936,6 +936,23 @@ def test_the_planner_chooses_calm_zones_first_then_the_oldest():
     assert ZonePlanner(CFG.planner).choose([old_gap, young_lawn], 10.0).id == 1  # calm off: the paper's rule
 
 
+def test_prefer_unwalked_ranks_calm_zones_by_unwalked_time_before_age():
+    """A gap crossed a few seconds ago and a lawn nobody has entered since it was first seen, both
+    calm now: with prefer_unwalked the lawn, though younger; within the same whole second the
+    oldest as before; calm still comes first; off (or not measured), the paper's oldest."""
+    on = ZonePlanner(dataclasses.replace(CFG.planner, min_calm_s=5.0, prefer_unwalked=True))
+    old_gap = dataclasses.replace(zone(1, 0, 0, 30.0, born=0.0), calm_s=6.0, unwalked_s=6.0)
+    young_lawn = dataclasses.replace(zone(2, 20, 0, 30.0, born=12.0), calm_s=6.0, unwalked_s=25.0)
+    restless = dataclasses.replace(zone(3, 40, 0, 30.0, born=14.0), calm_s=2.0, unwalked_s=40.0)
+    assert on.choose([old_gap, young_lawn, restless], 30.0).id == 2
+    assert on.choose([dataclasses.replace(old_gap, unwalked_s=25.4), young_lawn], 30.0).id == 1
+    assert on.choose([old_gap, restless], 30.0).id == 1  # calm first
+    off = ZonePlanner(dataclasses.replace(CFG.planner, min_calm_s=5.0))
+    assert off.choose([old_gap, young_lawn], 30.0).id == 1
+    unmeasured = dataclasses.replace(young_lawn, unwalked_s=math.nan)
+    assert on.choose([old_gap, unmeasured], 30.0).id == 1
+
+
 @pytest.mark.parametrize("recentre, view_limited, moves", [(1.0, False, True), (0.0, False, False),
                                                             (1.0, True, False)])
 def test_over_a_zone_bounded_by_people_the_landing_point_moves_to_its_centre(recentre, view_limited, moves):

@@ -220,6 +220,50 @@ def test_calm_needs_the_whole_disc_in_view_now_and_an_unbroken_watch():
         RiskMapConfig(watch_gap_s=0.0)
 
 
+def test_unwalked_survives_looking_away_and_restarts_only_on_a_sighting():
+    """Unlike calm, a disc out of view for a while keeps its unwalked time (nobody was seen
+    there); a sighting restarts it; ground never seen whole is 0."""
+    risk = GroundRiskMap(RiskMapConfig(watch_gap_s=1.0))
+    west = np.zeros(GRID.shape, np.uint8)
+    west[:, :100] = 255  # columns are x: the camera sees x < 0 only
+    empty, seen = frame_grids([])
+    free_w, seen_w = frame_grids([], seen=west)
+    assert risk.unwalked_s(-5.0, 0.0, 3.0, 0.0) == 0.0  # no frame yet
+    for k in range(20):  # 2 s seeing only the west
+        risk.update(GRID, free_w, seen_w, 0.1 * k)
+    assert risk.unwalked_s(5.0, 0.0, 3.0, 1.9) == 0.0  # the east never seen
+    assert risk.unwalked_s(-0.5, 0.0, 3.0, 1.9) == 0.0  # part of its disc never seen
+    for k in range(20, 40):  # 2 s seeing everything, a walker 2.5 m from (5, 0) at t = 3.0
+        people = [(5.0, 2.5)] if k == 30 else []
+        risk.update(GRID, frame_grids(people, radius=0.2)[0], seen, 0.1 * k)
+    for k in range(40, 70):  # 3 s looking west again
+        risk.update(GRID, free_w, seen_w, 0.1 * k)
+    assert risk.calm_s(-5.0, 0.0, 3.0, 6.9) == pytest.approx(6.9, abs=1e-3)
+    assert risk.calm_s(5.0, -6.0, 3.0, 6.9) == 0.0  # out of view now: not calm ...
+    assert risk.unwalked_s(5.0, -6.0, 3.0, 6.9) == pytest.approx(6.9 - 2.0, abs=1e-3)  # ... unwalked since first seen
+    assert risk.unwalked_s(5.0, 0.0, 3.0, 6.9) == pytest.approx(3.9, abs=1e-3)  # since the walker
+    assert risk.unwalked_s(math.nan, 0.0, 3.0, 6.9) == 0.0
+    assert GroundRiskMap(RiskMapConfig(half_extent_m=5.0)).unwalked_s(0.0, 0.0, 3.0, 0.0) == 0.0
+
+
+def test_the_frame_pipeline_measures_unwalked_only_when_asked():
+    base = np.zeros((240, 320), np.float32)
+    frame = np.zeros((240, 320, 3), np.uint8)
+    K = Intrinsics.from_fov(320, 240, 70.0)
+    pipe = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", unwalked=True), intrinsics=K, mount=Mount())
+    plain = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
+    assert pipe.risk is not None and plain.risk is None
+    for k in range(30):
+        t = 0.1 * k
+        pose = Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
+        res, ref = pipe.process(frame, t, pose), plain.process(frame, t, pose)
+        assert res.proposals == ref.proposals
+    centre = [tr for tr in res.tracks if math.hypot(tr.x, tr.y) < 0.5]
+    assert centre and centre[0].unwalked_s == pytest.approx(2.9, abs=1e-3)
+    assert all(math.isnan(tr.calm_s) for tr in res.tracks)  # calm not asked
+    assert ref.tracks and all(math.isnan(tr.unwalked_s) for tr in ref.tracks)
+
+
 def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones():
     """Under the paper's per-frame fusion the map only measures calm (when asked): the proposals
     are the frame's own, and each posed frame's tracks and ground below carry calm_s. Not asked,

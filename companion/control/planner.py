@@ -12,7 +12,9 @@ A zone is **eligible** as a new target when it is
 - large: ``r >= r0_m + radius_margin_m``.
 
 The target among eligible zones is the oldest (earliest ``born_t``, then lowest id), as in the paper,
-calm zones first: with ``min_calm_s`` > 0, a zone whose ground (r0 plus a margin around its
+calm zones first (with ``prefer_unwalked``, among those, the zone whose ground has gone longest
+without anybody seen on it since the camera first saw it, ``Track.unwalked_s`` in whole seconds,
+before age: a lawn nobody entered since the trigger before a gap walkers crossed a moment ago): with ``min_calm_s`` > 0, a zone whose ground (r0 plus a margin around its
 centre) has been watched and seen free for ``min_calm_s`` (``Track.calm_s``) comes before one
 that has not (a gap a walker has just left, a lawn's busy edge). The controller also waits for
 that calm under the vehicle before it commits the LAND (``companion.control.landing``). The
@@ -55,6 +57,8 @@ class PlannerConfig:
     #: (``GroundBelow.quiet_s``) before the LAND (0: not required). Checked with calm, below the
     #: vehicle, where the zone is judged.
     min_quiet_s: float = 0.0
+    #: Rank eligible zones by ``Track.unwalked_s`` (whole seconds, longest first) before age.
+    prefer_unwalked: bool = False
 
     def is_calm(self, calm_s: float) -> bool:
         """Whether ground watched and seen free for ``calm_s`` seconds is calm enough (NaN, not
@@ -117,7 +121,13 @@ class ZonePlanner:
                     and not self.near(t, avoid)]
         if not eligible:
             return None
-        return min(eligible, key=lambda t: (not self.config.is_calm(t.calm_s), t.born_t, t.id))
+        return min(eligible, key=self._rank)
+
+    def _rank(self, t: Track) -> tuple[bool, float, float, int]:
+        """Sort key of an eligible zone, best first: calm, then (``prefer_unwalked``) unwalked
+        for longer in whole seconds (NaN, not measured: 0), then oldest, then lowest id."""
+        unwalked = math.floor(t.unwalked_s) if self.config.prefer_unwalked and math.isfinite(t.unwalked_s) else 0
+        return (not self.config.is_calm(t.calm_s), -unwalked, t.born_t, t.id)
 
     def near(self, track: Track, points: Sequence[tuple[float, float]]) -> bool:
         """Whether ``track``'s centre lies within ``r0_m + radius_margin_m`` of any of ``points``."""

@@ -32,6 +32,12 @@ in seconds on the capture-time clock. From these, for a frame:
   Only ground watched now counts (a cell out of view may have been walked over unseen): calm is 0
   where any cell of the disc is not in view. Per cell the map keeps ``seen_since``, when its
   present unbroken watch began.
+- **unwalked** at a point, ``unwalked_s``: how long nobody has been seen within a radius since
+  the camera first saw all of it, breaks in the watch included (per cell ``first_seen``). Unlike
+  calm it survives the vehicle looking away, down low or climbing back, so after a lost zone it
+  still tells the lawn that nobody entered since the trigger from the gap walkers crossed 10 s
+  ago. It is no proof that nobody came while the camera looked away: it ranks zones
+  (``controller.prefer_unwalked``), calm still judges the one under the vehicle.
 
 Walking speed: 1.5 m/s by default, above the 1.34 m/s mean free walking speed of pedestrians
 (Weidmann, "Transporttechnik der Fussgaenger", ETH Zurich, 1993), so that brisk walkers are
@@ -139,6 +145,7 @@ class GroundRiskMap:
         self.last_seen = np.full((n, n), NEVER, np.float32)
         self.last_occ = np.full((n, n), NEVER, np.float32)
         self.seen_since = np.full((n, n), NEVER, np.float32)
+        self.first_seen = np.full((n, n), NEVER, np.float32)
         self.epoch: float | None = None
         self._origin: tuple[int, int] | None = None  # world cell (row, col) of array [0, 0]
         self._last: tuple[float, float, float] | None = None  # (t, x, y) of the previous grid centre
@@ -160,7 +167,7 @@ class GroundRiskMap:
         new = (row - half, col - half)
         if self._origin is not None:
             dr, dc = new[0] - self._origin[0], new[1] - self._origin[1]
-            for a in (self.last_seen, self.last_occ, self.seen_since):
+            for a in (self.last_seen, self.last_occ, self.seen_since, self.first_seen):
                 shifted = np.full_like(a, NEVER)
                 n = self.size
                 src_r = slice(max(0, dr), min(n, n + dr))
@@ -223,6 +230,7 @@ class GroundRiskMap:
             restart = seen & (last_seen < rel - np.float32(self.config.watch_gap_s))
             # copyto with a mask writes in place without building index arrays (the hot path).
             np.copyto(self.seen_since[w.map_rows, w.map_cols], rel, where=restart)
+            np.copyto(self.first_seen[w.map_rows, w.map_cols], rel, where=seen & (last_seen == NEVER))
             np.copyto(last_seen, rel, where=seen)
             np.copyto(self.last_occ[w.map_rows, w.map_cols], rel, where=occupied)
         self._last = (t, cx, cy)
@@ -332,6 +340,21 @@ class GroundRiskMap:
             return 0.0
         start = max(float(np.max(self.last_occ[rows, cols][disc])), float(np.max(self.seen_since[rows, cols][disc])))
         return max(0.0, now - start)
+
+    def unwalked_s(self, x: float, y: float, radius_m: float, t: float) -> float:
+        """How long (s, at time ``t``) nobody has been seen within ``radius_m`` of plane point (x,
+        y) since the camera first saw every cell of that disc: the time since the latest of those
+        first looks or of anybody seen there, whatever the camera looked at meanwhile. 0 where any
+        cell of the disc was never seen or lies outside the map, or on a map with no frame."""
+        found = self._disc_at(x, y, radius_m, t)
+        if found is None:
+            return 0.0
+        rows, cols, disc = found
+        first = self.first_seen[rows, cols][disc]
+        if np.any(first == NEVER):
+            return 0.0
+        start = max(float(np.max(first)), float(np.max(self.last_occ[rows, cols][disc])))
+        return max(0.0, self._rel(t) - start)
 
     def quiet_s(self, x: float, y: float, radius_m: float, t: float) -> float:
         """How long (s, at time ``t``) nobody has been seen within ``radius_m`` of plane point

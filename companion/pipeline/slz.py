@@ -77,6 +77,9 @@ class PipelineConfig:
     #: ``quiet_margin_m`` (m) around the point under the camera (``riskmap.GroundRiskMap.quiet_s``).
     quiet: bool = False
     quiet_margin_m: float = 2.0
+    #: Measure each posed frame's confirmed zones' ``unwalked_s`` over the calm disc
+    #: (``riskmap.GroundRiskMap.unwalked_s``), for ``controller.prefer_unwalked``; off, it stays NaN.
+    unwalked: bool = False
 
     def __post_init__(self) -> None:
         for name in ("calm_margin_m", "quiet_margin_m"):
@@ -162,7 +165,7 @@ class SLZPipeline:
         self.tracker = ZoneTracker(config.tracker)
         # Under fusion "frame" the map runs only to measure calm (``calm_s``) or keep the trail
         # (``risk.trail_s``); the zones are still measured on the frame alone.
-        needed = config.fusion == "map" or config.calm or config.risk.trail_s > 0
+        needed = config.fusion == "map" or config.calm or config.unwalked or config.risk.trail_s > 0
         self.risk = GroundRiskMap(config.risk) if needed else None
         self.people = PeopleTracker(config.people) if config.people is not None else None
         self._undistort = (intrinsics.undistort_maps()
@@ -275,6 +278,9 @@ class SLZPipeline:
         measure = pose is not None and self.config.calm
         if measure:
             tracks = [replace(tr, calm_s=calm(tr.x, tr.y)) if tr.misses == 0 else tr for tr in tracks]
+        if pose is not None and self.config.unwalked:
+            tracks = [replace(tr, unwalked_s=0.0 if calm_map is None else calm_map.unwalked_s(tr.x, tr.y, calm_r, t))
+                      if tr.misses == 0 else tr for tr in tracks]
 
         edges: list[str] = []
         if surface_grid is not None:

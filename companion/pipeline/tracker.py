@@ -94,6 +94,9 @@ class Track:
     calm_s: on the confirming frame, how long the ground within r0 plus a margin of the centre
     had been watched and seen free (s, set by the pipeline from its risk map,
     ``riskmap.GroundRiskMap.calm_s``); NaN when not measured (a frame without a pose).
+    unwalked_s: on the confirming frame, how long nobody had been seen within r0 plus the calm
+    margin of the centre since the camera first saw all of it (s, ``GroundRiskMap.unwalked_s``);
+    NaN when not measured.
     """
 
     id: int
@@ -110,6 +113,7 @@ class Track:
     r_view: float = math.inf
     edge: str = ""
     calm_s: float = math.nan
+    unwalked_s: float = math.nan
 
     @property
     def confirmed(self) -> bool:

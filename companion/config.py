@@ -240,7 +240,7 @@ class ControllerSettings:
                                  "of the landing point this long before the LAND, on the 80 % or more of that disc "
                                  "seen within pipeline.map_memory_s (s; 0 = not required; docs/design.md, 'Quiet ground')",
                             min=0.0, max=120.0)
-    prefer_unwalked: bool = _f(False, "among calm zones, choose first the one whose ground (r0 plus "
+    prefer_unwalked: bool = _f(True, "among calm zones, choose first the one whose ground (r0 plus "
                                       "pipeline.calm_margin_m) has gone longest without anybody seen on it since "
                                       "the camera first saw it, then the oldest (docs/design.md, 'Unwalked ground')")
     recentre_m: float = _f(0.0, "over a zone bounded by people (not by the view), the landing point moves to the "

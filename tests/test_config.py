@@ -186,9 +186,9 @@ def test_the_trust_height_comes_from_the_setting_or_else_the_model() -> None:
 
 
 def test_prefer_unwalked_reaches_the_planner_and_has_the_pipeline_measure_it() -> None:
-    plain = config.load(None)
-    assert not config.planner_config(plain).prefer_unwalked
-    assert not config.pipeline_config(plain).unwalked
-    on = config.load(None, {"controller.prefer_unwalked": True})
+    on = config.load(None)  # the default since 2026-11-26 (docs/design.md, "Unwalked ground")
     assert config.planner_config(on).prefer_unwalked
     assert config.pipeline_config(on).unwalked
+    off = config.load(None, {"controller.prefer_unwalked": False})
+    assert not config.planner_config(off).prefer_unwalked
+    assert not config.pipeline_config(off).unwalked

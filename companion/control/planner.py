@@ -57,7 +57,8 @@ class PlannerConfig:
     #: (``GroundBelow.quiet_s``) before the LAND (0: not required). Checked with calm, below the
     #: vehicle, where the zone is judged.
     min_quiet_s: float = 0.0
-    #: Rank eligible zones by ``Track.unwalked_s`` (whole seconds, longest first) before age.
+    #: Rank eligible zones by ``Track.unwalked_s`` (whole seconds, longest first) before age (off
+    #: here, the paper's rule; on in the service's settings, ``controller.prefer_unwalked``).
     prefer_unwalked: bool = False
 
     def is_calm(self, calm_s: float) -> bool:

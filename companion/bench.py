@@ -52,9 +52,10 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
     ideal = synthetic.point_density(scene)
     density = model if model is not None else (lambda f: ideal)
     K = Intrinsics.from_fov(width, height, 70.0)
-    # The fused risk-map, calm (in the tracking stage) and people stages are timed too, whatever
-    # the flight defaults are.
-    pipe = SLZPipeline(density, PipelineConfig(fusion="map", calm=True, people=PeopleParams()), intrinsics=K,
+    # The fused risk-map, calm and unwalked (in the tracking stage) and people stages are timed
+    # too, whatever the flight defaults are.
+    pipe = SLZPipeline(density, PipelineConfig(fusion="map", calm=True, unwalked=True, people=PeopleParams()),
+                       intrinsics=K,
                        mount=Mount(),
                        surface=surface)
     samples: dict[str, list[float]] = {}

@@ -12,11 +12,13 @@ A zone is **eligible** as a new target when it is
 - large: ``r >= r0_m + radius_margin_m``.
 
 The target among eligible zones is the oldest (earliest ``born_t``, then lowest id), as in the paper,
-calm zones first (with ``prefer_unwalked``, among those, the zone whose ground has gone longest
-without anybody seen on it since the camera first saw it, ``Track.unwalked_s`` in whole seconds,
-before age: a lawn nobody entered since the trigger before a gap walkers crossed a moment ago): with ``min_calm_s`` > 0, a zone whose ground (r0 plus a margin around its
+calm zones first: with ``min_calm_s`` > 0, a zone whose ground (r0 plus a margin around its
 centre) has been watched and seen free for ``min_calm_s`` (``Track.calm_s``) comes before one
-that has not (a gap a walker has just left, a lawn's busy edge). The controller also waits for
+that has not (a gap a walker has just left, a lawn's busy edge). With ``prefer_unwalked``, zones
+equally calm are ranked before age by how long nobody has been seen on that ground since the
+camera first saw it (``Track.unwalked_s``, whole seconds, longest first): a lawn nobody entered
+comes before a gap walkers crossed a moment ago, also after looking away has broken both zones'
+calm. The controller also waits for
 that calm under the vehicle before it commits the LAND (``companion.control.landing``). The
 controller may also name points to *avoid* (where people walked within r0 of a landing point a
 moment ago): a zone near one is not chosen.

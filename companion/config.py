@@ -253,8 +253,10 @@ class ControllerSettings:
     calm_wait_s: float = _f(15.0, "with min_calm_s, wait at most this long over a zone for it to be calm, then "
                                   "give it up for the takeover (s)", min=0.5, max=300.0)
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen (m); once chosen it is kept, and the LAND commanded, while r0 stays free around the landing point, and its landing point stays put while the zone holds r0 plus this around it", min=0.0)
-    select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: hand back (s)", min=0.5)
-    hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: hand back (s)", min=0.5)
+    select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: search (search_s), or hand back when "
+                                       "searching is off or out of time (s)", min=0.5)
+    hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: search (search_s), or hand back when "
+                                     "searching is off or out of time (s)", min=0.5)
     arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",
                                 min=0.1, max=20.0)
     descend_alt_m: float = _f(10.0, "altitude above home at which the zone is judged (calm ground) before the "

@@ -126,7 +126,7 @@ class ZonePlanner:
             return None
         return min(eligible, key=self._rank)
 
-    def _rank(self, t: Track) -> tuple[bool, float, float, int]:
+    def _rank(self, t: Track) -> tuple[bool, int, float, int]:
         """Sort key of an eligible zone, best first: calm, then (``prefer_unwalked``) unwalked
         for longer in whole seconds (NaN, not measured: 0), then oldest, then lowest id."""
         unwalked = math.floor(t.unwalked_s) if self.config.prefer_unwalked and math.isfinite(t.unwalked_s) else 0

@@ -275,11 +275,15 @@ class SLZPipeline:
         def quiet(x: float, y: float) -> float:
             return 0.0 if calm_map is None else calm_map.quiet_s(x, y, quiet_r, t)
 
+        def unwalked(x: float, y: float) -> float:
+            return 0.0 if calm_map is None else calm_map.unwalked_s(x, y, calm_r, t)
+
         measure = pose is not None and self.config.calm
-        if measure:
-            tracks = [replace(tr, calm_s=calm(tr.x, tr.y)) if tr.misses == 0 else tr for tr in tracks]
-        if pose is not None and self.config.unwalked:
-            tracks = [replace(tr, unwalked_s=0.0 if calm_map is None else calm_map.unwalked_s(tr.x, tr.y, calm_r, t))
+        walked = pose is not None and self.config.unwalked
+        if measure or walked:
+            # Confirmed zones only, in one pass; what is not asked for keeps the track's NaN.
+            tracks = [replace(tr, calm_s=calm(tr.x, tr.y) if measure else tr.calm_s,
+                              unwalked_s=unwalked(tr.x, tr.y) if walked else tr.unwalked_s)
                       if tr.misses == 0 else tr for tr in tracks]
 
         edges: list[str] = []

@@ -40,9 +40,9 @@ EDGE_PX = 4  # half the width of a path-edge band (pixels of the photo, about 0.
 def check_kinds(kinds: Sequence[str] | None) -> tuple[str, ...]:
     """The hard-negative kinds to draw: ``kinds`` checked against ``KINDS`` and ``EMPTY`` (None:
     all of them). ValueError naming an unknown or repeated kind, or an empty list."""
-    if kinds is None:
-        return (*KINDS, EMPTY)
     known = (*KINDS, EMPTY)
+    if kinds is None:
+        return known
     unknown = [k for k in kinds if k not in known]
     if unknown:
         raise ValueError(f"unknown hard-negative kind {', '.join(map(repr, unknown))}; known: {', '.join(known)}")

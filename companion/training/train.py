@@ -163,7 +163,8 @@ def all_sources(shared: Path, synthetic_share: float, negative_share: float, max
                 seed: int = 0, negative_kinds: Sequence[str] | None = None) -> list[CropSource]:
     """The real sources scaled to ``1 - synthetic_share - negative_share`` of the crops, plus the
     synthetic and hard-negative sources at their shares (each loaded only when its share is > 0).
-    With both shares 0 this is exactly :func:`load_sources` (the shipped configuration)."""
+    With both shares 0 this is exactly :func:`load_sources` (the shipped configuration).
+    ``negative_kinds``: the hard-negative kinds to draw (None: all; ``negatives.check_kinds``)."""
     check_shares(synthetic_share, negative_share, max_images)
     real = 1.0 - synthetic_share - negative_share
     out: list[CropSource] = []

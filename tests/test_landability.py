@@ -427,3 +427,30 @@ def test_replay_with_the_landability_model_on_records_edges_and_the_model(tmp_pa
     assert all(p["edge"] is None for line in out.read_text().splitlines() for p in json.loads(line)["proposals"])
     bad = ["--set", "model.landability=true", "--set", f"model.landability_path={tmp_path / 'nope.onnx'}"]
     assert main([*args, *bad]) == 2
+
+
+def test_a_second_context_branch_trains_exports_and_runs(tmp_path: Path, shared_dir: Path) -> None:
+    """``--context 2`` (a second context branch at stride 32) trains a few steps, exports a model
+    the runner loads at any frame size a multiple of 8, and says so in its training note; the
+    default network is the shipped one, parameter for parameter; anything but 1 or 2 is refused."""
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training import landability as T
+
+    assert T.M.count_parameters(T.LandabilityNet()) == 39015  # the shipped file's network
+    assert T.M.count_parameters(T.LandabilityNet(context=2)) > 39015
+    with pytest.raises(ValueError, match="context"):
+        T.LandabilityNet(context=3)
+    out = tmp_path / "c2.onnx"
+    rc = T.main(["--shared", str(shared_dir), "--out", str(out), "--steps", "2", "--batch", "2",
+                 "--crop", "64", "--max-images", "9", "--context", "2"])
+    assert rc == 0
+    m = LandabilityModel(out, threads=1)
+    for h, w in ((64, 64), (480, 640), (72, 200)):  # not multiples of 32: the branches meet anyway
+        probs = m(np.zeros((h, w, 3), np.uint8))
+        assert probs.shape == (7, h // 8, w // 8)
+        assert np.allclose(probs.sum(axis=0), 1.0, atol=1e-4)
+    import onnxruntime as ort
+    meta = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"]).get_modelmeta().custom_metadata_map
+    assert "context=2 " in meta["companion.training"]
+    with pytest.raises(SystemExit):
+        T.main(["--shared", str(shared_dir), "--out", str(out), "--context", "3"])

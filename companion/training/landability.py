@@ -82,18 +82,31 @@ class LandabilityNet(nn.Module):
     one more at stride 8; a context branch at stride 16 (a stride-2 convolution, then two dilated
     2 and 4) brought back up and added, so that each cell sees about 300 pixels around it (a roof
     and a yard, a pool and a lawn, can look alike up close) at a quarter of the cost of doing the
-    same at stride 8; a 1x1 head to the levels' logits."""
+    same at stride 8; a 1x1 head to the levels' logits.
 
-    def __init__(self, levels: int = len(LEVELS), width: int = 32) -> None:
+    ``context=2`` adds a second branch of the same shape at stride 32 on top of the first (about
+    twice the reach: a large flat roof and a square look alike until the cell sees the roof's
+    edge), brought back to stride 16 and added; ``context=1`` is the shipped network, module for
+    module (its weights load, and a seed draws the same initial weights)."""
+
+    def __init__(self, levels: int = len(LEVELS), width: int = 32, context: int = 1) -> None:
         super().__init__()
+        if context not in (1, 2):
+            raise ValueError(f"LandabilityNet context must be 1 or 2, not {context!r}")
         self.stem = nn.Sequential(nn.AvgPool2d(2), _cbr(3, 16, 3, 2), _cbr(16, 24, 3, 2), _cbr(24, width, 3))
         self.context = nn.Sequential(_cbr(width, width, 3, 2), _cbr(width, width, 3, dilation=2),
                                      _cbr(width, width, 3, dilation=4))
         self.head = nn.Conv2d(width, levels, 1)
+        # Made last, so that context=1 draws the shipped network's initial weights.
+        self.context2 = None if context == 1 else nn.Sequential(
+            _cbr(width, width, 3, 2), _cbr(width, width, 3, dilation=2), _cbr(width, width, 3, dilation=4))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         f8 = self.stem(x)
-        up = F.interpolate(self.context(f8), size=f8.shape[-2:], mode="nearest")
+        f16 = self.context(f8)
+        if self.context2 is not None:
+            f16 = f16 + F.interpolate(self.context2(f16), size=f16.shape[-2:], mode="nearest")
+        up = F.interpolate(f16, size=f8.shape[-2:], mode="nearest")
         return self.head(f8 + up)
 
 
@@ -267,7 +280,7 @@ def train(args: argparse.Namespace) -> Path:
     train_set, val_set = load_photos(Path(args.shared), args.max_images)
     log.info("loaded %d training and %d validation photos in %.0f s", len(train_set.images),
              len(val_set.images), time.monotonic() - t0)
-    net = LandabilityNet(width=args.width).to(device)
+    net = LandabilityNet(width=args.width, context=args.context).to(device)
     log.info("parameters: %d", M.count_parameters(net))
     level_weights = weights_with(args.level_weight)
     log.info("level weights: %s", ", ".join(f"{lv.name} {w:g}" for lv, w in zip(LEVELS, level_weights)))
@@ -323,7 +336,7 @@ def train(args: argparse.Namespace) -> Path:
     log.info("threshold %.3f (largest with landable precision >= %.3f on %d validation photos)", thr,
              LANDABLE_PRECISION, len(val_set.images))
     note = (f"steps={step} batch={args.batch} crop={args.crop} lr={args.lr} seed={args.seed} width={args.width} "
-            f"workers={args.workers} seconds={args.seconds:g} "
+            f"workers={args.workers} seconds={args.seconds:g} context={args.context} "
             f"level_weights={','.join(f'{w:g}' for w in level_weights)} "
             f"threads={args.threads} device={args.device} minutes={(time.monotonic() - t0) / 60:.1f}; "
             f"threshold: largest with landable precision >= {LANDABLE_PRECISION} on every {VAL_EVERY}th "
@@ -365,6 +378,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda[:N]")
     p.add_argument("--width", type=int, default=32, help="channels of the network (default 32, the shipped model)")
+    p.add_argument("--context", type=int, default=1, choices=(1, 2),
+                   help="context branches: 1 (stride 16, the shipped model) or 2 (and one at stride 32: "
+                        "about twice the reach around each cell)")
     p.add_argument("--seconds", type=float, default=0.0,
                    help="train for this long instead of --steps (the learning-rate cosine follows the time)")
     p.add_argument("--workers", type=int, default=0,

@@ -5,7 +5,9 @@ straight down, slowly drifting) so the geometry stages do real work. The post-de
 on the scene's ideal density map unless a model is given, in which case the model runs on the
 rendered frame and its own output feeds the rest. ``live_view`` is what the service's live view
 costs per drawn frame while a client watches (the figure and its JPEG; ``live.max_fps`` at most,
-nothing without a client); it is not part of the pipeline's ``total``. ``landability`` is the
+nothing without a client); it is not part of the pipeline's ``total``, and neither is
+``search_memory``, the risk map's remembered free ground the service reads once a second while
+the controller searches (``SLZPipeline.remembered_zones``). ``landability`` is the
 landability model (the shipped one unless ``--no-landability``; it runs on the same frame after the
 density model and is counted in ``total``, not in ``post_density``). Figures are printed, never
 asserted: this machine is shared and timings are noisy, so compare figures measured in one run.
@@ -75,12 +77,17 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
         t0 = time.perf_counter()
         live_jpeg(frame, res, res.tracks[0].id if res.tracks else None, "MONITOR  zones 0  no target  00:00:00")
         samples.setdefault("live_view", []).append((time.perf_counter() - t0) * 1e3)
+        # What the search reads once a second (controller.search_memory_s): the ground the risk
+        # map remembers free, over the map the drifting views have filled so far.
+        t0 = time.perf_counter()
+        pipe.remembered_zones(t, 60.0)
+        samples.setdefault("search_memory", []).append((time.perf_counter() - t0) * 1e3)
     wanted = list(STAGES if model is not None else STAGES[1:]) + ["post_density"]
     if surface is not None:
         wanted.insert(1 if model is not None else 0, "landability")
     if model is not None or surface is not None:
         wanted.append("total")
-    wanted.append("live_view")
+    wanted += ["live_view", "search_memory"]
     return {name: _stats(samples[name]) for name in wanted}
 
 

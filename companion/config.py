@@ -311,6 +311,10 @@ class ControllerSettings:
     search_reserve_s: float = _f(30.0, "stop searching (hand back) when the battery's time left, as the "
                                  "autopilot reports it, is less than the landing needs plus this (s)",
                                  min=0.0, max=600.0)
+    search_memory_s: float = _f(0.0, "the search flies over ground the risk map remembers free (seen free "
+                                     "within this many seconds), nearest first, when none is in view (s; 0 = "
+                                     "not at all); the zone is still chosen on what the camera sees there",
+                                min=0.0, max=600.0)
     search_climb_m: float = _f(5.0, "the ceiling: the vehicle is never sent more than this above its "
                                "altitude at the trigger (m); above it, control goes back to LAND",
                                min=1.0, max=50.0)
@@ -732,6 +736,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),
         search_s=c.search_s, search_radius_m=c.search_radius_m, search_reserve_s=c.search_reserve_s,
+        search_memory_s=c.search_memory_s,
         view_ratio=min(k.cx / k.fx, k.cy / k.fy),
         trust_height_m=person_trust_height(min(k.fx, k.fy), min_px or None, head_m=cfg.pipeline.head_height_m),
     )

@@ -377,3 +377,90 @@ def test_quiet_is_the_time_since_anybody_was_seen_on_the_remembered_disc():
     assert risk.quiet_s(0.0, 0.0, 4.0, 29.0) == 0.0
     assert GroundRiskMap(RiskMapConfig(half_extent_m=3.0)).quiet_s(0.0, 0.0, 4.0, 0.0) == 0.0
     assert risk.quiet_s(math.nan, 0.0, 4.0, 29.0) == 0.0
+
+
+def test_remembered_free_ground_is_what_the_last_look_saw_free_within_the_horizon():
+    """For the search: ground seen free and then out of view is remembered free; ground whose last
+    look saw somebody, seen longer ago than the horizon, or never seen, is not; a coarse cell is
+    free only when all of its cells are."""
+    risk = GroundRiskMap(RiskMapConfig(hold_s=1.0))
+    assert risk.remembered_free(0.0, 60.0) is None  # no frame yet
+    # t = 0: a lawn around (0, 0) with one person at (4, 0).
+    free, seen = frame_grids([(4.0, 0.0)])
+    risk.update(GRID, free, seen, 0.0)
+    # t = 5: the camera looks 30 m further north; its own ground has a person at (33, 3).
+    far = GridSpec(x0=20.0, y0=-10.0, cell=CELL, rows=201, cols=201)
+    free2, seen2 = frame_grids([(33.0, 3.0)], grid=far)
+    risk.update(far, free2, seen2, 5.0)
+    out = risk.remembered_free(6.0, 60.0)
+    assert out is not None
+    mem, grid = out
+    assert grid.cell == pytest.approx(3 * CELL) and mem.dtype == np.uint8
+
+    def at(x: float, y: float) -> int:
+        i, j = int(round((y - grid.y0) / grid.cell)), int(round((x - grid.x0) / grid.cell))
+        return int(mem[i, j]) if 0 <= i < grid.rows and 0 <= j < grid.cols else 0
+
+    assert at(-5.0, 5.0) == 255  # out of view since t = 0, seen free then
+    assert at(4.0, 0.0) == 0  # somebody stood there on the last look
+    assert at(33.0, 3.0) == 0 and at(25.0, -5.0) == 255  # the view now: as seen
+    assert at(15.0, 0.0) == 0  # between the two views: never seen
+    assert at(-5.0, 15.0) == 0  # beyond every view
+    # The circles on it (the pipeline's proposal rule): none reaches the person or unseen ground.
+    circles = propose(mem, grid, 4, 2.0)
+    assert circles and all(math.hypot(c.x - 4.0, c.y) >= c.r and math.hypot(c.x - 33.0, c.y - 3.0) >= c.r
+                           for c in circles)
+    assert all(-10.0 <= c.x - c.r and c.x + c.r <= 40.0 and not (10.0 < c.x < 20.0) for c in circles)
+    # Past the horizon the first view is forgotten; the second is not.
+    mem, grid = risk.remembered_free(6.0, 3.0)  # type: ignore[misc]
+    assert at(-5.0, 5.0) == 0 and at(25.0, -5.0) == 255
+    # Coarsening never frees: one occupied cell of a 3 x 3 block keeps the block occupied.
+    one = np.full(GRID.shape, 255, np.uint8)
+    one[100, 100] = 0
+    risk = GroundRiskMap(RiskMapConfig(hold_s=0.0))
+    risk.update(GRID, one, seen, 0.0)
+    mem, grid = risk.remembered_free(1.0, 60.0)  # type: ignore[misc]
+    assert at(0.0, 0.0) == 0 and np.count_nonzero(mem == 0) >= 1
+    with pytest.raises(ValueError):
+        risk.remembered_free(1.0, 0.0)
+
+
+def test_a_walker_seen_a_moment_ago_is_not_remembered_free_until_the_hold_has_passed():
+    risk = GroundRiskMap(RiskMapConfig(hold_s=1.0))
+    free, seen = frame_grids([(0.0, 0.0)])
+    risk.update(GRID, free, seen, 0.0)
+    empty, _ = frame_grids([])
+    risk.update(GRID, empty, seen, 0.5)  # gone on the next look, half a second later
+    mem, grid = risk.remembered_free(0.6, 60.0)  # type: ignore[misc]
+    i, j = int(round((0.0 - grid.y0) / grid.cell)), int(round((0.0 - grid.x0) / grid.cell))
+    assert mem[i, j] == 0
+    mem, grid = risk.remembered_free(1.2, 60.0)  # type: ignore[misc]
+    assert mem[i, j] == 255
+
+
+def test_the_pipeline_gives_the_remembered_zones_after_the_view_has_left_them():
+    """A lawn seen from above, then the camera flies 40 m away over a crowd: the lawn is no zone
+    of the frame any more, and ``remembered_zones`` still gives it; without a map, nothing."""
+    K = Intrinsics.from_fov(320, 240, 70.0)
+    lawn = np.zeros((240, 320), np.float32)
+    crowd = np.zeros((240, 320), np.float32)
+    crowd[::12, ::12] = 1.0  # people everywhere in this view
+    frame = np.zeros((240, 320, 3), np.uint8)
+    pipe = SLZPipeline(lambda _f: lawn, PipelineConfig(fusion="frame", unwalked=True), intrinsics=K, mount=Mount())
+    for k in range(5):
+        t = 0.1 * k
+        pipe.process(frame, t, Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    for k in range(5, 40):  # flying north at 10 m/s; from 30 m on, over a crowd
+        t = 0.1 * k
+        north = min(40.0, 1.0 * (k - 5) + 10.0)
+        pipe.density = (lambda _f: crowd) if north >= 30.0 else (lambda _f: lawn)
+        res = pipe.process(frame, t, Pose(t, north, 0.0, -20.0, 0.0, 0.0, 0.0))
+    assert not any(math.hypot(c.x, c.y) < 10.0 for c in res.proposals)  # the lawn is out of view
+    zones = pipe.remembered_zones(3.9, 60.0)
+    near = [z for z in zones if math.hypot(z.x, z.y) < 5.0]
+    assert near and near[0].r > 5.0  # the lawn: about 11 x 7 m seen from 20 m, remembered
+    assert not any(math.hypot(z.x - 40.0, z.y) < 3.0 for z in zones)  # not the crowd
+    assert not any(math.hypot(z.x, z.y) < 5.0 for z in pipe.remembered_zones(3.9, 1.0))  # forgotten
+    plain = SLZPipeline(lambda _f: lawn, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
+    plain.process(frame, 0.0, Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    assert plain.risk is None and plain.remembered_zones(0.0, 60.0) == []

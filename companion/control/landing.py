@@ -14,9 +14,10 @@ Phases::
 Inputs (times are monotonic seconds):
 
 - ``on_trigger(trigger)``: a failsafe ``Trigger``; the only way out of MONITOR.
-- ``on_frame(t, tracks, pose, below, people)``: the zone tracks after the frame captured at ``t``,
-  the pose the pipeline used for it, and optionally the ground it saw under the camera
-  (``GroundBelow``) and the people followed (``Person``). A frame whose pose is missing, not finite or further than
+- ``on_frame(t, tracks, pose, below, people, remembered)``: the zone tracks after the frame
+  captured at ``t``, the pose the pipeline used for it, and optionally the ground it saw under the
+  camera (``GroundBelow``), the people followed (``Person``) and, while ``wants_memory()``, the
+  free circles the risk map remembers (``SLZPipeline.remembered_zones``). A frame whose pose is missing, not finite or further than
   ``max_pose_age_s`` from ``t``, or a frame older than ``zone_max_age_s``, is ignored: no decision
   is ever made on a zone that was not seen with a fresh pose.
 - ``on_state(status)``: where the vehicle is now (``VehicleStatus``), its mode, armed, on ground.
@@ -56,8 +57,9 @@ stale, it is lost at once.
 
 Search: with no zone in view at the SELECT/HOLD timeout, the vehicle climbs to the ceiling over
 where it is and flies an ``expanding_square`` (legs 1.5 view radii apart, hovering at each corner
-while the tracker looks), flying first over free ground glimpsed at the edge of the view; any zone
-that becomes eligible is flown to. It hands back after ``search_s``, at ``search_radius_m``, or
+while the tracker looks), flying first over free ground glimpsed at the edge of the view, then (with
+``search_memory_s``) over the nearest ground the risk map remembers free, out of view now, large
+enough to be chosen; any zone that becomes eligible is flown to. It hands back after ``search_s``, at ``search_radius_m``, or
 when the battery's time left (``VehicleStatus.battery_s``) no longer covers the landing plus
 ``search_reserve_s``.
 
@@ -83,7 +85,7 @@ from companion.control.touchdown import DescentProfile
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
-from companion.pipeline.circles import GroundBelow
+from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.people import Person, predicted_clearance
 from companion.pipeline.tracker import Track
 
@@ -180,6 +182,13 @@ class LandingConfig:
     #: simulator's free-area seed 18 lost the same gap four times in 90 s, and PX4 seed 28 landed
     #: in it 1.4 m from a walker on the second try).
     avoid_lost_s: float = 0.0
+    #: The search flies over ground the risk map remembers free (its last look within this many
+    #: seconds saw it free; 0 = not at all), when no free ground is in view: the nearest such
+    #: circle within ``search_radius_m`` large enough to be chosen (``r0_m + radius_margin_m``),
+    #: before the expanding square goes on. A lawn seen from the trigger's height and lost from
+    #: view low down is otherwise found again only if the square happens to pass over it. It only
+    #: says where to look: the zone is chosen by the planner's rules on what the camera sees there.
+    search_memory_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -191,7 +200,7 @@ class LandingConfig:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
         for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m",
-                     "land_alt_m", "avoid_lost_s"):
+                     "land_alt_m", "avoid_lost_s", "search_memory_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
@@ -296,6 +305,13 @@ class LandingController:
         # longer fits in the view, so the judgement is kept, not asked again.
         self._judged: int | None = None
         self._over_lead: tuple[int, float] | None = None  # (zone id, since when) the search hovers over
+        #: Free circles the risk map remembers (latest frame's ``remembered``), plane metres.
+        self.remembered: list[Circle] = []
+        self._search_from: tuple[float, float] | None = None  # where the search started (north, east)
+        # (north, east, since when) of the remembered ground the search hovers over; and the points
+        # it looked at (remembered or glimpsed) that never gave a zone: not flown to again.
+        self._over_memory: tuple[float, float, float] | None = None
+        self._looked_at: list[tuple[float, float]] = []
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.obedience = ObedienceMonitor(self.config.obedience)
@@ -358,13 +374,15 @@ class LandingController:
         return []
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
-                 below: GroundBelow | None = None, people: Sequence[Person] | None = None) -> list[Command]:
+                 below: GroundBelow | None = None, people: Sequence[Person] | None = None,
+                 remembered: Sequence[Circle] | None = None) -> list[Command]:
         self._advance(t)
         if not self._frame_usable(t, pose):
             self.frames_ignored += 1
             return []
         self.last_valid_frame_t = t
         self.tracks = list(tracks)
+        self.remembered = [m for m in (remembered or ()) if all(math.isfinite(v) for v in (m.x, m.y, m.r))]
         self.people = [q for q in (people or ()) if all(math.isfinite(v) for v in
                                                           (q.x, q.y, q.vx, q.vy, q.pos_std_m, q.last_t))]
         ok = below is not None and all(math.isfinite(v) for v in (below.x, below.y, below.r, below.r_view))
@@ -377,6 +395,11 @@ class LandingController:
         if self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.LAND):
             return self._follow()
         return []
+
+    def wants_memory(self) -> bool:
+        """Whether the frames should bring the ground the risk map remembers free (``on_frame``'s
+        ``remembered``): while searching, with ``search_memory_s`` on."""
+        return self.phase == Phase.SEARCH and self.config.search_memory_s > 0
 
     def tick(self, now: float) -> list[Command]:
         self._advance(now)
@@ -834,6 +857,8 @@ class LandingController:
         # Climb to the ceiling first, over where the vehicle is: a wider view for free.
         self._raise_level(self._cap())
         self._search = expanding_square((s.north, s.east), self._search_spacing(), c.search_radius_m)
+        self._search_from = (s.north, s.east)
+        self._over_memory = None
         self._aim = None
         self._last_goto = None
         self._set_phase(Phase.SEARCH, f"{why}; searching {c.search_radius_m:g} m around for "
@@ -880,7 +905,11 @@ class LandingController:
                 self._over_lead = (lead.id, self.now)
             elif self.now - self._over_lead[1] >= self._search_dwell_s():
                 self._investigated.add(lead.id)  # looked at long enough: it is no zone
+                self._looked_at.append((lead.x, lead.y))
             return []
+        memory = self._memory_lead()
+        if memory is not None:
+            return self._search_memory(memory)
         if self._search and math.hypot(self._search[0][0] - s.north,
                                         self._search[0][1] - s.east) <= 2 * c.arrive_radius_m:
             # Hover there long enough for a zone in view to become a track and be old enough to
@@ -903,6 +932,49 @@ class LandingController:
                  and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.planner.r0_m
                  and not self.planner.near(t, avoid)]
         return max(leads, key=lambda t: t.r, default=None)
+
+    def _memory_lead(self) -> Circle | None:
+        """The nearest circle of remembered free ground (``remembered``) large enough to be
+        chosen, within ``search_radius_m`` of where the search started, away from the points
+        to avoid and from those already looked at; None without one (or with memory off)."""
+        c, s = self.config, self.status
+        if c.search_memory_s <= 0 or s is None or self._search_from is None:
+            return None
+        need = c.planner.r0_m + c.planner.radius_margin_m
+        avoid = [*self._avoided(), *self._looked_at]
+        sn, se = self._search_from
+        fits = [m for m in self.remembered if m.r >= need
+                and math.hypot(m.x - sn, m.y - se) <= c.search_radius_m
+                and not any(math.hypot(m.x - n, m.y - e) < need for n, e in avoid)]
+        over = self._over_memory
+        if over is not None:
+            # Keep flying to the place chosen while it is still remembered free (the nearest
+            # may change as the vehicle moves; two places alternating would get neither looked at).
+            here = [m for m in fits if math.hypot(m.x - over[0], m.y - over[1]) < c.planner.r0_m]
+            if here:
+                return max(here, key=lambda m: m.r)
+        return min(fits, key=lambda m: math.hypot(m.x - s.north, m.y - s.east), default=None)
+
+    def _search_memory(self, memory: Circle) -> list[Command]:
+        """Fly over remembered free ground at the search's level and hover there while the
+        tracker looks (``_search_dwell_s``); then, with no zone chosen, it is looked at."""
+        s, c = self.status, self.config
+        assert s is not None
+        over = self._over_memory
+        if over is None or math.hypot(over[0] - memory.x, over[1] - memory.y) >= c.planner.r0_m:
+            # A new place (the circle drifts a little as the map is read again: not a new one).
+            self._over_memory = (memory.x, memory.y, math.inf)
+            self._event(f"searching toward ground seen free, {math.hypot(memory.x - s.north, memory.y - s.east):.0f} m "
+                        f"away, radius {memory.r:.1f} m")
+            over = self._over_memory
+        if math.hypot(memory.x - s.north, memory.y - s.east) > 2 * c.arrive_radius_m:
+            return self._goto(memory.x, memory.y, self._level, None)
+        if not math.isfinite(over[2]):
+            self._over_memory = (over[0], over[1], self.now)
+        elif self.now - over[2] >= self._search_dwell_s():
+            self._looked_at.append((memory.x, memory.y))  # looked at long enough: no zone there now
+            self._over_memory = None
+        return []
 
     def _search_dwell_s(self) -> float:
         """Seconds to hover at each search waypoint: a zone's track must be born and grow old

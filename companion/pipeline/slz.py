@@ -42,6 +42,10 @@ STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking
 #: Where proposals come from: the paper's single frame (the default until the controller judges
 #: zones at touchdown), or the ground risk map fused over frames.
 FUSIONS = ("map", "frame")
+#: ``remembered_zones``: the risk map's cells are coarsened this many times (0.3 m at the default
+#: 0.1 m: a free circle loses at most half a coarse diagonal, 0.2 m) and this many circles given.
+MEMORY_FACTOR = 3
+MEMORY_ZONES = 8
 
 
 @dataclass(frozen=True)
@@ -181,6 +185,21 @@ class SLZPipeline:
             raise GeometryError("no pose and no fixed projection: cannot place the frame on the "
                                 "head plane")
         return self.fixed_projection
+
+    def remembered_zones(self, t: float, within_s: float, n_max: int = MEMORY_ZONES) -> list[Circle]:
+        """Up to ``n_max`` free circles (largest first, radius >= ``r0_m``) on the ground the risk
+        map remembers free at time ``t`` (``GroundRiskMap.remembered_free``: its last look within
+        ``within_s`` seconds saw it free), anywhere on the map, in view or not: where a search
+        may go and look again (the controller's ``search_memory_s``). Empty without a map (no
+        posed frame yet, or a pipeline that keeps none). Call between frames, now and then: it
+        reads the whole map (about a millisecond)."""
+        if self.risk is None:
+            return []
+        found = self.risk.remembered_free(t, within_s, MEMORY_FACTOR)
+        if found is None:
+            return []
+        free, grid = found
+        return propose(free, grid, n_max, self.config.r0_m)
 
     def process(self, frame: np.ndarray, t: float, pose: Pose | None = None) -> FrameResult:
         """One frame: BGR uint8 (H, W, 3) captured at ``t`` seconds, seen from ``pose``."""

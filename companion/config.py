@@ -255,6 +255,9 @@ class ControllerSettings:
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen (m); once chosen it is kept, and the LAND commanded, while r0 stays free around the landing point, and its landing point stays put while the zone holds r0 plus this around it", min=0.0)
     select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: search (search_s), or hand back when "
                                        "searching is off or out of time (s)", min=0.5)
+    select_empty_s: float = _f(3.0, "with nothing in view since the trigger that could become a zone (no zone of "
+                                    "r0 or more), start the search this long after the trigger instead of at "
+                                    "select_timeout_s (s; 0 = not earlier)", min=0.0, max=120.0)
     hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: search (search_s), or hand back when "
                                      "searching is off or out of time (s)", min=0.5)
     arrive_radius_m: float = _f(1.0, "horizontal distance to the zone centre counted as arrived (m)",
@@ -725,7 +728,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
     k = intrinsics(cfg)
     return LandingConfig(
         planner=planner_config(cfg),
-        select_timeout_s=c.select_timeout_s, hold_timeout_s=c.hold_timeout_s,
+        select_timeout_s=c.select_timeout_s, select_empty_s=c.select_empty_s, hold_timeout_s=c.hold_timeout_s,
         arrive_radius_m=c.arrive_radius_m, descend_alt_m=c.descend_alt_m,
         descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
         lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,

@@ -281,3 +281,32 @@ def test_remembered_ground_too_small_or_beyond_the_search_radius_is_not_flown_to
     _, sent = _memory_search(ctl, [small, far, bad], 30)
     assert sent[0] == (round(1.5 * 0.525 * 22.3, 1), 0.0)  # the square, as without memory
     assert ctl.remembered == [small, far]  # NaN dropped on the way in
+
+
+def test_nothing_in_view_that_could_be_a_zone_starts_the_search_early():
+    """select_empty_s: with no zone of r0 or more on any frame since the trigger, the search starts
+    then, not at select_timeout_s; a candidate seen once (a 2.5 m gap that may grow) keeps the
+    full wait; off (0), the wait is select_timeout_s as before."""
+    cfg = dataclasses.replace(SEARCH, select_timeout_s=10.0, select_empty_s=3.0)
+
+    def until_search(ctl: LandingController, tracks=lambda t: []) -> float:
+        ctl.on_state(status(0.0, alt=20.0, mode="LAND"))
+        ctl.on_trigger(trigger(0.0))
+        t = 0.0
+        while ctl.phase == Phase.SELECT and t < 20.0:
+            t += 0.1
+            ctl.on_state(status(t, alt=20.0, mode="LAND"))
+            ctl.on_frame(t, tracks(t), pose(t, alt=20.0))
+            ctl.tick(t)
+        return t
+
+    early = LandingController(cfg)
+    assert until_search(early) == pytest.approx(3.0, abs=0.11) and early.phase == Phase.SEARCH
+    assert any("nothing in view within 3 s could be a safe zone; searching" in x for x in texts(early))
+    gap = LandingController(cfg)  # a gap too small to choose, but at least r0: wait the full time
+    assert until_search(gap, lambda t: [zone(4, 5.0, 0.0, t, r=2.5)] if t < 0.5 else []) == \
+        pytest.approx(10.0, abs=0.11)
+    off = LandingController(dataclasses.replace(cfg, select_empty_s=0.0))
+    assert until_search(off) == pytest.approx(10.0, abs=0.11)
+    with pytest.raises(ValueError, match="select_empty_s"):
+        dataclasses.replace(cfg, select_empty_s=math.nan)

@@ -105,6 +105,12 @@ class LandingConfig:
 
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     select_timeout_s: float = 10.0
+    #: With nothing in view that could become a zone (no confirmed zone of at least ``r0_m``) on
+    #: any frame since the trigger, the search starts this long after the trigger (s) instead of
+    #: at ``select_timeout_s`` (0 = not earlier). Meanwhile the autopilot's failsafe is in charge
+    #: and, landing, takes the vehicle down over the crowd: each second of waiting costs about a
+    #: metre of height and of view, which the search then climbs back.
+    select_empty_s: float = 0.0
     hold_timeout_s: float = 15.0
     arrive_radius_m: float = 1.0
     descend_alt_m: float = 10.0
@@ -200,7 +206,7 @@ class LandingConfig:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
         for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m",
-                     "land_alt_m", "avoid_lost_s", "search_memory_s"):
+                     "land_alt_m", "avoid_lost_s", "search_memory_s", "select_empty_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
@@ -313,6 +319,7 @@ class LandingController:
         self._over_memory: tuple[float, float, float] | None = None
         self._looked_at: list[tuple[float, float]] = []
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
+        self._candidate_seen = False  # a zone of at least r0 seen since the trigger (select_empty_s)
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.obedience = ObedienceMonitor(self.config.obedience)
         self.descent = self.config.descent
@@ -324,6 +331,7 @@ class LandingController:
         if self.phase != Phase.MONITOR:
             return []
         self.trigger = trigger
+        self._candidate_seen = self._candidate_in(self.tracks)
         self._set_phase(Phase.SELECT, f"trigger: {trigger.reason}; looking for a landing zone", warning=True)
         if self._status_fresh():
             refused = self._set_ceiling()
@@ -387,6 +395,8 @@ class LandingController:
                                                           (q.x, q.y, q.vx, q.vy, q.pos_std_m, q.last_t))]
         ok = below is not None and all(math.isfinite(v) for v in (below.x, below.y, below.r, below.r_view))
         self.below = below if ok else None
+        if self.phase == Phase.SELECT and not self._candidate_seen:
+            self._candidate_seen = self._candidate_in(self.tracks)
         if self.phase in (Phase.SELECT, Phase.HOLD, Phase.SEARCH):
             found = self._select()
             if found or self.phase != Phase.SEARCH:
@@ -395,6 +405,12 @@ class LandingController:
         if self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.LAND):
             return self._follow()
         return []
+
+    def _candidate_in(self, tracks: Sequence[Track]) -> bool:
+        """Whether any zone confirmed by the latest frame is at least ``r0_m`` across (``select_empty_s``):
+        something that may still become a landing zone, worth the SELECT's wait."""
+        r0 = self.config.planner.r0_m
+        return any(t.misses == 0 and math.isfinite(t.r) and t.r >= r0 for t in tracks)
 
     def wants_memory(self) -> bool:
         """Whether the frames should bring the ground the risk map remembers free (``on_frame``'s
@@ -406,6 +422,9 @@ class LandingController:
         c = self.config
         if self.phase not in ACTIVE:
             return []
+        if self.phase == Phase.SELECT and c.select_empty_s > 0 and not self._candidate_seen \
+                and self.now - self._phase_t > c.select_empty_s:
+            return self._start_search(f"nothing in view within {c.select_empty_s:g} s could be a safe zone")
         if self.phase == Phase.SELECT and self.now - self._phase_t > c.select_timeout_s:
             return self._start_search(f"no safe zone confirmed within {c.select_timeout_s:g} s")
         if self.phase == Phase.HOLD and self.now - self._phase_t > c.hold_timeout_s:

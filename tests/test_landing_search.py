@@ -310,3 +310,39 @@ def test_nothing_in_view_that_could_be_a_zone_starts_the_search_early():
     assert until_search(off) == pytest.approx(10.0, abs=0.11)
     with pytest.raises(ValueError, match="select_empty_s"):
         dataclasses.replace(cfg, select_empty_s=math.nan)
+
+
+def test_holding_with_hold_looks_flies_over_a_glimpse_and_chooses_it_there():
+    """hold_looks: a zone lost, nothing else eligible, a lawn's rim at the edge of the view (2.5 m,
+    too small to choose): the hold flies over it at its level and the zone the camera then sees
+    whole is chosen, before the hold times out; without it, the hold hovers."""
+    def fly(cfg) -> tuple[LandingController, list]:
+        ctl = LandingController(cfg)
+        ctl.on_state(status(0.0, 10.0, 0.0, 20.0))
+        ctl.on_frame(0.0, [zone(1, 10.0, 0.0, 0.0)], pose(0.0, 10.0, 0.0, 20.0))
+        ctl.on_trigger(trigger(0.0))
+        t, north, east, sent = 0.0, 10.0, 0.0, []
+        for k in range(60):
+            t += 0.1
+            ctl.on_state(status(t, north, east, 20.0, mode="GUIDED"))
+            if k < 2:  # someone walks in: lost, nothing else eligible
+                tracks = [zone(1, 10.0, 0.0, t, r=0.5)]
+            elif math.hypot(north - 16.0, east - 7.0) < 2.0:
+                tracks = [zone(5, 16.0, 7.0, t, r=4.5)]  # over it: seen whole
+            else:
+                tracks = [zone(5, 16.0, 7.0, t, r=2.5)]  # the rim at the view's edge
+            for c in ctl.on_frame(t, tracks, pose(t, north, east, 20.0)):
+                if isinstance(c, Goto):
+                    sent.append((round(c.north, 1), round(c.east, 1), c.zone_id))
+                    north, east = c.north, c.east
+            ctl.tick(t)
+            if ctl.phase not in (Phase.HOLD, Phase.APPROACH) or ctl.phase == Phase.APPROACH and k > 2:
+                break
+        return ctl, sent
+
+    looks, sent = fly(dataclasses.replace(SEARCH, hold_timeout_s=4.0, hold_looks=True))
+    assert (16.0, 7.0, None) in sent  # flown over, not yet a target
+    assert looks.phase == Phase.APPROACH and looks.target is not None and looks.target.id == 5
+    plain, sent = fly(dataclasses.replace(SEARCH, hold_timeout_s=4.0))
+    # Without it: the hold hovers where it began until it times out into the search.
+    assert plain.phase == Phase.SEARCH and all(n == 10.0 and e == 0.0 for n, e, _ in sent)

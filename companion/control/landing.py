@@ -195,6 +195,12 @@ class LandingConfig:
     #: view low down is otherwise found again only if the square happens to pass over it. It only
     #: says where to look: the zone is chosen by the planner's rules on what the camera sees there.
     search_memory_s: float = 0.0
+    #: HOLD flies over free ground glimpsed in view, as the search does (a zone of at least r0 that
+    #: may not be chosen yet, most often one cut by the edge of the view), so the camera sees it
+    #: whole, instead of hovering until ``hold_timeout_s``. Held at 15 m beside a lawn, the camera
+    #: sees only its rim, a zone too small to choose; the search that follows then takes the first
+    #: gap of the crowd it confirms (PX4 seed 47).
+    hold_looks: bool = False
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -399,8 +405,10 @@ class LandingController:
             self._candidate_seen = self._candidate_in(self.tracks)
         if self.phase in (Phase.SELECT, Phase.HOLD, Phase.SEARCH):
             found = self._select()
-            if found or self.phase != Phase.SEARCH:
+            if found or self.phase == Phase.SELECT:
                 return found
+            if self.phase == Phase.HOLD:
+                return self._hold_step()
             return self._search_step()
         if self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.LAND):
             return self._follow()
@@ -915,17 +923,7 @@ class LandingController:
             return []
         lead = self._search_lead()
         if lead is not None:
-            # Free ground seen, too little of it to choose (cut by the edge of the view, or too
-            # young): fly over it so the camera sees it whole, and let the tracker confirm it.
-            if math.hypot(lead.x - s.north, lead.y - s.east) > 2 * c.arrive_radius_m:
-                self._over_lead = None
-                return self._goto(lead.x, lead.y, self._level, None)
-            if self._over_lead is None or self._over_lead[0] != lead.id:
-                self._over_lead = (lead.id, self.now)
-            elif self.now - self._over_lead[1] >= self._search_dwell_s():
-                self._investigated.add(lead.id)  # looked at long enough: it is no zone
-                self._looked_at.append((lead.x, lead.y))
-            return []
+            return self._look_at(lead)
         memory = self._memory_lead()
         if memory is not None:
             return self._search_memory(memory)
@@ -951,6 +949,31 @@ class LandingController:
                  and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.planner.r0_m
                  and not self.planner.near(t, avoid)]
         return max(leads, key=lambda t: t.r, default=None)
+
+    def _hold_step(self) -> list[Command]:
+        """HOLD: hover where the hold began, or with ``hold_looks`` fly over free ground glimpsed
+        in view (``_look_at``) while the hold lasts."""
+        s = self.status
+        if not self.config.hold_looks or s is None or not self._status_fresh():
+            return []
+        lead = self._search_lead()
+        return [] if lead is None else self._look_at(lead)
+
+    def _look_at(self, lead: Track) -> list[Command]:
+        """Free ground seen, too little of it to choose (cut by the edge of the view, or too
+        young): fly over it at the planned level so the camera sees it whole, and let the tracker
+        confirm it; looked at for ``_search_dwell_s`` without becoming a zone, it is given up."""
+        s, c = self.status, self.config
+        assert s is not None
+        if math.hypot(lead.x - s.north, lead.y - s.east) > 2 * c.arrive_radius_m:
+            self._over_lead = None
+            return self._goto(lead.x, lead.y, self._level, None)
+        if self._over_lead is None or self._over_lead[0] != lead.id:
+            self._over_lead = (lead.id, self.now)
+        elif self.now - self._over_lead[1] >= self._search_dwell_s():
+            self._investigated.add(lead.id)  # looked at long enough: it is no zone
+            self._looked_at.append((lead.x, lead.y))
+        return []
 
     def _memory_lead(self) -> Circle | None:
         """The nearest circle of remembered free ground (``remembered``) large enough to be

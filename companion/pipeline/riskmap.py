@@ -336,7 +336,9 @@ class GroundRiskMap:
         stood there within ``hold_s``; else 0), on cells ``factor`` times the map's (a coarse cell
         is free only when every one of its cells is: coarsening never frees ground), and the
         ``GridSpec`` placing it on the head plane. None on a map with no frame. Cost: one pass
-        over the map's arrays (a 1,201-cell square: a few ms), so callers ask now and then."""
+        over the part of the map looked at within the horizon (``companion bench``'s
+        ``search_memory``, with the circles: 1.2 ms median; about 3 ms with 80 x 80 m of it
+        seen), so callers ask now and then."""
         if self._origin is None or not math.isfinite(t):
             return None
         if not (math.isfinite(within_s) and within_s > 0) or factor < 1:

@@ -192,7 +192,7 @@ class SLZPipeline:
         ``within_s`` seconds saw it free), anywhere on the map, in view or not: where a search
         may go and look again (the controller's ``search_memory_s``). Empty without a map (no
         posed frame yet, or a pipeline that keeps none). Call between frames, now and then: it
-        reads the whole map (about a millisecond)."""
+        reads the part of the map seen within the horizon (1-3 ms)."""
         if self.risk is None:
             return []
         found = self.risk.remembered_free(t, within_s, MEMORY_FACTOR)

@@ -87,7 +87,7 @@ DECISIONS_KEPT = 20
 SHUTDOWN_BUDGET_S = 1.8
 SHUTDOWN_STEP_MIN_S = 0.05
 #: While the controller searches, the ground the risk map remembers free is read again this often
-#: (s): it says where to look next, and a read costs about a millisecond.
+#: (s): it says where to look next, and a read costs 1-3 ms.
 MEMORY_PERIOD_S = 1.0
 
 

@@ -953,8 +953,7 @@ class LandingController:
     def _hold_step(self) -> list[Command]:
         """HOLD: hover where the hold began, or with ``hold_looks`` fly over free ground glimpsed
         in view (``_look_at``) while the hold lasts."""
-        s = self.status
-        if not self.config.hold_looks or s is None or not self._status_fresh():
+        if not self.config.hold_looks or self.status is None or not self._status_fresh():
             return []
         lead = self._search_lead()
         return [] if lead is None else self._look_at(lead)
@@ -982,12 +981,10 @@ class LandingController:
         c, s = self.config, self.status
         if c.search_memory_s <= 0 or s is None or self._search_from is None:
             return None
-        need = c.planner.r0_m + c.planner.radius_margin_m
         avoid = [*self._avoided(), *self._looked_at]
         sn, se = self._search_from
-        fits = [m for m in self.remembered if m.r >= need
-                and math.hypot(m.x - sn, m.y - se) <= c.search_radius_m
-                and not any(math.hypot(m.x - n, m.y - e) < need for n, e in avoid)]
+        fits = [m for m in self.remembered if m.r >= c.planner.r0_m + c.planner.radius_margin_m
+                and math.hypot(m.x - sn, m.y - se) <= c.search_radius_m and not self.planner.near(m, avoid)]
         over = self._over_memory
         if over is not None:
             # Keep flying to the place chosen while it is still remembered free (the nearest

@@ -37,6 +37,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
+from companion.pipeline.circles import Circle
 from companion.pipeline.tracker import Track
 
 #: The least view (m around the zone centre) that can keep confirming a zone during the descent.
@@ -132,8 +133,9 @@ class ZonePlanner:
         unwalked = math.floor(t.unwalked_s) if self.config.prefer_unwalked and math.isfinite(t.unwalked_s) else 0
         return (not self.config.is_calm(t.calm_s), -unwalked, t.born_t, t.id)
 
-    def near(self, track: Track, points: Sequence[tuple[float, float]]) -> bool:
-        """Whether ``track``'s centre lies within ``r0_m + radius_margin_m`` of any of ``points``."""
+    def near(self, track: Track | Circle, points: Sequence[tuple[float, float]]) -> bool:
+        """Whether the centre of ``track`` (a zone, or a remembered free circle) lies within
+        ``r0_m + radius_margin_m`` of any of ``points``."""
         reach = self.config.r0_m + self.config.radius_margin_m
         return any(math.hypot(track.x - n, track.y - e) < reach for n, e in points)
 

@@ -326,9 +326,15 @@ class GroundRiskMap:
         seen = self.last_seen[w.map_rows, w.map_cols]
         occ = self.last_occ[w.map_rows, w.map_cols]
         now = self._rel(t)
-        free = (seen >= now - self.config.memory_s) & (occ < seen) & (occ < now - self.config.hold_s)
+        free = self._looked_free(seen >= now - self.config.memory_s, seen, occ, now)
         out[w.grid_rows, w.grid_cols] = np.where(free, 255, 0)
         return out
+
+    def _looked_free(self, recent: np.ndarray, seen: np.ndarray, occ: np.ndarray, now: float) -> np.ndarray:
+        """Of the cells ``recent`` marks (seen lately enough for the caller), those whose last
+        look saw them free (a look that saw a cell occupied stamped ``last_occ == last_seen``) and
+        that nobody stood on within ``hold_s``: ``seen``/``occ`` are the same cells' times."""
+        return recent & (occ < seen) & (occ < now - self.config.hold_s)
 
     def remembered_free(self, t: float, within_s: float, factor: int = 3) -> tuple[np.ndarray, GridSpec] | None:
         """The ground the map remembers free at time ``t``, over the whole map: uint8 (255 where,
@@ -355,9 +361,7 @@ class GroundRiskMap:
         if nr <= 0 or nc <= 0:
             return None
         win = (slice(r0, r0 + nr * factor), slice(c0, c0 + nc * factor))
-        seen, occ = self.last_seen[win], self.last_occ[win]
-        # The last look saw it free: a look that saw it occupied stamped last_occ == last_seen.
-        free = recent[win] & (occ < seen) & (occ < np.float32(now - self.config.hold_s))
+        free = self._looked_free(recent[win], self.last_seen[win], self.last_occ[win], now)
         fine = np.where(free, np.uint8(255), np.uint8(0))
         # Area averaging over whole factor x factor blocks is 255 exactly where all of a block is.
         coarse = cv2.resize(fine, (nc, nr), interpolation=cv2.INTER_AREA) if factor > 1 else fine

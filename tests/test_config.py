@@ -87,6 +87,9 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[controller]\nmin_quiet_s = -1\n", r"controller\.min_quiet_s must be >= 0"),
         ("[controller]\navoid_lost_s = -1\n", r"controller\.avoid_lost_s must be >= 0"),
         ("[controller]\nprefer_unwalked = 1\n", r"controller\.prefer_unwalked must be true or false"),
+        ("[controller]\nselect_empty_s = -1\n", r"controller\.select_empty_s must be >= 0"),
+        ("[controller]\nsearch_memory_s = 601\n", r"controller\.search_memory_s must be >= 0\.0 and <= 600\.0"),
+        ("[controller]\nhold_looks = 'yes'\n", r"controller\.hold_looks must be true or false"),
         ("[pipeline]\nquiet_margin_m = -1\n", r"pipeline\.quiet_margin_m must be >= 0"),
         ("[pipeline]\ndilate_kernel = 4\n", r"pipeline\.dilate_kernel must be odd"),
         ("[link]\nsigning_key = 'abc'\n", r"link\.signing_key must be 64 hexadecimal"),
@@ -192,3 +195,13 @@ def test_prefer_unwalked_reaches_the_planner_and_has_the_pipeline_measure_it() -
     off = config.load(None, {"controller.prefer_unwalked": False})
     assert not config.planner_config(off).prefer_unwalked
     assert not config.pipeline_config(off).unwalked
+
+
+def test_the_search_settings_reach_the_controller() -> None:
+    """select_empty_s (3 s by default), search_memory_s and hold_looks (off by default) arrive in
+    the controller's LandingConfig as set."""
+    c = config.landing_config(config.load(None))
+    assert (c.select_empty_s, c.search_memory_s, c.hold_looks) == (3.0, 0.0, False)
+    c = config.landing_config(config.load(None, {"controller.select_empty_s": 0.0, "controller.search_memory_s": 60.0,
+                                                 "controller.hold_looks": True}))
+    assert (c.select_empty_s, c.search_memory_s, c.hold_looks) == (0.0, 60.0, True)

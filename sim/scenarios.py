@@ -183,6 +183,18 @@ class FlightJob:
             spec = dataclasses.replace(spec, service_set=(*spec.service_set, f"model.threads={self.threads}"))
         return spec
 
+    def model_threads(self) -> int | None:
+        """The ``model.threads`` its service flies with: the last one its settings give (a
+        ``--set`` or a test's override wins over :attr:`threads`), None for the service's
+        default."""
+        given = [item.partition("=")[2] for item in self.spec().service_set if item.startswith("model.threads=")]
+        if not given:
+            return None
+        try:
+            return int(given[-1])
+        except ValueError:
+            return None
+
     def key(self) -> RowKey:
         """Its key in a results file (``sim.evidence.row_key``): a baseline flight's is its own,
         and so is one flown with other settings."""
@@ -205,7 +217,7 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     row = result.as_dict()
     row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
                wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
-               host=socket.gethostname(), model_threads=job.threads, settings=list(job.service_set))
+               host=socket.gethostname(), model_threads=job.model_threads(), settings=list(job.service_set))
     return row
 
 

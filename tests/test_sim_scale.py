@@ -207,8 +207,12 @@ def test_a_flights_model_threads_follow_the_cpus_it_is_given() -> None:
     assert spec.service_set[-1] == "model.threads=1"
     assert FlightJob(3, "ardupilot").spec().service_set == scenarios.scenario(3, "ardupilot").service_set
     # A flight's own model.threads (a test's or a user's override) wins.
-    own = FlightJob(3, "ardupilot", (("service_set", ("model.threads=2",)),), threads=1).spec()
-    assert own.service_set == ("model.threads=2",)
+    own = FlightJob(3, "ardupilot", (("service_set", ("model.threads=2",)),), threads=1)
+    assert own.spec().service_set == ("model.threads=2",)
+    # The row says the threads the service flew with, not the ones the job offered.
+    assert own.model_threads() == 2 and FlightJob(3, "ardupilot", threads=1).model_threads() == 1
+    assert FlightJob(3, "ardupilot", threads=2, service_set=("model.threads=1",)).model_threads() == 1
+    assert FlightJob(3, "ardupilot").model_threads() is None
 
 
 # ---- results files and resuming -------------------------------------------------------------

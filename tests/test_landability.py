@@ -370,6 +370,71 @@ def test_level_weights_take_changes_by_name_and_refuse_bad_ones() -> None:
             T.weights_with([bad])
 
 
+def test_false_landable_cells_are_the_unlandable_cells_the_network_leaves_landable() -> None:
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training import landability as T
+
+    names = [lv.name for lv in T.LEVELS]
+    land, roof = names.index("landable"), names.index("obstacles")
+    levels = np.full((20, 24), land, np.uint8)  # 3 x 3 cells of 8 px (the last row padded)
+    levels[0:8, 8:16] = roof  # cell (0, 1): a roof
+    levels[8:16, 16:24] = roof  # cell (1, 2): a roof
+    levels[8:12, 0:8] = roof  # cell (1, 0): half roof, half grass: not mostly unlandable
+    probs = np.zeros((len(names), 3, 3), np.float32)
+    probs[land] = 1.0  # called landable everywhere...
+    probs[land, 1, 2], probs[roof, 1, 2] = 0.2, 0.8  # ...but the second roof, seen for what it is
+    cells = T.false_landable_cells(probs, levels, threshold=0.3)
+    assert cells.tolist() == [[12.0, 4.0]]  # the centre (x, y) of the one roof called landable
+    # The other way: grass called unlandable (cell (2, 0)), and none of the roofs.
+    probs[land, 2, 0], probs[roof, 2, 0] = 0.5, 0.5
+    assert T.false_unlandable_cells(probs, levels, threshold=0.3).tolist() == [[4.0, 20.0]]
+    # Mixed kinds are drawn half and half, however many of each there are.
+    mixed = T.HardCells(np.zeros(10, np.int64), np.zeros((10, 2)), np.array([0] * 9 + [1]))
+    draws = [mixed.draw(np.random.default_rng(k)) for k in range(200)]
+    assert 60 < sum(d == 9 for d in draws) < 140
+    # A larger photo with one 16 x 16 px roof the network calls landable: crops centred on its
+    # cells see it in their middle far more often than random crops do.
+    big = np.full((96, 96), land, np.uint8)
+    big[0:16, 16:32] = roof
+    p_big = np.zeros((len(names), 12, 12), np.float32)
+    p_big[land] = 1.0
+    hard = T.HardCells(np.zeros(4, np.int64), T.false_landable_cells(p_big, big, threshold=0.3))
+    assert len(hard) == 4
+    photos = T.Photos(["a"], [np.zeros((96, 96, 3), np.uint8)], [big])
+    _, y_hard = T.make_batch(photos, 32, 32, np.random.default_rng(0), hard, hard_share=1.0)
+    _, y_rand = T.make_batch(photos, 32, 32, np.random.default_rng(0))
+    mid_hard, mid_rand = float(y_hard[:, roof, 1:3, 1:3].mean()), float(y_rand[:, roof, 1:3, 1:3].mean())
+    assert mid_hard > 0.3 and mid_hard > 5 * mid_rand, (mid_hard, mid_rand)
+    # Without hard mining the batches are the shipped recipe's, draw for draw.
+    a = T.make_batch(photos, 3, 32, np.random.default_rng(5))
+    b = T.make_batch(photos, 3, 32, np.random.default_rng(5), hard, hard_share=0.0)
+    assert all(torch_equal(u, v) for u, v in zip(a, b))
+
+
+def torch_equal(a, b) -> bool:
+    import torch
+
+    return bool(torch.equal(a, b))
+
+
+def test_training_with_hard_mining_runs_records_it_and_refuses_bad_settings(tmp_path: Path, shared_dir: Path) -> None:
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training import landability as T
+
+    out = tmp_path / "h.onnx"
+    rc = T.main(["--shared", str(shared_dir), "--out", str(out), "--steps", "4", "--batch", "2", "--crop", "64",
+                 "--max-images", "9", "--hard-share", "0.5", "--mine-every", "2"])
+    assert rc == 0
+    import onnxruntime as ort
+    meta = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"]).get_modelmeta().custom_metadata_map
+    assert "hard_share=0.5 mine=false-landable mine_every=2 mine_threshold=0.3 " in meta["companion.training"]
+    assert T.main(["--shared", str(shared_dir), "--out", str(out), "--steps", "3", "--batch", "2", "--crop", "64",
+                   "--max-images", "9", "--hard-share", "0.5", "--mine-every", "2", "--mine", "both"]) == 0
+    for bad in (["--hard-share", "1.5"], ["--hard-share", "0.5", "--workers", "1"], ["--mine-every", "0"],
+                ["--mine-threshold", "0"], ["--mine-threshold", "1"]):
+        assert T.main(["--shared", str(shared_dir), "--out", str(out), *bad]) == 2, bad
+
+
 def test_training_by_time_with_worker_processes_and_another_width(tmp_path: Path, shared_dir: Path) -> None:
     """The GPU form of the command (``--seconds``, ``--workers``, ``--width``) on the CPU: crops
     made in a worker process, stopped by the clock, the width and the run written into the file."""

@@ -148,12 +148,17 @@ def load_photos(shared: Path, max_images: int = 0) -> tuple[Photos, Photos]:
 
 
 def level_crop(image: np.ndarray, levels: np.ndarray, size: int, rng: np.random.Generator,
-               scale: tuple[float, float] = (0.35, 1.4)) -> tuple[np.ndarray, np.ndarray]:
+               scale: tuple[float, float] = (0.35, 1.4),
+               centre: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A ``size`` x ``size`` crop after a random scale, rotation and mirror; the level map is
-    warped with nearest neighbour so that no level is invented at a boundary."""
+    warped with nearest neighbour so that no level is invented at a boundary. ``centre`` (x, y
+    in the photo's pixels) places the crop's centre there instead of at random (hard mining);
+    the random draws are the same either way, so a run without it is unchanged."""
     h, w = image.shape[:2]
     s = float(np.exp(rng.uniform(np.log(scale[0]), np.log(scale[1]))))
     cx, cy = rng.uniform(0, w), rng.uniform(0, h)
+    if centre is not None:
+        cx, cy = float(centre[0]), float(centre[1])
     m = cv2.getRotationMatrix2D((float(cx), float(cy)), float(rng.uniform(0, 360)), s)
     if rng.random() < 0.5:
         m = np.array([[-1, 0, 0], [0, 1, 0]], np.float64) @ np.vstack([m, [0, 0, 1]])
@@ -172,14 +177,109 @@ def soft_target(levels: np.ndarray, n_levels: int, stride: int = STRIDE) -> np.n
     return onehot.reshape(n_levels, h // stride, stride, w // stride, stride).mean(axis=(2, 4))
 
 
-def make_batch(photos: Photos, batch: int, size: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+#: What hard mining looks for (``--mine``): ``false-landable``, the unlandable cells the network
+#: leaves landable (the mistakes that can end up inside a landing circle); ``both``, those and,
+#: as often, the landable cells it calls unlandable (the ground given up), so that the crops'
+#: share of each kind of ground stays as it was.
+MINE_KINDS = ("false-landable", "both")
+
+
+@dataclass
+class HardCells:
+    """Where the network under training is wrong (hard mining): the centres (x, y, in pixels)
+    of cells of the training photos, and of which kind of mistake: 0, unlandable called
+    landable; 1, landable called unlandable."""
+
+    photo: np.ndarray  # (K,) int: index into the training photos
+    xy: np.ndarray  # (K, 2) float: cell centres in that photo's pixels
+    kind: np.ndarray | None = None  # (K,) int 0/1; None: all 0
+
+    def __len__(self) -> int:
+        return len(self.photo)
+
+    def draw(self, rng: np.random.Generator) -> int:
+        """One cell's index: uniform over the cells of a kind drawn with equal odds among the
+        kinds present (uniform over all cells when there is one kind)."""
+        if self.kind is None or self.kind.min() == self.kind.max():
+            return int(rng.integers(len(self)))
+        of_kind = np.flatnonzero(self.kind == int(rng.integers(2)))
+        return int(of_kind[int(rng.integers(len(of_kind)))])
+
+
+def _cell_landable_share(levels: np.ndarray, stride: int) -> np.ndarray:
+    land = [lv.name for lv in LEVELS].index(LANDABLE)
+    h, w = levels.shape
+    lv = np.pad(levels == land, ((0, -h % stride), (0, -w % stride)), mode="edge")
+    return lv.reshape(lv.shape[0] // stride, stride, lv.shape[1] // stride, stride).mean(axis=(1, 3))
+
+
+def _centres(mask: np.ndarray, stride: int) -> np.ndarray:
+    rows, cols = np.nonzero(mask)
+    return np.stack([(cols + 0.5) * stride, (rows + 0.5) * stride], axis=1).astype(np.float64)
+
+
+def false_landable_cells(probs: np.ndarray, levels: np.ndarray, threshold: float,
+                         stride: int = STRIDE) -> np.ndarray:
+    """(K, 2) float: the centres (x, y, pixels) of the cells of one photo that the pipeline
+    would leave landable (summed unlandable probability below ``threshold``) although most of
+    their pixels are unlandable in ``levels`` (level codes; :data:`LANDABLE` is landable).
+    ``probs`` is (L, h, w) from :func:`predict` on that photo, one cell per ``stride`` pixels."""
+    land = [lv.name for lv in LEVELS].index(LANDABLE)
+    share = _cell_landable_share(levels, stride)
+    ch, cw = min(probs.shape[1], share.shape[0]), min(probs.shape[2], share.shape[1])
+    return _centres((1.0 - probs[land, :ch, :cw] < threshold) & (share[:ch, :cw] < 0.5), stride)
+
+
+def false_unlandable_cells(probs: np.ndarray, levels: np.ndarray, threshold: float,
+                           stride: int = STRIDE) -> np.ndarray:
+    """(K, 2) float: as :func:`false_landable_cells`, the other way round: cells mostly
+    landable in ``levels`` whose summed unlandable probability is ``threshold`` or more."""
+    land = [lv.name for lv in LEVELS].index(LANDABLE)
+    share = _cell_landable_share(levels, stride)
+    ch, cw = min(probs.shape[1], share.shape[0]), min(probs.shape[2], share.shape[1])
+    return _centres((1.0 - probs[land, :ch, :cw] >= threshold) & (share[:ch, :cw] >= 0.5), stride)
+
+
+def mine_hard_cells(net: nn.Module, photos: Photos, threshold: float, kinds: str = "false-landable") -> HardCells:
+    """The hard cells (:data:`MINE_KINDS`) of every training photo, with the network in eval
+    mode (restored to training mode after)."""
+    if kinds not in MINE_KINDS:
+        raise ValueError(f"hard mining looks for one of {', '.join(MINE_KINDS)}, not {kinds!r}")
+    was_training = net.training
+    net.eval()
+    idx, xy, kind = [], [], []
+    try:
+        for i, (img, lv) in enumerate(zip(photos.images, photos.levels)):
+            p = predict(net, img)
+            found = [false_landable_cells(p, lv, threshold)]
+            if kinds == "both":
+                found.append(false_unlandable_cells(p, lv, threshold))
+            for k, cells in enumerate(found):
+                idx.append(np.full(len(cells), i, np.int64))
+                xy.append(cells)
+                kind.append(np.full(len(cells), k, np.int64))
+    finally:
+        net.train(was_training)
+    return HardCells(np.concatenate(idx), np.concatenate(xy), np.concatenate(kind))
+
+
+def make_batch(photos: Photos, batch: int, size: int, rng: np.random.Generator,
+               hard: HardCells | None = None, hard_share: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """One batch of crops and their soft targets. With ``hard`` cells and ``hard_share`` > 0,
+    that share of the crops (drawn per crop) is centred on a hard cell drawn uniformly over all
+    of them, so photos with more mistakes give more crops; the rest are random as without."""
     xs = np.empty((batch, 3, size, size), np.float32)
     ys = np.empty((batch, len(LEVELS), size // STRIDE, size // STRIDE), np.float32)
     mean = np.array(M.MEAN, np.float32)[:, None, None]
     std = np.array(M.STD, np.float32)[:, None, None]
     for b in range(batch):
         i = int(rng.integers(len(photos.images)))
-        img, lv = level_crop(photos.images[i], photos.levels[i], size, rng)
+        centre = None
+        if hard is not None and len(hard) and hard_share > 0 and rng.random() < hard_share:
+            k = hard.draw(rng)
+            # Jitter within the cell and a little around it, so the crops do not repeat exactly.
+            i, centre = int(hard.photo[k]), tuple(hard.xy[k] + rng.uniform(-STRIDE, STRIDE, 2))
+        img, lv = level_crop(photos.images[i], photos.levels[i], size, rng, centre=centre)
         img = photometric(img, rng)
         xs[b] = (img.transpose(2, 0, 1).astype(np.float32) * M.SCALE - mean) / std
         ys[b] = soft_target(lv, len(LEVELS))
@@ -215,8 +315,9 @@ def predict(net: nn.Module, image: np.ndarray) -> np.ndarray:
     mean = np.array(M.MEAN, np.float32)[:, None, None]
     std = np.array(M.STD, np.float32)[:, None, None]
     x = (img.transpose(2, 0, 1).astype(np.float32) * M.SCALE - mean) / std
+    device = next(net.parameters()).device
     with torch.no_grad():
-        p = torch.softmax(net(torch.from_numpy(x[None])), dim=1)[0].numpy()
+        p = torch.softmax(net(torch.from_numpy(x[None]).to(device)), dim=1)[0].cpu().numpy()
     return p[:, : math.ceil(h / STRIDE), : math.ceil(w / STRIDE)]
 
 
@@ -300,12 +401,21 @@ def train(args: argparse.Namespace) -> Path:
             pin_memory=device.type == "cuda"))
     phase = Phase(0 if budget else args.steps, budget)
     running = 0.0
+    hard: HardCells | None = None
     net.train()
     while not phase.done():
         if budget:
             for g in opt.param_groups:
                 g["lr"] = args.lr * lr_factor(phase.progress, phase.k, warm)
-        x, y = next(batches) if batches is not None else make_batch(train_set, args.batch, args.crop, rng)
+        if args.hard_share > 0 and phase.k and phase.k % args.mine_every == 0:
+            tm = time.monotonic()
+            hard = mine_hard_cells(net, train_set, args.mine_threshold, args.mine)
+            wrong_way = int((hard.kind == 1).sum()) if hard.kind is not None else 0
+            log.info("step %d: mined %d false-landable and %d false-unlandable cells on %d of %d training "
+                     "photos in %.1f s", phase.k, len(hard) - wrong_way, wrong_way, len(np.unique(hard.photo)),
+                     len(train_set.images), time.monotonic() - tm)
+        x, y = (next(batches) if batches is not None
+                else make_batch(train_set, args.batch, args.crop, rng, hard, args.hard_share))
         if device.type != "cpu":
             x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
         batch_loss = loss(net(x), y, weights)
@@ -335,15 +445,34 @@ def train(args: argparse.Namespace) -> Path:
                  c["threshold"], c["precision"], c["landable"])
     log.info("threshold %.3f (largest with landable precision >= %.3f on %d validation photos)", thr,
              LANDABLE_PRECISION, len(val_set.images))
+    for name, share in left_landable_by_level(pix, val_set.levels, thr).items():
+        log.info("validation: %s pixels left landable at %.3f: %.2f %%", name, thr, 100 * share)
     note = (f"steps={step} batch={args.batch} crop={args.crop} lr={args.lr} seed={args.seed} width={args.width} "
             f"workers={args.workers} seconds={args.seconds:g} context={args.context} "
             f"level_weights={','.join(f'{w:g}' for w in level_weights)} "
+            + (f"hard_share={args.hard_share:g} mine={args.mine} mine_every={args.mine_every} "
+               f"mine_threshold={args.mine_threshold:g} " if args.hard_share > 0 else "") +
             f"threads={args.threads} device={args.device} minutes={(time.monotonic() - t0) / 60:.1f}; "
             f"threshold: largest with landable precision >= {LANDABLE_PRECISION} on every {VAL_EVERY}th "
             "training-split photo (held out of training)")
     out = export(net, Path(args.out), thr, note)
     log.info("exported %s (%.1f min)", out, (time.monotonic() - t0) / 60)
     return out
+
+
+def left_landable_by_level(probs: list[np.ndarray], levels: list[np.ndarray], threshold: float,
+                           occupancy: OccupancyParams = OccupancyParams()) -> dict[str, float]:
+    """Per level, the share of its pixels (pooled over the photos) that the pipeline's decision
+    at ``threshold`` leaves landable: for ``landable`` what is kept, for the others the mistakes
+    that could end up inside a landing circle. ``probs`` are (L, H, W) at the photos' pixels."""
+    land = [lv.name for lv in LEVELS].index(LANDABLE)
+    kept = np.zeros(len(LEVELS), np.int64)
+    total = np.zeros(len(LEVELS), np.int64)
+    for p, lv in zip(probs, levels):
+        free = surface_free_map(1.0 - p[land], lv.shape, threshold, occupancy) == FREE
+        total += np.bincount(lv.ravel(), minlength=len(LEVELS))[: len(LEVELS)]
+        kept += np.bincount(lv[free].ravel(), minlength=len(LEVELS))[: len(LEVELS)]
+    return {lv.name: float(k / t) if t else 0.0 for lv, k, t in zip(LEVELS, kept, total)}
 
 
 def weights_with(changes: list[str] | None) -> tuple[float, ...]:
@@ -387,6 +516,18 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="make the crops in this many worker processes (0: in the training loop)")
     p.add_argument("--max-images", type=int, default=0,
                    help="use only the first N photos of the training split (quick runs and tests; 0: all)")
+    p.add_argument("--hard-share", type=float, default=0.0,
+                   help="hard mining: this share of the crops (0-1) is centred on cells the network "
+                        "under training calls landable although they are not (default 0: off, the "
+                        "shipped recipe); needs --workers 0")
+    p.add_argument("--mine", choices=MINE_KINDS, default="false-landable",
+                   help="what hard mining looks for: the unlandable cells called landable (default), or "
+                        "'both': those and, as often, the landable cells called unlandable")
+    p.add_argument("--mine-every", type=int, default=500,
+                   help="look for those cells again every this many steps (default 500)")
+    p.add_argument("--mine-threshold", type=float, default=0.3,
+                   help="a cell counts as called landable below this summed unlandable probability "
+                        "(default 0.3: a margin above the shipped threshold)")
     p.add_argument("--level-weight", action="append", default=[], metavar="LEVEL=WEIGHT",
                    help="weigh this risk level's loss term so (repeatable; default "
                         + ", ".join(f"{lv.name} {w:g}" for lv, w in zip(LEVELS, LEVEL_WEIGHTS)) + ")")
@@ -404,6 +545,11 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--workers and --seconds must be >= 0, got {args.workers} and {args.seconds}")
         if args.crop < STRIDE or args.crop % STRIDE:
             raise ValueError(f"--crop must be a positive multiple of {STRIDE}, got {args.crop}")
+        if not (0.0 <= args.hard_share <= 1.0) or args.mine_every < 1 or not (0.0 < args.mine_threshold < 1.0):
+            raise ValueError("--hard-share must be in [0, 1], --mine-every >= 1 and --mine-threshold in (0, 1); "
+                             f"got {args.hard_share}, {args.mine_every} and {args.mine_threshold}")
+        if args.hard_share > 0 and args.workers:
+            raise ValueError("--hard-share mines in the training loop: use it with --workers 0")
         if args.max_images < 0:
             raise ValueError(f"--max-images must be >= 0, got {args.max_images}")
         weights_with(args.level_weight)

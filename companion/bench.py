@@ -40,34 +40,63 @@ def _stats(values: list[float]) -> dict[str, float]:
             "p99_ms": round(float(np.percentile(a, 99)), 3)}
 
 
+def bench_frame(width: int, height: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The bench's frame (a synthetic crowd with two free areas, BGR uint8) and its ideal
+    density map."""
+    scale = width / 640.0
+    scene = synthetic.crowd_scene(width, height, n_people=int(150 * scale * scale),
+                                  free=((0.3 * width, 0.5 * height, 0.15 * width),
+                                        (0.75 * width, 0.3 * height, 0.1 * width)), seed=seed)
+    return synthetic.render(scene, seed=seed), synthetic.point_density(scene)
+
+
+def drifting_pose(t: float) -> Pose:
+    """20 m up, drifting, with small attitude changes, so the grid and warps change every frame."""
+    return Pose(t, 0.3 * t, 0.1 * t, -20.0, 0.03 * math.sin(t), 0.02 * math.cos(t), 0.1 * t)
+
+
+def paced_frame_ms(pipe: SLZPipeline, frame: np.ndarray, fps: float, frames: int, warmup: int = 5) -> list[float]:
+    """The pipeline's whole time per frame (its ``total``, ms) over ``frames`` frames run at a
+    camera's pace: each frame starts one period (1/``fps``) after the last and the time left is
+    slept, as a service's pipeline waits for its next frame. On a virtual machine this is slower
+    than frames back to back (idle vCPUs woken, cold caches), and it is what a flight's service
+    meets: ``companion sim-scenarios`` checks the machine with it before flying."""
+    period = 1.0 / fps
+    out: list[float] = []
+    next_t = time.monotonic()
+    for k in range(frames + warmup):
+        t = k * period
+        res = pipe.process(frame, t, drifting_pose(t))
+        if k >= warmup:
+            out.append(float(res.timings_ms["total"]))
+        next_t += period
+        delay = next_t - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        else:  # behind: the next frame at once, the pace from there
+            next_t = time.monotonic()
+    return out
+
+
 def bench_resolution(width: int, height: int, frames: int, model: DensityFn | None = None, warmup: int = 5,
                      seed: int = 0, surface: SurfaceFn | None = None, pause_s: float = 0.0
                      ) -> dict[str, dict[str, float]]:
     """Per-stage median and p99 milliseconds over ``frames`` frames at one resolution
     (``surface``: the landability model's callable, timed as ``landability``; ``pause_s``: a sleep
     before each frame, the time a camera's frame period or the models would leave between them)."""
-    scale = width / 640.0
-    scene = synthetic.crowd_scene(width, height, n_people=int(150 * scale * scale),
-                                  free=((0.3 * width, 0.5 * height, 0.15 * width),
-                                        (0.75 * width, 0.3 * height, 0.1 * width)), seed=seed)
-    frame = synthetic.render(scene, seed=seed)
-    ideal = synthetic.point_density(scene)
+    frame, ideal = bench_frame(width, height, seed)
     density = model if model is not None else (lambda f: ideal)
     K = Intrinsics.from_fov(width, height, 70.0)
     # The fused risk-map, calm and unwalked (in the tracking stage) and people stages are timed
     # too, whatever the flight defaults are.
     pipe = SLZPipeline(density, PipelineConfig(fusion="map", calm=True, unwalked=True, people=PeopleParams()),
-                       intrinsics=K,
-                       mount=Mount(),
-                       surface=surface)
+                       intrinsics=K, mount=Mount(), surface=surface)
     samples: dict[str, list[float]] = {}
     for k in range(frames + warmup):
         t = k / 15.0
-        # Drift and small attitude changes so the grid and warps change from frame to frame.
-        pose = Pose(t, 0.3 * t, 0.1 * t, -20.0, 0.03 * math.sin(t), 0.02 * math.cos(t), 0.1 * t)
         if pause_s > 0:
             time.sleep(pause_s)
-        res = pipe.process(frame, t, pose)
+        res = pipe.process(frame, t, drifting_pose(t))
         if k < warmup:
             continue
         for name, ms in res.timings_ms.items():

@@ -39,7 +39,10 @@ sends each flight to a Ray cluster as a task (``--ray auto``: a local Ray), each
 own processes and node-wide claimed ports (``sim.flight.reserve_port``). ``--out FILE.jsonl``
 appends each flight's row as it ends and, run again, flies only the seeds not in it yet; the
 summary is then computed from the file. A flight whose service could not keep its frame rate is
-flagged **starved** and kept out of the clean counts.
+flagged **starved** and kept out of the clean counts. Before the first companion flight flies
+here (not on Ray), the run times the flights' own pipeline at the camera's rate for a few seconds
+and says on stderr whether this machine leaves its flights room (``machine_check`` in the JSON;
+``--no-machine-check`` skips it); a model that does not load is exit 2 then, before anything flies.
 
 ``--set KEY=VALUE`` (repeatable) flies every seed with that service setting, as ``companion run
 --set`` takes it (``--set model.path=my.onnx`` flies a researcher's own model in closed loop). A bad
@@ -81,7 +84,7 @@ from sim.evidence import (
     summarise_rows,
     summary_text,
 )
-from sim.flight import FlightSpec, fly
+from sim.flight import STARVED_FRAME_SHARE, FlightSpec, fly
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -221,6 +224,82 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     return row
 
 
+#: The machine check times the pipeline alone; a flight runs the simulator and the service's
+#: recorder beside it. Measured on the 2-core development VM (docs/scale.md, "Before flying"):
+#: flights' frame p95 was 1.0-1.26 times the check's, so a check above this share of the limit
+#: is called tight.
+TIGHT_SHARE = 0.85
+
+
+@dataclasses.dataclass(frozen=True)
+class MachineCheck:
+    """What this machine gives a flight's pipeline before anything flies (:func:`machine_check`):
+    its whole time per frame (ms, median and 95th percentile) at the camera's rate, against the
+    time above which a flight counts as starved (``sim.flight.starved``). The check is a lower
+    bound on a flight's figure: the flight runs the simulator beside the pipeline."""
+
+    frame_ms_p50: float
+    frame_ms_p95: float
+    limit_ms: float
+    fps: float
+    threads: int
+
+    @property
+    def starves(self) -> bool:
+        """Even alone the pipeline is over the limit: every flight will be starved."""
+        return self.frame_ms_p95 > self.limit_ms
+
+    @property
+    def tight(self) -> bool:
+        """Under the limit alone, but by less than flights add to it (:data:`TIGHT_SHARE`)."""
+        return not self.starves and self.frame_ms_p95 > TIGHT_SHARE * self.limit_ms
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"frame_ms_p50": round(self.frame_ms_p50, 1), "frame_ms_p95": round(self.frame_ms_p95, 1),
+                "limit_ms": round(self.limit_ms, 1), "fps": self.fps, "model_threads": self.threads,
+                "starves": self.starves, "tight": self.tight}
+
+    def text(self, workers: int) -> str:
+        head = (f"machine check: the flights' pipeline takes {self.frame_ms_p50:.0f} ms a frame here "
+                f"(95th percentile {self.frame_ms_p95:.0f} ms; {self.fps:g} Hz, {self.threads} model thread(s), "
+                f"nothing else of the flight running)")
+        room = ("A faster machine, or a faster model (--set model.path=...; the model card gives the int8 "
+                "file's recall cost), gives them room.")
+        if self.starves:
+            text = (f"{head}, above the {self.limit_ms:.0f} ms at which a flight counts as starved: expect "
+                    f"every flight starved (flown, flagged, and left out of the clean counts). {room}")
+        elif self.tight:
+            text = (f"{head}: close to the {self.limit_ms:.0f} ms at which a flight counts as starved, and a "
+                    "flight, which runs the simulator beside it, takes more: expect starved flights. " + room)
+        else:
+            text = f"{head}; a flight counts as starved above {self.limit_ms:.0f} ms."
+        if workers > 1:
+            text += f" With {workers} flights at once each gets less than this one did."
+        return text
+
+
+def machine_check(job: FlightJob, frames: int = 40) -> MachineCheck:
+    """Time the pipeline a job's service would run (its settings, its model and threads, the
+    simulator's 640x480 frames) at the camera's rate on this machine, on the bench's crowd frame
+    (``companion.bench.paced_frame_ms``): a few seconds that tell, before an hour of flights,
+    whether they can be clean here. Raises ``DensityModelError`` (naming the file) when the
+    model does not load."""
+    from companion.bench import bench_frame, paced_frame_ms
+    from companion.service.app import build_pipeline, load_landability, load_model
+
+    spec = job.spec()
+    overrides: dict[str, Any] = {"camera.hfov_deg": spec.hfov_deg, "camera.fps": spec.fps,
+                                 "pipeline.r0_m": spec.r0_m, "camera.width": 640, "camera.height": 480}
+    overrides.update(settings.parse_assignment(item) for item in spec.service_set)
+    cfg = settings.load(None, overrides)
+    model = load_model(cfg)
+    pipe = build_pipeline(cfg, model, load_landability(cfg))
+    frame, _ = bench_frame(cfg.camera.width, cfg.camera.height)
+    ms = paced_frame_ms(pipe, frame, spec.fps, frames)
+    return MachineCheck(float(np.median(ms)), float(np.percentile(ms, 95)),
+                        STARVED_FRAME_SHARE * 1000.0 / spec.fps, spec.fps, cfg.model.threads)
+
+
 def plan(jobs: list[FlightJob], done_rows: list[dict[str, Any]]) -> tuple[list[FlightJob], dict[RowKey, dict]]:
     """The jobs still to fly, and the rows of the others already in a results file (by key; the
     last row of a key wins; a baseline row never stands for a companion flight, nor the reverse)."""
@@ -309,6 +388,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                        help="append each flight's row here as it ends; seeds already in it are not "
                             "flown again (resume), and the summary is computed from it")
     scale.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
+    scale.add_argument("--no-machine-check", action="store_true",
+                       help="fly without first timing the flights' pipeline on this machine (a few "
+                            "seconds that say whether its flights can be clean here; never with --ray)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -335,14 +417,18 @@ def run(args: argparse.Namespace) -> int:
                         + ([FlightJob(seed, args.flavour, baseline=True, threads=threads, service_set=service_set)]
                            if args.baseline else []))]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
-                    out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress)
+                    out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,
+                    check_machine=not args.no_machine_check)
 
 
 def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None = None,
              cpus_per_flight: float = CPUS_PER_FLIGHT, out: Path | None = None, as_json: bool = False,
-             verbose: bool = False, progress: bool = False) -> int:
+             verbose: bool = False, progress: bool = False, check_machine: bool = False) -> int:
     """Fly the jobs not yet in ``out`` (all of them without one), report each as it ends, then
-    the summary over every job's row; the exit status of the module docstring."""
+    the summary over every job's row; the exit status of the module docstring. With
+    ``check_machine``, and companion flights to fly here (not on Ray), first say what
+    :func:`machine_check` finds (stderr, and ``machine_check`` in the summary); a model that does
+    not load is exit 2 before anything flies."""
     stream = sys.stderr if as_json else sys.stdout
     previous: list[dict[str, Any]] = []
     if out is not None:
@@ -353,6 +439,17 @@ def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None
     if kept:
         print(f"{out}: {len(kept)} of {len(jobs)} flights already there; flying the other {len(todo)}",
               file=sys.stderr)
+    machine: MachineCheck | None = None
+    first = next((job for job in todo if not job.baseline), None)
+    if check_machine and ray_address is None and first is not None:
+        from companion.pipeline.density import DensityModelError
+
+        try:
+            machine = machine_check(first)
+        except DensityModelError as exc:
+            print(f"companion sim-scenarios: {exc}", file=sys.stderr)
+            return 2
+        print(machine.text(workers), file=sys.stderr)
     rows: dict[RowKey, dict[str, Any]] = dict(kept)
     failed: dict[RowKey, str] = {}
     results = ResultsFile(out) if out is not None else None
@@ -403,6 +500,8 @@ def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None
     summary["run"] = {"flown": len(todo) - len(failed), "wall_s": round(wall, 1),
                       "workers": None if ray_address else workers, "ray": ray_address,
                       "cpus_per_flight": cpus_per_flight}
+    if machine is not None:
+        summary["machine_check"] = machine.as_dict()
     summary["flights"] = asked
     if any(job.baseline for job in jobs):
         base = summarise_baseline(base_rows)

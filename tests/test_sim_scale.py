@@ -268,6 +268,53 @@ def test_a_flight_that_cannot_fly_is_reported_and_left_to_retry(tmp_path: Path, 
     assert [r["seed"] for r in read_rows(out)[0]] == [1]
 
 
+def test_the_machine_check_times_the_flights_own_pipeline_at_the_camera_rate(model_path) -> None:
+    # The real model and the flight's settings: a job with one model thread is timed on one.
+    check = scenarios.machine_check(FlightJob(3, "ardupilot", threads=1), frames=3)
+    assert check.threads == 1 and check.fps == 10.0
+    assert check.limit_ms == pytest.approx(50.0)  # sim.flight.starved's limit at 10 Hz
+    assert 0 < check.frame_ms_p50 <= check.frame_ms_p95
+    assert check.as_dict()["starves"] == (check.frame_ms_p95 > 50.0)
+    slow = scenarios.MachineCheck(70.0, 95.0, 50.0, 10.0, 2)
+    assert slow.starves and "expect every flight starved" in slow.text(1) and "2 flights at once" in slow.text(2)
+    assert "expect" not in scenarios.MachineCheck(30.0, 40.0, 50.0, 10.0, 2).text(1)
+    tight = scenarios.MachineCheck(33.0, 45.0, 50.0, 10.0, 2)  # under the limit, by less than flights add
+    assert tight.tight and not tight.starves and "expect starved flights" in tight.text(1)
+    assert not slow.tight and tight.as_dict()["tight"] is True
+
+
+def test_a_run_says_before_flying_when_its_machine_would_starve_the_flights(tmp_path: Path, monkeypatch,
+                                                                           capsys) -> None:
+    checked: list[FlightJob] = []
+
+    def slow_machine(job: FlightJob) -> scenarios.MachineCheck:
+        checked.append(job)
+        return scenarios.MachineCheck(70.0, 95.0, 50.0, 10.0, 2)
+
+    monkeypatch.setattr(scenarios, "machine_check", slow_machine)
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: _row(job.seed, "safe"))
+    jobs = [FlightJob(1, "ardupilot"), FlightJob(2, "ardupilot")]
+    assert run_jobs(jobs, out=tmp_path / "r.jsonl", as_json=True, check_machine=True) == 0
+    captured = capsys.readouterr()
+    assert "expect every flight starved" in captured.err and len(checked) == 1  # once a run, then it flies
+    summary = json.loads(captured.out)
+    assert summary["machine_check"]["starves"] is True and summary["total"] == 2
+    # Nothing left to fly (resumed), or only baselines (no service): no check.
+    assert run_jobs(jobs, out=tmp_path / "r.jsonl", as_json=True, check_machine=True) == 0
+    assert run_jobs([FlightJob(1, "ardupilot", baseline=True)], as_json=True, check_machine=True) == 0
+    assert len(checked) == 1 and "machine_check" not in json.loads(capsys.readouterr().out.splitlines()[-1])
+
+
+def test_a_model_that_does_not_load_stops_the_run_before_anything_flies(tmp_path: Path, monkeypatch,
+                                                                       capsys) -> None:
+    bad = tmp_path / "corrupt.onnx"
+    bad.write_bytes(b"not an onnx file")
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    job = FlightJob(1, "ardupilot", service_set=scenarios.service_settings([f"model.path={bad}"]))
+    assert run_jobs([job], as_json=True, check_machine=True) == 2
+    assert str(bad) in capsys.readouterr().err
+
+
 # ---- flights ---------------------------------------------------------------------------------
 
 SLOW = '''\

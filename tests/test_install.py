@@ -45,6 +45,23 @@ def _companion(*args: str, cwd: Path | None = None) -> subprocess.CompletedProce
 
 # ---- check-config ---------------------------------------------------------------------------
 
+def test_the_settings_load_without_the_kalman_filters_statistics() -> None:
+    # filterpy's package imports scipy.stats (about 0.8 s): every command paid it through
+    # companion.config before it could say a key was wrong. The zone tracker imports it when
+    # made (the service at start-up), and its filters work as before.
+    code = ("import sys, companion.config, companion.cli\n"
+            "print('filterpy' in sys.modules, 'scipy.stats' in sys.modules)\n"
+            "from companion.pipeline.tracker import ZoneTracker\n"
+            "from companion.pipeline.circles import Circle\n"
+            "tr = ZoneTracker()\n"
+            "print('filterpy' in sys.modules)\n"
+            "for k in range(5): tr.update([Circle(1.0, 2.0, 3.0)], k * 0.1)\n"
+            "print(len(tr.update([Circle(1.0, 2.0, 3.0)], 0.5)))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["False", "False", "True", "1"], r.stdout
+
+
 def test_check_config_accepts_the_example_and_prints_what_it_resolves_to(tmp_path: Path) -> None:
     r = _companion("check-config", str(EXAMPLE), cwd=tmp_path)
     assert r.returncode == 0, r.stderr

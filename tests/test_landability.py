@@ -237,23 +237,36 @@ def test_config_validates_the_unlandable_levels(value: list[str], message: str) 
         config.load(None, {"pipeline.unlandable_threshold": 1.0})
 
 
-def _companion(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "companion", *args], capture_output=True, text=True,
-                          timeout=60, cwd=str(cwd))
+def _companions(runs: list[tuple[str, ...]], cwd: Path) -> list[subprocess.CompletedProcess[str]]:
+    """Several ``companion`` commands started at once and waited for (each starts a Python and
+    loads onnxruntime: side by side they take the time of about two, not of all of them)."""
+    procs = [subprocess.Popen([sys.executable, "-m", "companion", *args], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, cwd=str(cwd)) for args in runs]
+    done = []
+    for args, proc in zip(runs, procs):
+        out, err = proc.communicate(timeout=60)
+        done.append(subprocess.CompletedProcess([*args], proc.returncode, out, err))
+    return done
 
 
 def test_a_missing_or_corrupt_landability_model_stops_the_start_with_exit_2(tmp_path: Path) -> None:
     (tmp_path / "bad.onnx").write_bytes(b"garbage, not onnx")
-    for path, words in (("missing.onnx", "does not exist"), ("bad.onnx", "not a loadable ONNX model")):
-        f = tmp_path / "c.toml"
+    cases = (("missing.onnx", "does not exist"), ("bad.onnx", "not a loadable ONNX model"))
+    runs: list[tuple[str, ...]] = []
+    for k, (path, _) in enumerate(cases):
+        f = tmp_path / f"c{k}.toml"
         f.write_text(f'[model]\nthreads = 1\nlandability = true\nlandability_path = "{path}"\n')
-        r = _companion("run", "--config", str(f), cwd=tmp_path)
+        runs += [("run", "--config", str(f)), ("check-config", str(f))]
+    lava = tmp_path / "lava.toml"
+    lava.write_text('[model]\nthreads = 1\nlandability = true\n[pipeline]\nunlandable_levels = ["lava"]\n')
+    runs.append(("check-config", str(lava)))
+    results = _companions(runs, cwd=tmp_path)
+    for k, (path, words) in enumerate(cases):
+        r, c = results[2 * k], results[2 * k + 1]
         assert r.returncode == 2, (r.stdout, r.stderr)
         assert "model error" in r.stderr and path in r.stderr and words in r.stderr and "Traceback" not in r.stderr
-        r = _companion("check-config", str(f), cwd=tmp_path)
-        assert r.returncode == 2 and "model.landability_path" in r.stderr and "Traceback" not in r.stderr
-    f.write_text('[model]\nthreads = 1\nlandability = true\n[pipeline]\nunlandable_levels = ["lava"]\n')
-    r = _companion("check-config", str(f), cwd=tmp_path)
+        assert c.returncode == 2 and "model.landability_path" in c.stderr and "Traceback" not in c.stderr
+    r = results[-1]
     assert r.returncode == 2 and "pipeline.unlandable_levels" in r.stderr and "lava" in r.stderr
 
 

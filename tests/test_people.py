@@ -132,7 +132,7 @@ def test_a_walker_heading_for_the_zone_is_seen_coming_before_the_zone_is_seen_oc
     add_crossing_walkers(world, free, 4.0, spec.seed)
     ground = ProceduralGround(spec.seed)
     kk = Intrinsics.from_fov(640, 480, spec.hfov_deg)
-    pipe = SLZPipeline(DensityModel(model_path, threads=1), PipelineConfig(people=PeopleParams()), intrinsics=kk,
+    pipe = SLZPipeline(DensityModel(model_path, threads=2), PipelineConfig(people=PeopleParams()), intrinsics=kk,
                        mount=Mount())
     warned = occupied = None
     for _ in range(200):  # 20 s at 10 Hz

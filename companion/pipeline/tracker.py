@@ -10,13 +10,14 @@ target.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 
 from companion.pipeline.circles import Circle, iou_matrix
@@ -139,11 +140,23 @@ def _cv_matrices(dt: float, sigma_a: float) -> tuple[np.ndarray, np.ndarray]:
     return F, Q
 
 
+@functools.cache
+def _kalman_filter() -> Any:
+    """filterpy's ``KalmanFilter`` class. Imported on first use, not with this module: the
+    package's ``__init__`` imports its EKF and statistics, and with them ``scipy.stats`` (about
+    0.8 s on the development machine), which every ``companion`` command paid for through
+    ``companion.config`` before it could even say a key was wrong. A ``ZoneTracker`` imports it
+    when it is made, so the service pays at start-up, never at its first zone."""
+    from filterpy.kalman import KalmanFilter
+
+    return KalmanFilter
+
+
 class _ZoneFilter:
     """One zone's Kalman filter and bookkeeping."""
 
     def __init__(self, track_id: int, z: Circle, t: float, params: TrackerParams, hits: int):
-        kf = KalmanFilter(dim_x=6, dim_z=3)
+        kf = _kalman_filter()(dim_x=6, dim_z=3)
         kf.x = np.array([z.x, z.y, z.r, 0.0, 0.0, 0.0])
         kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
         kf.R = np.diag(np.square(params.r_std))
@@ -218,6 +231,7 @@ class ZoneTracker:
     """Tracks landing zones from per-frame proposals. Call ``update`` once per processed frame."""
 
     def __init__(self, params: TrackerParams = TrackerParams()):
+        _kalman_filter()  # the import's cost now, at start-up, not at the first zone
         self.params = params
         self._filters: list[_ZoneFilter] = []
         self._candidates: list[_Candidate] = []

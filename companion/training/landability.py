@@ -20,6 +20,8 @@ The threshold (``companion.unlandable_threshold``) is the largest on a grid at w
 :data:`LANDABLE_PRECISION` of the pixels the pipeline's decision leaves landable (after its
 dilation) truly are landable on the training-side validation photos; it errs toward
 "unlandable". ``--device cuda`` trains on a GPU (the shipped model: CPU, one thread).
+``--hard-share`` centres part of the crops on the network's own mistakes, found again every
+``--mine-every`` steps (hard mining; measured and not used by the shipped model: its card).
 """
 
 from __future__ import annotations

@@ -363,15 +363,20 @@ def build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, fl
     return world, free, start
 
 
+def service_settings(spec: FlightSpec) -> tuple[str, ...]:
+    """The ``KEY=VALUE`` settings the flight's service runs with (``--set``, in this order: the
+    scenario's camera and r0, then ``spec.service_set``, which wins): one list for the service
+    and for ``sim.scenarios.machine_check``, which times the same pipeline."""
+    return (f"camera.hfov_deg={spec.hfov_deg}", f"camera.fps={spec.fps}", f"pipeline.r0_m={spec.r0_m}",
+            "log.health_interval_s=5", *spec.service_set)
+
+
 def service_command(spec: FlightSpec, link_port: int, camera_url: str, record_dir: Path) -> list[str]:
     """``companion run`` as the flight starts it (a subprocess, like systemd would)."""
     cmd = [sys.executable, "-m", "companion", "--log-level", "INFO", "run",
            "--link", f"udpin:127.0.0.1:{link_port}", "--camera", camera_url,
-           "--flavour", spec.flavour,
-           "--set", f"camera.hfov_deg={spec.hfov_deg}", "--set", f"camera.fps={spec.fps}",
-           "--set", f"pipeline.r0_m={spec.r0_m}", "--set", "log.health_interval_s=5",
-           "--record", str(record_dir)]
-    for item in spec.service_set:
+           "--flavour", spec.flavour, "--record", str(record_dir)]
+    for item in service_settings(spec):
         cmd += ["--set", item]
     return cmd
 

@@ -85,6 +85,7 @@ from sim.evidence import (
     summary_text,
 )
 from sim.flight import STARVED_FRAME_SHARE, FlightSpec, fly
+from sim.flight import service_settings as flight_settings
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -288,9 +289,9 @@ def machine_check(job: FlightJob, frames: int = 40) -> MachineCheck:
     from companion.service.app import build_pipeline, load_landability, load_model
 
     spec = job.spec()
-    overrides: dict[str, Any] = {"camera.hfov_deg": spec.hfov_deg, "camera.fps": spec.fps,
-                                 "pipeline.r0_m": spec.r0_m, "camera.width": 640, "camera.height": 480}
-    overrides.update(settings.parse_assignment(item) for item in spec.service_set)
+    # The simulator's camera sends 640x480 frames; the rest is what the service is started with.
+    overrides: dict[str, Any] = {"camera.width": 640, "camera.height": 480}
+    overrides.update(settings.parse_assignment(item) for item in flight_settings(spec))
     cfg = settings.load(None, overrides)
     model = load_model(cfg)
     pipe = build_pipeline(cfg, model, load_landability(cfg))

@@ -396,11 +396,11 @@ def test_false_landable_cells_are_the_unlandable_cells_the_network_leaves_landab
     probs = np.zeros((len(names), 3, 3), np.float32)
     probs[land] = 1.0  # called landable everywhere...
     probs[land, 1, 2], probs[roof, 1, 2] = 0.2, 0.8  # ...but the second roof, seen for what it is
-    cells = T.false_landable_cells(probs, levels, threshold=0.3)
+    cells = T.mistaken_cells(probs, levels, threshold=0.3)
     assert cells.tolist() == [[12.0, 4.0]]  # the centre (x, y) of the one roof called landable
     # The other way: grass called unlandable (cell (2, 0)), and none of the roofs.
     probs[land, 2, 0], probs[roof, 2, 0] = 0.5, 0.5
-    assert T.false_unlandable_cells(probs, levels, threshold=0.3).tolist() == [[4.0, 20.0]]
+    assert T.mistaken_cells(probs, levels, threshold=0.3, kind=1).tolist() == [[4.0, 20.0]]
     # Mixed kinds are drawn half and half, however many of each there are.
     mixed = T.HardCells(np.zeros(10, np.int64), np.zeros((10, 2)), np.array([0] * 9 + [1]))
     draws = [mixed.draw(np.random.default_rng(k)) for k in range(200)]
@@ -411,7 +411,7 @@ def test_false_landable_cells_are_the_unlandable_cells_the_network_leaves_landab
     big[0:16, 16:32] = roof
     p_big = np.zeros((len(names), 12, 12), np.float32)
     p_big[land] = 1.0
-    hard = T.HardCells(np.zeros(4, np.int64), T.false_landable_cells(p_big, big, threshold=0.3))
+    hard = T.HardCells(np.zeros(4, np.int64), T.mistaken_cells(p_big, big, threshold=0.3))
     assert len(hard) == 4
     photos = T.Photos(["a"], [np.zeros((96, 96, 3), np.uint8)], [big])
     _, y_hard = T.make_batch(photos, 32, 32, np.random.default_rng(0), hard, hard_share=1.0)

@@ -208,38 +208,23 @@ class HardCells:
         return int(of_kind[int(rng.integers(len(of_kind)))])
 
 
-def _cell_landable_share(levels: np.ndarray, stride: int) -> np.ndarray:
+def mistaken_cells(probs: np.ndarray, levels: np.ndarray, threshold: float, kind: int = 0,
+                   stride: int = STRIDE) -> np.ndarray:
+    """(K, 2) float: the centres (x, y, pixels) of the cells of one photo that the network gets
+    wrong, by ``kind`` (as :class:`HardCells`): 0, cells the pipeline would leave landable
+    (summed unlandable probability below ``threshold``) although most of their pixels are
+    unlandable in ``levels`` (level codes; :data:`LANDABLE` is landable); 1, the other way
+    round, mostly landable cells at ``threshold`` or more. ``probs`` is (L, h, w) from
+    :func:`predict` on that photo, one cell per ``stride`` pixels."""
     land = [lv.name for lv in LEVELS].index(LANDABLE)
     h, w = levels.shape
     lv = np.pad(levels == land, ((0, -h % stride), (0, -w % stride)), mode="edge")
-    return lv.reshape(lv.shape[0] // stride, stride, lv.shape[1] // stride, stride).mean(axis=(1, 3))
-
-
-def _centres(mask: np.ndarray, stride: int) -> np.ndarray:
-    rows, cols = np.nonzero(mask)
+    share = lv.reshape(lv.shape[0] // stride, stride, lv.shape[1] // stride, stride).mean(axis=(1, 3))
+    ch, cw = min(probs.shape[1], share.shape[0]), min(probs.shape[2], share.shape[1])
+    called_landable = 1.0 - probs[land, :ch, :cw] < threshold
+    landable = share[:ch, :cw] >= 0.5
+    rows, cols = np.nonzero(called_landable & ~landable if kind == 0 else ~called_landable & landable)
     return np.stack([(cols + 0.5) * stride, (rows + 0.5) * stride], axis=1).astype(np.float64)
-
-
-def false_landable_cells(probs: np.ndarray, levels: np.ndarray, threshold: float,
-                         stride: int = STRIDE) -> np.ndarray:
-    """(K, 2) float: the centres (x, y, pixels) of the cells of one photo that the pipeline
-    would leave landable (summed unlandable probability below ``threshold``) although most of
-    their pixels are unlandable in ``levels`` (level codes; :data:`LANDABLE` is landable).
-    ``probs`` is (L, h, w) from :func:`predict` on that photo, one cell per ``stride`` pixels."""
-    land = [lv.name for lv in LEVELS].index(LANDABLE)
-    share = _cell_landable_share(levels, stride)
-    ch, cw = min(probs.shape[1], share.shape[0]), min(probs.shape[2], share.shape[1])
-    return _centres((1.0 - probs[land, :ch, :cw] < threshold) & (share[:ch, :cw] < 0.5), stride)
-
-
-def false_unlandable_cells(probs: np.ndarray, levels: np.ndarray, threshold: float,
-                           stride: int = STRIDE) -> np.ndarray:
-    """(K, 2) float: as :func:`false_landable_cells`, the other way round: cells mostly
-    landable in ``levels`` whose summed unlandable probability is ``threshold`` or more."""
-    land = [lv.name for lv in LEVELS].index(LANDABLE)
-    share = _cell_landable_share(levels, stride)
-    ch, cw = min(probs.shape[1], share.shape[0]), min(probs.shape[2], share.shape[1])
-    return _centres((1.0 - probs[land, :ch, :cw] >= threshold) & (share[:ch, :cw] >= 0.5), stride)
 
 
 def mine_hard_cells(net: nn.Module, photos: Photos, threshold: float, kinds: str = "false-landable") -> HardCells:
@@ -253,10 +238,8 @@ def mine_hard_cells(net: nn.Module, photos: Photos, threshold: float, kinds: str
     try:
         for i, (img, lv) in enumerate(zip(photos.images, photos.levels)):
             p = predict(net, img)
-            found = [false_landable_cells(p, lv, threshold)]
-            if kinds == "both":
-                found.append(false_unlandable_cells(p, lv, threshold))
-            for k, cells in enumerate(found):
+            for k in range(2 if kinds == "both" else 1):
+                cells = mistaken_cells(p, lv, threshold, k)
                 idx.append(np.full(len(cells), i, np.int64))
                 xy.append(cells)
                 kind.append(np.full(len(cells), k, np.int64))

@@ -3,10 +3,17 @@
 Issue 13 asks for int8 measured for its recall cost: this writes the quantised file, and
 ``companion eval`` / ``companion bench --model`` measure it beside the float one.
 
-* Weights int8 per output channel, activations uint8 per tensor, ranges from MinMax over the
-  calibration frames; in onnxruntime's QOperator form (``QLinearConv`` nodes, the default) or QDQ
+* Weights int8 per output channel in 7 bits (``reduce_range``), activations uint8 per tensor,
+  ranges from MinMax over the calibration frames; in onnxruntime's QOperator form (``QLinearConv`` nodes, the default) or QDQ
   (``--format qdq``: QuantizeLinear/DequantizeLinear pairs the runtime fuses; other providers
   prefer it). Which is faster is measured, not assumed: the model card has the figures.
+* **Why 7-bit weights**: on x86 CPUs without VNNI (AVX2 or AVX-512 alone, many mini-PCs and
+  servers) onnxruntime multiplies uint8 activations by int8 weights with an instruction that adds
+  two products into 16 bits and saturates. With full 8-bit weights the density map then depends on
+  the CPU: on an AVX2-only host the shipped file's map was 0.11 away from its own exact
+  quantised arithmetic (QDQ run unfused) in places, against 0.01 with 7-bit weights, which cannot
+  saturate. A file shipped to unknown boards must score the same on all of them; VNNI and ARM
+  kernels do not saturate either way, and lose one bit of weight precision.
 * Calibration frames come **only from the training splits**: the semantic-drone photos outside
   the held-out fifth, DroneCrowd's training frames and ShanghaiTech B train, each through the
   model's own preprocessing (``DensityModel.preprocess``). Nothing the figures are reported on
@@ -76,11 +83,14 @@ FORMATS = ("qoperator", "qdq")
 
 def quantize(model_path: Path, out: Path, shared: Path, per_source: int = CALIB_PER_SOURCE,
              threads: int = 2, calibrate_after: bool = True, fmt: str = "qoperator",
-             rule: str = DEFAULT_RULE, min_recall: float | None = None) -> dict[str, object]:
+             rule: str = DEFAULT_RULE, min_recall: float | None = None,
+             reduce_range: bool = True) -> dict[str, object]:
     """Write the int8 model of ``model_path`` to ``out`` in form ``fmt`` (``FORMATS``); returns
     its metadata (after calibration by ``rule`` and ``min_recall``, as
-    ``companion.training.calibrate`` takes them, unless ``calibrate_after`` is false). A bad form
-    or rule is a ValueError before anything is written."""
+    ``companion.training.calibrate`` takes them, unless ``calibrate_after`` is false).
+    ``reduce_range``: 7-bit weights, which no x86 kernel saturates (module docstring); False gives
+    full 8-bit weights, exact only on VNNI and ARM kernels. A bad form or rule is a ValueError
+    before anything is written."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
@@ -102,8 +112,9 @@ def quantize(model_path: Path, out: Path, shared: Path, per_source: int = CALIB_
                         quant_format=QuantFormat.QDQ if fmt == "qdq" else QuantFormat.QOperator,
                         per_channel=True,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                        calibrate_method=CalibrationMethod.MinMax)
-    meta["companion.quantization"] = (f"int8 static (onnxruntime {fmt}, weights per channel, activations "
+                        reduce_range=reduce_range, calibrate_method=CalibrationMethod.MinMax)
+    bits = "7-bit" if reduce_range else "8-bit"
+    meta["companion.quantization"] = (f"int8 static (onnxruntime {fmt}, {bits} weights per channel, activations "
                                       f"uint8 MinMax over {len(frames)} training frames) of {model_path.name}")
     set_metadata(out, meta)
     if not calibrate_after:
@@ -126,11 +137,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="the calibration rule that chooses the int8 file's threshold "
                         "(companion.training.calibrate; v1 for the first shipped model)")
     p.add_argument("--min-recall", type=float, default=None, help="v1 rule only (as calibrate takes it)")
+    p.add_argument("--full-range", action="store_true",
+                   help="8-bit weights: exact only where the CPU has VNNI or is ARM; on other x86 CPUs "
+                        "onnxruntime's kernels saturate (the default, 7-bit weights, scores the same everywhere)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     try:
         quantize(Path(args.model), Path(args.out), Path(args.shared), args.per_source, args.threads,
-                 not args.no_calibrate, args.format, args.rule, args.min_recall)
+                 not args.no_calibrate, args.format, args.rule, args.min_recall, not args.full_range)
     except ValueError as exc:
         print(f"companion.training.quantize: {exc}", file=sys.stderr)
         return 2

@@ -88,6 +88,20 @@ def test_shipped_model_gives_stride_4_map(shipped_model: Path, hw: tuple[int, in
     assert np.isfinite(d).all() and d.min() >= 0 and d.max() <= 1  # sigmoid occupancy score
 
 
+def test_the_shipped_int8_file_scores_like_the_float_one_on_this_cpu(model_path: Path, shared_dir: Path) -> None:
+    """The int8 file's map on the held-out DroneCrowd frame, on whatever CPU runs this: within a
+    few hundredths of the float model's. Its first form (8-bit weights) was 0.11 away on an
+    x86 CPU without VNNI, where onnxruntime's kernels saturate, and left more ground free there
+    than on the machine it was measured on (MODEL_CARD.md, "int8")."""
+    from companion.evaluation.datasets import dronecrowd_frames
+
+    if not INT8.is_file():
+        pytest.skip(f"no int8 model shipped ({INT8.name})")
+    frame = dronecrowd_frames(shared_dir, ["img017012"])[0].image()
+    a, b = DensityModel(model_path, threads=1)(frame), DensityModel(INT8, threads=1)(frame)
+    assert float(np.abs(a - b).max()) < 0.06, float(np.abs(a - b).max())
+
+
 def test_shipped_model_sees_people_in_a_drone_photo(shipped_model: Path, shared_dir: Path) -> None:
     from companion.evaluation.datasets import semantic_drone
 

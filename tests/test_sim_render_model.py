@@ -86,3 +86,23 @@ def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys:
     assert main(["--heights", "1.0"]) == 2  # below the head plane
     assert main(["--model", "/nonexistent.onnx"]) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_walker_alarms_command_scores_each_seed_and_refuses_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m sim.walker_alarms``: a short descent over crossing seed 9's circle gives one
+    JSON row per margin and the totals; a dense world has no circle and is skipped, said on
+    stderr; bad arguments are exit 2."""
+    from sim.walker_alarms import main
+
+    assert main(["--seeds", "9,16", "--edge-px", "0,16", "--seconds", "4", "--horizon", "3",
+                 "--blind-from", "1", "--model", str(MODEL), "--json"]) == 0
+    captured = capsys.readouterr()
+    rows = [json.loads(line) for line in captured.out.splitlines()]
+    assert [(r["seed"], r["edge_px"]) for r in rows] == [(9, 0.0), (9, 16.0), (None, 0.0), (None, 16.0)]
+    assert rows[0]["safe_frames"] + rows[0]["danger_frames"] > 0 and rows[2]["world"] == "all"
+    assert "seed 16: dense has no free circle" in captured.err
+    assert main(["--edge-px", "-1"]) == 2
+    assert main(["--seconds", "2"]) == 2
+    assert main(["--blind-from", "9", "--horizon", "8"]) == 2
+    assert main(["--model", "/nonexistent.onnx"]) == 2
+    assert "error" in capsys.readouterr().err

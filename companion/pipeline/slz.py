@@ -327,7 +327,7 @@ class SLZPipeline:
             # World-frame people only: under a fixed projection the plane moves with the camera.
             params = self.people.params
             uv, strength = density_peaks(density, float(self.config.occupancy.threshold or 0.0), (h, w),
-                                         params.window)
+                                         params.window, params.edge_px)
             if self._undistort is not None and len(uv) and self.intrinsics is not None:
                 K = self.intrinsics.K
                 uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, np.asarray(self.intrinsics.dist, np.float64),

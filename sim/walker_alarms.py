@@ -1,0 +1,236 @@
+"""The people stage's walkers against the simulator's truth: how often the landing question is
+answered wrongly.
+
+``python -m sim.walker_alarms --seeds 2,5,8,9 [--edge-px 0,16] [--seconds 30] [--model FILE.onnx]``
+
+With ``controller.predict_people`` the controller asks, just before it commits a landing, whether
+anybody seen walking will come within ``r0`` of the landing point while the landing is committed
+(docs/design.md, "People followed to touchdown"). This measures the answer on the simulator's own
+frames, where the truth is known:
+
+- for every seed with a free circle, the seed's world (its crossing walkers too, from 2 s) is
+  rendered for ``--seconds`` from a camera coming down over the circle's centre from 18 m at
+  1/3 m/s, no lower than 8 m (reached at 30 s), with a little sway and tilt, as a hovering
+  multicopter does;
+- the model runs once per frame; for each ``--edge-px`` (``PeopleParams.edge_px``) the people
+  stage follows the people in those maps and, from 3 s on, on every frame the prediction is
+  asked about the circle's centre for the window ``--blind-from`` to ``--horizon`` seconds ahead
+  (4.5 to 8 s: the descent from 10 m at 1.5 m/s to 4 m, then the LAND at 1 m/s, committed
+  below 3.5 m);
+- the truth: whether anybody in the world comes within ``r0`` of the centre in that window.
+
+Per seed and in all: **false alarms** (the prediction says somebody comes, nobody does; each
+frame would hold the landing back), **alarms** when somebody does come, how many alarms a real
+walker raised (a person of the world within 1 m of where the tracker puts the alarming walker
+now) rather than a phantom (nobody there: a peak of the network that moves), and the walkers
+followed with nobody within 1 m. A danger the camera cannot see (a walker outside the view) is
+counted as missed: that is the floor of "The physics of the last metres", not a fault of the
+tracker.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
+from companion.pipeline.density import DensityModel
+from companion.pipeline.people import (
+    PeopleParams,
+    PeopleTracker,
+    Person,
+    density_peaks,
+    place_people,
+    predicted_clearance,
+)
+from sim.flight import build_world
+from sim.ground import ProceduralGround
+from sim.render import render_world
+from sim.scenarios import parse_seeds, scenario
+from sim.world import add_crossing_walkers
+
+SHIPPED = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
+HEAD_M = 1.7
+FPS = 10.0
+#: Metres: a walker followed within this of a person of the world is that person.
+SAME_PERSON_M = 1.0
+#: Seconds: the prediction is asked from then on (the tracker needs a second to give a velocity).
+ASK_FROM_S = 3.0
+
+
+@dataclass
+class AlarmFigure:
+    """One seed, one ``edge_px``: frame counts (see the module docstring)."""
+
+    seed: int
+    world: str
+    edge_px: float
+    safe_frames: int = 0
+    false_alarms: int = 0
+    false_alarms_by_phantoms: int = 0
+    danger_frames: int = 0
+    alarms: int = 0
+    alarms_by_real_walkers: int = 0
+    walker_frames: int = 0
+    phantom_walker_frames: int = 0
+
+    @property
+    def false_alarm_rate(self) -> float:
+        return self.false_alarms / self.safe_frames if self.safe_frames else math.nan
+
+    @property
+    def alarm_rate(self) -> float:
+        return self.alarms / self.danger_frames if self.danger_frames else math.nan
+
+    def add(self, other: AlarmFigure) -> None:
+        for name in ("safe_frames", "false_alarms", "false_alarms_by_phantoms", "danger_frames", "alarms",
+                     "alarms_by_real_walkers", "walker_frames", "phantom_walker_frames"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One rendered frame's density map with its capture time and pose, and the world's people
+    then (ground positions, north/east metres)."""
+
+    t: float
+    pose: Pose
+    density: np.ndarray
+    people: np.ndarray = field(repr=False)
+
+
+def fly_over_circle(model: DensityModel, seed: int, seconds: float = 30.0,
+                    horizon_s: float = 8.0) -> tuple[str, tuple[float, float], list[Frame], list[tuple[float, np.ndarray]]]:
+    """The seed's world seen coming down over its free circle: (world name, circle centre,
+    frames for ``seconds``, the world's people every 0.1 s until ``horizon_s`` after the last
+    frame). No frames for a world without a free circle."""
+    spec = scenario(seed, "ardupilot")  # the scene does not depend on the flavour
+    world, free, _start = build_world(spec)
+    if free is None:
+        return spec.world, (math.nan, math.nan), [], []
+    if spec.world == "crossing":
+        add_crossing_walkers(world, free, 2.0, spec.seed)
+    ground = ProceduralGround(seed)
+    kk = Intrinsics.from_fov(640, 480, spec.hfov_deg)
+    frames: list[Frame] = []
+    truth: list[tuple[float, np.ndarray]] = []
+    for _ in range(int(round((seconds + horizon_s) * FPS))):
+        world.step(1.0 / FPS)
+        t, people = world.t, world.positions().copy()
+        truth.append((t, people))
+        if t > seconds + 1e-9:
+            continue
+        height = max(18.0 - t / 3.0, 8.0)
+        pose = Pose(t, free.north + 0.3 * math.sin(0.7 * t), free.east + 0.3 * math.cos(0.5 * t), -height,
+                    math.radians(1.5) * math.sin(1.1 * t), math.radians(1.5) * math.cos(0.9 * t), 0.2)
+        frames.append(Frame(t, pose, model(render_world(world, pose, kk, Mount(), ground)), people))
+    return spec.world, (free.north, free.east), frames, truth
+
+
+def is_real(q: Person, t: float, people: np.ndarray) -> bool:
+    """Whether a person of the world (``people``, ground north/east m) stands within
+    ``SAME_PERSON_M`` of where the tracker puts ``q`` at time ``t`` (seen at ``q.last_t``,
+    walking on since)."""
+    age = max(t - q.last_t, 0.0)
+    x, y = q.x + q.vx * age, q.y + q.vy * age
+    return len(people) > 0 and float(np.hypot(people[:, 0] - x, people[:, 1] - y).min()) <= SAME_PERSON_M
+
+
+def score(frames: list[Frame], truth: list[tuple[float, np.ndarray]], centre: tuple[float, float],
+          threshold: float, params: PeopleParams, r0_m: float = 2.0, blind_from_s: float = 4.5,
+          horizon_s: float = 8.0, image_hw: tuple[int, int] = (480, 640),
+          intrinsics: Intrinsics | None = None) -> AlarmFigure:
+    """Follow the people in ``frames`` with ``params`` and count the prediction's answers at
+    ``centre`` against ``truth`` (module docstring). The seed and world fields are left 0/''."""
+    kk = intrinsics or Intrinsics.from_fov(image_hw[1], image_hw[0], 70.0)
+    tracker = PeopleTracker(params)
+    fig = AlarmFigure(0, "", params.edge_px)
+    times = np.array([t for t, _ in truth])
+    cn, ce = centre
+    for fr in frames:
+        proj = PlaneProjection.from_pose(kk, Mount(), fr.pose, HEAD_M)
+        uv, strength = density_peaks(fr.density, threshold, image_hw, params.window, params.edge_px)
+        followed = tracker.update(place_people(uv, strength, proj, params.merge_m), fr.t, view=proj,
+                                  image_hw=image_hw)
+        if fr.t < ASK_FROM_S:
+            continue
+        walkers = [q for q in followed if q.speed_mps > 0]
+        fig.walker_frames += len(walkers)
+        fig.phantom_walker_frames += sum(not is_real(q, fr.t, fr.people) for q in walkers)
+        window = (times >= fr.t + blind_from_s - 1e-9) & (times <= fr.t + horizon_s + 1e-9)
+        if times[-1] < fr.t + horizon_s - 1e-9 or not window.any():
+            continue
+        true_clear = min((float(np.hypot(p[:, 0] - cn, p[:, 1] - ce).min()) if len(p) else math.inf)
+                         for (_, p), w in zip(truth, window, strict=True) if w)
+        clear, who = min(((predicted_clearance([q], cn, ce, fr.t, horizon_s, blind_from_s), q) for q in walkers),
+                         key=lambda pair: pair[0], default=(math.inf, None))
+        danger, alarm = true_clear < r0_m, clear < r0_m
+        if danger:
+            fig.danger_frames += 1
+            fig.alarms += int(alarm)
+            fig.alarms_by_real_walkers += int(alarm and who is not None and is_real(who, fr.t, fr.people))
+        else:
+            fig.safe_frames += 1
+            fig.false_alarms += int(alarm)
+            fig.false_alarms_by_phantoms += int(alarm and who is not None and not is_real(who, fr.t, fr.people))
+    return fig
+
+
+def _line(f: AlarmFigure, label: str) -> str:
+    return (f"{label:<22} edge {f.edge_px:>4g} px  false alarms {f.false_alarms:>4}/{f.safe_frames:<4} "
+            f"({100 * f.false_alarm_rate:5.1f} %, {f.false_alarms_by_phantoms} by phantoms)  "
+            f"alarms {f.alarms:>4}/{f.danger_frames:<4} ({100 * f.alarm_rate:5.1f} %, "
+            f"{f.alarms_by_real_walkers} by real walkers)  phantom walkers {f.phantom_walker_frames}/{f.walker_frames}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m sim.walker_alarms", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", default="2,5,8,9", help="seeds with a free circle, e.g. 2,5,8,9 or 1-20")
+    ap.add_argument("--edge-px", default="16", help="PeopleParams.edge_px values to compare (default 16)")
+    ap.add_argument("--seconds", type=float, default=30.0, help="length of the descent in s (default 30)")
+    ap.add_argument("--blind-from", type=float, default=4.5, help="start of the predicted window, s (default 4.5)")
+    ap.add_argument("--horizon", type=float, default=8.0, help="end of the predicted window, s (default 8)")
+    ap.add_argument("--model", type=Path, default=SHIPPED, help="ONNX density model (default: the shipped one)")
+    ap.add_argument("--json", action="store_true", help="one JSON object per seed and edge, then the totals")
+    args = ap.parse_args(argv)
+    try:
+        seeds = parse_seeds(args.seeds)
+        edges = [float(e) for e in args.edge_px.split(",")]
+        if not all(math.isfinite(e) and e >= 0 for e in edges):
+            raise ValueError(f"--edge-px must be pixels >= 0, got {args.edge_px!r}")
+        if not (ASK_FROM_S < args.seconds <= 600 and 0 <= args.blind_from <= args.horizon <= 120):
+            raise ValueError("need 3 < --seconds <= 600 and 0 <= --blind-from <= --horizon <= 120")
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not args.model.is_file():
+        print(f"error: no model at {args.model}", file=sys.stderr)
+        return 2
+    model = DensityModel(args.model, threads=2)
+    threshold = float(model.spec.occupancy_threshold or 0.0)
+    totals = {edge: AlarmFigure(0, "all", edge) for edge in edges}
+    for seed in seeds:
+        world, centre, frames, truth = fly_over_circle(model, seed, args.seconds, args.horizon)
+        if not frames:
+            print(f"seed {seed}: {world} has no free circle, skipped", file=sys.stderr)
+            continue
+        for edge in edges:
+            fig = score(frames, truth, centre, threshold, PeopleParams(edge_px=edge), blind_from_s=args.blind_from,
+                        horizon_s=args.horizon)
+            fig.seed, fig.world = seed, world
+            totals[edge].add(fig)
+            print(json.dumps(asdict(fig)) if args.json else _line(fig, f"seed {seed} ({world})"), flush=True)
+    for fig in totals.values():
+        print(json.dumps({**asdict(fig), "seed": None}) if args.json else _line(fig, "all"), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

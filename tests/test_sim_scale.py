@@ -364,8 +364,10 @@ def test_a_real_run_resumes_flying_only_what_is_missing(tmp_path: Path, model_pa
     rows = {r["seed"]: r for r in summary["flights"]}
     assert set(rows) == {6, 7} and rows[6]["note"] == "flown before the crash"
     assert summary["run"]["flown"] == 1 and "wall_s" in rows[7] and "note" not in rows[7]
-    assert rows[7]["outcome"] == "safe" and not rows[7]["starved"], rows[7]
-    assert rc == 0 and len(read_rows(out)[0]) == 2
+    assert rows[7]["outcome"] == "safe", rows[7]
+    # A flight this host starved is an incomplete run (exit 3), not a failed resume: the suite
+    # also runs on slow shared machines (test_a_starved_flight_is_flagged is the starvation test).
+    assert rc == (3 if rows[7]["starved"] else 0) and len(read_rows(out)[0]) == 2
 
 
 @pytest.mark.sitl

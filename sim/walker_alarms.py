@@ -223,7 +223,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             continue
         for edge in edges:
             fig = score(frames, truth, centre, threshold, PeopleParams(edge_px=edge), blind_from_s=args.blind_from,
-                        horizon_s=args.horizon)
+                        horizon_s=args.horizon, intrinsics=Intrinsics.from_fov(640, 480, scenario(seed).hfov_deg))
             fig.seed, fig.world = seed, world
             totals[edge].add(fig)
             print(json.dumps(asdict(fig)) if args.json else _line(fig, f"seed {seed} ({world})"), flush=True)

@@ -22,18 +22,20 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.density import DensityModel
 from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map
+from companion.pipeline.slz import PipelineConfig
 from sim.flight import build_world
 from sim.ground import ProceduralGround
 from sim.render import render_world
 from sim.scenarios import parse_seeds, scenario
 from sim.world import World
 
-SHIPPED = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
 K = Intrinsics.from_fov(640, 480, 70.0)
-HEAD_M = 1.7
+#: The head plane the service places people on (m above the ground).
+HEAD_M = PipelineConfig().head_height_m
 #: Sample every STEP-th pixel in both directions (the occupancy map is smooth at that scale).
 STEP = 4
 
@@ -79,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m sim.false_positives", description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="1-34", help="seeds, e.g. 1-34 or 5,6,28 (default 1-34)")
     ap.add_argument("--heights", default="10,20", help="heights above the ground in m (default 10,20)")
-    ap.add_argument("--model", type=Path, default=SHIPPED, help="ONNX density model (default: the shipped one)")
+    ap.add_argument("--model", type=Path, default=SHIPPED_MODEL, help="ONNX density model (default: the shipped one)")
     ap.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     args = ap.parse_args(argv)
     try:

@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.density import DensityModel
 from companion.pipeline.people import (
@@ -50,14 +51,15 @@ from companion.pipeline.people import (
     place_people,
     predicted_clearance,
 )
+from companion.pipeline.slz import PipelineConfig
 from sim.flight import build_world
 from sim.ground import ProceduralGround
 from sim.render import render_world
 from sim.scenarios import parse_seeds, scenario
 from sim.world import add_crossing_walkers
 
-SHIPPED = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
-HEAD_M = 1.7
+#: The head plane the service places people on (m above the ground).
+HEAD_M = PipelineConfig().head_height_m
 FPS = 10.0
 #: Metres: a walker followed within this of a person of the world is that person.
 SAME_PERSON_M = 1.0
@@ -106,19 +108,31 @@ class Frame:
     people: np.ndarray = field(repr=False)
 
 
-def fly_over_circle(model: DensityModel, seed: int, seconds: float = 30.0,
-                    horizon_s: float = 8.0) -> tuple[str, tuple[float, float], list[Frame], list[tuple[float, np.ndarray]]]:
-    """The seed's world seen coming down over its free circle: (world name, circle centre,
-    frames for ``seconds``, the world's people every 0.1 s until ``horizon_s`` after the last
-    frame). No frames for a world without a free circle."""
+@dataclass(frozen=True)
+class Descent:
+    """One seed's world seen coming down over its free circle: the world's name, the circle's
+    centre (north, east m), the camera's intrinsics, the frames, and the world's people every
+    0.1 s until some seconds after the last frame ((time, (N, 2) positions)). No frames for a
+    world without a free circle."""
+
+    world: str
+    centre: tuple[float, float]
+    intrinsics: Intrinsics
+    frames: list[Frame]
+    truth: list[tuple[float, np.ndarray]] = field(repr=False)
+
+
+def fly_over_circle(model: DensityModel, seed: int, seconds: float = 30.0, horizon_s: float = 8.0) -> Descent:
+    """The :class:`Descent` of ``seed``: frames for ``seconds``, the truth until ``horizon_s``
+    after the last frame."""
     spec = scenario(seed, "ardupilot")  # the scene does not depend on the flavour
     world, free, _start = build_world(spec)
+    kk = Intrinsics.from_fov(640, 480, spec.hfov_deg)
     if free is None:
-        return spec.world, (math.nan, math.nan), [], []
+        return Descent(spec.world, (math.nan, math.nan), kk, [], [])
     if spec.world == "crossing":
         add_crossing_walkers(world, free, 2.0, spec.seed)
     ground = ProceduralGround(seed)
-    kk = Intrinsics.from_fov(640, 480, spec.hfov_deg)
     frames: list[Frame] = []
     truth: list[tuple[float, np.ndarray]] = []
     for _ in range(int(round((seconds + horizon_s) * FPS))):
@@ -131,7 +145,7 @@ def fly_over_circle(model: DensityModel, seed: int, seconds: float = 30.0,
         pose = Pose(t, free.north + 0.3 * math.sin(0.7 * t), free.east + 0.3 * math.cos(0.5 * t), -height,
                     math.radians(1.5) * math.sin(1.1 * t), math.radians(1.5) * math.cos(0.9 * t), 0.2)
         frames.append(Frame(t, pose, model(render_world(world, pose, kk, Mount(), ground)), people))
-    return spec.world, (free.north, free.east), frames, truth
+    return Descent(spec.world, (free.north, free.east), kk, frames, truth)
 
 
 def is_real(q: Person, t: float, people: np.ndarray) -> bool:
@@ -143,18 +157,17 @@ def is_real(q: Person, t: float, people: np.ndarray) -> bool:
     return len(people) > 0 and float(np.hypot(people[:, 0] - x, people[:, 1] - y).min()) <= SAME_PERSON_M
 
 
-def score(frames: list[Frame], truth: list[tuple[float, np.ndarray]], centre: tuple[float, float],
-          threshold: float, params: PeopleParams, r0_m: float = 2.0, blind_from_s: float = 4.5,
-          horizon_s: float = 8.0, image_hw: tuple[int, int] = (480, 640),
-          intrinsics: Intrinsics | None = None) -> AlarmFigure:
-    """Follow the people in ``frames`` with ``params`` and count the prediction's answers at
-    ``centre`` against ``truth`` (module docstring). The seed and world fields are left 0/''."""
-    kk = intrinsics or Intrinsics.from_fov(image_hw[1], image_hw[0], 70.0)
+def score(descent: Descent, threshold: float, params: PeopleParams, r0_m: float = 2.0,
+          blind_from_s: float = 4.5, horizon_s: float = 8.0) -> AlarmFigure:
+    """Follow the people in ``descent``'s frames with ``params`` and count the prediction's
+    answers at its circle's centre against its truth (module docstring). The seed is left 0."""
+    kk, truth = descent.intrinsics, descent.truth
+    image_hw = (kk.height, kk.width)
     tracker = PeopleTracker(params)
-    fig = AlarmFigure(0, "", params.edge_px)
+    fig = AlarmFigure(0, descent.world, params.edge_px)
     times = np.array([t for t, _ in truth])
-    cn, ce = centre
-    for fr in frames:
+    cn, ce = descent.centre
+    for fr in descent.frames:
         proj = PlaneProjection.from_pose(kk, Mount(), fr.pose, HEAD_M)
         uv, strength = density_peaks(fr.density, threshold, image_hw, params.window, params.edge_px)
         followed = tracker.update(place_people(uv, strength, proj, params.merge_m), fr.t, view=proj,
@@ -197,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=30.0, help="length of the descent in s (default 30)")
     ap.add_argument("--blind-from", type=float, default=4.5, help="start of the predicted window, s (default 4.5)")
     ap.add_argument("--horizon", type=float, default=8.0, help="end of the predicted window, s (default 8)")
-    ap.add_argument("--model", type=Path, default=SHIPPED, help="ONNX density model (default: the shipped one)")
+    ap.add_argument("--model", type=Path, default=SHIPPED_MODEL, help="ONNX density model (default: the shipped one)")
     ap.add_argument("--json", action="store_true", help="one JSON object per seed and edge, then the totals")
     args = ap.parse_args(argv)
     try:
@@ -217,16 +230,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     threshold = float(model.spec.occupancy_threshold or 0.0)
     totals = {edge: AlarmFigure(0, "all", edge) for edge in edges}
     for seed in seeds:
-        world, centre, frames, truth = fly_over_circle(model, seed, args.seconds, args.horizon)
-        if not frames:
-            print(f"seed {seed}: {world} has no free circle, skipped", file=sys.stderr)
+        descent = fly_over_circle(model, seed, args.seconds, args.horizon)
+        if not descent.frames:
+            print(f"seed {seed}: {descent.world} has no free circle, skipped", file=sys.stderr)
             continue
         for edge in edges:
-            fig = score(frames, truth, centre, threshold, PeopleParams(edge_px=edge), blind_from_s=args.blind_from,
-                        horizon_s=args.horizon, intrinsics=Intrinsics.from_fov(640, 480, scenario(seed).hfov_deg))
-            fig.seed, fig.world = seed, world
+            fig = score(descent, threshold, PeopleParams(edge_px=edge), blind_from_s=args.blind_from,
+                        horizon_s=args.horizon)
+            fig.seed = seed
             totals[edge].add(fig)
-            print(json.dumps(asdict(fig)) if args.json else _line(fig, f"seed {seed} ({world})"), flush=True)
+            print(json.dumps(asdict(fig)) if args.json else _line(fig, f"seed {seed} ({descent.world})"), flush=True)
     for fig in totals.values():
         print(json.dumps({**asdict(fig), "seed": None}) if args.json else _line(fig, "all"), flush=True)
     return 0

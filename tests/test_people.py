@@ -232,10 +232,10 @@ def test_on_rendered_frames_the_view_border_makes_no_walkers(model_path):
     from sim.walker_alarms import fly_over_circle, score
 
     model = DensityModel(model_path, threads=2)
-    world, centre, frames, truth = fly_over_circle(model, 9, seconds=8.0, horizon_s=8.0)
-    assert world == "crossing" and len(frames) == 80 and len(truth) == 160
+    descent = fly_over_circle(model, 9, seconds=8.0, horizon_s=8.0)
+    assert descent.world == "crossing" and len(descent.frames) == 80 and len(descent.truth) == 160
     thr = float(model.spec.occupancy_threshold)
-    without, with_margin = (score(frames, truth, centre, thr, PeopleParams(edge_px=e)) for e in (0.0, 16.0))
+    without, with_margin = (score(descent, thr, PeopleParams(edge_px=e)) for e in (0.0, 16.0))
     assert without.phantom_walker_frames >= 3 * max(with_margin.phantom_walker_frames, 1), (without, with_margin)
     assert with_margin.walker_frames > with_margin.phantom_walker_frames  # real walkers still followed
     for fig in (without, with_margin):  # the counts add up

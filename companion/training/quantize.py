@@ -12,8 +12,9 @@ Issue 13 asks for int8 measured for its recall cost: this writes the quantised f
   two products into 16 bits and saturates. With full 8-bit weights the density map then depends on
   the CPU: on an AVX2-only host a file made this way gave a map 0.11 away from its own exact
   quantised arithmetic (QDQ run unfused) in places, against 0.01 with 7-bit weights, whose
-  products cannot saturate (2 x 255 x 64 < 32768). A file shipped to unknown boards must score the same on all of them; VNNI and ARM
-  kernels do not saturate either way, and lose one bit of weight precision.
+  products cannot saturate (2 x 255 x 64 < 32768). A file shipped to unknown boards must score
+  the same on all of them; VNNI and ARM kernels do not saturate either way, and lose one bit of
+  weight precision.
 * Calibration frames come **only from the training splits**: the semantic-drone photos outside
   the held-out fifth, DroneCrowd's training frames and ShanghaiTech B train, each through the
   model's own preprocessing (``DensityModel.preprocess``). Nothing the figures are reported on

@@ -295,6 +295,9 @@ class ControllerSettings:
                                     "points from ever being judged clear; docs/design.md)")
     pose_uncertainty_m: float = _f(0.5, "the vehicle's horizontal position error, taken off every predicted "
                                         "clearance (m)", min=0.0, max=20.0)
+    predict_rejudge: bool = _f(True, "with predict_people, a walker predicted in the way once the zone is judged "
+                                     "sends the vehicle back up to descend_alt_m to judge the zone again (calm, "
+                                     "the walkers), instead of waiting low beside them (docs/design.md)")
     predict_lead_s: float = _f(2.0, "with predict_people, judge the prediction only this long before the "
                                     "landing is committed (s): until then the camera watches the zone", min=0.1,
                                max=120.0)
@@ -737,6 +740,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         predict_people=c.predict_people, pose_uncertainty_m=c.pose_uncertainty_m,
         predict_lead_s=c.predict_lead_s, predict_min_height_m=c.predict_min_height_m,
+        predict_rejudge=c.predict_rejudge,
         calm_wait_s=c.calm_wait_s, avoid_lost_s=c.avoid_lost_s, recentre_m=c.recentre_m, land_alt_m=c.land_alt_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),

@@ -1096,3 +1096,55 @@ def test_the_planner_does_not_choose_a_zone_near_a_point_to_avoid():
     assert planner.choose([near, far], 10.0) is near  # the oldest
     assert planner.choose([near, far], 10.0, avoid=[(0.0, 0.0)]) is far
     assert planner.choose([near], 10.0, avoid=[(0.0, 0.0), (50.0, 50.0)]) is None
+
+
+def test_a_walker_predicted_in_the_way_below_the_judging_height_sends_it_back_up_to_judge_again():
+    """predict_rejudge (on with the prediction): a walker predicted at the landing point during
+    the companion's low descent sends the vehicle back up to descend_alt_m, where the zone must
+    be calm again before anything goes on, instead of waiting low beside them and landing as
+    soon as a straight line says they will miss the point (ArduPilot seed 15: 0.92 m)."""
+    cfg = dataclasses.replace(LOW, predict_people=True, predict_lead_s=60.0)
+    assert cfg.predict_rejudge
+    ctl = LandingController(cfg)
+    t = _low_over_zone(ctl)
+    t, alt, alts, _ = _descend_low(ctl, t, until_alt=7.5)
+    assert alts == [7.0] and ctl.phase == Phase.DESCEND
+    assert any("judged at 9.8 m" in x for x in texts(ctl))
+    walker = Person(7, 10.0, -9.0, 0.0, 1.2, 0.1, 10, t)  # west of the point, walking east
+    ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, alt), below(t, math.nan), [walker])
+    goto = [c for c in cmds if isinstance(c, Goto)]
+    assert goto and goto[0].target.rel_alt_m == pytest.approx(10.0)  # back up, not held at 7 m
+    assert ctl.phase == Phase.DESCEND and ctl.pauses == 1 and ctl.rejudges == 1
+    said = texts(ctl)
+    assert any("person 7 (1.2 m/s) predicted" in x and "pausing the descent" in x for x in said)
+    assert any("zone 1: climbing back to 10 m to judge it again" in x for x in said)
+    # The walker is past once the vehicle is back up, but the ground has not been calm since:
+    # no descent, no LAND, until the calm rule passes again.
+    t += 0.1
+    gone = dataclasses.replace(walker, y=8.0, last_t=t)
+    for calm in (0.5, 1.0, 2.0):
+        ctl.on_state(status(t, 10, 0, 10.0, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 10.0), below(t, calm), [gone])
+        assert not any(isinstance(c, Land) for c in cmds)
+        assert all(c.target.rel_alt_m == pytest.approx(10.0) for c in cmds if isinstance(c, Goto))
+        t += 0.1
+    assert any("not 6 s: waiting before the LAND" in x for x in texts(ctl))
+    # Calm again: judged again and down to the LAND height.
+    t, alt, alts, cmds = _descend_low(ctl, t, alt=10.0)
+    assert cmds == [Land()] and alt == pytest.approx(4.0)
+    assert any("zone 1 judged at 10.0 m" in x for x in texts(ctl)) and ctl.rejudges == 1
+
+
+def test_without_rejudge_the_walker_pause_holds_where_it_is():
+    cfg = dataclasses.replace(LOW, predict_people=True, predict_lead_s=60.0, predict_rejudge=False)
+    ctl = LandingController(cfg)
+    t = _low_over_zone(ctl)
+    t, alt, _, _ = _descend_low(ctl, t, until_alt=7.5)
+    walker = Person(7, 10.0, -9.0, 0.0, 1.2, 0.1, 10, t)
+    ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+    cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, alt), below(t, math.nan), [walker])
+    # Held at 7 m (the target already sent is not sent again), no LAND.
+    assert not any(isinstance(c, Land) for c in cmds)
+    assert all(c.target.rel_alt_m == pytest.approx(7.0) for c in cmds if isinstance(c, Goto))
+    assert ctl.pauses == 1 and ctl.rejudges == 0 and ctl.phase == Phase.DESCEND

@@ -162,6 +162,13 @@ class LandingConfig:
     #: r0 wide, the people in it are at its edge, partly seen, and their apparent motion is the
     #: view's (density peaks moving over a body entering the frame), not theirs.
     predict_min_height_m: float = 0.0
+    #: A walker predicted in the way once the zone is judged (the companion's low descent, or a
+    #: LAND above ``land_abort_above_m``) sends the vehicle back up to ``descend_alt_m`` to judge
+    #: the zone again (calm, the walkers), instead of waiting low beside them: low down the view
+    #: no longer shows where they go, and the descent went on as soon as a straight line said
+    #: they would miss the point (ArduPilot seed 15 landed 0.92 m from one, docs/design.md,
+    #: "People followed to touchdown"). False: wait where it is, as before.
+    predict_rejudge: bool = True
     #: With ``planner.min_calm_s`` > 0: over the zone, low enough to LAND, the vehicle waits at
     #: most this long (s) for the ground under it to be calm; then the zone is given up for the
     #: rest of the takeover (people keep passing near it) and another is chosen.
@@ -292,6 +299,7 @@ class LandingController:
         self.people: list[Person] = []
         self._paused_for: int | None = None  # the person a paused landing waits for
         self.pauses = 0  # landings paused for a person predicted at the landing point
+        self.rejudges = 0  # judged zones sent back up to be judged again (predict_rejudge)
         self.last_valid_frame_t: float | None = None
         self.frames_ignored = 0
         self.refusals = 0
@@ -721,10 +729,14 @@ class LandingController:
         dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
         if self.phase == Phase.LAND and s.height > c.land_abort_above_m and \
                 self._walker_in_the_way(s.north, s.east, "pausing the LAND"):
-            # Stop where it is (GUIDED/OFFBOARD, the zone still held) and let them pass: cheaper
-            # than losing the zone and climbing back to the hold height.
+            # Stop (GUIDED/OFFBOARD, the zone still held) and let them pass: cheaper than losing
+            # the zone and climbing back to the hold height. With predict_rejudge, back up to
+            # where the zone is judged, and judged again.
             self._level = s.alt
-            self._set_phase(Phase.DESCEND, f"LAND over zone {track.id} paused at {s.height:.1f} m", zone_id=track.id)
+            what = f"LAND over zone {track.id} paused at {s.height:.1f} m"
+            if c.predict_rejudge and s.height < min(c.descend_alt_m, c.trust_height_m) - c.alt_tolerance_m:
+                what += self._rejudge(track)
+            self._set_phase(Phase.DESCEND, what, zone_id=track.id)
             self._last_goto = None
             return self._goto(aim[0], aim[1], self._level, track.id)
         if self.phase == Phase.APPROACH:
@@ -752,6 +764,8 @@ class LandingController:
                                            else "waiting before the LAND"):
                     if judged:
                         self._level = max(self._level, s.alt)
+                        if c.predict_rejudge and s.height < judge - c.alt_tolerance_m:
+                            self._event(f"zone {track.id}{self._rejudge(track)}")
                     return self._goto(aim[0], aim[1], self._level, track.id)
                 if not judged:
                     judged, self._judged = True, track.id
@@ -779,6 +793,21 @@ class LandingController:
                 self._level = max(self._level - c.descend_step_m, floor)
             return self._goto(aim[0], aim[1], self._level, track.id)
         return []
+
+    def _rejudge(self, track: Track) -> str:
+        """Undo the judgement of ``track`` (a walker is predicted in the way below where it was
+        judged): the vehicle climbs back to ``descend_alt_m`` (or the trust height) above the
+        ground, where the calm rule's disc is in view again, and the zone must pass it anew, its
+        wait for calm starting now (``calm_wait_s``, then the zone is given up). Returns the
+        words for the event."""
+        c, s = self.config, self.status
+        assert s is not None
+        judge = min(c.descend_alt_m, c.trust_height_m)
+        self._judged = None
+        self._calm_wait = None
+        self._raise_level(s.alt - s.height + judge)
+        self.rejudges += 1
+        return f": climbing back to {judge:g} m to judge it again"
 
     def _calm_below(self, track: Track) -> bool:
         """Whether the ground under the vehicle (the latest frame's ``GroundBelow``) has been

@@ -23,9 +23,10 @@ Per seed and in all: **false alarms** (the prediction says somebody comes, nobod
 frame would hold the landing back), **alarms** when somebody does come, how many alarms a real
 walker raised (a person of the world within 1 m of where the tracker puts the alarming walker
 now) rather than a phantom (nobody there: a peak of the network that moves), and the walkers
-followed with nobody within 1 m. A danger the camera cannot see (a walker outside the view) is
-counted as missed: that is the floor of "The physics of the last metres", not a fault of the
-tracker.
+followed with nobody within 1 m; and for the real walkers, the tracker's speed against theirs
+over the last second (mean error, mean absolute error, how often over 1.5 times theirs). A
+danger the camera cannot see (a walker outside the view) is counted as missed: that is the floor
+of "The physics of the last metres", not a fault of the tracker.
 """
 
 from __future__ import annotations
@@ -82,6 +83,13 @@ class AlarmFigure:
     alarms_by_real_walkers: int = 0
     walker_frames: int = 0
     phantom_walker_frames: int = 0
+    #: Real walkers (see ``is_real``) whose person of the world was also there a second before:
+    #: how many such frames, the sum of the tracker's speed less theirs (m/s), of its absolute
+    #: value, and how many times the tracker's speed was over 1.5 times theirs.
+    speed_frames: int = 0
+    speed_error_sum: float = 0.0
+    speed_abs_error_sum: float = 0.0
+    speed_over_1_5: int = 0
 
     @property
     def false_alarm_rate(self) -> float:
@@ -93,19 +101,22 @@ class AlarmFigure:
 
     def add(self, other: AlarmFigure) -> None:
         for name in ("safe_frames", "false_alarms", "false_alarms_by_phantoms", "danger_frames", "alarms",
-                     "alarms_by_real_walkers", "walker_frames", "phantom_walker_frames"):
+                     "alarms_by_real_walkers", "walker_frames", "phantom_walker_frames", "speed_frames",
+                     "speed_error_sum", "speed_abs_error_sum", "speed_over_1_5"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
 
 
 @dataclass(frozen=True)
 class Frame:
     """One rendered frame's density map with its capture time and pose, and the world's people
-    then (ground positions, north/east metres)."""
+    then (ground positions, north/east metres, and their ids)."""
 
     t: float
     pose: Pose
     density: np.ndarray
     people: np.ndarray = field(repr=False)
+    #: The world's stable person ids, one per row of ``people``.
+    ids: np.ndarray = field(repr=False, default_factory=lambda: np.empty(0, np.int64))
 
 
 @dataclass(frozen=True)
@@ -144,30 +155,55 @@ def fly_over_circle(model: DensityModel, seed: int, seconds: float = 30.0, horiz
         height = max(18.0 - t / 3.0, 8.0)
         pose = Pose(t, free.north + 0.3 * math.sin(0.7 * t), free.east + 0.3 * math.cos(0.5 * t), -height,
                     math.radians(1.5) * math.sin(1.1 * t), math.radians(1.5) * math.cos(0.9 * t), 0.2)
-        frames.append(Frame(t, pose, model(render_world(world, pose, kk, Mount(), ground)), people))
+        frames.append(Frame(t, pose, model(render_world(world, pose, kk, Mount(), ground)), people,
+                            world.ids().copy()))
     return Descent(spec.world, (free.north, free.east), kk, frames, truth)
 
 
-def is_real(q: Person, t: float, people: np.ndarray) -> bool:
-    """Whether a person of the world (``people``, ground north/east m) stands within
-    ``SAME_PERSON_M`` of where the tracker puts ``q`` at time ``t`` (seen at ``q.last_t``,
-    walking on since)."""
+def nearest(q: Person, t: float, people: np.ndarray) -> int | None:
+    """The row of the person of the world (``people``, ground north/east m) nearest to where the
+    tracker puts ``q`` at time ``t`` (seen at ``q.last_t``, walking on since), if within
+    ``SAME_PERSON_M``; else None."""
+    if len(people) == 0:
+        return None
     age = max(t - q.last_t, 0.0)
     x, y = q.x + q.vx * age, q.y + q.vy * age
-    return len(people) > 0 and float(np.hypot(people[:, 0] - x, people[:, 1] - y).min()) <= SAME_PERSON_M
+    dist = np.hypot(people[:, 0] - x, people[:, 1] - y)
+    k = int(np.argmin(dist))
+    return k if float(dist[k]) <= SAME_PERSON_M else None
+
+
+def is_real(q: Person, t: float, people: np.ndarray) -> bool:
+    """Whether a person of the world stands within ``SAME_PERSON_M`` of where the tracker puts
+    ``q`` at time ``t`` (``nearest``)."""
+    return nearest(q, t, people) is not None
+
+
+def true_speed(now: Frame, before: Frame, row: int) -> float | None:
+    """The ground speed (m/s) of the person on ``row`` of ``now.people`` between ``before`` and
+    ``now``, by their id; None when they were not in the world then (or without ids)."""
+    if len(now.ids) != len(now.people) or len(before.ids) != len(before.people) or now.t <= before.t:
+        return None
+    then = np.nonzero(before.ids == now.ids[row])[0]
+    if len(then) != 1:
+        return None
+    step = now.people[row] - before.people[int(then[0])]
+    return float(np.hypot(step[0], step[1])) / (now.t - before.t)
 
 
 def score(descent: Descent, threshold: float, params: PeopleParams, r0_m: float = 2.0,
           blind_from_s: float = 4.5, horizon_s: float = 8.0) -> AlarmFigure:
     """Follow the people in ``descent``'s frames with ``params`` and count the prediction's
-    answers at its circle's centre against its truth (module docstring). The seed is left 0."""
+    answers at its circle's centre against its truth (module docstring), and the tracker's
+    speeds against the real walkers' own over the last second. The seed is left 0."""
     kk, truth = descent.intrinsics, descent.truth
     image_hw = (kk.height, kk.width)
     tracker = PeopleTracker(params)
     fig = AlarmFigure(0, descent.world, params.edge_px)
+    lag = int(round(FPS))  # frames: the truth's speed over the last second
     times = np.array([t for t, _ in truth])
     cn, ce = descent.centre
-    for fr in descent.frames:
+    for k, fr in enumerate(descent.frames):
         proj = PlaneProjection.from_pose(kk, Mount(), fr.pose, HEAD_M)
         uv, strength = density_peaks(fr.density, threshold, image_hw, params.window, params.edge_px)
         followed = tracker.update(place_people(uv, strength, proj, params.merge_m), fr.t, view=proj,
@@ -177,6 +213,14 @@ def score(descent: Descent, threshold: float, params: PeopleParams, r0_m: float 
         walkers = [q for q in followed if q.speed_mps > 0]
         fig.walker_frames += len(walkers)
         fig.phantom_walker_frames += sum(not is_real(q, fr.t, fr.people) for q in walkers)
+        for q in walkers:
+            row = nearest(q, fr.t, fr.people)
+            speed = None if row is None or k < lag else true_speed(fr, descent.frames[k - lag], row)
+            if speed is not None:
+                fig.speed_frames += 1
+                fig.speed_error_sum += q.speed_mps - speed
+                fig.speed_abs_error_sum += abs(q.speed_mps - speed)
+                fig.speed_over_1_5 += int(q.speed_mps > 1.5 * speed)
         window = (times >= fr.t + blind_from_s - 1e-9) & (times <= fr.t + horizon_s + 1e-9)
         if times[-1] < fr.t + horizon_s - 1e-9 or not window.any():
             continue
@@ -197,10 +241,13 @@ def score(descent: Descent, threshold: float, params: PeopleParams, r0_m: float 
 
 
 def _line(f: AlarmFigure, label: str) -> str:
+    n = max(f.speed_frames, 1)
     return (f"{label:<22} edge {f.edge_px:>4g} px  false alarms {f.false_alarms:>4}/{f.safe_frames:<4} "
             f"({100 * f.false_alarm_rate:5.1f} %, {f.false_alarms_by_phantoms} by phantoms)  "
             f"alarms {f.alarms:>4}/{f.danger_frames:<4} ({100 * f.alarm_rate:5.1f} %, "
-            f"{f.alarms_by_real_walkers} by real walkers)  phantom walkers {f.phantom_walker_frames}/{f.walker_frames}")
+            f"{f.alarms_by_real_walkers} by real walkers)  phantom walkers {f.phantom_walker_frames}/{f.walker_frames}  "
+            f"speed error {f.speed_error_sum / n:+.2f} m/s (mean |.| {f.speed_abs_error_sum / n:.2f}, "
+            f"over 1.5x {f.speed_over_1_5}/{f.speed_frames})")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

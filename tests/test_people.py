@@ -238,7 +238,14 @@ def test_on_rendered_frames_the_view_border_makes_no_walkers(model_path):
     without, with_margin = (score(descent, thr, PeopleParams(edge_px=e)) for e in (0.0, 16.0))
     assert without.phantom_walker_frames >= 3 * max(with_margin.phantom_walker_frames, 1), (without, with_margin)
     assert with_margin.walker_frames > with_margin.phantom_walker_frames  # real walkers still followed
+    # Where a walker is real, the tracker's speed is theirs: within 0.5 m/s on average, and
+    # hardly ever half again as fast (17 worlds, 30 s each: -0.09 m/s, mean |error| 0.14 m/s).
+    assert with_margin.speed_frames > 0
+    assert abs(with_margin.speed_error_sum) / with_margin.speed_frames < 0.5
+    assert with_margin.speed_abs_error_sum / with_margin.speed_frames < 0.5
+    assert without.speed_over_1_5 <= 0.1 * without.speed_frames
     for fig in (without, with_margin):  # the counts add up
         assert fig.safe_frames + fig.danger_frames > 0
         assert fig.false_alarms_by_phantoms <= fig.false_alarms <= fig.safe_frames
         assert fig.alarms_by_real_walkers <= fig.alarms <= fig.danger_frames
+        assert fig.speed_frames <= fig.walker_frames - fig.phantom_walker_frames

@@ -99,6 +99,7 @@ def test_walker_alarms_command_scores_each_seed_and_refuses_bad_input(capsys: py
     captured = capsys.readouterr()
     rows = [json.loads(line) for line in captured.out.splitlines()]
     assert [(r["seed"], r["edge_px"]) for r in rows] == [(9, 0.0), (9, 16.0), (None, 0.0), (None, 16.0)]
+    assert all(0 <= r["speed_frames"] <= r["walker_frames"] - r["phantom_walker_frames"] for r in rows)
     assert rows[0]["safe_frames"] + rows[0]["danger_frames"] > 0 and rows[2]["world"] == "all"
     assert "seed 16: dense has no free circle" in captured.err
     assert main(["--edge-px", "-1"]) == 2

@@ -1148,3 +1148,23 @@ def test_without_rejudge_the_walker_pause_holds_where_it_is():
     assert not any(isinstance(c, Land) for c in cmds)
     assert all(c.target.rel_alt_m == pytest.approx(7.0) for c in cmds if isinstance(c, Goto))
     assert ctl.pauses == 1 and ctl.rejudges == 0 and ctl.phase == Phase.DESCEND
+
+
+def test_a_land_paused_below_the_judging_height_climbs_back_to_judge_again():
+    """The LAND (commanded at 9.8 m here) paused at 7 m for a walker predicted in the way goes
+    back up to descend_alt_m with predict_rejudge, and stops where it is without it."""
+    for rejudge, level in ((True, 10.0), (False, 7.0)):
+        ctl = LandingController(dataclasses.replace(PREDICT, predict_rejudge=rejudge))
+        t = _low_over_zone(ctl)
+        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+        assert Land() in ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8))
+        t += 0.1
+        coming = Person(4, 10.0, -9.0, 0.0, 1.0, 0.1, 10, t)  # at the point in 9 s: committed by then
+        ctl.on_state(status(t, 10, 0, 7.0, mode="LAND"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 7.0), None, [coming])
+        assert ctl.phase == Phase.DESCEND and len(cmds) == 1 and isinstance(cmds[0], Goto)
+        assert cmds[0].target.rel_alt_m == pytest.approx(level), rejudge
+        said = texts(ctl)
+        assert any("LAND over zone 1 paused at 7.0 m" in x for x in said)
+        assert any("climbing back to 10 m to judge it again" in x for x in said) == rejudge
+        assert ctl.rejudges == int(rejudge)

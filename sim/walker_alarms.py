@@ -211,10 +211,10 @@ def score(descent: Descent, threshold: float, params: PeopleParams, r0_m: float 
         if fr.t < ASK_FROM_S:
             continue
         walkers = [q for q in followed if q.speed_mps > 0]
+        rows = [nearest(q, fr.t, fr.people) for q in walkers]
         fig.walker_frames += len(walkers)
-        fig.phantom_walker_frames += sum(not is_real(q, fr.t, fr.people) for q in walkers)
-        for q in walkers:
-            row = nearest(q, fr.t, fr.people)
+        fig.phantom_walker_frames += sum(row is None for row in rows)
+        for q, row in zip(walkers, rows, strict=True):
             speed = None if row is None or k < lag else true_speed(fr, descent.frames[k - lag], row)
             if speed is not None:
                 fig.speed_frames += 1

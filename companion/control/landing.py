@@ -733,10 +733,8 @@ class LandingController:
             # the zone and climbing back to the hold height. With predict_rejudge, back up to
             # where the zone is judged, and judged again.
             self._level = s.alt
-            what = f"LAND over zone {track.id} paused at {s.height:.1f} m"
-            if c.predict_rejudge and s.height < min(c.descend_alt_m, c.trust_height_m) - c.alt_tolerance_m:
-                what += self._rejudge(track)
-            self._set_phase(Phase.DESCEND, what, zone_id=track.id)
+            self._set_phase(Phase.DESCEND, f"LAND over zone {track.id} paused at {s.height:.1f} m"
+                            + self._rejudge(track), zone_id=track.id)
             self._last_goto = None
             return self._goto(aim[0], aim[1], self._level, track.id)
         if self.phase == Phase.APPROACH:
@@ -764,8 +762,9 @@ class LandingController:
                                            else "waiting before the LAND"):
                     if judged:
                         self._level = max(self._level, s.alt)
-                        if c.predict_rejudge and s.height < judge - c.alt_tolerance_m:
-                            self._event(f"zone {track.id}{self._rejudge(track)}")
+                        climb = self._rejudge(track)
+                        if climb:
+                            self._event(f"zone {track.id}{climb}")
                     return self._goto(aim[0], aim[1], self._level, track.id)
                 if not judged:
                     judged, self._judged = True, track.id
@@ -795,14 +794,17 @@ class LandingController:
         return []
 
     def _rejudge(self, track: Track) -> str:
-        """Undo the judgement of ``track`` (a walker is predicted in the way below where it was
-        judged): the vehicle climbs back to ``descend_alt_m`` (or the trust height) above the
-        ground, where the calm rule's disc is in view again, and the zone must pass it anew, its
-        wait for calm starting now (``calm_wait_s``, then the zone is given up). Returns the
-        words for the event."""
+        """With ``predict_rejudge``, below the height where zones are judged (``descend_alt_m``,
+        or the trust height), undo the judgement of ``track`` (a walker is predicted in the way):
+        the vehicle climbs back to that height above the ground, where the calm rule's disc is in
+        view again, and the zone must pass it anew, its wait for calm starting now
+        (``calm_wait_s``, then the zone is given up). Returns the words for the event; "" when
+        nothing was undone (the setting off, or already up there)."""
         c, s = self.config, self.status
         assert s is not None
         judge = min(c.descend_alt_m, c.trust_height_m)
+        if not c.predict_rejudge or s.height >= judge - c.alt_tolerance_m:
+            return ""
         self._judged = None
         self._calm_wait = None
         self._raise_level(s.alt - s.height + judge)

@@ -90,6 +90,7 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[controller]\nselect_empty_s = -1\n", r"controller\.select_empty_s must be >= 0"),
         ("[controller]\nsearch_memory_s = 601\n", r"controller\.search_memory_s must be >= 0\.0 and <= 600\.0"),
         ("[controller]\nhold_looks = 'yes'\n", r"controller\.hold_looks must be true or false"),
+        ("[controller]\npredict_rejudge = 'yes'\n", r"controller\.predict_rejudge must be true or false"),
         ("[pipeline]\nquiet_margin_m = -1\n", r"pipeline\.quiet_margin_m must be >= 0"),
         ("[pipeline]\ndilate_kernel = 4\n", r"pipeline\.dilate_kernel must be odd"),
         ("[link]\nsigning_key = 'abc'\n", r"link\.signing_key must be 64 hexadecimal"),

@@ -27,6 +27,11 @@ Counting (docs/scale.md says why):
   free circle, or beyond every crowd; ``sim.world.World.nobody_walks_at``), of those whose row
   says either way. A landing in a gap of the crowd may be safe at touchdown and still was a
   gamble on the walkers around it.
+- ``zone_losses`` and ``zone_losses_r0_free``: over the clean flights whose rows carry them, the
+  zones the controller gave up while over them (``sim.flight.zone_losses``), and how many of those
+  had, by the simulator's truth, nobody within ``r_0`` of the vehicle at that moment: the price of
+  the pipeline's caution and of the density model's false detections in closed loop (each loss
+  costs a climb back and a new zone); None when no row says.
 
 **Baseline** rows (``baseline: true``: the same scene flown with the autopilot's own failsafe
 alone, no companion) have their own key in a results file (``row_key``) and their own summary
@@ -113,6 +118,7 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     changes = [phase_changes(r) for r in clean]
     judged = [r for r in clean if r.get("outcome") in ("safe", "unsafe") and r.get("in_free_area") is not None]
     u, s, c = _proportion(unsafe, n), _proportion(strikes, n), _proportion(landings, n)
+    with_losses = [r for r in clean if isinstance(r.get("zone_losses"), int)]
     return {
         "total": len(rows), "safe": count(clean, "safe"), "handbacks": count(clean, "handback"),
         "unsafe": unsafe, "timeouts": count(clean, "timeout"),
@@ -130,6 +136,9 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
         "companion_landings": landings,
         "companion_landings_in_free_area": sum(bool(r["in_free_area"]) for r in judged),
         "companion_landings_judged_for_area": len(judged),
+        "zone_losses": sum(r["zone_losses"] for r in with_losses) if with_losses else None,
+        "zone_losses_r0_free": sum(int(r.get("zone_losses_r0_free") or 0) for r in with_losses)
+        if with_losses else None,
         "unsafe_rate": u["rate"], "unsafe_rate_ci95": u["ci95"], "unsafe_rate_upper95": u["ci95"][1],
         "strike_rate": s["rate"], "strike_rate_ci95": s["ci95"], "strike_rate_upper95": s["ci95"][1],
         "companion_landing_rate": c["rate"], "companion_landing_rate_ci95": c["ci95"],
@@ -186,6 +195,9 @@ def summary_text(summary: dict[str, Any]) -> str:
     if summary.get("companion_landings_judged_for_area"):
         lines.append(f"companion landings on ground nobody walks into (the free area, or beyond the crowd): "
                      f"{summary['companion_landings_in_free_area']} of {summary['companion_landings_judged_for_area']}")
+    if summary.get("zone_losses") is not None:
+        lines.append(f"zones given up while over them: {summary['zone_losses']}, of which "
+                     f"{summary['zone_losses_r0_free']} with nobody within r_0 of the vehicle by the truth")
     m = summary["clean_flights_to_unsafe_upper95_below_1pct"]
     lines.append("the unsafe rate's upper 95 % bound is under 1 %" if m == 0 else
                  f"{m} further clean flights would bring the unsafe rate's upper 95 % bound under 1 %")

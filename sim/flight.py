@@ -29,6 +29,7 @@ Frames: world NED metres from home, ground z = 0; times in seconds.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import contextlib
 import fcntl
 import logging
@@ -69,6 +70,9 @@ UNIFORM_GROUND_BGR = (70, 140, 95)  # mown grass
 #: the landed state and records LANDED before it is stopped: EXTENDED_SYS_STATE comes at 2 Hz
 #: (ArduPilot) or 1 Hz (PX4), plus time for a loaded machine. 0.5 s lost LANDED on a loaded CI run.
 LANDED_GRACE_S = 1.5
+#: Seconds between the flight's samples of the truth under the vehicle (``zone_losses``): the
+#: camera's frame period at 10 Hz; a walker moves 0.15 m meanwhile.
+TRUTH_PERIOD_S = 0.1
 #: A flight is **starved** (its CPU, not the software under test, decided it) when its service
 #: processed frames at less than STARVED_SHARE of the camera's rate, from READY to touchdown (or to
 #: the end of the flight), or when the pipeline's time per frame (95th percentile) exceeded
@@ -169,6 +173,9 @@ class FlightResult:
     # World.nobody_walks_at), rather than in a gap of the crowd that walkers may cross at any
     # time; None without a touchdown, or where the world cannot tell.
     in_free_area: bool | None = None
+    # Each zone the controller gave up while over it (DESCEND or LAND), with the truth then
+    # (:func:`zone_losses`); in time order.
+    zone_losses: list[ZoneLoss] = field(default_factory=list)
 
     @property
     def took_control(self) -> bool:
@@ -203,6 +210,10 @@ class FlightResult:
             "baseline": not self.spec.companion,
             "world_t_trigger": None if self.world_t_trigger is None else round(self.world_t_trigger, 2),
             "in_free_area": self.in_free_area,
+            "zone_losses": len(self.zone_losses),
+            "zone_losses_r0_free": sum(z.nearest_m >= self.spec.r0_m for z in self.zone_losses),
+            "zone_loss_nearest_m": [None if not math.isfinite(z.nearest_m) else round(z.nearest_m, 2)
+                                    for z in self.zone_losses],
         }
 
 
@@ -438,6 +449,51 @@ def processed_rate(frame_times: list[float], t_from: float, t_to: float) -> floa
     return sum(t_from <= t <= t_to for t in frame_times) / (t_to - t_from)
 
 
+@dataclass(frozen=True)
+class ZoneLoss:
+    """A zone the landing controller gave up while over it, and the truth at that moment.
+
+    t: the controller event's time (``time.monotonic()`` of the service, the clock of the
+    flight's truth samples: one host). zone_id, reason: the event's (its ``reason``, or the
+    words between "lost (" and ")" of a re-targeting). nearest_m: the horizontal distance (m) from
+    the vehicle to the nearest person of the world at the last truth sample at or before ``t``
+    (inf: nobody in the world, or no sample yet)."""
+
+    t: float
+    zone_id: int
+    reason: str
+    nearest_m: float
+
+
+#: The phases in which the vehicle is over its zone: a loss there is judged on the truth under it.
+OVER_ZONE = ("DESCEND", "LAND")
+
+
+def zone_losses(events: list[dict], truth: list[tuple[float, float]]) -> list[ZoneLoss]:
+    """The zones given up over them (a controller event with ``lost_zone_id`` that left DESCEND or
+    LAND: a HOLD, or a re-targeting), each with the truth at that moment.
+
+    ``truth``: ``(time.monotonic(), nearest person to the vehicle in m)`` samples in time order.
+    A loss whose nearest person stood ``r0`` or more away was not asked for by ``r0`` at that
+    moment: the pipeline's caution (it grows every person it sees), a false detection, or a
+    walker still on the way; the row counts them (``zone_losses_r0_free``) so that a density
+    model's cost in closed loop is measured, not guessed from its log."""
+    times = [t for t, _ in truth]
+    out = []
+    for ev in events:
+        lost, t = ev.get("lost_zone_id"), ev.get("t")
+        if not isinstance(lost, int) or ev.get("old") not in OVER_ZONE or not isinstance(t, (int, float)):
+            continue
+        reason = ev.get("reason")
+        if not isinstance(reason, str):
+            text = str(ev.get("text", ""))
+            start = text.find(" lost (")
+            reason = text[start + 7:text.rfind(")")] if start >= 0 else ""
+        i = bisect.bisect_right(times, float(t)) - 1
+        out.append(ZoneLoss(float(t), lost, reason, truth[i][1] if i >= 0 else math.inf))
+    return out
+
+
 def judge_events(result: FlightResult, events: list[dict]) -> None:
     """Fill the result's phases and messages from the recorded controller events."""
     result.events = events
@@ -515,6 +571,17 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.vehicle.altitude)
 
     sim.add_stepper(watch_climb)
+    truth: list[tuple[float, float]] = []  # (time.monotonic(), nearest person to the vehicle, m)
+
+    def watch_people(_dt: float) -> None:
+        # The truth under the vehicle, every TRUTH_PERIOD_S from the trigger to touchdown, for
+        # the zone losses' judgement (zone_losses).
+        now = time.monotonic()
+        if "trigger_alt" in climb and "t" not in touchdown and (not truth or now - truth[-1][0] >= TRUTH_PERIOD_S):
+            p = sim.truth.position
+            truth.append((now, world.nearest_person_distance((float(p[0]), float(p[1])))))
+
+    sim.add_stepper(watch_people)
     window: dict[str, float] = {}  # READY and the end of the flight, for the processed frame rate
     lines: list[str] = []
     sink = open(spec.service_log, "w") if spec.service_log is not None else None
@@ -589,6 +656,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
         # The service has stopped (its recorder closed): its events are all on disk.
         recorded = recorded_events(record_dir, None)
         judge_events(result, [e for e in recorded if e.get("kind") == "controller"])
+        result.zone_losses = zone_losses(result.events, truth)
         zones = [e for e in recorded if e.get("kind") == "zones" and isinstance(e.get("t"), (int, float))]
         frame_times = [float(e["t"]) for e in zones]
         frame_ms = [float(e["timings_ms"]["total"]) for e in zones

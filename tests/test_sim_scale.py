@@ -475,3 +475,34 @@ def test_a_killed_runner_leaves_no_worker_flying(tmp_path):
     for pid in alive:
         os.kill(pid, signal.SIGKILL)
     assert not alive, "a worker outlived the runner"
+
+
+def test_zones_given_up_over_them_are_judged_on_the_truth_under_the_vehicle() -> None:
+    from sim.flight import FlightResult, zone_losses
+
+    truth = [(9.9, 5.0), (10.0, 1.5), (10.1, 4.0), (20.0, 3.5)]  # (monotonic s, nearest person m)
+    events = [
+        {"t": 5.0, "event": "hold", "old": "APPROACH", "lost_zone_id": 1, "reason": "no longer tracked"},
+        {"t": 9.0, "event": "hold", "old": "DESCEND", "lost_zone_id": 2, "reason": "early"},
+        {"t": 10.05, "event": "hold", "old": "DESCEND", "lost_zone_id": 3,
+         "reason": "1.9 m free around the vehicle < r0 2 m"},
+        {"t": 12.0, "event": "phase", "old": "HOLD", "phase": "APPROACH", "zone_id": 4},
+        {"t": 20.5, "event": "target", "old": "LAND", "phase": "APPROACH", "lost_zone_id": 4, "zone_id": 5,
+         "text": "SLZ: zone 4 lost (shrank to r 1.9 m < r0 2 m); re-targeting zone 5, 3.0 m away, radius 4.1 m"},
+    ]
+    losses = zone_losses(events, truth)
+    # Lost on the approach (not over the zone) is left out; before any truth sample, nobody is
+    # known to be near (inf, never a guess); otherwise the latest sample at or before the loss.
+    assert [(z.zone_id, z.nearest_m) for z in losses] == [(2, float("inf")), (3, 1.5), (4, 3.5)]
+    assert losses[2].reason == "shrank to r 1.9 m < r0 2 m"
+    row = FlightResult(FlightSpec(seed=1), "safe", touchdown=(0.0, 0.0), clearance_m=4.0,
+                       zone_losses=losses).as_dict()
+    assert (row["zone_losses"], row["zone_losses_r0_free"], row["zone_loss_nearest_m"]) == (3, 2, [None, 1.5, 3.5])
+    assert "zones lost over them 3 (2 with r0 free)" in scenarios.flight_line({**row, "altitude_m": 20.0})
+    s = summarise_rows([row, {**row, "seed": 2, "starved": True}])
+    assert (s["zone_losses"], s["zone_losses_r0_free"]) == (3, 2)  # the starved flight is not counted
+    assert "zones given up while over them: 3, of which 2 with nobody within r_0" in summary_text(s)
+    # Rows of older runs say nothing about losses: None, and no line, never a zero.
+    old = {k: v for k, v in row.items() if not k.startswith("zone_loss")}
+    assert summarise_rows([old])["zone_losses"] is None
+    assert "given up" not in summary_text(summarise_rows([old]))

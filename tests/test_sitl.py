@@ -5,10 +5,11 @@ simulator's truth (who stood where at touchdown), never on what the service says
 from __future__ import annotations
 
 import asyncio
+import math
 
 import pytest
 
-from sim.flight import FlightSpec, fly
+from sim.flight import OVER_ZONE, FlightSpec, fly
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
@@ -91,6 +92,12 @@ def test_people_walking_into_the_target_make_it_retarget_or_hold(flavour, model_
     assert any("lost" in m or "holding" in m or "re-target" in m for m in r.messages), _explain(r)
     if r.outcome == "safe":
         assert r.clearance_m >= r.spec.r0_m
+    # Every zone given up over it is judged on the truth sampled during the flight (people were
+    # in the world throughout: a finite distance), and the row counts the same.
+    over = [e for e in r.events if isinstance(e.get("lost_zone_id"), int) and e.get("old") in OVER_ZONE]
+    assert [z.zone_id for z in r.zone_losses] == [e["lost_zone_id"] for e in over], _explain(r)
+    assert all(math.isfinite(z.nearest_m) for z in r.zone_losses), r.zone_losses
+    assert r.as_dict()["zone_losses"] == len(over)
 
 
 # One autopilot: the link faults are the same for both, and the latency test below flies the other.

@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
                           "train the landability model (water, vehicles, trees, roofs) on the semantic-drone photos"),
     "sim": ("sim.cli", "run the simulated vehicle and camera on their own"),
     "sim-scenarios": ("sim.scenarios", "fly N seeded random scenarios and report safety figures"),
+    "sim-compare": ("sim.compare", "compare two sim-scenarios results files seed by seed, with exact tests"),
     "signing-key": ("companion.mavlink.keygen", "make a MAVLink signing key file for the link"),
     "check-config": ("companion.service.check_config",
                      "validate a configuration file and print the settings it resolves to"),

@@ -1,0 +1,104 @@
+"""`companion sim-compare`: two results files paired seed by seed, with exact tests (sim/compare.py)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from scipy.stats import binomtest, wilcoxon
+
+from sim.compare import MIN_DISCORDANT, CompareError, compare, comparison_text, mcnemar_p
+
+
+def _row(seed: int, outcome: str, *, flavour: str = "px4", t: float = 30.0, phases: int = 5,
+         starved: bool = False, strike: bool = False, free: bool | None = True, losses: int | None = None,
+         settings: list[str] | None = None, baseline: bool = False) -> dict[str, Any]:
+    row: dict[str, Any] = {"seed": seed, "flavour": flavour, "world": "free_area", "outcome": outcome,
+                           "clearance_m": 1.0 if outcome == "unsafe" else 4.0, "time_to_touchdown_s": t,
+                           "phases": ["SELECT"] * phases, "starved": starved, "strike": strike,
+                           "in_free_area": free, "settings": settings or [], "baseline": baseline}
+    if losses is not None:
+        row["zone_losses"] = losses
+    return row
+
+
+def test_the_mcnemar_test_is_scipys_exact_binomial_test_of_the_discordant_pairs() -> None:
+    for b, c in ((0, 6), (1, 9), (3, 3), (7, 2)):
+        assert mcnemar_p(b, c) == pytest.approx(binomtest(min(b, c), b + c, 0.5).pvalue)
+    assert mcnemar_p(0, 0) == 1.0
+    # 0 against 5 is still chance at 0.05 (p = 0.0625); 0 against 6 is not.
+    assert MIN_DISCORDANT == 6 and mcnemar_p(0, 5) > 0.05 > mcnemar_p(0, 6)
+
+
+def test_pairs_are_compared_seed_by_seed_and_starved_or_unpaired_flights_are_left_out() -> None:
+    before = [_row(s, "handback", t=100.0, phases=20, free=None) for s in range(1, 9)]
+    before += [_row(20, "safe"), _row(21, "safe", flavour="ardupilot"), _row(30, "safe"),
+               _row(1, "handback", baseline=True)]  # a baseline row never pairs
+    after = [_row(s, "safe", t=40.0 + s, phases=9, settings=["controller.x=1"]) for s in range(1, 8)]
+    after += [_row(8, "unsafe", t=50.0, phases=9, strike=True, free=False, settings=["controller.x=1"]),
+              _row(20, "safe", starved=True), _row(21, "safe", flavour="ardupilot"), _row(40, "safe")]
+    c = compare(before, after)
+    # Seeds 1-8 and 21 pair; 20 is starved on one side; 30 and 40 were flown in one file only.
+    assert c.pairs == 9 and c.starved_left_out == 1
+    assert c.only_before == [(30, "px4")] and c.only_after == [(40, "px4")]
+    assert c.settings_after == [[], ["controller.x=1"]]
+    got = {b.name: b for b in c.binary}
+    hb = got["handback"]
+    assert (hb.before, hb.after, hb.only_before, hb.only_after) == (8, 0, 8, 0)
+    assert hb.p == pytest.approx(binomtest(0, 8, 0.5).pvalue, abs=1e-4) and hb.p < 0.05
+    unsafe = got["unsafe landing"]
+    assert (unsafe.only_before, unsafe.only_after, unsafe.p) == (0, 1, 1.0)
+    # Ground nobody walks into: asked only of the landings that say (a handback is not one).
+    free = got["companion landing on ground nobody walks into"]
+    assert (free.before, free.after, free.pairs) == (1, 8, 9)
+    assert [(p.seed, p.before, p.after) for p in c.changed][-1] == (8, "handback 4.0 m", "unsafe 1.0 m")
+    phases = next(n for n in c.numeric if n.name == "phase changes")
+    xs, ys = [20.0] * 8 + [5.0], [9.0] * 8 + [5.0]
+    assert (phases.pairs, phases.before_median, phases.after_median, phases.median_difference) == (9, 20.0, 9.0, -11.0)
+    assert phases.p == pytest.approx(wilcoxon(xs, ys).pvalue, abs=1e-4)
+    # Time to touchdown only where both landed: the handbacks leave one pair (seed 21).
+    time = next(n for n in c.numeric if n.name.startswith("time"))
+    assert time.pairs == 1 and time.p is None
+    assert next(n for n in c.numeric if n.name.startswith("zones")).pairs == 0
+    text = comparison_text(c)
+    assert "9 pairs" in text and "handback" in text and "beyond chance at the 0.05 level (*)" in text
+    # --starved takes the starved pair too.
+    assert compare(before, after, include_starved=True).pairs == 10
+
+
+def test_no_difference_is_called_chance_and_never_sameness() -> None:
+    rows = [_row(s, "safe") for s in range(1, 6)]
+    c = compare(rows, [{**r, "outcome": "unsafe" if r["seed"] == 1 else "safe"} for r in rows])
+    assert c.beyond_chance == []
+    assert "does not make them the same" in comparison_text(c) and f"at least {MIN_DISCORDANT}" in comparison_text(c)
+
+
+def test_files_that_cannot_be_paired_are_refused() -> None:
+    with pytest.raises(CompareError, match="two rows of seed 1"):
+        compare([_row(1, "safe"), _row(1, "safe", settings=["a=1"])], [_row(1, "safe")])
+    with pytest.raises(CompareError, match="no seed"):
+        compare([_row(1, "safe")], [_row(2, "safe")])
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "companion", "sim-compare", *args],
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_the_command_compares_two_results_files_and_refuses_bad_ones(tmp_path: Path) -> None:
+    a, b, dup = tmp_path / "a.jsonl", tmp_path / "b.jsonl", tmp_path / "dup.jsonl"
+    a.write_text("".join(json.dumps(_row(s, "handback", free=None)) + "\n" for s in range(1, 7)) + "{torn\n")
+    b.write_text("".join(json.dumps(_row(s, "safe")) + "\n" for s in range(1, 7)))
+    dup.write_text(json.dumps(_row(1, "safe")) + "\n" + json.dumps(_row(1, "safe", settings=["x=1"])) + "\n")
+    done = _cli(str(a), str(b))
+    assert done.returncode == 0, done.stderr
+    assert "6 pairs" in done.stdout and "1 unreadable line" in done.stderr
+    data = json.loads(_cli(str(a), str(b), "--json").stdout)
+    assert data["pairs"] == 6 and "handback" in data["beyond_chance"]
+    assert _cli(str(a), str(tmp_path / "missing.jsonl")).returncode == 2
+    bad = _cli(str(dup), str(b))
+    assert bad.returncode == 2 and "two rows of seed 1" in bad.stderr

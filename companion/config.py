@@ -240,6 +240,11 @@ class ControllerSettings:
                                  "of the landing point this long before the LAND, on the 80 % or more of that disc "
                                  "seen within pipeline.map_memory_s (s; 0 = not required; docs/design.md, 'Quiet ground')",
                             min=0.0, max=120.0)
+    min_unwalked_s: float = _f(0.0, "with min_calm_s, nobody may have been seen within r0 plus "
+                                    "pipeline.calm_margin_m of the landing point since the camera first saw all of "
+                                    "that ground, for this long, before the LAND: ground people walk over (a gap "
+                                    "in a crowd) waits, ground nobody walks on does not (s; 0 = not required; "
+                                    "docs/design.md, 'Ground nobody walks on')", min=0.0, max=300.0)
     prefer_unwalked: bool = _f(True, "among calm zones, choose first the one whose ground (r0 plus "
                                       "pipeline.calm_margin_m) has gone longest without anybody seen on it since "
                                       "the camera first saw it, then the oldest (docs/design.md, 'Unwalked ground')")
@@ -698,9 +703,10 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         r0_m=p.r0_m,
         proposal_tie_m=p.proposal_tie_m,
         fusion=p.fusion,
-        calm=cfg.controller.min_calm_s > 0 or cfg.controller.min_quiet_s > 0, calm_margin_m=p.calm_margin_m,
+        calm=cfg.controller.min_calm_s > 0 or cfg.controller.min_quiet_s > 0 or cfg.controller.min_unwalked_s > 0,
+        calm_margin_m=p.calm_margin_m,
         quiet=cfg.controller.min_quiet_s > 0, quiet_margin_m=p.quiet_margin_m,
-        unwalked=cfg.controller.prefer_unwalked,
+        unwalked=cfg.controller.prefer_unwalked, unwalked_below=cfg.controller.min_unwalked_s > 0,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
         risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,
                            walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,
@@ -723,7 +729,8 @@ def planner_config(cfg: Config) -> PlannerConfig:
     return PlannerConfig(r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
                          min_track_age_s=c.min_track_age_s, min_track_hits=c.min_track_hits,
                          zone_max_age_s=c.zone_max_age_s, min_calm_s=c.min_calm_s,
-                         min_quiet_s=c.min_quiet_s, prefer_unwalked=c.prefer_unwalked)
+                         min_quiet_s=c.min_quiet_s, min_unwalked_s=c.min_unwalked_s,
+                         prefer_unwalked=c.prefer_unwalked)
 
 
 def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> LandingConfig:

@@ -85,6 +85,7 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[pipeline.tracker]\nmotion = 'constant'\n", r"pipeline\.tracker\.motion must be one of 'velocity', 'position'"),
         ("[pipeline.tracker]\nsigma_v = 0\n", r"pipeline\.tracker\.sigma_v must be > 0"),
         ("[controller]\nmin_quiet_s = -1\n", r"controller\.min_quiet_s must be >= 0"),
+        ("[controller]\nmin_unwalked_s = -1\n", r"controller\.min_unwalked_s must be >= 0"),
         ("[controller]\navoid_lost_s = -1\n", r"controller\.avoid_lost_s must be >= 0"),
         ("[controller]\nprefer_unwalked = 1\n", r"controller\.prefer_unwalked must be true or false"),
         ("[controller]\nselect_empty_s = -1\n", r"controller\.select_empty_s must be >= 0"),
@@ -196,6 +197,14 @@ def test_prefer_unwalked_reaches_the_planner_and_has_the_pipeline_measure_it() -
     off = config.load(None, {"controller.prefer_unwalked": False})
     assert not config.planner_config(off).prefer_unwalked
     assert not config.pipeline_config(off).unwalked
+
+
+def test_min_unwalked_reaches_the_planner_and_has_the_pipeline_measure_the_ground_below() -> None:
+    off = config.load(None)  # off by default (docs/design.md, "Ground nobody walks on")
+    assert config.planner_config(off).min_unwalked_s == 0.0 and not config.pipeline_config(off).unwalked_below
+    on = config.load(None, {"controller.min_unwalked_s": 12.0, "controller.min_calm_s": 0.0})
+    assert config.planner_config(on).min_unwalked_s == 12.0
+    assert config.pipeline_config(on).unwalked_below and config.pipeline_config(on).calm  # the map runs
 
 
 def test_the_search_settings_reach_the_controller() -> None:

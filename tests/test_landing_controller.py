@@ -1020,6 +1020,42 @@ def test_quiet_off_by_setting_and_bad_values_refused():
         PlannerConfig(min_quiet_s=-1.0)
 
 
+#: Calm, and nobody seen on the calm disc since it was first seen for min_unwalked_s
+#: (docs/design.md, "Ground nobody walks on").
+UNWALKED = dataclasses.replace(CALM, planner=dataclasses.replace(CALM.planner, min_unwalked_s=12.0),
+                               calm_wait_s=30.0)
+
+
+def test_the_land_waits_over_ground_people_walked_over_and_not_over_ground_nobody_walks_on():
+    """Calm under the vehicle for 6.5 s, as a gap in a walking crowd is once the last walker has
+    left it: people walked there 6.5 s ago, so no LAND and one Note saying so. A lawn nobody was
+    seen on since the camera first saw it 20 s ago is judged at once, its unwalked time in the note."""
+    ctl = LandingController(dataclasses.replace(UNWALKED, land_alt_m=4.0))
+    t = _low_over_zone(ctl)
+    texts(ctl)
+    for unwalked in (6.5, 6.6, math.nan):  # NaN: not measured, never enough
+        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8),
+                            GroundBelow(10, 0, 6.0, 6.0, calm_s=6.5, unwalked_s=unwalked))
+        assert Land() not in cmds and ctl.phase == Phase.DESCEND
+        assert all(c.target.rel_alt_m >= 9.8 - 0.5 for c in cmds if isinstance(c, Goto))  # no step down
+        t += 0.1
+    assert texts(ctl) == ["SLZ: zone 1: people walked over the ground around the landing point 6.5 s ago, "
+                          "not 12 s: waiting before the LAND"]
+    lawn = LandingController(dataclasses.replace(UNWALKED, land_alt_m=4.0))
+    t = _low_over_zone(lawn)
+    texts(lawn)
+    lawn.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+    lawn.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8),
+                  GroundBelow(10, 0, 6.0, 6.0, calm_s=6.8, unwalked_s=20.0))
+    assert texts(lawn) == ["SLZ: zone 1 judged at 9.8 m (calm 6.8 s, unwalked 20.0 s): descending over it to 4 m "
+                           "before the LAND"]
+    assert UNWALKED.planner.is_unwalked(12.0) and not UNWALKED.planner.is_unwalked(11.9)
+    assert CALM.planner.is_unwalked(math.nan)  # 0: not required
+    with pytest.raises(ValueError, match="min_unwalked_s"):
+        PlannerConfig(min_unwalked_s=-1.0)
+
+
 def _people_walk_in(ctl: LandingController, t: float, alt: float) -> tuple[float, list]:
     """Over zone 1 (north 10, east 0) low down: a person within r0 of the vehicle on
     ``lose_after_frames`` frames, the zone too small; returns the time reached and the commands."""

@@ -262,6 +262,15 @@ def test_the_frame_pipeline_measures_unwalked_only_when_asked():
     assert centre and centre[0].unwalked_s == pytest.approx(2.9, abs=1e-3)
     assert all(math.isnan(tr.calm_s) for tr in res.tracks)  # calm not asked
     assert ref.tracks and all(math.isnan(tr.unwalked_s) for tr in ref.tracks)
+    # The ground below's unwalked time only with calm and unwalked_below (controller.min_unwalked_s).
+    assert res.below is not None and math.isnan(res.below.unwalked_s)
+    below = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True, unwalked_below=True),
+                        intrinsics=K, mount=Mount())
+    for k in range(30):
+        t = 0.1 * k
+        out = below.process(frame, t, Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    assert out.below is not None and out.below.unwalked_s == pytest.approx(2.9, abs=1e-3)
+    assert math.isnan(out.below.quiet_s)  # quiet not asked
 
 
 def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones():

@@ -769,7 +769,8 @@ class LandingController:
                 if not judged:
                     judged, self._judged = True, track.id
                     measured = [f"{name} {v:.1f} s" for name, v in (("calm", self._calm_here()),
-                                                                    ("quiet", self._quiet_here()))
+                                                                    ("quiet", self._quiet_here()),
+                                                                    ("unwalked", self._unwalked_here()))
                                 if math.isfinite(v)]
                     self._event(f"zone {track.id} judged at {s.height:.1f} m"
                                 + (f" ({', '.join(measured)})" if measured else "")
@@ -813,21 +814,26 @@ class LandingController:
 
     def _calm_below(self, track: Track) -> bool:
         """Whether the ground under the vehicle (the latest frame's ``GroundBelow``) has been
-        watched and seen free for ``planner.min_calm_s``, and nobody seen within its wider quiet
-        disc for ``planner.min_quiet_s``; when not, says once per zone that the LAND waits for it
-        (a Note) and starts that zone's wait."""
+        watched and seen free for ``planner.min_calm_s``, nobody seen within its wider quiet
+        disc for ``planner.min_quiet_s``, and nobody on its calm disc since it was first seen for
+        ``planner.min_unwalked_s``; when not, says once per zone that the LAND waits for it (a
+        Note) and starts that zone's wait."""
         p = self.config.planner
-        calm, quiet = self._calm_here(), self._quiet_here()
-        if p.is_calm(calm) and p.is_quiet(quiet):
+        calm, quiet, unwalked = self._calm_here(), self._quiet_here(), self._unwalked_here()
+        if p.is_calm(calm) and p.is_quiet(quiet) and p.is_unwalked(unwalked):
             return True
         if self._calm_wait is None or self._calm_wait[0] != track.id:
             self._calm_wait = (track.id, self.now)
             if not p.is_calm(calm):
                 seen = f"{calm:.1f} s" if math.isfinite(calm) else "not yet"
                 why = f"ground around the landing point watched free for {seen}, not {p.min_calm_s:g} s"
-            else:
+            elif not p.is_quiet(quiet):
                 seen = f"{quiet:.1f} s" if math.isfinite(quiet) else "not yet"
                 why = f"nobody seen near the landing point for {seen}, not {p.min_quiet_s:g} s"
+            else:
+                seen = f"{unwalked:.1f} s" if math.isfinite(unwalked) else "not yet"
+                why = (f"people walked over the ground around the landing point {seen} ago, "
+                       f"not {p.min_unwalked_s:g} s")
             self._event(f"zone {track.id}: {why}: waiting before the LAND")
         return False
 
@@ -838,6 +844,10 @@ class LandingController:
     def _quiet_here(self) -> float:
         """The latest frame's quiet under the camera (s; NaN when not measured)."""
         return self.below.quiet_s if self.below is not None else math.nan
+
+    def _unwalked_here(self) -> float:
+        """The latest frame's unwalked time under the camera (s; NaN when not measured)."""
+        return self.below.unwalked_s if self.below is not None else math.nan
 
     def _out_of_view(self, track: Track | None) -> bool:
         """In LAND, a zone last seen all free with a view of under ``BLIND_VIEW_M`` that then

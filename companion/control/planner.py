@@ -60,6 +60,11 @@ class PlannerConfig:
     #: (``GroundBelow.quiet_s``) before the LAND (0: not required). Checked with calm, below the
     #: vehicle, where the zone is judged.
     min_quiet_s: float = 0.0
+    #: Seconds nobody must have been seen on the calm disc around the landing point since the
+    #: camera first saw it (``GroundBelow.unwalked_s``) before the LAND (0: not required). Checked
+    #: with calm: a gap people walked through a few seconds ago waits, a lawn nobody walks on
+    #: does not.
+    min_unwalked_s: float = 0.0
     #: Rank eligible zones by ``Track.unwalked_s`` (whole seconds, longest first) before age (off
     #: here, the paper's rule; on in the service's settings, ``controller.prefer_unwalked``).
     prefer_unwalked: bool = False
@@ -74,9 +79,14 @@ class PlannerConfig:
         measured, is not)."""
         return self.min_quiet_s <= 0 or quiet_s >= self.min_quiet_s
 
+    def is_unwalked(self, unwalked_s: float) -> bool:
+        """Whether ground nobody was seen on for ``unwalked_s`` seconds since it was first seen is
+        unwalked long enough (NaN, not measured, is not)."""
+        return self.min_unwalked_s <= 0 or unwalked_s >= self.min_unwalked_s
+
     def __post_init__(self) -> None:
         for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s", "min_calm_s",
-                     "min_quiet_s"):
+                     "min_quiet_s", "min_unwalked_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a finite number >= 0, not {value!r}")

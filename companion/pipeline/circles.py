@@ -37,6 +37,9 @@ class GroundBelow:
     quiet_s: how long nobody has been seen within a wider disc around it (r0 plus the quiet
         margin), on what the map remembers of it (s, ``riskmap.GroundRiskMap.quiet_s``); NaN when
         not measured.
+    unwalked_s: how long nobody has been seen within the calm disc around it since the camera first
+        saw all of that disc, whatever it looked at meanwhile (s,
+        ``riskmap.GroundRiskMap.unwalked_s``); NaN when not measured.
     """
 
     x: float
@@ -45,6 +48,7 @@ class GroundBelow:
     r_view: float
     calm_s: float = math.nan
     quiet_s: float = math.nan
+    unwalked_s: float = math.nan
 
     @property
     def view_limited(self) -> bool:

@@ -84,6 +84,9 @@ class PipelineConfig:
     #: Measure each posed frame's confirmed zones' ``unwalked_s`` over the calm disc
     #: (``riskmap.GroundRiskMap.unwalked_s``), for ``controller.prefer_unwalked``; off, it stays NaN.
     unwalked: bool = False
+    #: With ``calm``, the ground below's ``unwalked_s`` too, over the calm disc around the point
+    #: under the camera (``controller.min_unwalked_s``); off, it stays NaN.
+    unwalked_below: bool = False
 
     def __post_init__(self) -> None:
         for name in ("calm_margin_m", "quiet_margin_m"):
@@ -320,7 +323,9 @@ class SLZPipeline:
             if math.isfinite(bx) and math.isfinite(by):
                 below = GroundBelow(bx, by, *clearance(bx, by),
                                     calm_s=calm(bx, by) if measure else math.nan,
-                                    quiet_s=quiet(bx, by) if measure and self.config.quiet else math.nan)
+                                    quiet_s=quiet(bx, by) if measure and self.config.quiet else math.nan,
+                                    unwalked_s=unwalked(bx, by) if measure and self.config.unwalked_below
+                                    else math.nan)
         t6 = time.perf_counter()
         followed: list[Person] = []
         if self.people is not None and pose is not None:

@@ -262,6 +262,10 @@ def comparison_text(c: Comparison) -> str:
             more = f" and {len(keys) - LISTED} more" if len(keys) > LISTED else ""
             lines.append(f"{label} (left out): {len(keys)} flight(s): {named}{more}")
     lines.append(f"settings: BEFORE {c.settings_before or [[]]}, AFTER {c.settings_after or [[]]}")
+    if c.pairs == 0:
+        lines.append("no pair is clean (every seed starved on one side or both): nothing to compare. Fly on a "
+                     "machine that keeps up, or compare the starved flights with --starved")
+        return "\n".join(lines)
     lines.append("")
     lines.append(f"{'per flight':<56} {'BEFORE':>7} {'AFTER':>7}  yes before only / after only")
     for b in c.binary:

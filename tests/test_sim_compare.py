@@ -68,6 +68,9 @@ def test_pairs_are_compared_seed_by_seed_and_starved_or_unpaired_flights_are_lef
     assert "9 pairs" in text and "handback" in text and "beyond chance at the 0.05 level (*)" in text
     # --starved takes the starved pair too.
     assert compare(before, after, include_starved=True).pairs == 10
+    # Nothing clean: said so, not a table of zeros.
+    starved = compare([_row(1, "safe", starved=True)], [_row(1, "safe")])
+    assert starved.pairs == 0 and "no pair is clean" in comparison_text(starved)
 
 
 def test_no_difference_is_called_chance_and_never_sameness() -> None:

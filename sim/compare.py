@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -312,9 +311,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.json:
+        # Every figure is a count, a finite p-value or median, or None: plain JSON.
         print(json.dumps({**asdict(c), "beyond_chance": c.beyond_chance, "alpha": ALPHA,
-                          "min_discordant": MIN_DISCORDANT},
-                         default=lambda o: None if isinstance(o, float) and not math.isfinite(o) else o))
+                          "min_discordant": MIN_DISCORDANT}))
     else:
         print(comparison_text(c))
     return 0

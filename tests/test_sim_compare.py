@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 from scipy.stats import binomtest, wilcoxon
 
-from sim.compare import MIN_DISCORDANT, CompareError, compare, comparison_text, mcnemar_p
+from sim.compare import MIN_DISCORDANT, CompareError, compare, comparison_text, main, mcnemar_p
 
 
 def _row(seed: int, outcome: str, *, flavour: str = "px4", t: float = 30.0, phases: int = 5,
@@ -92,7 +92,8 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
                           capture_output=True, text=True, timeout=60)
 
 
-def test_the_command_compares_two_results_files_and_refuses_bad_ones(tmp_path: Path) -> None:
+def test_the_command_compares_two_results_files_and_refuses_bad_ones(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
     a, b, dup = tmp_path / "a.jsonl", tmp_path / "b.jsonl", tmp_path / "dup.jsonl"
     a.write_text("".join(json.dumps(_row(s, "handback", free=None)) + "\n" for s in range(1, 7)) + "{torn\n")
     b.write_text("".join(json.dumps(_row(s, "safe")) + "\n" for s in range(1, 7)))
@@ -100,8 +101,9 @@ def test_the_command_compares_two_results_files_and_refuses_bad_ones(tmp_path: P
     done = _cli(str(a), str(b))
     assert done.returncode == 0, done.stderr
     assert "6 pairs" in done.stdout and "1 unreadable line" in done.stderr
-    data = json.loads(_cli(str(a), str(b), "--json").stdout)
+    # The rest in this process (the entry point is proven above; each interpreter costs a second).
+    assert main([str(a), str(b), "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
     assert data["pairs"] == 6 and "handback" in data["beyond_chance"]
-    assert _cli(str(a), str(tmp_path / "missing.jsonl")).returncode == 2
-    bad = _cli(str(dup), str(b))
-    assert bad.returncode == 2 and "two rows of seed 1" in bad.stderr
+    assert main([str(a), str(tmp_path / "missing.jsonl")]) == 2
+    assert main([str(dup), str(b)]) == 2 and "two rows of seed 1" in capsys.readouterr().err

@@ -987,6 +987,18 @@ def test_recentre_refuses_a_negative_distance():
 QUIET = dataclasses.replace(CALM, planner=dataclasses.replace(CALM.planner, min_quiet_s=8.0), calm_wait_s=30.0)
 
 
+def _waits_low_over_zone(ctl: LandingController, t: float, belows: list[GroundBelow]) -> float:
+    """Frames over zone 1 at 9.8 m, one per ``belows``: no LAND, no step down; returns the time
+    reached."""
+    for below in belows:
+        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8), below)
+        assert Land() not in cmds and ctl.phase == Phase.DESCEND
+        assert all(c.target.rel_alt_m >= 9.8 - 0.5 for c in cmds if isinstance(c, Goto))  # no step down
+        t += 0.1
+    return t
+
+
 def test_the_land_also_waits_for_quiet_ground_and_says_why():
     """Calm under the vehicle (nobody within r0 plus 1 m for 6.5 s) but somebody seen within the
     wider quiet disc 3 s ago, as in a gap of a walking crowd: no LAND, one Note naming the quiet
@@ -994,13 +1006,8 @@ def test_the_land_also_waits_for_quiet_ground_and_says_why():
     ctl = LandingController(dataclasses.replace(QUIET, land_alt_m=4.0))
     t = _low_over_zone(ctl)
     texts(ctl)
-    for quiet in (3.0, 3.1, math.nan):  # NaN: not measured, never quiet
-        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
-        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8),
-                            GroundBelow(10, 0, 6.0, 6.0, calm_s=6.5, quiet_s=quiet))
-        assert Land() not in cmds and ctl.phase == Phase.DESCEND
-        assert all(c.target.rel_alt_m >= 9.8 - 0.5 for c in cmds if isinstance(c, Goto))  # no step down
-        t += 0.1
+    # NaN: not measured, never quiet.
+    t = _waits_low_over_zone(ctl, t, [GroundBelow(10, 0, 6.0, 6.0, calm_s=6.5, quiet_s=q) for q in (3.0, 3.1, math.nan)])
     notes = texts(ctl)
     assert notes == ["SLZ: zone 1: nobody seen near the landing point for 3.0 s, not 8 s: waiting before the LAND"]
     ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
@@ -1033,13 +1040,8 @@ def test_the_land_waits_over_ground_people_walked_over_and_not_over_ground_nobod
     ctl = LandingController(dataclasses.replace(UNWALKED, land_alt_m=4.0))
     t = _low_over_zone(ctl)
     texts(ctl)
-    for unwalked in (6.5, 6.6, math.nan):  # NaN: not measured, never enough
-        ctl.on_state(status(t, 10, 0, 9.8, mode="GUIDED"))
-        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, 9.8),
-                            GroundBelow(10, 0, 6.0, 6.0, calm_s=6.5, unwalked_s=unwalked))
-        assert Land() not in cmds and ctl.phase == Phase.DESCEND
-        assert all(c.target.rel_alt_m >= 9.8 - 0.5 for c in cmds if isinstance(c, Goto))  # no step down
-        t += 0.1
+    # NaN: not measured, never enough.
+    _waits_low_over_zone(ctl, t, [GroundBelow(10, 0, 6.0, 6.0, calm_s=6.5, unwalked_s=u) for u in (6.5, 6.6, math.nan)])
     assert texts(ctl) == ["SLZ: zone 1: people walked over the ground around the landing point 6.5 s ago, "
                           "not 12 s: waiting before the LAND"]
     lawn = LandingController(dataclasses.replace(UNWALKED, land_alt_m=4.0))

@@ -1052,6 +1052,13 @@ def test_the_land_waits_over_ground_people_walked_over_and_not_over_ground_nobod
                   GroundBelow(10, 0, 6.0, 6.0, calm_s=6.8, unwalked_s=20.0))
     assert texts(lawn) == ["SLZ: zone 1 judged at 9.8 m (calm 6.8 s, unwalked 20.0 s): descending over it to 4 m "
                            "before the LAND"]
+    # Not measured yet (NaN): it waits, and says so without a time.
+    unknown = LandingController(dataclasses.replace(UNWALKED, land_alt_m=4.0))
+    t = _low_over_zone(unknown)
+    texts(unknown)
+    _waits_low_over_zone(unknown, t, [GroundBelow(10, 0, 6.0, 6.0, calm_s=6.5, unwalked_s=math.nan)])
+    assert texts(unknown) == ["SLZ: zone 1: ground around the landing point not yet measured for walkers, "
+                              "12 s needed: waiting before the LAND"]
     assert UNWALKED.planner.is_unwalked(12.0) and not UNWALKED.planner.is_unwalked(11.9)
     assert CALM.planner.is_unwalked(math.nan)  # 0: not required
     with pytest.raises(ValueError, match="min_unwalked_s"):

@@ -830,10 +830,11 @@ class LandingController:
             elif not p.is_quiet(quiet):
                 seen = f"{quiet:.1f} s" if math.isfinite(quiet) else "not yet"
                 why = f"nobody seen near the landing point for {seen}, not {p.min_quiet_s:g} s"
-            else:
-                seen = f"{unwalked:.1f} s" if math.isfinite(unwalked) else "not yet"
-                why = (f"people walked over the ground around the landing point {seen} ago, "
+            elif math.isfinite(unwalked):
+                why = (f"people walked over the ground around the landing point {unwalked:.1f} s ago, "
                        f"not {p.min_unwalked_s:g} s")
+            else:  # "not yet ... ago" would read wrong
+                why = f"ground around the landing point not yet measured for walkers, {p.min_unwalked_s:g} s needed"
             self._event(f"zone {track.id}: {why}: waiting before the LAND")
         return False
 

@@ -60,9 +60,11 @@ def _landed(row: dict[str, Any]) -> bool:
 
 
 def _on_free_ground(row: dict[str, Any]) -> bool | None:
-    if not _landed(row) or row.get("in_free_area") is None:
-        return None if _landed(row) else False
-    return bool(row["in_free_area"])
+    """No for a flight that did not land; None for a landing whose row cannot say where."""
+    if not _landed(row):
+        return False
+    where = row.get("in_free_area")
+    return None if where is None else bool(where)
 
 
 BINARY: dict[str, FlightTest] = {

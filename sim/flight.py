@@ -565,23 +565,20 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     sim.on_touchdown(on_touchdown)
     climb: dict[str, float] = {}
 
-    def watch_climb(_dt: float) -> None:
-        # The truth, every physics step from the trigger to touchdown: how high it went.
-        if "trigger_alt" in climb and "t" not in touchdown:
-            climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.vehicle.altitude)
-
-    sim.add_stepper(watch_climb)
     truth: list[tuple[float, float]] = []  # (time.monotonic(), nearest person to the vehicle, m)
 
-    def watch_people(_dt: float) -> None:
-        # The truth under the vehicle, every TRUTH_PERIOD_S from the trigger to touchdown, for
-        # the zone losses' judgement (zone_losses).
+    def watch_truth(_dt: float) -> None:
+        # The truth from the trigger to touchdown: every physics step, how high it went; every
+        # TRUTH_PERIOD_S, the nearest person under the vehicle, for the zone losses' judgement.
+        if "trigger_alt" not in climb or "t" in touchdown:
+            return
+        climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.vehicle.altitude)
         now = time.monotonic()
-        if "trigger_alt" in climb and "t" not in touchdown and (not truth or now - truth[-1][0] >= TRUTH_PERIOD_S):
+        if not truth or now - truth[-1][0] >= TRUTH_PERIOD_S:
             p = sim.truth.position
             truth.append((now, world.nearest_person_distance((float(p[0]), float(p[1])))))
 
-    sim.add_stepper(watch_people)
+    sim.add_stepper(watch_truth)
     window: dict[str, float] = {}  # READY and the end of the flight, for the processed frame rate
     lines: list[str] = []
     sink = open(spec.service_log, "w") if spec.service_log is not None else None

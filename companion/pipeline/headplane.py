@@ -10,6 +10,7 @@ as occupied and landing circles stay inside the view.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -110,12 +111,24 @@ def pixels_per_cell(proj: PlaneProjection, grid: GridSpec) -> float:
         pts.append(proj.camera_xy)
     base = np.array(pts, dtype=float)
     c = grid.cell
-    p0 = proj.plane_to_image(base)
-    px = proj.plane_to_image(base + [c, 0.0])
-    py = proj.plane_to_image(base + [0.0, c])
+    # One projection of the points and their neighbours a cell along x and along y.
+    p0, px, py = np.split(proj.plane_to_image(np.concatenate([base, base + [c, 0.0], base + [0.0, c]])), 3)
     d = np.concatenate([np.hypot(*(px - p0).T), np.hypot(*(py - p0).T)])
     d = d[np.isfinite(d)]
     return float(d.max()) if d.size else 1.0
+
+
+@functools.lru_cache(maxsize=8)
+def _whole_view(h: int, w: int, k: int) -> np.ndarray:
+    """The whole image seen (uint8 255) with the free map's border erosion by a ``k`` x ``k``
+    square (none for ``k`` = 1), so that ground seen free up to the edge of the view reaches
+    exactly as far as the view does. The same few (size, kernel) pairs come every frame: cached,
+    read-only."""
+    whole: np.ndarray = np.full((h, w), 255, np.uint8)
+    if k > 1:
+        whole = cv2.erode(whole, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    whole.flags.writeable = False
+    return whole
 
 
 def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
@@ -150,11 +163,7 @@ def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
         out[behind] = 0
     if seen is not None:
         h, w = free_img.shape[:2]
-        whole: np.ndarray = np.full((h, w), 255, np.uint8)
-        if kernel is not None:
-            # The same border erosion as the free map, so that ground seen free up to the edge of
-            # the view reaches exactly as far as the view does.
-            whole = cv2.erode(whole, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        whole = _whole_view(h, w, 1 if kernel is None else len(kernel))
         view = cv2.warpPerspective(whole, M, (grid.cols, grid.rows),
                                    flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -132,11 +132,19 @@ def _cp_matrices(dt: float, sigma_v: float) -> tuple[np.ndarray, np.ndarray]:
     return np.eye(6), Q
 
 
+_DIAG3 = (np.arange(3), np.arange(3))
+
+
 def _cv_matrices(dt: float, sigma_a: float) -> tuple[np.ndarray, np.ndarray]:
+    """Constant velocity: F moves (x, y, r) by dt times their rates; Q is sigma_a times the
+    discrete white-noise acceleration blocks [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] on each axis
+    (written entry by entry: ``np.block`` cost more than the filter's own step)."""
     F = np.eye(6)
-    F[0:3, 3:6] = dt * np.eye(3)
-    I3 = np.eye(3)
-    Q = sigma_a * np.block([[dt**4 / 4 * I3, dt**3 / 2 * I3], [dt**3 / 2 * I3, dt**2 * I3]])
+    F[0:3, 3:6][_DIAG3] = dt
+    Q = np.zeros((6, 6))
+    Q[0:3, 0:3][_DIAG3] = sigma_a * (dt**4 / 4)
+    Q[0:3, 3:6][_DIAG3] = Q[3:6, 0:3][_DIAG3] = sigma_a * (dt**3 / 2)
+    Q[3:6, 3:6][_DIAG3] = sigma_a * dt**2
     return F, Q
 
 

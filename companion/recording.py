@@ -23,9 +23,10 @@ its size on disk reaches a piece, a chunk when it reaches a piece. When a file i
 oldest finished files (any kind, any run; a run left with only its meta.json is removed whole)
 are deleted until the finished files fit in ``max_mb`` less the room of the files still to be
 written (a video segment, a frame chunk, an events chunk; none once ``close()`` has finished
-them): a piece each, and for the segment twice the encoder's buffer too (``ENCODER_BUFFER``, 256
-KiB: the size on disk lags by up to one buffer, and the rest reaches the disk when the segment
-ends). So the total never passes ``max_mb`` by more than the item that completes a piece in each
+them): a piece each, and for the segment twice its writer's buffer too (the size on disk lags by
+up to one buffer, and the rest reaches the disk when the segment ends): 8 KiB for MJPG, whose
+JPEG bytes go straight to the file (``companion.avi``, ``AVI_BUFFER``), 256 KiB for OpenCV's mp4v
+encoder (``ENCODER_BUFFER``). So the total never passes ``max_mb`` by more than the item that completes a piece in each
 stream (one frame, one index line, one event line) and the container index written when a
 segment ends -- the slack the tests allow. After ``close()`` the total is within ``max_mb``. A
 frame whose segment or index chunk was deleted is skipped by the reader.
@@ -64,6 +65,7 @@ from typing import Any, cast
 import cv2
 import numpy as np
 
+from companion.avi import AVI_BUFFER, MjpegAviWriter, encode_jpeg, is_jpeg, jpeg_frames
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.logs import RateLimitedLog
 
@@ -71,6 +73,9 @@ log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 2  # 2: frame index and events in numbered chunks; 1: frames.jsonl, events.jsonl
 SUFFIX = {"MJPG": ".avi", "mp4v": ".mp4"}
+#: JPEG quality of frames the recorder encodes itself (those that did not come as JPEGs): the
+#: quality OpenCV's own MJPG writer used before ``companion.avi``.
+JPEG_QUALITY = 95
 THUMB = 8
 # Grey levels an 8x8-grid block mean may move through lossy compression; a half-decoded frame moves
 # whole blocks to flat grey, far more than this.
@@ -162,7 +167,9 @@ class RecorderStats:
     """frames: written; dropped: not recorded because the writer was behind; segments: opened;
     deleted: files (segments, chunks, emptied runs' meta.json) removed to stay within max_mb;
     errors: write failures (frames and events; ENOSPC and the like), each not recorded;
-    events: event lines written; downsampled: events not written by the rate limit."""
+    events: event lines written; downsampled: events not written by the rate limit;
+    jpeg_as_sent: frames (of ``frames``) stored as the camera's own JPEG bytes, not encoded again
+    (MJPG segments of an MJPEG camera's frames)."""
 
     frames: int = 0
     dropped: int = 0
@@ -171,6 +178,7 @@ class RecorderStats:
     errors: int = 0
     events: int = 0
     downsampled: int = 0
+    jpeg_as_sent: int = 0
 
 
 @dataclass
@@ -179,6 +187,7 @@ class _Item:
     t: float
     image: np.ndarray
     pose: Pose | None
+    jpeg: bytes | None = None
 
 
 class _Chunks:
@@ -292,7 +301,7 @@ class FlightRecorder:
         self._events_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self.path: Path | None = None
-        self._writer: cv2.VideoWriter | None = None
+        self._writer: cv2.VideoWriter | MjpegAviWriter | None = None
         self._seg_name: str | None = None
         self._seg_start_t = 0.0
         self._seg_k = 0
@@ -338,12 +347,15 @@ class FlightRecorder:
         return path
 
     # ---- producer side (event loop) ----------------------------------------------------------
-    def add_frame(self, index: int, t: float, image: np.ndarray, pose: Pose | None) -> bool:
-        """Queue a frame (BGR uint8) with its capture time and pose; False when dropped."""
+    def add_frame(self, index: int, t: float, image: np.ndarray, pose: Pose | None,
+                  jpeg: bytes | None = None) -> bool:
+        """Queue a frame (BGR uint8) with its capture time and pose; False when dropped.
+        jpeg: the bytes ``image`` was decoded from, when it came as a JPEG: MJPG segments store
+        them as they are (no second encoding; they must decode to ``image``)."""
         if self._thread is None:
             return False
         try:
-            self._queue.put_nowait(_Item(index, t, image, pose))
+            self._queue.put_nowait(_Item(index, t, image, pose, jpeg))
             return True
         except queue.Full:
             self.stats.dropped += 1
@@ -433,7 +445,19 @@ class FlightRecorder:
                 or item.t - self._seg_start_t >= self.segment_s):
             self._open_segment(size, item.t)
         assert self._writer is not None and self.path is not None and self._frames is not None
-        self._writer.write(img)
+        if isinstance(self._writer, MjpegAviWriter):
+            as_sent = item.jpeg is not None and is_jpeg(item.jpeg)
+            data = item.jpeg if as_sent and item.jpeg is not None else encode_jpeg(img, JPEG_QUALITY)
+            try:
+                self._writer.write(data)
+            except OSError:
+                # A part of the chunk may be on disk: end the segment here (its index lists the
+                # whole frames) and start the next frame in a new one.
+                self._close_segment()
+                raise
+            self.stats.jpeg_as_sent += as_sent
+        else:
+            self._writer.write(img)
         k = self._seg_k
         self._seg_k += 1  # the image is in the segment even if its index line fails below
         try:
@@ -449,10 +473,15 @@ class FlightRecorder:
         assert self.path is not None
         name = f"seg_{self._seg_no:05d}{SUFFIX[self.codec]}"
         self._seg_no += 1
-        fourcc = cv2.VideoWriter_fourcc(*self.codec)  # type: ignore[attr-defined]  # missing from the cv2 stubs
-        writer = cv2.VideoWriter(str(self.path / name), fourcc, self.fps, size)
-        if not writer.isOpened():
-            raise OSError(f"cannot open video segment {self.path / name} ({self.codec})")
+        writer: cv2.VideoWriter | MjpegAviWriter
+        if self.codec == "MJPG":
+            # JPEG bytes into the file (``companion.avi``): the camera's own where it sent JPEGs.
+            writer = MjpegAviWriter(self.path / name, size, self.fps)
+        else:
+            fourcc = cv2.VideoWriter_fourcc(*self.codec)  # type: ignore[attr-defined]  # missing from the cv2 stubs
+            writer = cv2.VideoWriter(str(self.path / name), fourcc, self.fps, size)
+            if not writer.isOpened():
+                raise OSError(f"cannot open video segment {self.path / name} ({self.codec})")
         self._writer, self._seg_name, self._seg_size, self._seg_start_t, self._seg_k = writer, name, size, t, 0
         self.stats.segments += 1
 
@@ -460,7 +489,10 @@ class FlightRecorder:
         writer, self._writer = self._writer, None
         if writer is None or self.path is None:
             return
-        writer.release()
+        if isinstance(writer, MjpegAviWriter):
+            writer.close()
+        else:
+            writer.release()
         seg = self.path / str(self._seg_name)
         try:
             size = seg.stat().st_size
@@ -504,7 +536,8 @@ class FlightRecorder:
         """Delete the oldest finished files (all runs) until they, with every meta.json, fit in
         max_bytes less the room of the files still being written."""
         with self._disk_lock:
-            room = 0 if self._video_done else self.piece_bytes + 2 * ENCODER_BUFFER
+            buffer = AVI_BUFFER if self.codec == "MJPG" else ENCODER_BUFFER
+            room = 0 if self._video_done else self.piece_bytes + 2 * buffer
             room += sum(self.piece_bytes for c in (self._frames, self._events) if c is None or not c.closed)
             limit = max(0, self.max_bytes - room)
             while self._finished and self._finished_bytes + sum(self._kept.values()) > limit:
@@ -664,7 +697,7 @@ class RecordingReader:
     def frames(self) -> Iterator[RecordedFrame]:
         """Every readable frame in recording order, paired with its recorded pose."""
         self.stats = ReadStats()
-        cap: cv2.VideoCapture | None = None
+        cap: _JpegSegment | cv2.VideoCapture | None = None
         seg: str | None = None
         pos = 0  # next frame position in the open segment
         dead = False  # the open segment is missing or ended early: skip its remaining rows
@@ -688,7 +721,7 @@ class RecordingReader:
                         log.warning("%s: segment %s is missing (deleted to save space?); its frames "
                                     "are skipped", self.path, name)
                     else:
-                        cap = cv2.VideoCapture(str(seg_path))
+                        cap = _open_segment(seg_path)
                         if not cap.isOpened():
                             dead = True
                             log.warning("%s: segment %s cannot be opened; its frames are skipped",
@@ -700,13 +733,19 @@ class RecordingReader:
                         self.stats.missing += 1
                     continue
                 image = None
+                ended = False
                 while pos <= k:
                     ok, img = cap.read()
                     if not ok:
+                        ended = True
                         break
                     pos += 1
                     if pos - 1 == k:
                         image = img
+                if image is None and not ended:
+                    self.stats.corrupt += 1  # a whole JPEG that does not decode
+                    log.warning("%s: frame %d in %s cannot be decoded; skipped", self.path, index, name)
+                    continue
                 if image is None:
                     dead = truncated = True
                     self.stats.truncated += 1
@@ -722,6 +761,48 @@ class RecordingReader:
         finally:
             if cap is not None:
                 cap.release()
+
+
+class _JpegSegment:
+    """A Motion-JPEG AVI segment read like a ``cv2.VideoCapture``, its frames' JPEG bytes
+    decoded by ``cv2.imdecode`` (``companion.avi.jpeg_frames``): the pixels the service decoded
+    from an MJPEG camera, where FFmpeg's decoder would differ slightly. ``read`` gives (True,
+    None) for a whole chunk that does not decode, (False, None) at the end."""
+
+    def __init__(self, frames: Iterator[bytes], first: bytes | None) -> None:
+        self._frames = frames
+        self._next = first
+
+    def isOpened(self) -> bool:  # noqa: N802 (cv2.VideoCapture's name)
+        return True
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        data, self._next = self._next, None
+        if data is None:
+            try:
+                data = next(self._frames)
+            except (StopIteration, OSError):
+                return False, None
+        return True, cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+
+    def release(self) -> None:
+        close = getattr(self._frames, "close", None)
+        if close is not None:
+            close()
+
+
+def _open_segment(path: Path) -> _JpegSegment | cv2.VideoCapture:
+    """A segment to read frame by frame: MJPG AVIs by their JPEG bytes, anything else (mp4v,
+    an AVI of another codec) through OpenCV."""
+    if path.suffix.lower() == ".avi":
+        frames = jpeg_frames(path)
+        try:
+            return _JpegSegment(frames, next(frames))
+        except StopIteration:
+            return _JpegSegment(iter(()), None)  # no whole frame: every row reads as truncated
+        except (ValueError, OSError):
+            pass
+    return cv2.VideoCapture(str(path))
 
 
 __all__ = ["FlightRecorder", "RecordingReader", "RecordedFrame", "RecordingError", "RecorderStats",

@@ -465,3 +465,30 @@ def test_plausible_capture_time() -> None:
     assert not plausible_capture_time(now - 1.5, now, None)  # too old (or another clock)
     assert not plausible_capture_time(1.7e9, now, None)  # wall-clock time
     assert not plausible_capture_time(now - 0.02, now, now - 0.01)  # not after the previous frame
+
+
+def test_mjpeg_frames_carry_the_bytes_they_were_decoded_from_and_other_sources_none(tmp_path: Path) -> None:
+    # The recorder stores an MJPEG camera's own bytes (no second encoding): each frame must
+    # carry exactly the part it was decoded from. A folder of images carries none.
+    server = _ScriptedMjpegServer(lambda conn: (_jpeg(i) for i in range(6)))
+    cam = CameraSource(server.url, stall_timeout_s=2.0)
+    got = _collect(cam)
+    try:
+        cam.start()
+        assert _wait_until(lambda: len(got) >= 6, 5)
+    finally:
+        cam.stop()
+        server.close()
+    for f in got:
+        assert f.jpeg == _jpeg(_which(f.image))
+        assert np.array_equal(cv2.imdecode(np.frombuffer(f.jpeg, np.uint8), cv2.IMREAD_COLOR), f.image)
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"f{i:03d}.png"), _frame(i))
+    files = CameraSource(str(tmp_path), fps=100.0)
+    taken = _collect(files)
+    try:
+        files.start()
+        assert _wait_until(lambda: len(taken) >= 3, 5)
+    finally:
+        files.stop()
+    assert all(f.jpeg is None for f in taken)

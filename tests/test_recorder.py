@@ -94,10 +94,11 @@ def test_truncated_last_segment_and_half_written_line_are_tolerated(tmp_path: Pa
 
 
 def test_disk_budget_deletes_oldest_segments(tmp_path: Path) -> None:
-    # Each 160x120 MJPG frame is ~10-20 kB; a 0.1 MiB budget keeps only the newest segments.
-    rec, path = _record(tmp_path, 40, segment_s=0.5, max_mb=0.1)
+    # Each 160x120 MJPG frame is ~7-16 kB; a 0.08 MiB budget keeps only the newest segments,
+    # and (with these frames' sizes) an index chunk that outlives some segments of its frames.
+    rec, path = _record(tmp_path, 40, segment_s=0.5, max_mb=0.08)
     assert rec.stats.deleted > 0
-    assert _disk_use(tmp_path) <= 0.1 * 2**20
+    assert _disk_use(tmp_path) <= 0.08 * 2**20
     assert not (path / "seg_00000.avi").exists()
     reader = RecordingReader(path)
     frames = list(reader.frames())
@@ -292,3 +293,26 @@ def test_a_recording_holds_no_signing_secret(tmp_path: Path) -> None:
         for p in files:
             data = p.read_bytes()
             assert key_hex.encode() not in data and bytes.fromhex(key_hex) not in data, p
+
+
+def test_a_cameras_jpegs_are_recorded_as_they_came_and_replayed_to_the_same_pixels(tmp_path: Path) -> None:
+    # An MJPEG camera's frame carries the bytes it was decoded from: recorded as they are (no
+    # second encoding), and read back they decode to exactly the image the service had. Frames
+    # without bytes, or with bytes that are not a JPEG, are encoded once.
+    rec = FlightRecorder(tmp_path, segment_s=10.0, fps=10, queue_size=16)
+    path = rec.start()
+    sent: list[np.ndarray] = []
+    for i in range(6):
+        jpeg = cv2.imencode(".jpg", _frame(i), [cv2.IMWRITE_JPEG_QUALITY, 70])[1].tobytes()
+        image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        extra = {0: {}, 1: {"jpeg": cv2.imencode(".png", image)[1].tobytes()}}.get(i, {"jpeg": jpeg})
+        assert rec.add_frame(i, 100.0 + 0.1 * i, image, None, **extra)
+        sent.append(image)
+    rec.close()
+    assert rec.stats.frames == 6 and rec.stats.jpeg_as_sent == 4
+    frames = list(RecordingReader(path).frames())
+    assert [f.index for f in frames] == list(range(6))
+    for f in frames[2:]:
+        assert np.array_equal(f.frame_bgr, sent[f.index])
+    for f in frames[:2]:
+        assert _similar(f.frame_bgr, sent[f.index])

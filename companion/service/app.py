@@ -511,7 +511,9 @@ class Service:
             image = self._prepare(frame.image)
             pose: Pose | None = self.state.pose_at(frame.t)
             if self.recorder is not None:
-                self.recorder.add_frame(frame.index, frame.t, image, pose)
+                # The camera's own JPEG when the frame is recorded as it came (not resized).
+                self.recorder.add_frame(frame.index, frame.t, image, pose,
+                                        jpeg=frame.jpeg if image is frame.image else None)
             if pose is None:
                 # Stale is unsafe: without a pose at capture time the frame can't be placed on
                 # the ground, and must not confirm or move any zone.

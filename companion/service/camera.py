@@ -94,12 +94,15 @@ class Frame:
     image: BGR uint8 array (H, W, 3).
     t_source: where ``t`` came from: ``"device"`` (V4L2 buffer timestamp), ``"header"`` (the MJPEG
         part's ``X-Timestamp``) or ``"grab"`` (when the grab returned); see the module docstring.
+    jpeg: the JPEG bytes ``image`` was decoded from (an MJPEG stream's part), or None: the
+        recorder stores them as they came instead of encoding the image again.
     """
 
     index: int
     t: float
     image: np.ndarray
     t_source: TimeSource = "grab"
+    jpeg: bytes | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -178,6 +181,8 @@ class _Reader:
 
     stamp: float | None = None
     stamp_source: TimeSource = "grab"
+    #: The JPEG bytes of the image ``read`` last returned, when the source sends JPEGs.
+    jpeg: bytes | None = None
 
     def read(self) -> tuple[_Status, np.ndarray | None]:
         raise NotImplementedError
@@ -295,7 +300,7 @@ class _MjpegReader(_Reader):
         return line
 
     def read(self) -> tuple[_Status, np.ndarray | None]:
-        self.stamp = None
+        self.stamp = self.jpeg = None
         try:
             line = self._readline()
             skipped = 0
@@ -328,6 +333,7 @@ class _MjpegReader(_Reader):
         if image is None:
             return _Status.CORRUPT, None
         self.stamp = _parse_stamp(headers.get("x-timestamp"))
+        self.jpeg = data
         return _Status.OK, image
 
     def _read_to_boundary(self) -> bytes:
@@ -551,8 +557,9 @@ class CameraSource:
                         "none" if self._prev_t is None else f"{self._prev_t:.6f}")
         return now, "grab"
 
-    def _publish(self, image: np.ndarray, t: float, t_source: TimeSource = "grab") -> None:
-        frame = Frame(self._next_index, t, image, t_source)
+    def _publish(self, image: np.ndarray, t: float, t_source: TimeSource = "grab",
+                 jpeg: bytes | None = None) -> None:
+        frame = Frame(self._next_index, t, image, t_source, jpeg)
         self._prev_t = t
         self._next_index += 1
         with self._lock:
@@ -598,7 +605,7 @@ class CameraSource:
             if status is _Status.OK:
                 assert image is not None
                 if not self._is_repeat(image):
-                    self._publish(image, *self._capture_time(reader, now))
+                    self._publish(image, *self._capture_time(reader, now), jpeg=reader.jpeg)
                     last_good = now
                     backoff = 0.5
                     continue

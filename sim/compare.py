@@ -11,11 +11,13 @@ setting (docs/design.md has several such days). So each figure is compared over 
 the comparison says how likely a difference that large would be if the change did nothing:
 
 - per flight yes/no figures (an unsafe landing, a strike, a companion landing with nobody within
-  ``r_0``, a handback, a landing on ground nobody walks into): the pairs where only BEFORE says yes
+  ``r_0``, a handback, a landing on ground nobody walks into, and with ``--starved`` a starved
+  flight): the pairs where only BEFORE says yes
   and where only AFTER says yes, and the exact two-sided McNemar p-value (the binomial test of
   those discordant pairs at one half; scipy). Pairs that agree say nothing about the change;
-- time from trigger to touchdown (over the pairs where both landed), phase changes and zone
-  losses (``sim.flight.zone_losses``; over the pairs whose rows carry them): the medians of each
+- time from trigger to touchdown (over the pairs where both landed), phase changes, zone
+  losses (``sim.flight.zone_losses``; over the pairs whose rows carry them) and the service's
+  frame time at the 95th percentile (what a change in speed moves): the medians of each
   side, the median paired difference and the two-sided Wilcoxon signed-rank p-value (scipy);
 - the pairs whose verdict changed, listed.
 
@@ -73,6 +75,8 @@ BINARY: dict[str, FlightTest] = {
     "companion landing with nobody within r0": lambda r: r.get("outcome") == "safe",
     "handback": lambda r: r.get("outcome") == "handback",
     "companion landing on ground nobody walks into": _on_free_ground,
+    # Only with --starved: without it no compared pair holds a starved flight.
+    "starved (the frame p95 over the machine's limit)": lambda r: bool(r.get("starved")),
 }
 
 
@@ -91,11 +95,17 @@ def _losses(row: dict[str, Any]) -> float | None:
     return float(n) if isinstance(n, int) else None
 
 
+def _frame_p95(row: dict[str, Any]) -> float | None:
+    ms = row.get("frame_ms_p95")
+    return float(ms) if isinstance(ms, (int, float)) and not isinstance(ms, bool) else None
+
+
 #: Per-flight numbers compared pair by pair: name -> the number (None: the row cannot say).
 NUMERIC: dict[str, Callable[[dict[str, Any]], float | None]] = {
     "time from trigger to touchdown (s; both landed)": _time,
     "phase changes": _phases,
     "zones given up over them": _losses,
+    "service frame time, p95 (ms; what starves a flight)": _frame_p95,
 }
 
 

@@ -20,7 +20,8 @@ def _row(seed: int, outcome: str, *, flavour: str = "px4", t: float = 30.0, phas
     row: dict[str, Any] = {"seed": seed, "flavour": flavour, "world": "free_area", "outcome": outcome,
                            "clearance_m": 1.0 if outcome == "unsafe" else 4.0, "time_to_touchdown_s": t,
                            "phases": ["SELECT"] * phases, "starved": starved, "strike": strike,
-                           "in_free_area": free, "settings": settings or [], "baseline": baseline}
+                           "in_free_area": free, "settings": settings or [], "baseline": baseline,
+                           "frame_ms_p95": 55.0 if starved else 40.0 + seed % 3}
     if losses is not None:
         row["zone_losses"] = losses
     return row
@@ -66,8 +67,13 @@ def test_pairs_are_compared_seed_by_seed_and_starved_or_unpaired_flights_are_lef
     assert next(n for n in c.numeric if n.name.startswith("zones")).pairs == 0
     text = comparison_text(c)
     assert "9 pairs" in text and "handback" in text and "beyond chance at the 0.05 level (*)" in text
-    # --starved takes the starved pair too.
-    assert compare(before, after, include_starved=True).pairs == 10
+    # --starved takes the starved pair too, and then says which were starved.
+    loaded = compare(before, after, include_starved=True)
+    assert loaded.pairs == 10
+    assert next(b for b in loaded.binary if b.name.startswith("starved")).only_after == 1
+    assert next(b for b in c.binary if b.name.startswith("starved")).after == 0
+    p95 = next(n for n in loaded.numeric if n.name.startswith("service frame time"))
+    assert p95.pairs == 10 and p95.median_difference == 0.0
     # Nothing clean: said so, not a table of zeros.
     starved = compare([_row(1, "safe", starved=True)], [_row(1, "safe")])
     assert starved.pairs == 0 and "no pair is clean" in comparison_text(starved)

@@ -25,10 +25,10 @@ are deleted until the finished files fit in ``max_mb`` less the room of the file
 written (a video segment, a frame chunk, an events chunk; none once ``close()`` has finished
 them): a piece each, and for the segment twice its writer's buffer too (the size on disk lags by
 up to one buffer, and the rest reaches the disk when the segment ends): 8 KiB for MJPG, whose
-JPEG bytes go straight to the file (``companion.avi``, ``AVI_BUFFER``), 256 KiB for OpenCV's mp4v
-encoder (``ENCODER_BUFFER``). So the total never passes ``max_mb`` by more than the item that completes a piece in each
-stream (one frame, one index line, one event line) and the container index written when a
-segment ends -- the slack the tests allow. After ``close()`` the total is within ``max_mb``. A
+JPEG bytes go straight to the file (``companion.avi``, ``AVI_BUFFER``), 256 KiB for OpenCV's
+mp4v encoder (``ENCODER_BUFFER``). So the total never passes ``max_mb`` by more than the item
+that completes a piece in each stream (one frame, one index line, one event line) and the
+container index written when a segment ends -- the slack the tests allow. After ``close()`` the total is within ``max_mb``. A
 frame whose segment or index chunk was deleted is skipped by the reader.
 
 Events are downsampled per kind and message type (``event_rates_hz``, default telemetry at
@@ -446,16 +446,15 @@ class FlightRecorder:
             self._open_segment(size, item.t)
         assert self._writer is not None and self.path is not None and self._frames is not None
         if isinstance(self._writer, MjpegAviWriter):
-            as_sent = item.jpeg is not None and is_jpeg(item.jpeg)
-            data = item.jpeg if as_sent and item.jpeg is not None else encode_jpeg(img, JPEG_QUALITY)
+            sent = item.jpeg if item.jpeg is not None and is_jpeg(item.jpeg) else None
             try:
-                self._writer.write(data)
+                self._writer.write(sent if sent is not None else encode_jpeg(img, JPEG_QUALITY))
             except OSError:
                 # A part of the chunk may be on disk: end the segment here (its index lists the
                 # whole frames) and start the next frame in a new one.
                 self._close_segment()
                 raise
-            self.stats.jpeg_as_sent += as_sent
+            self.stats.jpeg_as_sent += sent is not None
         else:
             self._writer.write(img)
         k = self._seg_k

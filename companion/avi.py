@@ -18,6 +18,7 @@ GiB where AVI 1.0 ends (the recorder cuts them at 64 MiB at most).
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Iterator
 from pathlib import Path
@@ -62,7 +63,7 @@ class MjpegAviWriter:
 
     def __init__(self, path: str | Path, size: tuple[int, int], fps: float) -> None:
         w, h = (int(v) for v in size)
-        if w <= 0 or h <= 0 or not fps > 0:
+        if w <= 0 or h <= 0 or not (math.isfinite(fps) and fps > 0):
             raise ValueError(f"AVI needs a positive size and frame rate, got {size!r} at {fps!r}")
         self.path = Path(path)
         self.size = (w, h)
@@ -143,7 +144,7 @@ def jpeg_frames(path: str | Path) -> Iterator[bytes]:
             if len(top) < 8:
                 return
             fourcc, size = top[:4], struct.unpack("<I", top[4:])[0]
-            if fourcc in (b"LIST", b"RIFF"):
+            if fourcc == b"LIST":
                 kind = fh.read(4)
                 if kind == b"hdrl":
                     codec = _hdrl_codec(fh.read(max(0, size - 4)))
@@ -155,15 +156,14 @@ def jpeg_frames(path: str | Path) -> Iterator[bytes]:
                         raise ValueError(f"{path}: no stream header before the frames")
                     yield from _movi_frames(fh)
                     return
-                if fourcc == b"LIST":
-                    fh.seek(max(0, size - 4) + size % 2, 1)
-                # RIFF 'AVIX' (an OpenDML continuation): walk into it.
+                fh.seek(max(0, size - 4) + size % 2, 1)  # another list (INFO, ...)
                 continue
             fh.seek(size + size % 2, 1)
 
 
 def _hdrl_codec(hdrl: bytes) -> bytes | None:
-    """The compression of the first video stream's format (``strf``) in a ``hdrl`` list."""
+    """The compression field of the first stream's format (``strf``) in a ``hdrl`` list (an
+    audio stream first gives something that is not MJPG: the file is then read another way)."""
     at = 0
     while at + 8 <= len(hdrl):
         fourcc, size = hdrl[at:at + 4], struct.unpack("<I", hdrl[at + 4:at + 8])[0]
@@ -179,15 +179,16 @@ def _hdrl_codec(hdrl: bytes) -> bytes | None:
 
 def _movi_frames(fh: BinaryIO) -> Iterator[bytes]:
     """The video chunks (``##dc``/``##db``) from here to the end of the file or the first
-    incomplete chunk; ``rec `` lists are walked into, anything else (JUNK, ``ix##``, ``idx1``)
-    skipped. The list's own size is not trusted: it is 4 in a file that was never closed."""
+    incomplete chunk; lists (``rec ``, and the ``movi`` of an OpenDML ``RIFF AVIX``
+    continuation) are walked into, anything else (JUNK, ``ix##``, ``idx1``) skipped. The lists'
+    own sizes are not trusted: ``movi`` says 4 in a file that was never closed."""
     while True:
         top = fh.read(8)
         if len(top) < 8:
             return
         fourcc, size = top[:4], struct.unpack("<I", top[4:])[0]
-        if fourcc == b"LIST":
-            fh.read(4)  # 'rec ': its chunks follow
+        if fourcc in (b"LIST", b"RIFF"):
+            fh.read(4)  # its type ('rec ', 'AVIX', 'movi'): its chunks follow
             continue
         if fourcc[2:] in (b"dc", b"db"):
             data = fh.read(size)

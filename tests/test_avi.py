@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.avi import MjpegAviWriter, encode_jpeg, is_jpeg, jpeg_frames
+from companion.avi import MjpegAviWriter, _chunk, encode_jpeg, is_jpeg, jpeg_frames
 
 
 def _frame(i: int, w: int = 160, h: int = 120) -> np.ndarray:
@@ -92,6 +92,19 @@ def test_opencv_mjpg_files_of_older_recordings_give_their_jpegs(tmp_path: Path) 
         assert float(np.abs(img.astype(int) - _decode(j)).mean()) < 3
 
 
+def test_frames_in_an_opendml_continuation_are_read_too(tmp_path: Path) -> None:
+    # Past 1 GiB a writer goes on in a RIFF 'AVIX' with its own movi list; ours never gets there
+    # (segments end at 64 MiB), but a reader of other files must not stop at the first.
+    jpegs = [encode_jpeg(_frame(i)) for i in range(4)]
+    path = tmp_path / "big.avi"
+    _write(path, jpegs[:2])
+    movi = b"movi" + b"".join(_chunk(b"00dc", j) for j in jpegs[2:])
+    avix = b"AVIX" + b"LIST" + len(movi).to_bytes(4, "little") + movi
+    with open(path, "ab") as fh:
+        fh.write(b"RIFF" + len(avix).to_bytes(4, "little") + avix)
+    assert list(jpeg_frames(path)) == jpegs
+
+
 def test_what_is_not_an_mjpg_avi_is_refused_before_any_frame(tmp_path: Path) -> None:
     junk = tmp_path / "junk.avi"
     junk.write_bytes(b"\x00" * 64)
@@ -109,8 +122,9 @@ def test_what_is_not_an_mjpg_avi_is_refused_before_any_frame(tmp_path: Path) -> 
 def test_the_writer_refuses_what_it_cannot_store(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="positive size"):
         MjpegAviWriter(tmp_path / "a.avi", (0, 120), 10)
-    with pytest.raises(ValueError, match="positive size"):
-        MjpegAviWriter(tmp_path / "b.avi", (160, 120), 0)
+    for fps in (0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="positive size"):
+            MjpegAviWriter(tmp_path / "b.avi", (160, 120), fps)
     w = MjpegAviWriter(tmp_path / "c.avi", (160, 120), 10)
     with pytest.raises(ValueError, match="not JPEG"):
         w.write(cv2.imencode(".png", _frame(0))[1].tobytes())

@@ -187,3 +187,24 @@ def test_a_zone_that_is_ground_does_not_coast_on_a_velocity():
     assert end_v - seen_v > 1.0  # coasting on the slide
     assert end_p == pytest.approx(seen_p, abs=1e-9)  # ground stays put
     assert seen_p < 2.0 * 0.75  # and it lagged the slide (2 m) rather than followed it
+
+
+def test_the_velocity_models_noise_is_filterpys_discrete_white_noise_on_each_axis():
+    # Q is written entry by entry for speed: it must be the textbook block, per axis (x, y, r)
+    # with its rate, and F the constant-velocity step.
+    import numpy as np
+    from filterpy.common import Q_discrete_white_noise
+
+    from companion.pipeline.tracker import _cv_matrices
+
+    for dt, sigma_a in ((1 / 15, 0.5), (0.1, 2.0), (0.5, 0.01)):
+        F, Q = _cv_matrices(dt, sigma_a)
+        block = Q_discrete_white_noise(dim=2, dt=dt, var=sigma_a)
+        for axis in range(3):
+            rows = [axis, axis + 3]
+            assert np.allclose(Q[np.ix_(rows, rows)], block, rtol=1e-12, atol=0)
+            assert F[axis, axis + 3] == dt and F[axis, axis] == 1.0
+        others = np.ones((6, 6), bool)
+        for axis in range(3):
+            others[np.ix_([axis, axis + 3], [axis, axis + 3])] = False
+        assert not Q[others].any()

@@ -28,8 +28,9 @@ up to one buffer, and the rest reaches the disk when the segment ends): 8 KiB fo
 JPEG bytes go straight to the file (``companion.avi``, ``AVI_BUFFER``), 256 KiB for OpenCV's
 mp4v encoder (``ENCODER_BUFFER``). So the total never passes ``max_mb`` by more than the item
 that completes a piece in each stream (one frame, one index line, one event line) and the
-container index written when a segment ends -- the slack the tests allow. After ``close()`` the total is within ``max_mb``. A
-frame whose segment or index chunk was deleted is skipped by the reader.
+container index written when a segment ends -- the slack the tests allow. After ``close()`` the
+total is within ``max_mb``. A frame whose segment or index chunk was deleted is skipped by the
+reader.
 
 Events are downsampled per kind and message type (``event_rates_hz``, default telemetry at
 5 Hz): a token bucket on the events' own time ``t`` keeps at most that rate sustained, with
@@ -720,7 +721,7 @@ class RecordingReader:
                         log.warning("%s: segment %s is missing (deleted to save space?); its frames "
                                     "are skipped", self.path, name)
                     else:
-                        cap = _open_segment(seg_path)
+                        cap = _segment_reader(seg_path)
                         if not cap.isOpened():
                             dead = True
                             log.warning("%s: segment %s cannot be opened; its frames are skipped",
@@ -790,7 +791,7 @@ class _JpegSegment:
             close()
 
 
-def _open_segment(path: Path) -> _JpegSegment | cv2.VideoCapture:
+def _segment_reader(path: Path) -> _JpegSegment | cv2.VideoCapture:
     """A segment to read frame by frame: MJPG AVIs by their JPEG bytes, anything else (mp4v,
     an AVI of another codec) through OpenCV."""
     if path.suffix.lower() == ".avi":

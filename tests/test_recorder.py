@@ -316,3 +316,22 @@ def test_a_cameras_jpegs_are_recorded_as_they_came_and_replayed_to_the_same_pixe
         assert np.array_equal(f.frame_bgr, sent[f.index])
     for f in frames[:2]:
         assert _similar(f.frame_bgr, sent[f.index])
+
+
+def test_a_whole_frame_that_does_not_decode_is_counted_corrupt_and_the_rest_still_read(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    # Bit rot inside one stored JPEG (its chunk whole, its bytes garbage): that frame is skipped
+    # and counted, the frames after it in the same segment still read.
+    _, path = _record(tmp_path, 6, segment_s=10.0)
+    (seg,) = path.glob("seg_*.avi")
+    data = bytearray(seg.read_bytes())
+    at = [i for i in range(len(data)) if data[i:i + 4] == b"00dc"][2]  # the third frame's chunk
+    size = int.from_bytes(data[at + 4:at + 8], "little")
+    data[at + 8 + 3:at + 8 + size] = bytes(size - 3)  # keeps the start-of-image marker only
+    seg.write_bytes(bytes(data))
+    reader = RecordingReader(path)
+    with caplog.at_level("WARNING", logger="companion.recording"):
+        frames = list(reader.frames())
+    assert [f.index // 2 for f in frames] == [0, 1, 3, 4, 5]
+    assert reader.stats.corrupt == 1 and reader.stats.truncated == 0
+    assert any("frame 4 in seg_00000.avi cannot be decoded" in r.getMessage() for r in caplog.records)

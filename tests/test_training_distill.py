@@ -118,9 +118,13 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
     pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
     from companion.training.distill import main, parse_students
 
-    assert parse_students("d40, g40,d64") == [("d40", 40), ("g40", 40), ("d64", 64)]
+    assert [(s.name, s.kind, s.arch, s.width) for s in parse_students("d40, g40,gf32,wl48")] == \
+        [("d40", "d", "", 40), ("g40", "g", "", 40), ("gf32", "g", "f", 32), ("wl48", "w", "l", 48)]
     base = ["--shared", str(tmp_path), "--out-dir", str(tmp_path / "o"), "--teacher-steps", "1", "--student-steps", "1"]
-    for extra, says in ((["--students", "x40"], "d<width>"), (["--students", "d40,d40"], "twice"),
+    for extra, says in ((["--students", "x40"], "<d|g|w>"), (["--students", "gq40"], "<d|g|w>"),
+                        (["--students", "w40"], "need --init"),
+                        (["--students", "w40", "--init", str(tmp_path / "none.onnx")], "need --init"),
+                        (["--students", "g40", "--init-lr-scale", "0"], "--init-lr-scale"), (["--students", "d40,d40"], "twice"),
                         (["--students", "d4"], "8-256"), (["--alpha", "2"], "--alpha"),
                         (["--crop", "30"], "--crop"), (["--teacher-steps", "0"], "a phase needs"),
                         (["--synthetic-share", "0.9", "--negative-share", "0.2"], "must be <= 1")):
@@ -129,3 +133,73 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
     assert main(base) == 2  # no data at --shared: a clear error before any training
     assert "missing" in capsys.readouterr().err
     assert not (tmp_path / "o" / "students.pt").exists()
+
+
+def test_students_without_a_teacher_warm_started_and_cheaper(tmp_path: Path, pack_dir: Path) -> None:
+    """No ``d`` student: no teacher, one phase. A ``w`` student starts from an exported model and
+    keeps its batch-norm statistics (at a negligible learning rate its export is the start's map);
+    the cheaper ``f`` and ``l`` students export and run through the runner like the C-CNN."""
+    torch = pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.pipeline.density import DensityModel
+    from companion.training import model as M
+    from companion.training.distill import main
+    from companion.training.export import export_onnx
+
+    torch.manual_seed(3)
+    start = M.SLZDensityNet(16)
+    for m in start.modules():  # statistics far from a fresh batch norm's, so a lost start shows
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+    start.head.bias.data.zero_()  # probabilities mid-range, where a change shows
+    init = export_onnx(start, tmp_path / "start.onnx")
+    out = tmp_path / "s"
+    rc = main(["--shared", str(pack_dir), "--out-dir", str(out), "--workers", "0", "--threads", "1",
+               "--students", "w16,gf16,gl16", "--init", str(init), "--init-lr-scale", "1e-6",
+               "--student-steps", "2", "--batch", "2", "--crop", "64", "--max-images", "3", "--log-every", "1"])
+    assert rc == 0
+    hist = json.loads((out / "history.json").read_text())
+    assert hist["phase1"]["steps"] == 0 and hist["phase2"]["steps"] == 2 and "teacher" not in hist["losses"]
+    assert not (out / "teacher.pt").exists()
+    saved = torch.load(out / "students.pt")
+    assert {k: (v["arch"], v["width"]) for k, v in saved.items()} == {"w16": ("", 16), "gf16": ("f", 16),
+                                                                       "gl16": ("l", 16)}
+    frame = np.random.default_rng(1).integers(0, 255, (64, 96, 3), np.uint8)
+    before = DensityModel(init, threads=1)(frame)
+    after = DensityModel(out / "slz-w16.onnx", threads=1)(frame)
+    assert np.abs(after - before).max() < 1e-5 and after.std() > 1e-3
+    for name in ("gf16", "gl16"):
+        assert DensityModel(out / f"slz-{name}.onnx", threads=1)(frame).shape == (16, 24)
+
+
+def test_an_exported_model_loads_back_exactly_and_a_misfit_is_refused(tmp_path: Path) -> None:
+    torch = pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    import onnxruntime as ort
+
+    from companion.training import model as M
+    from companion.training.export import export_onnx
+
+    torch.manual_seed(0)
+    x = np.random.default_rng(0).normal(size=(1, 3, 64, 96)).astype(np.float32)
+    for arch, width in (("", 16), ("f", 16), ("l", 24)):
+        net = M.student(arch, width)
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.data.uniform_(0.5, 1.5)
+        a = export_onnx(net, tmp_path / f"a{arch}.onnx")
+        again = M.student(arch, width)
+        assert M.load_folded_onnx(again, str(a)) == sum(isinstance(m, torch.nn.Conv2d) for m in again.modules())
+        b = export_onnx(again, tmp_path / f"b{arch}.onnx")
+        ya, yb = (ort.InferenceSession(str(p)).run(None, {"input": x})[0] for p in (a, b))
+        np.testing.assert_allclose(yb, ya, atol=1e-6)
+    with pytest.raises(ValueError, match="convolutions"):
+        M.load_folded_onnx(M.student("f", 16), str(tmp_path / "a.onnx"))
+    with pytest.raises(ValueError, match=r"\(16, 3, 3, 3\)|is \("):
+        M.load_folded_onnx(M.student("f", 24), str(tmp_path / "af.onnx"))
+    (tmp_path / "bad.onnx").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="not a readable ONNX model"):
+        M.load_folded_onnx(M.student("", 16), str(tmp_path / "bad.onnx"))
+    with pytest.raises(ValueError, match="unknown student architecture"):
+        M.student("q", 16)

@@ -1,7 +1,10 @@
-"""Train a large teacher, then distil CPU-sized students from it, on many crops (GPU or CPU).
+"""Train CPU-sized students on many crops (GPU or CPU), distilled from a large teacher or not.
 
     python -m companion.training.distill --shared .pack/shared --device cuda --workers 15 \\
         --teacher-seconds 210 --student-seconds 200 --out-dir /tmp/distill
+    python -m companion.training.distill --shared .pack/shared --device cuda --workers 15 \\
+        --students g40,gf32,gl48,w40 --init companion/models/slz-density-v2.onnx \\
+        --student-seconds 480 --out-dir /tmp/students         # no d student: no teacher
 
 Two phases over one stream of training crops (the sources of :mod:`companion.training.train`:
 the real photos, the synthetic top-down crowds and the hard negatives, at the given shares):
@@ -12,7 +15,14 @@ the real photos, the synthetic top-down crowds and the hard negatives, at the gi
 2. **Distillation**: the teacher is frozen; each student named ``d<width>`` learns
    ``alpha`` x that loss on the ground truth plus ``1 - alpha`` x the plain cross-entropy toward the
    teacher's probability map; each student named ``g<width>`` (the control) keeps learning the
-   ground truth alone, so the two differ only by the teacher.
+   ground truth alone, so the two differ only by the teacher. Without a ``d`` student there is
+   no teacher and no phase 1: the students learn the ground truth for ``--student-seconds``.
+
+Students are named ``<kind><arch><width>`` (:class:`StudentSpec`): kind ``d`` distilled, ``g``
+ground truth, ``w`` ground truth warm-started from ``--init`` (an exported model of the same
+network; batch norms keep its statistics, learning rate x ``--init-lr-scale``); arch none for the
+shipped C-CNN, ``f`` for the cheaper :class:`companion.training.model.SLZFastNet`, ``l`` for its
+depthwise body.
 
 Each phase stops at its step count or its wall-clock budget, whichever comes first, with a cosine
 learning rate over that progress (a time budget makes the run fit a lent GPU's lease; steps make it
@@ -32,6 +42,7 @@ import json
 import logging
 import math
 import os
+import re
 import sys
 import time
 from collections.abc import Iterator
@@ -120,16 +131,39 @@ def distill_loss(student: torch.Tensor, target: torch.Tensor, teacher_p: torch.T
         student, teacher_p)
 
 
-def parse_students(spec: str) -> list[tuple[str, int]]:
-    """``"d40,g40,d64"`` -> [("d40", 40), ...]: ``d`` distilled, ``g`` ground truth only; width 8-256."""
+@dataclass(frozen=True)
+class StudentSpec:
+    """One ``--students`` entry: ``<kind><arch><width>``.
+
+    kind: ``d`` distilled from the teacher, ``g`` ground truth only (the control), ``w`` ground
+    truth only, warm-started from ``--init`` (an exported model of the same architecture and
+    width). arch: none for the shipped C-CNN (:class:`companion.training.model.SLZDensityNet`),
+    ``f`` for :class:`companion.training.model.SLZFastNet`, ``l`` for its depthwise body."""
+
+    name: str
+    kind: str
+    arch: str
+    width: int
+
+    def build(self) -> torch.nn.Module:
+        return M.student(self.arch, self.width)
+
+
+def parse_students(spec: str) -> list[StudentSpec]:
+    """``"d40,g40,gf32,w40"`` -> one :class:`StudentSpec` each; width 8-256."""
     out = []
     for item in (s.strip() for s in spec.split(",") if s.strip()):
-        if item[0] not in "dg" or not item[1:].isdigit() or not 8 <= int(item[1:]) <= 256:
-            raise ValueError(f"--students: {item!r} is not d<width> or g<width> with a width of 8-256")
-        out.append((item, int(item[1:])))
-    if len({n for n, _ in out}) != len(out):
+        m = re.fullmatch(r"([dgw])([fl]?)(\d+)", item)
+        if m is None or not 8 <= int(m.group(3)) <= 256:
+            raise ValueError(f"--students: {item!r} is not <d|g|w>[f|l]<width> with a width of 8-256")
+        out.append(StudentSpec(item, m.group(1), m.group(2), int(m.group(3))))
+    if len({s.name for s in out}) != len(out):
         raise ValueError(f"--students names a student twice: {spec!r}")
     return out
+
+
+def needs_teacher(students: list[StudentSpec]) -> bool:
+    return any(s.kind == "d" for s in students)
 
 
 class Phase:
@@ -169,26 +203,43 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     stream = batches(CropStream(sources, args.batch, args.crop, args.seed), args.workers, cuda)
     first: tuple[torch.Tensor, torch.Tensor] | None = next(stream)
     torch.set_num_threads(args.threads)
-    teacher = Learner("teacher", M.TeacherNet(args.teacher_width).to(device), args.teacher_lr)
-    students = [Learner(name, M.SLZDensityNet(w).to(device), args.lr) for name, w in parse_students(args.students)]
+    specs = parse_students(args.students)
+    use_teacher = needs_teacher(specs)
+    teacher = Learner("teacher", M.TeacherNet(args.teacher_width).to(device), args.teacher_lr) if use_teacher else None
+    students, warm = [], set()
+    for spec in specs:
+        net = spec.build()
+        lr = args.lr
+        if spec.kind == "w":
+            log.info("%s starts from %s (%d convolutions)", spec.name, args.init, M.load_folded_onnx(net, args.init))
+            lr *= args.init_lr_scale
+            warm.add(spec.name)
+        students.append(Learner(spec.name, net.to(device), lr))
     mem = torch.channels_last if cuda else torch.contiguous_format
-    for lrn in [teacher, *students]:
+    learners = ([teacher] if teacher is not None else []) + students
+    for lrn in learners:
         # Module.to accepts memory_format, but torch's stubs list no overload with it.
         cast(Any, lrn.net).to(memory_format=mem).train()
-    log.info("teacher %d parameters; students %s", M.count_parameters(teacher.net),
+        if lrn.name in warm:
+            M.freeze_batchnorm(lrn.net)  # keep the start: see load_folded_onnx
+    log.info("teacher %s parameters; students %s", M.count_parameters(teacher.net) if teacher else "no",
              {s.name: M.count_parameters(s.net) for s in students})
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else torch.autocast("cpu", enabled=False)
     history: dict[str, object] = {"load_s": round(t_load, 1), "args": vars(args)}
+    by_name = {sp.name: sp for sp in specs}
 
     def save_students(tag: str) -> None:
         torch.save({s.name: {"state_dict": {k: v.cpu() for k, v in s.net.state_dict().items()},
-                             "width": int(s.name[1:]), "steps": s.steps, "tag": tag} for s in students},
-                   out / "students.pt")
+                             "arch": by_name[s.name].arch, "width": by_name[s.name].width, "steps": s.steps,
+                             "tag": tag} for s in students}, out / "students.pt")
 
-    for phase_no, (steps, seconds) in enumerate(((args.teacher_steps, args.teacher_seconds),
-                                                 (args.student_steps, args.student_seconds)), 1):
+    phases = ((args.teacher_steps, args.teacher_seconds), (args.student_steps, args.student_seconds))
+    for phase_no, (steps, seconds) in enumerate(phases, 1):
+        if phase_no == 1 and teacher is None:
+            history["phase1"] = {"steps": 0, "seconds": 0.0, "crops": 0, "crops_per_s": 0.0}
+            continue  # no distilled student: no teacher to train
         ph = Phase(steps, seconds)
-        if phase_no == 2:
+        if phase_no == 2 and teacher is not None:
             teacher.net.eval()
         crops = 0
         t_save = time.monotonic()
@@ -198,17 +249,18 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             x = normalise(x.to(device, non_blocking=True)).contiguous(memory_format=mem)
             y = y.to(device, non_blocking=True)
             f = lr_factor(ph.progress, ph.k, args.warmup)
+            t_p = None
             with amp:  # forward passes in bf16 on a GPU; losses and backward passes outside autocast
-                if phase_no == 1:
+                if phase_no == 1 and teacher is not None:
                     t_logits = teacher.net(x)
-                else:
+                elif teacher is not None:
                     with torch.no_grad():
                         t_p = torch.sigmoid(teacher.net(x).float())
                 s_logits = [s.net(x) for s in students]
-            if phase_no == 1:
+            if phase_no == 1 and teacher is not None:
                 teacher.step(loss(t_logits.float(), y, args.pos_weight), f)
             for s, logits in zip(students, s_logits):
-                if phase_no == 2 and s.name.startswith("d"):
+                if t_p is not None and by_name[s.name].kind == "d":
                     s.step(distill_loss(logits.float(), y, t_p, args.pos_weight, args.alpha), f)
                 else:
                     s.step(loss(logits.float(), y, args.pos_weight), f)
@@ -217,7 +269,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             if ph.k % args.log_every == 0:
                 el = time.monotonic() - ph.t0
                 recent = {lrn.name: round(float(np.mean(lrn.losses[-args.log_every:])), 4)
-                          for lrn in ([teacher] if phase_no == 1 else []) + students}
+                          for lrn in ([teacher] if phase_no == 1 and teacher else []) + students}
                 log.info("phase %d step %d %.0f%% %.0f crops/s lr x%.2f %s", phase_no, ph.k, 100 * ph.progress,
                          crops / el, f, recent)
             if time.monotonic() - t_save > args.save_every_s:
@@ -227,18 +279,20 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         history[f"phase{phase_no}"] = {"steps": ph.k, "seconds": round(el, 1), "crops": crops,
                                        "crops_per_s": round(crops / max(el, 1e-9), 1)}
         log.info("phase %d done: %d steps, %d crops in %.0f s", phase_no, ph.k, crops, el)
-        if phase_no == 1:
+        if phase_no == 1 and teacher is not None:
             torch.save({k: v.half().cpu() for k, v in teacher.net.state_dict().items()}, out / "teacher.pt")
         save_students(f"phase {phase_no} done")
     history["losses"] = {lrn.name: [round(float(np.mean(lrn.losses[i:i + 50])), 4)
-                                    for i in range(0, len(lrn.losses), 50)] for lrn in [teacher, *students]}
+                                    for i in range(0, len(lrn.losses), 50)] for lrn in learners}
     history["device"] = torch.cuda.get_device_name(device) if cuda else f"cpu ({os.cpu_count()} cores)"
     history["total_s"] = round(time.monotonic() - t_start, 1)
     (out / "history.json").write_text(json.dumps(history, indent=1) + "\n")
     if not args.no_export:
         for s in students:
             net = cast(Any, s.net).float().cpu().eval().to(memory_format=torch.contiguous_format)
-            how = f"alpha={args.alpha}" if s.name.startswith("d") else "ground truth only (no teacher)"
+            kind = by_name[s.name].kind
+            how = (f"alpha={args.alpha}" if kind == "d" else "ground truth only (no teacher)"
+                   + (f", warm-started from {Path(args.init).name} at lr x{args.init_lr_scale}" if kind == "w" else ""))
             note = (f"distill {s.name} teacher_steps={history['phase1']['steps']} "  # type: ignore[index]
                     f"student_steps={s.steps} batch={args.batch} synthetic_share={args.synthetic_share} "
                     f"negative_share={args.negative_share} {how} device={history['device']}")
@@ -259,6 +313,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--students", default="d40,g40,d64",
                    help="d<width>: distilled; g<width>: ground truth only (the control); comma-separated")
+    p.add_argument("--init", default=None, help="exported model (.onnx) the w<width> students start from")
+    p.add_argument("--init-lr-scale", type=float, default=0.3, help="w students' learning rate x this")
     p.add_argument("--teacher-width", type=int, default=64)
     p.add_argument("--teacher-steps", type=int, default=0, help="0: no step limit (then --teacher-seconds)")
     p.add_argument("--teacher-seconds", type=float, default=0.0)
@@ -283,8 +339,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         resolve_device(args.device)
         check_shares(args.synthetic_share, args.negative_share, args.max_images)
-        parse_students(args.students)
-        Phase(args.teacher_steps, args.teacher_seconds)
+        specs = parse_students(args.students)
+        if needs_teacher(specs):
+            Phase(args.teacher_steps, args.teacher_seconds)
+        if any(sp.kind == "w" for sp in specs):
+            if not args.init or not Path(args.init).is_file():
+                raise ValueError(f"w students need --init, an exported model file; got {args.init!r}")
+            for sp in specs:
+                if sp.kind == "w":
+                    M.load_folded_onnx(sp.build(), args.init)  # a clear error now, not after the data loads
+        if not 0 < args.init_lr_scale <= 10:
+            raise ValueError(f"--init-lr-scale must be in (0, 10], got {args.init_lr_scale}")
         Phase(args.student_steps, args.student_seconds)
         if not 0 <= args.alpha <= 1:
             raise ValueError(f"--alpha must be in [0, 1], got {args.alpha}")

@@ -26,7 +26,7 @@ def base_metadata() -> dict[str, object]:
     }
 
 
-def export_onnx(net: M.SLZDensityNet, out: Path, extra: Mapping[str, object] | None = None) -> Path:
+def export_onnx(net: torch.nn.Module, out: Path, extra: Mapping[str, object] | None = None) -> Path:
     """Fold batch norm, add the sigmoid, export with dynamic H and W, write the metadata."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

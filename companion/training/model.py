@@ -57,10 +57,122 @@ class SLZDensityNet(nn.Module):
         return self.head(self.body(self.pool(x)))
 
 
+class SLZFastNet(nn.Module):
+    """A cheaper student with the same contract as :class:`SLZDensityNet` (issue 13's 20 ms frame).
+
+    The C-CNN stem's three wide kernels on the full-resolution frame cost 0.44 GMAC at 640x480,
+    and its body of 40-channel 3x3 convolutions at stride 4 another 1.05 G. Here two strided 3x3
+    convolutions take the frame to stride 4 (3 -> ``stem`` -> ``width`` channels: 0.1-0.2 GMAC)
+    and the body is ``width`` wide; with ``depthwise`` each body layer is a depthwise 3x3 plus a
+    pointwise 1x1 (MobileNet style), a seventh of the multiply-adds. Dilations 1, 2, 3, 1 (and a
+    fifth layer, dilation 2, for the depthwise body) keep the receptive field near the C-CNN's.
+    """
+
+    def __init__(self, width: int = 32, stem: int = 24, depthwise: bool = False) -> None:
+        super().__init__()
+        self.stem = nn.Sequential(_cbr(3, stem, 3, 2), _cbr(stem, width, 3, 2))
+        if depthwise:
+            self.body = nn.Sequential(*(_dws(width, width, d) for d in (1, 2, 3, 1, 2)))
+            last = width
+        else:
+            self.body = nn.Sequential(_cbr(width, width, 3), _cbr(width, width, 3, dilation=2),
+                                      _cbr(width, width, 3, dilation=3), _cbr(width, 32, 3))
+            last = 32
+        self.head = nn.Conv2d(last, 1, 1)
+        assert self.head.bias is not None
+        nn.init.constant_(self.head.bias, -4.0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.body(self.stem(x)))
+
+
+def _dws(cin: int, cout: int, dilation: int) -> nn.Sequential:
+    """Depthwise 3x3 (dilated) then pointwise 1x1, each with BN and ReLU (folded on export)."""
+    dw = nn.Sequential(nn.Conv2d(cin, cin, 3, 1, dilation, dilation=dilation, groups=cin, bias=False),
+                       nn.BatchNorm2d(cin), nn.ReLU(inplace=True))
+    return nn.Sequential(dw, _cbr(cin, cout, 1))
+
+
+def student(arch: str, width: int) -> nn.Module:
+    """A student network by architecture letter: ``""`` the C-CNN (:class:`SLZDensityNet`), ``"f"``
+    :class:`SLZFastNet`, ``"l"`` :class:`SLZFastNet` with the depthwise ("lite") body."""
+    if arch == "":
+        return SLZDensityNet(width)
+    if arch in ("f", "l"):
+        return SLZFastNet(width, depthwise=arch == "l")
+    raise ValueError(f"unknown student architecture {arch!r} (known: '', 'f', 'l')")
+
+
+def load_folded_onnx(net: nn.Module, path: str) -> int:
+    """Start ``net`` from an exported model's weights (batch norm was folded into them on export).
+
+    The ONNX file's Conv nodes, in graph order, must match ``net``'s Conv2d modules in
+    registration order (true of every network here: both follow ``forward``). Each convolution
+    takes the folded weight; the batch norm after it becomes the identity on those weights (scale
+    1, mean 0, variance 1 - eps) with the folded bias as its shift, so ``net`` in eval mode computes
+    the file's map. Fine-tune with the batch norms in eval mode (:func:`freeze_batchnorm`): in train
+    mode they would normalise by batch statistics and the start would be lost. Returns the number of
+    convolutions loaded; ValueError when the file does not fit ``net``.
+    """
+    import onnx
+    from onnx import numpy_helper
+
+    try:
+        proto = onnx.load(path)
+    except Exception as exc:  # onnx raises protobuf's DecodeError, OSError, ...
+        raise ValueError(f"{path}: not a readable ONNX model ({exc})") from None
+    inits = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
+    for node in proto.graph.node:  # the exporter shares equal tensors through Identity or Constant nodes
+        if node.op_type == "Identity" and node.input[0] in inits:
+            inits[node.output[0]] = inits[node.input[0]]
+        elif node.op_type == "Constant" and node.attribute and node.attribute[0].name == "value":
+            inits[node.output[0]] = numpy_helper.to_array(node.attribute[0].t)
+    convs = [n for n in proto.graph.node if n.op_type == "Conv"]
+    mods = [m for m in net.modules() if isinstance(m, nn.Conv2d)]
+    if len(convs) != len(mods):
+        raise ValueError(f"{path}: {len(convs)} convolutions, the network has {len(mods)}")
+    bn_after = {}
+    for seq in net.modules():
+        if isinstance(seq, nn.Sequential) and len(seq) >= 2 and isinstance(seq[0], nn.Conv2d) \
+                and isinstance(seq[1], nn.BatchNorm2d):
+            bn_after[id(seq[0])] = seq[1]
+    with torch.no_grad():
+        for node, conv in zip(convs, mods):
+            if len(node.input) < 2 or any(name not in inits for name in node.input[1:]):
+                raise ValueError(f"{path}: convolution {node.name!r} has no constant weight or bias")
+            w = torch.from_numpy(inits[node.input[1]].copy())
+            b = torch.from_numpy(inits[node.input[2]].copy()) if len(node.input) > 2 else torch.zeros(w.shape[0])
+            if tuple(w.shape) != tuple(conv.weight.shape):
+                raise ValueError(f"{path}: convolution {node.name!r} is {tuple(w.shape)}, "
+                                 f"the network's is {tuple(conv.weight.shape)}")
+            conv.weight.copy_(w)
+            bn = bn_after.get(id(conv))
+            if bn is not None:
+                bn.weight.fill_(1.0)
+                bn.bias.copy_(b)
+                mean, var = bn.running_mean, bn.running_var
+                assert mean is not None and var is not None  # track_running_stats is on
+                mean.zero_()
+                var.fill_(1.0 - bn.eps)
+            elif conv.bias is not None:
+                conv.bias.copy_(b)
+            else:
+                raise ValueError(f"{path}: convolution {node.name!r} has a bias the network cannot hold")
+    return len(mods)
+
+
+def freeze_batchnorm(net: nn.Module) -> None:
+    """Batch norms to eval mode (running statistics, still learnable scale and shift); call after
+    ``net.train()``."""
+    for m in net.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.eval()
+
+
 class Exported(nn.Module):
     """The deployable form: batch norm folded into the convolutions, sigmoid at the end."""
 
-    def __init__(self, net: SLZDensityNet) -> None:
+    def __init__(self, net: nn.Module) -> None:
         super().__init__()
         self.net = net
 

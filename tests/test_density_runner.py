@@ -61,15 +61,16 @@ def bgr_frame(h: int, w: int, b: int = 10, g: int = 20, r: int = 30) -> np.ndarr
 
 INT8 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-int8.onnx"
 V2 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v2.onnx"
+V3 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v3.onnx"
 
 
-@pytest.fixture(params=["float", "int8", "v2"])
+@pytest.fixture(params=["float", "int8", "v2", "v3"])
 def shipped_model(request, model_path: Path) -> Path:
     """Each density model the package ships: the runner tests hold for the int8 one and for
-    version 2 (beside the default, not yet it) too."""
+    versions 2 and 3 (beside the default, not yet it) too."""
     if request.param == "float":
         return model_path
-    extra = {"int8": INT8, "v2": V2}[request.param]
+    extra = {"int8": INT8, "v2": V2, "v3": V3}[request.param]
     if not extra.is_file():
         pytest.skip(f"no {request.param} model shipped ({extra.name})")
     return extra

@@ -22,16 +22,19 @@ from sim.walkers import CrowdParams
 from sim.world import default_world
 
 MODEL = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
+V3 = MODEL.with_name("slz-density-v3.onnx")  # beside the default: held to the same closed-loop figures
 K = Intrinsics.from_fov(640, 480, 70.0)
 
 pytestmark = pytest.mark.skipif(not MODEL.is_file(), reason=f"the shipped density model {MODEL} is not there yet")
 
 
-@pytest.fixture(scope="module")
-def model():
+@pytest.fixture(scope="module", params=[MODEL, V3], ids=["default", "v3"])
+def model(request):
     from companion.pipeline.density import DensityModel
 
-    return DensityModel(MODEL, threads=2)
+    if not request.param.is_file():
+        pytest.skip(f"no {request.param.name} shipped")
+    return DensityModel(request.param, threads=2)
 
 
 def occupancy_figures(model, world, pose: Pose, mount: Mount, ground) -> tuple[float, float, int]:

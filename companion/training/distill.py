@@ -312,7 +312,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=0, help="crop-making processes (0: in this process)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--students", default="d40,g40,d64",
-                   help="d<width>: distilled; g<width>: ground truth only (the control); comma-separated")
+                   help="comma-separated <kind><arch><width>: kind d distilled, g ground truth only (the "
+                        "control), w ground truth from --init; arch none (C-CNN), f (SLZFastNet) or l "
+                        "(its depthwise body); e.g. g40,gf32,w40")
     p.add_argument("--init", default=None, help="exported model (.onnx) the w<width> students start from")
     p.add_argument("--init-lr-scale", type=float, default=0.3, help="w students' learning rate x this")
     p.add_argument("--teacher-width", type=int, default=64)

@@ -1,4 +1,5 @@
-"""The shipped density network: a compact C-CNN-style net (about 60 k parameters).
+"""The density networks: the default C-CNN-style net (about 60 k parameters), the cheaper
+:class:`SLZFastNet` (version 3, beside the default) and the large teacher used in distillation.
 
 Input: ``(N, 3, H, W)`` BGR scaled to [0, 1] then ``(x - 0.45) / 0.25``; H and W multiples of 4.
 Output: ``(N, 1, H/4, W/4)`` logits during training; the exported model ends in a sigmoid, so the
@@ -7,7 +8,8 @@ not a count: see ``companion/models/MODEL_CARD.md``).
 
 Layout (C-CNN of Shi et al. 2020 in spirit): three parallel stride-2 branches with 9x9, 7x7 and
 5x5 kernels see people of different sizes at full input resolution (tiny people from above need
-it), a 2x2 max-pool, then four 3x3 convolutions, two of them dilated for context.
+it), a 2x2 max-pool, then four 3x3 convolutions, two of them dilated for context. Every network
+here keeps that contract (input, stride-4 output), so the runner and the calibration take any.
 """
 
 from __future__ import annotations
@@ -156,7 +158,7 @@ def load_folded_onnx(net: nn.Module, path: str) -> int:
                 var.fill_(1.0 - bn.eps)
             elif conv.bias is not None:
                 conv.bias.copy_(b)
-            else:
+            elif bool(b.abs().max() > 0):
                 raise ValueError(f"{path}: convolution {node.name!r} has a bias the network cannot hold")
     return len(mods)
 

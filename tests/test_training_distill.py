@@ -135,6 +135,19 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
     assert not (tmp_path / "o" / "students.pt").exists()
 
 
+def _unlike_a_fresh_batchnorm(net) -> None:
+    """Random statistics and scales in every batch norm of ``net`` (a fresh one is the identity,
+    which would hide a lost or mis-folded start)."""
+    import torch
+
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.uniform_(0.5, 1.5)
+
+
 def test_students_without_a_teacher_warm_started_and_cheaper(tmp_path: Path, pack_dir: Path) -> None:
     """No ``d`` student: no teacher, one phase. A ``w`` student starts from an exported model and
     keeps its batch-norm statistics (at a negligible learning rate its export is the start's map);
@@ -147,10 +160,7 @@ def test_students_without_a_teacher_warm_started_and_cheaper(tmp_path: Path, pac
 
     torch.manual_seed(3)
     start = M.SLZDensityNet(16)
-    for m in start.modules():  # statistics far from a fresh batch norm's, so a lost start shows
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.5, 0.5)
-            m.running_var.uniform_(0.5, 2.0)
+    _unlike_a_fresh_batchnorm(start)  # so a lost start shows
     start.head.bias.data.zero_()  # probabilities mid-range, where a change shows
     init = export_onnx(start, tmp_path / "start.onnx")
     out = tmp_path / "s"
@@ -183,11 +193,7 @@ def test_an_exported_model_loads_back_exactly_and_a_misfit_is_refused(tmp_path: 
     x = np.random.default_rng(0).normal(size=(1, 3, 64, 96)).astype(np.float32)
     for arch, width in (("", 16), ("f", 16), ("l", 24)):
         net = M.student(arch, width)
-        for m in net.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                m.running_mean.uniform_(-0.5, 0.5)
-                m.running_var.uniform_(0.5, 2.0)
-                m.weight.data.uniform_(0.5, 1.5)
+        _unlike_a_fresh_batchnorm(net)
         a = export_onnx(net, tmp_path / f"a{arch}.onnx")
         again = M.student(arch, width)
         assert M.load_folded_onnx(again, str(a)) == sum(isinstance(m, torch.nn.Conv2d) for m in again.modules())

@@ -123,7 +123,10 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
     base = ["--shared", str(tmp_path), "--out-dir", str(tmp_path / "o"), "--teacher-steps", "1", "--student-steps", "1"]
     for extra, says in ((["--students", "x40"], "<d|g|w>"), (["--students", "gq40"], "<d|g|w>"),
                         (["--students", "w40"], "need --init"),
-                        (["--students", "w40", "--init", str(tmp_path / "none.onnx")], "need --init"),
+                        (["--students", "w40", "--init", str(tmp_path / "none.onnx")], "is not a file"),
+                        (["--students", "w40,wf32", "--init", f"w40={tmp_path}"], "no file for the w student(s) wf32"),
+                        (["--students", "w40", "--init", f"g40={tmp_path}"], "not a w student"),
+                        (["--students", "w40", "--init", "w40="], "is not NAME=FILE"),
                         (["--students", "g40", "--init-lr-scale", "0"], "--init-lr-scale"), (["--students", "d40,d40"], "twice"),
                         (["--students", "d4"], "8-256"), (["--alpha", "2"], "--alpha"),
                         (["--crop", "30"], "--crop"), (["--teacher-steps", "0"], "a phase needs"),
@@ -163,23 +166,27 @@ def test_students_without_a_teacher_warm_started_and_cheaper(tmp_path: Path, pac
     _unlike_a_fresh_batchnorm(start)  # so a lost start shows
     start.head.bias.data.zero_()  # probabilities mid-range, where a change shows
     init = export_onnx(start, tmp_path / "start.onnx")
+    start_f = M.student("f", 16)  # a second w student, of another network, from its own file
+    _unlike_a_fresh_batchnorm(start_f)
+    start_f.head.bias.data.zero_()
+    init_f = export_onnx(start_f, tmp_path / "start-f.onnx")
     out = tmp_path / "s"
     rc = main(["--shared", str(pack_dir), "--out-dir", str(out), "--workers", "0", "--threads", "1",
-               "--students", "w16,gf16,gl16", "--init", str(init), "--init-lr-scale", "1e-6",
+               "--students", "w16,wf16,gl16", "--init", f"w16={init},wf16={init_f}", "--init-lr-scale", "1e-6",
                "--student-steps", "2", "--batch", "2", "--crop", "64", "--max-images", "3", "--log-every", "1"])
     assert rc == 0
     hist = json.loads((out / "history.json").read_text())
     assert hist["phase1"]["steps"] == 0 and hist["phase2"]["steps"] == 2 and "teacher" not in hist["losses"]
     assert not (out / "teacher.pt").exists()
     saved = torch.load(out / "students.pt")
-    assert {k: (v["arch"], v["width"]) for k, v in saved.items()} == {"w16": ("", 16), "gf16": ("f", 16),
+    assert {k: (v["arch"], v["width"]) for k, v in saved.items()} == {"w16": ("", 16), "wf16": ("f", 16),
                                                                        "gl16": ("l", 16)}
     frame = np.random.default_rng(1).integers(0, 255, (64, 96, 3), np.uint8)
-    before = DensityModel(init, threads=1)(frame)
-    after = DensityModel(out / "slz-w16.onnx", threads=1)(frame)
-    assert np.abs(after - before).max() < 1e-5 and after.std() > 1e-3
-    for name in ("gf16", "gl16"):
-        assert DensityModel(out / f"slz-{name}.onnx", threads=1)(frame).shape == (16, 24)
+    for name, start_file in (("w16", init), ("wf16", init_f)):
+        before = DensityModel(start_file, threads=1)(frame)
+        after = DensityModel(out / f"slz-{name}.onnx", threads=1)(frame)
+        assert np.abs(after - before).max() < 1e-5 and after.std() > 1e-3, name
+    assert DensityModel(out / "slz-gl16.onnx", threads=1)(frame).shape == (16, 24)
 
 
 def test_an_exported_model_loads_back_exactly_and_a_misfit_is_refused(tmp_path: Path) -> None:

@@ -20,7 +20,7 @@ the real photos, the synthetic top-down crowds and the hard negatives, at the gi
 
 Students are named ``<kind><arch><width>`` (:class:`StudentSpec`): kind ``d`` distilled, ``g``
 ground truth, ``w`` ground truth warm-started from ``--init`` (an exported model of the same
-network; batch norms keep its statistics, learning rate x ``--init-lr-scale``); arch none for the
+network, one for all or ``NAME=FILE`` pairs, one per ``w`` student; batch norms keep its statistics, learning rate x ``--init-lr-scale``); arch none for the
 shipped C-CNN, ``f`` for the cheaper :class:`companion.training.model.SLZFastNet`, ``l`` for its
 depthwise body.
 
@@ -162,6 +162,34 @@ def parse_students(spec: str) -> list[StudentSpec]:
     return out
 
 
+def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]:
+    """``--init``: one exported model for every ``w`` student, or ``NAME=FILE,NAME=FILE`` naming one
+    per ``w`` student (``wf32=v3.onnx,w40=v2.onnx``). Every ``w`` student gets a file that exists."""
+    warm = [s.name for s in students if s.kind == "w"]
+    if not warm:
+        return {}
+    if not arg:
+        raise ValueError("w students need --init, an exported model file (or NAME=FILE pairs)")
+    if "=" not in arg:
+        inits = {name: Path(arg) for name in warm}
+    else:
+        inits = {}
+        for item in (i.strip() for i in arg.split(",") if i.strip()):
+            name, sep, file = item.partition("=")
+            if not sep or not name or not file:
+                raise ValueError(f"--init: {item!r} is not NAME=FILE")
+            if name not in warm:
+                raise ValueError(f"--init names {name!r}, which is not a w student of --students ({', '.join(warm)})")
+            inits[name] = Path(file)
+        missing = sorted(set(warm) - set(inits))
+        if missing:
+            raise ValueError(f"--init gives no file for the w student(s) {', '.join(missing)}")
+    for name, path in inits.items():
+        if not path.is_file():
+            raise ValueError(f"--init for {name}: {path} is not a file")
+    return inits
+
+
 def needs_teacher(students: list[StudentSpec]) -> bool:
     return any(s.kind == "d" for s in students)
 
@@ -206,12 +234,14 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     specs = parse_students(args.students)
     use_teacher = needs_teacher(specs)
     teacher = Learner("teacher", M.TeacherNet(args.teacher_width).to(device), args.teacher_lr) if use_teacher else None
+    inits = parse_inits(args.init, specs)
     students, warm = [], set()
     for spec in specs:
         net = spec.build()
         lr = args.lr
         if spec.kind == "w":
-            log.info("%s starts from %s (%d convolutions)", spec.name, args.init, M.load_folded_onnx(net, args.init))
+            init = inits[spec.name]
+            log.info("%s starts from %s (%d convolutions)", spec.name, init, M.load_folded_onnx(net, str(init)))
             lr *= args.init_lr_scale
             warm.add(spec.name)
         students.append(Learner(spec.name, net.to(device), lr))
@@ -292,7 +322,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
             net = cast(Any, s.net).float().cpu().eval().to(memory_format=torch.contiguous_format)
             kind = by_name[s.name].kind
             how = (f"alpha={args.alpha}" if kind == "d" else "ground truth only (no teacher)"
-                   + (f", warm-started from {Path(args.init).name} at lr x{args.init_lr_scale}" if kind == "w" else ""))
+                   + (f", warm-started from {inits[s.name].name} at lr x{args.init_lr_scale}" if kind == "w" else ""))
             note = (f"distill {s.name} teacher_steps={history['phase1']['steps']} "  # type: ignore[index]
                     f"student_steps={s.steps} batch={args.batch} synthetic_share={args.synthetic_share} "
                     f"negative_share={args.negative_share} {how} device={history['device']}")
@@ -315,7 +345,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma-separated <kind><arch><width>: kind d distilled, g ground truth only (the "
                         "control), w ground truth from --init; arch none (C-CNN), f (SLZFastNet) or l "
                         "(its depthwise body); e.g. g40,gf32,w40")
-    p.add_argument("--init", default=None, help="exported model (.onnx) the w<width> students start from")
+    p.add_argument("--init", default=None,
+                   help="exported model (.onnx) the w students start from, or NAME=FILE,... one per w student")
     p.add_argument("--init-lr-scale", type=float, default=0.3, help="w students' learning rate x this")
     p.add_argument("--teacher-width", type=int, default=64)
     p.add_argument("--teacher-steps", type=int, default=0, help="0: no step limit (then --teacher-seconds)")
@@ -342,14 +373,11 @@ def main(argv: list[str] | None = None) -> int:
         resolve_device(args.device)
         check_shares(args.synthetic_share, args.negative_share, args.max_images)
         specs = parse_students(args.students)
+        by_name = {sp.name: sp for sp in specs}
         if needs_teacher(specs):
             Phase(args.teacher_steps, args.teacher_seconds)
-        if any(sp.kind == "w" for sp in specs):
-            if not args.init or not Path(args.init).is_file():
-                raise ValueError(f"w students need --init, an exported model file; got {args.init!r}")
-            for sp in specs:
-                if sp.kind == "w":
-                    M.load_folded_onnx(sp.build(), args.init)  # a clear error now, not after the data loads
+        for name, init in parse_inits(args.init, specs).items():
+            M.load_folded_onnx(by_name[name].build(), str(init))  # a clear error now, not after the data loads
         if not 0 < args.init_lr_scale <= 10:
             raise ValueError(f"--init-lr-scale must be in (0, 10], got {args.init_lr_scale}")
         Phase(args.student_steps, args.student_seconds)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import onnx
 import pytest
@@ -304,3 +305,161 @@ def test_bad_frames(tmp_path: Path, frame: object, match: str) -> None:
     m = DensityModel(first_channel_model(tmp_path))
     with pytest.raises(FrameError, match=match):
         m(frame)  # type: ignore[arg-type]
+
+
+# --- border_px: the frame mirrored before the model sees it ----------------------------------
+
+LANDABILITY = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-landability.onnx"
+
+
+def _mirrored_reference(path: Path, frame: np.ndarray, border: int, stride: int) -> np.ndarray:
+    """What a border of ``border`` px must give: the model (border 0) run on the frame mirrored by
+    hand (REFLECT_101, then padded by the runner as any frame), its map cropped by border/stride
+    cells on every side back to the frame's ceil(H/stride) x ceil(W/stride) cells."""
+    mirrored = cv2.copyMakeBorder(frame, border, border, border, border, cv2.BORDER_REFLECT_101)
+    full = DensityModel(path, threads=1, overrides={"border_px": 0})(mirrored)
+    k, h, w = border // stride, -(-frame.shape[0] // stride), -(-frame.shape[1] // stride)
+    return full[..., k : k + h, k : k + w]
+
+
+def test_border_0_is_bit_identical_to_a_model_without_the_key(model_path: Path, tmp_path: Path) -> None:
+    frame = np.random.default_rng(5).integers(0, 256, (101, 150, 3), dtype=np.uint8)
+    plain = DensityModel(model_path, threads=1)
+    assert plain.spec.border_px == 0
+    copy = _with_metadata(model_path, tmp_path / "b0.onnx", {"companion.border_px": "0"})
+    for m in (DensityModel(model_path, threads=1, overrides={"border_px": 0}), DensityModel(copy, threads=1)):
+        assert m.spec == plain.spec
+        np.testing.assert_array_equal(m.preprocess(frame), plain.preprocess(frame))
+        np.testing.assert_array_equal(m(frame), plain(frame))
+
+
+@pytest.mark.parametrize("hw", [(96, 128), (101, 150)])
+def test_border_mirrors_the_frame_and_crops_the_map_back(model_path: Path, hw: tuple[int, int]) -> None:
+    frame = np.random.default_rng(6).integers(0, 256, (*hw, 3), dtype=np.uint8)
+    plain = DensityModel(model_path, threads=1)
+    m = DensityModel(model_path, threads=1, overrides={"border_px": 16})
+    assert m.spec.border_px == 16 and m.spec.stride == 4
+    # 16 px each side, then the bottom/right padding to the multiple of 4 as without a border
+    assert m.preprocess(frame).shape == (1, 3, hw[0] + 32 + (-hw[0] % 4), hw[1] + 32 + (-hw[1] % 4))
+    d = m(frame)
+    assert d.shape == plain(frame).shape == (-(-hw[0] // 4), -(-hw[1] // 4)) and d.flags.c_contiguous
+    np.testing.assert_array_equal(d, _mirrored_reference(model_path, frame, 16, 4))
+    assert not np.array_equal(d, plain(frame))  # the edge cells do change
+
+
+def test_border_from_metadata_and_a_grey_frame(model_path: Path, tmp_path: Path) -> None:
+    path = _with_metadata(model_path, tmp_path / "b8.onnx", {"companion.border_px": "8"})
+    m = DensityModel(path, threads=1)
+    assert m.spec.border_px == 8
+    assert DensityModel(path, threads=1, overrides={"border_px": 0}).spec.border_px == 0  # a config wins
+    grey = np.random.default_rng(7).integers(0, 256, (64, 80), dtype=np.uint8)
+    np.testing.assert_array_equal(m(grey), _mirrored_reference(model_path, cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), 8, 4))
+
+
+def test_border_on_the_tiny_model_crops_whole_cells(tmp_path: Path) -> None:
+    # Stride 2, one pixel per colour: the mirrored frame must come back cell for cell.
+    m = DensityModel(first_channel_model(tmp_path), overrides={"border_px": 4, "scale": 1})
+    frame = np.zeros((6, 10, 3), np.uint8)
+    frame[..., 0] = np.arange(60, dtype=np.uint8).reshape(6, 10)
+    assert m.preprocess(frame).shape == (1, 3, 14, 18)
+    want = frame[..., 0].astype(np.float32).reshape(3, 2, 5, 2).mean(axis=(1, 3))
+    np.testing.assert_allclose(m(frame), want, rtol=1e-6)
+
+
+def test_landability_model_takes_a_border_too(tmp_path: Path) -> None:
+    """The landability subclass's (L, h, w) output is cropped on its last two axes."""
+    from companion.pipeline.landability import LandabilityModel
+
+    if not LANDABILITY.is_file():
+        pytest.skip(f"no landability model shipped ({LANDABILITY.name})")
+    plain = LandabilityModel(LANDABILITY, threads=1)
+    s = plain.spec.stride
+    path = _with_metadata(LANDABILITY, tmp_path / "land.onnx", {"companion.border_px": str(2 * s)})
+    m = LandabilityModel(path, threads=1)
+    frame = np.random.default_rng(8).integers(0, 256, (90, 130, 3), dtype=np.uint8)
+    p = m(frame)
+    assert m.spec.border_px == 2 * s and p.shape == plain(frame).shape == (len(m.landability.levels), -(-90 // s),
+                                                                           -(-130 // s))
+    mirrored = cv2.copyMakeBorder(frame, 2 * s, 2 * s, 2 * s, 2 * s, cv2.BORDER_REFLECT_101)
+    np.testing.assert_array_equal(p, plain(mirrored)[:, 2 : 2 + p.shape[1], 2 : 2 + p.shape[2]])
+
+
+@pytest.mark.parametrize(
+    "value,match",
+    [(-4, r"border_px must be an integer number of pixels in \[0, 512\], got -4"),
+     (3, "border_px 3 must be a multiple of the model's stride 4"),
+     ("abc", "border_px must be an integer.*'abc'"), (1000, r"border_px .*\[0, 512\], got 1000"),
+     (4.5, "border_px must be an integer"), ("nan", "border_px must be an integer"), (True, "border_px must be")],
+)
+def test_bad_border_values(model_path: Path, value: object, match: str) -> None:
+    with pytest.raises(DensityModelError, match=match) as exc:
+        DensityModel(model_path, overrides={"border_px": value})
+    assert str(model_path) in str(exc.value)
+
+
+def test_bad_border_in_metadata_names_the_file(tmp_path: Path) -> None:
+    path = first_channel_model(tmp_path, {"companion.border_px": "3"})  # stride 2: not a whole cell
+    with pytest.raises(DensityModelError, match=r"m\.onnx: border_px 3 must be a multiple of the model's stride 2"):
+        DensityModel(path)
+
+
+def test_fixed_size_model_refuses_a_border(tmp_path: Path) -> None:
+    path = identity_model(tmp_path, [1, 1, 16, 16], [1, 1, 8, 8], op="AveragePool", kernel_shape=[2, 2], strides=[2, 2])
+    assert DensityModel(path, overrides={"border_px": 0}).spec.border_px == 0
+    with pytest.raises(DensityModelError, match="border_px 2 needs a model that takes any frame size.*16x16"):
+        DensityModel(path, overrides={"border_px": 2})
+
+
+def test_border_through_the_service_config(model_path: Path) -> None:
+    """``model.overrides`` is handed to the runner as it is: ``border_px`` needs nothing more."""
+    from companion import config
+    from companion.service.app import load_model
+
+    cfg = config.load(overrides={"model.path": str(model_path), "model.overrides.border_px": 16})
+    assert load_model(cfg).spec.border_px == 16
+
+
+# --- calibrate --border-px ------------------------------------------------------------------
+
+
+def test_calibrate_refuses_a_bad_border_before_anything_is_read(model_path: Path, tmp_path: Path, capsys) -> None:
+    from companion.training.calibrate import main
+
+    copy = _with_metadata(model_path, tmp_path / "c.onnx", {})
+    before = copy.read_bytes()
+    assert main(["--model", str(copy), "--shared", str(tmp_path / "no-data"), "--border-px", "6"]) == 2
+    assert "border_px 6 must be a multiple of the model's stride 4" in capsys.readouterr().err
+    assert copy.read_bytes() == before
+
+
+def test_calibrate_writes_the_border_it_calibrated_with(model_path: Path, shared_dir: Path, tmp_path: Path,
+                                                         monkeypatch) -> None:
+    """A full calibration reads every validation set (minutes): here every set is the same two
+    semantic-drone photos, enough to show that --border-px reaches the model and the file."""
+    import companion.training.calibrate as cal
+    from companion.evaluation import datasets as D
+
+    two = D.semantic_drone(shared_dir, "val")[:2]
+    shb = D.shanghaitech_b(shared_dir, "train")[:8]
+    seen: list[int] = []
+    monkeypatch.setattr(D, "shanghaitech_b", lambda shared, split: shb)
+    monkeypatch.setattr(cal, "validation_sets", lambda shared, names=(): {n: two for n in names})
+    monkeypatch.setattr(cal, "size_sets", lambda shared, synthetic=None: {"semantic_drone_val": two})
+    real = cal.evaluate_set
+
+    def spy(name, samples, model, threshold, *args, **kwargs):
+        seen.append(model.spec.border_px)
+        return real(name, samples, model, threshold, *args, **kwargs)
+
+    monkeypatch.setattr(cal, "evaluate_set", spy)
+    copy = _with_metadata(model_path, tmp_path / "c.onnx", {})
+    assert cal.main(["--model", str(copy), "--shared", str(shared_dir), "--threads", "1", "--border-px", "16"]) == 0
+    props = {p.key: p.value for p in onnx.load(str(copy)).metadata_props}
+    assert props["companion.border_px"] == "16" and "border_px 16" in props["companion.calibration"]
+    assert "companion.occupancy_threshold" in props and seen and set(seen) == {16}
+    assert DensityModel(copy).spec.border_px == 16
+    # Without the option: calibrated with the border the model declares, the key left as it is.
+    seen.clear()
+    meta = cal.calibrate(copy, shared_dir, threads=1)
+    assert "companion.border_px" not in meta and set(seen) == {16}
+    assert {p.key: p.value for p in onnx.load(str(copy)).metadata_props}["companion.border_px"] == "16"

@@ -19,6 +19,15 @@ key                                meaning
 ``companion.input_multiple``       the frame is padded (bottom/right, edge pixels repeated) to
                                    a multiple of N; default: the stride. A model with a fixed
                                    input size gets the frame resized to that size instead
+``companion.border_px``            the frame is extended by N pixels on every side by mirroring
+                                   (``cv2.BORDER_REFLECT_101``, after the colour conversion and
+                                   before the padding to ``input_multiple``) before the model
+                                   sees it, and the map is cropped back; the model's zero
+                                   padding then falls on mirrored ground instead of the frame's
+                                   edge (a zero-padded network can see "people" in bands along
+                                   the edges of empty ground). An integer 0-512, a multiple of
+                                   the stride; default 0 (off); models with a fixed input size
+                                   take 0 only. Costs (W+2N)(H+2N)/(WH) of the model's time
 ``companion.occupancy_threshold``  threshold for the occupancy step chosen on validation data;
                                    the pipeline's default when its config sets none
 ``companion.count_scale``          multiplier turning the map's sum into a people count
@@ -32,8 +41,8 @@ key                                meaning
 =================================  ==========================================================
 
 The returned map is float32, 2-D, in output pixels: output pixel (i, j) covers input pixels
-``[i*stride, (i+1)*stride) x [j*stride, (j+1)*stride)``; padding is cropped off again, so the map
-covers exactly the frame (``ceil(H/stride) x ceil(W/stride)``).
+``[i*stride, (i+1)*stride) x [j*stride, (j+1)*stride)``; the mirrored border and the padding are
+cropped off again, so the map covers exactly the frame (``ceil(H/stride) x ceil(W/stride)``).
 
 Every problem with the model, its settings or a frame raises :class:`DensityModelError` (a
 ``ValueError``) naming the file and the problem; bad frames raise its subclass
@@ -54,7 +63,10 @@ import numpy as np
 PREFIX = "companion."
 COLORS = ("bgr", "rgb", "gray")
 KEYS = ("color", "scale", "mean", "std", "stride", "input_multiple", "occupancy_threshold", "count_scale",
-        "min_person_px")
+        "min_person_px", "border_px")
+#: The widest mirrored border (px per side) a model may ask for: more than any receptive field
+#: that matters at the edge, and a bound on the cost ((W+2N)(H+2N)/(WH) of the model's time).
+MAX_BORDER_PX = 512
 
 
 class DensityModelError(ValueError):
@@ -78,6 +90,8 @@ class DensitySpec:
     count_scale: multiplier turning the sum of the map into a count of people.
     min_person_px: smallest person size (px, longer side of the person's box) at which the model's
         head recall reaches 99.5 % at its threshold, or None (not measured / not reached).
+    border_px: input pixels mirrored onto every side of the frame before the model runs (and
+        cropped off its map again); 0: none. A multiple of ``stride``.
     """
 
     color: str
@@ -89,6 +103,7 @@ class DensitySpec:
     occupancy_threshold: float | None
     count_scale: float = 1.0
     min_person_px: float | None = None
+    border_px: int = 0
 
 
 def _floats(value: object, key: str) -> tuple[float, ...]:
@@ -115,6 +130,22 @@ def _positive_int(value: object, key: str) -> int:
         raise ValueError(f"{key} must be a positive integer, got {value!r}") from None
     if not f.is_integer() or f < 1:
         raise ValueError(f"{key} must be a positive integer, got {value!r}")
+    return int(f)
+
+
+def _border_px(value: object) -> int:
+    """``border_px`` as an int in [0, MAX_BORDER_PX]; absent or empty: 0 (off)."""
+    if value in (None, ""):
+        return 0
+    problem = f"border_px must be an integer number of pixels in [0, {MAX_BORDER_PX}], got {value!r}"
+    if isinstance(value, bool):  # float(True) == 1.0 would slip through as a 1-px border
+        raise ValueError(problem)
+    try:
+        f = float(str(value))  # metadata and CLI give text, a config gives numbers
+    except ValueError:
+        raise ValueError(problem) from None
+    if not f.is_integer() or not 0 <= f <= MAX_BORDER_PX:  # NaN and inf are not integers
+        raise ValueError(problem)
     return int(f)
 
 
@@ -166,6 +197,7 @@ def _parse(settings: Mapping[str, object], channels: int) -> dict[str, object]:
         if len(v) != 1 or not 0 < v[0] <= 10000:
             raise ValueError(f"min_person_px must be one number of pixels in (0, 10000] (or none), got {mp!r}")
         out["min_person_px"] = v[0]
+    out["border_px"] = _border_px(settings.get("border_px"))
     return out
 
 
@@ -257,6 +289,18 @@ class DensityModel:
                     "set companion.stride"
                 )
             stride = int(next(iter(ratios)))
+        border = cast(int, parsed["border_px"])
+        if border and any(self._fixed_hw):
+            raise DensityModelError(
+                f"{self.path}: border_px {border} needs a model that takes any frame size; this one takes a "
+                f"fixed {self._fixed_hw[0] or 'any'}x{self._fixed_hw[1] or 'any'} input, so border_px must be 0"
+            )
+        if border % stride:
+            # The crop takes whole output cells off the map: a border that is not a whole number
+            # of cells would shift every cell against the frame.
+            raise DensityModelError(
+                f"{self.path}: border_px {border} must be a multiple of the model's stride {stride}"
+            )
         self.spec = DensitySpec(
             color=str(parsed["color"]),
             scale=float(parsed["scale"]),  # type: ignore[arg-type]
@@ -267,6 +311,7 @@ class DensityModel:
             occupancy_threshold=parsed["occupancy_threshold"],  # type: ignore[arg-type]
             count_scale=float(parsed["count_scale"]),  # type: ignore[arg-type]
             min_person_px=cast("float | None", parsed["min_person_px"]),
+            border_px=border,
         )
         # (x * scale - mean) / std  ==  x * gain + offset, per channel
         std = np.asarray(self.spec.std, np.float64)
@@ -323,7 +368,8 @@ class DensityModel:
         return frame
 
     def preprocess(self, frame: np.ndarray) -> np.ndarray:
-        """The (1, C, H', W') float32 tensor the model gets for ``frame`` (checked, converted, padded)."""
+        """The (1, C, H', W') float32 tensor the model gets for ``frame`` (checked, converted, mirrored
+        by ``border_px`` on every side, padded)."""
         frame = self._check_frame(frame)
         color = self.spec.color
         if color == "gray":
@@ -336,6 +382,11 @@ class DensityModel:
         if fh or fw:
             img = cv2.resize(img, (fw or img.shape[1], fh or img.shape[0]), interpolation=cv2.INTER_AREA)
         else:
+            b = self.spec.border_px
+            if b:
+                # Mirrored ground under the model's zero padding instead of the frame's edge;
+                # REFLECT_101 repeats no row, so the edge row is not doubled.
+                img = cv2.copyMakeBorder(img, b, b, b, b, cv2.BORDER_REFLECT_101)
             m = self.spec.input_multiple
             ph, pw = -img.shape[0] % m, -img.shape[1] % m
             if ph or pw:
@@ -355,7 +406,15 @@ class DensityModel:
         y = self._infer(x)
         if not any(self._fixed_hw):
             s = self.spec.stride
-            y = y[..., : math.ceil(frame.shape[0] / s), : math.ceil(frame.shape[1] / s)]
+            h, w = math.ceil(frame.shape[0] / s), math.ceil(frame.shape[1] / s)
+            k = self.spec.border_px // s  # whole cells of mirrored border on the top and left
+            # The last two axes are the map's (a landability model's levels lead): crop those.
+            y = y[..., k : k + h, k : k + w]
+            if k and y.shape[-2:] != (h, w):
+                raise DensityModelError(
+                    f"{self.path}: output {tuple(y.shape)} after cropping border_px {self.spec.border_px} "
+                    f"does not cover the {frame.shape[0]}x{frame.shape[1]} frame ({h}x{w} cells at stride {s})"
+                )
         return np.ascontiguousarray(y)
 
     def count(self, density: np.ndarray) -> float:

@@ -9,7 +9,8 @@ gives it a callable returning, per cell, the probability that the ground there b
 configured set of unlandable levels (``pipeline.unlandable_levels``).
 
 Metadata (prefix ``companion.``), besides the input keys of :mod:`companion.pipeline.density`
-(``color``, ``scale``, ``mean``, ``std``, ``stride``, ``input_multiple``):
+(``color``, ``scale``, ``mean``, ``std``, ``stride``, ``input_multiple``, ``border_px``: a mirrored
+border is cropped off the last two axes of the ``(L, h, w)`` output as off a density map):
 
 ==================================  =========================================================
 key                                 meaning

@@ -19,8 +19,14 @@
   fifth, the same photos downscaled x0.5 and x0.25, and the synthetic hold-out
   (:func:`companion.evaluation.compositor.synthetic_set`, seed 13, 200 images); the largest of them (:func:`companion.evaluation.metrics.overall_min_person_px`).
   When a set never reaches it, the key is removed: the model makes no size claim.
+* ``companion.border_px`` (only with ``--border-px N``): the model is calibrated with the frame
+  mirrored by N px on every side (:mod:`companion.pipeline.density`), and N is stored beside the
+  threshold it was chosen with, since the map near the frame's edges, and so the threshold,
+  depends on it. Without the option the model runs, and is calibrated, with whatever border it
+  already declares, and that key is left as it is.
 
     python -m companion.training.calibrate --model companion/models/slz-density.onnx --shared ../shared
+    python -m companion.training.calibrate --model runs/s14/m/w40.onnx --border-px 16
 """
 
 from __future__ import annotations
@@ -36,7 +42,7 @@ import numpy as np
 from companion.evaluation import compositor as C
 from companion.evaluation import datasets as D
 from companion.evaluation.metrics import best_threshold, evaluate_set, overall_min_person_px
-from companion.pipeline.density import DensityModel
+from companion.pipeline.density import DensityModel, DensityModelError
 from companion.training.metadata import set_metadata
 
 log = logging.getLogger("companion.training.calibrate")
@@ -85,9 +91,16 @@ def rule_minimums(rule: str, min_recall: float | None = None) -> dict[str, float
 
 
 def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float | None = None,
-              rule: str = DEFAULT_RULE) -> dict[str, object]:
+              rule: str = DEFAULT_RULE, border_px: int | None = None) -> dict[str, object]:
+    """Calibrate the model at ``path`` on ``shared``'s data sets and write the results into its
+    metadata; returns the keys written. ``border_px``: mirror the frame by this many pixels on
+    every side while calibrating and store it as ``companion.border_px`` (None: the border the
+    model declares, key untouched). A bad border raises DensityModelError before any data loads."""
     need = rule_minimums(rule, min_recall)
-    model = DensityModel(path, threads=threads, overrides={"count_scale": 1.0})
+    overrides: dict[str, object] = {"count_scale": 1.0}
+    if border_px is not None:
+        overrides["border_px"] = border_px
+    model = DensityModel(path, threads=threads, overrides=overrides)
     shb = D.shanghaitech_b(shared, "train")[::4]
     sums = np.array([float(model(s.image()).sum(dtype=np.float64)) for s in shb])
     counts = np.array([len(s.points) for s in shb])
@@ -111,8 +124,11 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float | No
         + ", ".join(f"{v:g} on {k}" + (f"/{MALL_STEP}" if k == "mall" else "") for k, v in need.items())
         + "; count_scale: shanghaitech_b train[::4]; "
         "min_person_px: recall >= 0.995 per size bin from there up on semantic_drone_val (x1, x0.5, x0.25) "
-        "and synthetic_val",
+        "and synthetic_val"
+        + (f"; with border_px {model.spec.border_px}" if model.spec.border_px else ""),
     }
+    if border_px is not None:
+        meta["companion.border_px"] = str(model.spec.border_px)
     set_metadata(Path(path), meta)
     for r in results:
         i = [c["threshold"] for c in r.curve].index(thr)
@@ -129,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rule", choices=sorted(RULES), default=DEFAULT_RULE,
                    help="which sets choose the threshold, at what recall (see the module's doc)")
     p.add_argument("--min-recall", type=float, default=None, help=f"v1 rule only (default {MIN_RECALL})")
+    p.add_argument("--border-px", type=int, default=None, metavar="N",
+                   help="calibrate with the frame mirrored by N px on every side and store companion.border_px "
+                        "(a multiple of the model's stride; default: the border the model already declares)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     try:
@@ -136,7 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"companion.training.calibrate: {exc}", file=sys.stderr)
         return 2
-    calibrate(Path(args.model), Path(args.shared), args.threads, args.min_recall, args.rule)
+    try:
+        calibrate(Path(args.model), Path(args.shared), args.threads, args.min_recall, args.rule, args.border_px)
+    except DensityModelError as exc:  # the model or a setting (e.g. --border-px) it cannot take
+        print(f"companion.training.calibrate: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -51,7 +51,7 @@ else:  # Python 3.10 (NVIDIA JetPack 6): tomli is the package tomllib was taken 
 #: in a source checkout, an editable install and an installed wheel (``pip install .`` from any
 #: directory). The one definition the service, replay, evaluation and the benchmark use. A wheel is
 #: always unpacked on disk, so the resource is a real file onnxruntime can open by path.
-SHIPPED_MODEL = Path(str(importlib.resources.files("companion") / "models" / "slz-density.onnx"))
+SHIPPED_MODEL = Path(str(importlib.resources.files("companion") / "models" / "slz-density-v4.onnx"))
 #: The shipped landability model (water, vehicles, trees, roofs, ...: ground that is no place to
 #: land), beside the density model; ``model.landability`` switches it on.
 SHIPPED_LANDABILITY = Path(str(importlib.resources.files("companion") / "models" / "slz-landability.onnx"))

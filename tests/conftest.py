@@ -13,7 +13,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("COMPANION_SHARED", REPO.parent / "shared"))
-MODEL = REPO / "companion" / "models" / "slz-density.onnx"
+MODEL = REPO / "companion" / "models" / "slz-density-v4.onnx"  # the default (companion.config.SHIPPED_MODEL)
 
 
 @pytest.fixture(scope="session")

@@ -61,17 +61,26 @@ def bgr_frame(h: int, w: int, b: int = 10, g: int = 20, r: int = 30) -> np.ndarr
 # --- the shipped models (float, its int8 form and the GPU-trained version 2, when shipped) ---
 
 INT8 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-int8.onnx"
+V1 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
 V2 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v2.onnx"
 V3 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v3.onnx"
 
 
-@pytest.fixture(params=["float", "int8", "v2", "v3"])
+@pytest.fixture
+def v1_path() -> Path:
+    """Version 1, shipped beside the default: a real model that declares no border (the default,
+    version 4, declares 16 px), for the tests of the border itself."""
+    assert V1.is_file(), f"version 1 ({V1}) is shipped and missing"
+    return V1
+
+
+@pytest.fixture(params=["float", "v1", "int8", "v2", "v3"])
 def shipped_model(request, model_path: Path) -> Path:
-    """Each density model the package ships: the runner tests hold for the int8 one and for
-    versions 2 and 3 (beside the default, not yet it) too."""
+    """Each density model the package ships: the runner tests hold for the default (version 4),
+    version 1 (the first default), its int8 form and versions 2 and 3 (beside the default)."""
     if request.param == "float":
         return model_path
-    extra = {"int8": INT8, "v2": V2, "v3": V3}[request.param]
+    extra = {"v1": V1, "int8": INT8, "v2": V2, "v3": V3}[request.param]
     if not extra.is_file():
         pytest.skip(f"no {request.param} model shipped ({extra.name})")
     return extra
@@ -90,9 +99,9 @@ def test_shipped_model_gives_stride_4_map(shipped_model: Path, hw: tuple[int, in
     assert np.isfinite(d).all() and d.min() >= 0 and d.max() <= 1  # sigmoid occupancy score
 
 
-def test_the_shipped_int8_file_scores_like_the_float_one_on_this_cpu(model_path: Path, shared_dir: Path) -> None:
+def test_the_shipped_int8_file_scores_like_the_float_one_on_this_cpu(shared_dir: Path) -> None:
     """The int8 file's map on the held-out DroneCrowd frame, on whatever CPU runs this: within a
-    few hundredths of the float model's. Its first form (8-bit weights) was 0.11 away on an
+    few hundredths of the float model it was quantised from (version 1). Its first form (8-bit weights) was 0.11 away on an
     x86 CPU without VNNI, where onnxruntime's kernels saturate, and left more ground free there
     than on the machine it was measured on (MODEL_CARD.md, "int8")."""
     from companion.evaluation.datasets import dronecrowd_frames
@@ -100,7 +109,7 @@ def test_the_shipped_int8_file_scores_like_the_float_one_on_this_cpu(model_path:
     if not INT8.is_file():
         pytest.skip(f"no int8 model shipped ({INT8.name})")
     frame = dronecrowd_frames(shared_dir, ["img017012"])[0].image()
-    a, b = DensityModel(model_path, threads=1)(frame), DensityModel(INT8, threads=1)(frame)
+    a, b = DensityModel(V1, threads=1)(frame), DensityModel(INT8, threads=1)(frame)
     assert float(np.abs(a - b).max()) < 0.06, float(np.abs(a - b).max())
 
 
@@ -322,38 +331,38 @@ def _mirrored_reference(path: Path, frame: np.ndarray, border: int, stride: int)
     return full[..., k : k + h, k : k + w]
 
 
-def test_border_0_is_bit_identical_to_a_model_without_the_key(model_path: Path, tmp_path: Path) -> None:
+def test_border_0_is_bit_identical_to_a_model_without_the_key(v1_path: Path, tmp_path: Path) -> None:
     frame = np.random.default_rng(5).integers(0, 256, (101, 150, 3), dtype=np.uint8)
-    plain = DensityModel(model_path, threads=1)
+    plain = DensityModel(v1_path, threads=1)
     assert plain.spec.border_px == 0
-    copy = _with_metadata(model_path, tmp_path / "b0.onnx", {"companion.border_px": "0"})
-    for m in (DensityModel(model_path, threads=1, overrides={"border_px": 0}), DensityModel(copy, threads=1)):
+    copy = _with_metadata(v1_path, tmp_path / "b0.onnx", {"companion.border_px": "0"})
+    for m in (DensityModel(v1_path, threads=1, overrides={"border_px": 0}), DensityModel(copy, threads=1)):
         assert m.spec == plain.spec
         np.testing.assert_array_equal(m.preprocess(frame), plain.preprocess(frame))
         np.testing.assert_array_equal(m(frame), plain(frame))
 
 
 @pytest.mark.parametrize("hw", [(96, 128), (101, 150)])
-def test_border_mirrors_the_frame_and_crops_the_map_back(model_path: Path, hw: tuple[int, int]) -> None:
+def test_border_mirrors_the_frame_and_crops_the_map_back(v1_path: Path, hw: tuple[int, int]) -> None:
     frame = np.random.default_rng(6).integers(0, 256, (*hw, 3), dtype=np.uint8)
-    plain = DensityModel(model_path, threads=1)
-    m = DensityModel(model_path, threads=1, overrides={"border_px": 16})
+    plain = DensityModel(v1_path, threads=1)
+    m = DensityModel(v1_path, threads=1, overrides={"border_px": 16})
     assert m.spec.border_px == 16 and m.spec.stride == 4
     # 16 px each side, then the bottom/right padding to the multiple of 4 as without a border
     assert m.preprocess(frame).shape == (1, 3, hw[0] + 32 + (-hw[0] % 4), hw[1] + 32 + (-hw[1] % 4))
     d = m(frame)
     assert d.shape == plain(frame).shape == (-(-hw[0] // 4), -(-hw[1] // 4)) and d.flags.c_contiguous
-    np.testing.assert_array_equal(d, _mirrored_reference(model_path, frame, 16, 4))
+    np.testing.assert_array_equal(d, _mirrored_reference(v1_path, frame, 16, 4))
     assert not np.array_equal(d, plain(frame))  # the edge cells do change
 
 
-def test_border_from_metadata_and_a_grey_frame(model_path: Path, tmp_path: Path) -> None:
-    path = _with_metadata(model_path, tmp_path / "b8.onnx", {"companion.border_px": "8"})
+def test_border_from_metadata_and_a_grey_frame(v1_path: Path, tmp_path: Path) -> None:
+    path = _with_metadata(v1_path, tmp_path / "b8.onnx", {"companion.border_px": "8"})
     m = DensityModel(path, threads=1)
     assert m.spec.border_px == 8
     assert DensityModel(path, threads=1, overrides={"border_px": 0}).spec.border_px == 0  # a config wins
     grey = np.random.default_rng(7).integers(0, 256, (64, 80), dtype=np.uint8)
-    np.testing.assert_array_equal(m(grey), _mirrored_reference(model_path, cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), 8, 4))
+    np.testing.assert_array_equal(m(grey), _mirrored_reference(v1_path, cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), 8, 4))
 
 
 def test_border_on_the_tiny_model_crops_whole_cells(tmp_path: Path) -> None:
@@ -391,10 +400,10 @@ def test_landability_model_takes_a_border_too(tmp_path: Path) -> None:
      ("abc", "border_px must be an integer.*'abc'"), (1000, r"border_px .*\[0, 512\], got 1000"),
      (4.5, "border_px must be an integer"), ("nan", "border_px must be an integer"), (True, "border_px must be")],
 )
-def test_bad_border_values(model_path: Path, value: object, match: str) -> None:
+def test_bad_border_values(v1_path: Path, value: object, match: str) -> None:
     with pytest.raises(DensityModelError, match=match) as exc:
-        DensityModel(model_path, overrides={"border_px": value})
-    assert str(model_path) in str(exc.value)
+        DensityModel(v1_path, overrides={"border_px": value})
+    assert str(v1_path) in str(exc.value)
 
 
 def test_bad_border_in_metadata_names_the_file(tmp_path: Path) -> None:
@@ -410,29 +419,29 @@ def test_fixed_size_model_refuses_a_border(tmp_path: Path) -> None:
         DensityModel(path, overrides={"border_px": 2})
 
 
-def test_border_through_the_service_config(model_path: Path) -> None:
+def test_border_through_the_service_config(v1_path: Path) -> None:
     """``model.overrides`` is handed to the runner as it is: ``border_px`` needs nothing more."""
     from companion import config
     from companion.service.app import load_model
 
-    cfg = config.load(overrides={"model.path": str(model_path), "model.overrides.border_px": 16})
+    cfg = config.load(overrides={"model.path": str(v1_path), "model.overrides.border_px": 16})
     assert load_model(cfg).spec.border_px == 16
 
 
 # --- calibrate --border-px ------------------------------------------------------------------
 
 
-def test_calibrate_refuses_a_bad_border_before_anything_is_read(model_path: Path, tmp_path: Path, capsys) -> None:
+def test_calibrate_refuses_a_bad_border_before_anything_is_read(v1_path: Path, tmp_path: Path, capsys) -> None:
     from companion.training.calibrate import main
 
-    copy = _with_metadata(model_path, tmp_path / "c.onnx", {})
+    copy = _with_metadata(v1_path, tmp_path / "c.onnx", {})
     before = copy.read_bytes()
     assert main(["--model", str(copy), "--shared", str(tmp_path / "no-data"), "--border-px", "6"]) == 2
     assert "border_px 6 must be a multiple of the model's stride 4" in capsys.readouterr().err
     assert copy.read_bytes() == before
 
 
-def test_calibrate_writes_the_border_it_calibrated_with(model_path: Path, shared_dir: Path, tmp_path: Path,
+def test_calibrate_writes_the_border_it_calibrated_with(v1_path: Path, shared_dir: Path, tmp_path: Path,
                                                          monkeypatch) -> None:
     """A full calibration reads every validation set (minutes): here every set is the same two
     semantic-drone photos, enough to show that --border-px reaches the model and the file."""
@@ -452,7 +461,7 @@ def test_calibrate_writes_the_border_it_calibrated_with(model_path: Path, shared
         return real(name, samples, model, threshold, *args, **kwargs)
 
     monkeypatch.setattr(cal, "evaluate_set", spy)
-    copy = _with_metadata(model_path, tmp_path / "c.onnx", {})
+    copy = _with_metadata(v1_path, tmp_path / "c.onnx", {})
     assert cal.main(["--model", str(copy), "--shared", str(shared_dir), "--threads", "1", "--border-px", "16"]) == 0
     props = {p.key: p.value for p in onnx.load(str(copy)).metadata_props}
     assert props["companion.border_px"] == "16" and "border_px 16" in props["companion.calibration"]

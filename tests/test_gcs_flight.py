@@ -192,7 +192,7 @@ def statustexts(flight: Flight) -> list[tuple[int, str]]:
 
 def test_the_ground_station_sees_readiness_the_shadow_decisions_and_the_numbers(flight):
     texts = statustexts(flight)
-    assert (m.MAV_SEVERITY_NOTICE, "SLZ: ready, model slz-density, camera 640x480") in texts, texts
+    assert (m.MAV_SEVERITY_NOTICE, "SLZ: ready, model slz-density-v4, camera 640x480") in texts, texts
     assert (m.MAV_SEVERITY_NOTICE, "SHADOW: on; the companion will command nothing") in texts
     decisions = [(sev, t) for sev, t in texts if t.startswith("SHADOW: ") and "on; the companion" not in t]
     triggers = [(sev, t) for sev, t in decisions if t.startswith("SHADOW: trigger: ")]

@@ -28,7 +28,9 @@ def test_calibration_frames_come_from_the_training_splits_only(shared_dir):
 
 
 def test_the_int8_model_loads_keeps_its_metadata_and_scores_like_the_float_one(shared_dir, model_path, tmp_path):
-    SHIPPED = model_path
+    # Version 1, which the shipped int8 file was made from; the default (version 4) quantised the
+    # same way is 0.15 off on this frame, and no int8 form of it ships.
+    SHIPPED = model_path.with_name("slz-density.onnx")
     out = tmp_path / "int8.onnx"
     meta = Q.quantize(SHIPPED, out, shared_dir, per_source=2, threads=1, calibrate_after=False)
     proto = onnx.load(str(out))

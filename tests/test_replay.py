@@ -373,7 +373,7 @@ def test_recording_replays_with_the_settings_it_was_flown_with(work: dict[str, P
 
 def test_default_model_is_the_shipped_one() -> None:
     repo = Path(__file__).resolve().parents[1]
-    assert SHIPPED_MODEL == repo / "companion" / "models" / "slz-density.onnx"
+    assert SHIPPED_MODEL == repo / "companion" / "models" / "slz-density-v4.onnx"
 
 
 def test_peer_model_with_overrides_sees_the_free_circle(shared_dir: Path, work: dict[str, Path],

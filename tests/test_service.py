@@ -23,7 +23,7 @@ from companion.geometry.camera import Intrinsics, Mount
 from companion.recording import RecordingReader
 
 REPO = Path(__file__).resolve().parents[1]
-SHIPPED_MODEL = REPO / "companion" / "models" / "slz-density.onnx"
+SHIPPED_MODEL = REPO / "companion" / "models" / "slz-density-v4.onnx"
 PEER_MODEL = REPO.parent / "shared" / "peers" / "mcnn-shb.onnx"
 
 pytestmark = pytest.mark.sitl

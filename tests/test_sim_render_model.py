@@ -1,9 +1,9 @@
 """Closed loop on pixels: the shipped density model must find the people the simulator draws.
 
-Runs the real ONNX model (``companion/models/slz-density.onnx``) on rendered frames and checks, through the
-service's occupancy step with the model's own threshold, that (a) the heads of >= 95 % of the
-people in view fall on occupied pixels at 20-40 m, and (b) a sparse scene still leaves > 20 % of
-the frame free. Skips, naming the file, until the trained model is committed.
+Runs the real ONNX models (``companion/models/slz-density-v4.onnx``, the default, and versions 1
+and 3 beside it) on rendered frames and checks, through the service's occupancy step with the
+model's own threshold, that (a) the heads of >= 95 % of the people in view fall on occupied
+pixels at 20-40 m, and (b) a sparse scene still leaves > 20 % of the frame free. Skips, naming the file, until the trained model is committed.
 """
 
 from __future__ import annotations
@@ -21,14 +21,15 @@ from sim.render import render_world
 from sim.walkers import CrowdParams
 from sim.world import default_world
 
-MODEL = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
+MODEL = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v4.onnx"  # the default
+V1 = MODEL.with_name("slz-density.onnx")  # the first default, beside it now: held to the same figures
 V3 = MODEL.with_name("slz-density-v3.onnx")  # beside the default: held to the same closed-loop figures
 K = Intrinsics.from_fov(640, 480, 70.0)
 
 pytestmark = pytest.mark.skipif(not MODEL.is_file(), reason=f"the shipped density model {MODEL} is not there yet")
 
 
-@pytest.fixture(scope="module", params=[MODEL, V3], ids=["default", "v3"])
+@pytest.fixture(scope="module", params=[MODEL, V1, V3], ids=["default", "v1", "v3"])
 def model(request):
     from companion.pipeline.density import DensityModel
 

@@ -127,6 +127,7 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
                         (["--students", "w40,wf32", "--init", f"w40={tmp_path}"], "no file for the w student(s) wf32"),
                         (["--students", "w40", "--init", f"g40={tmp_path}"], "not a w student"),
                         (["--students", "w40", "--init", "w40="], "is not NAME=FILE"),
+                        (["--students", "g40", "--init", str(tmp_path)], "no w student"),
                         (["--students", "g40", "--init-lr-scale", "0"], "--init-lr-scale"), (["--students", "d40,d40"], "twice"),
                         (["--students", "d4"], "8-256"), (["--alpha", "2"], "--alpha"),
                         (["--crop", "30"], "--crop"), (["--teacher-steps", "0"], "a phase needs"),

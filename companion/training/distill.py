@@ -20,9 +20,9 @@ the real photos, the synthetic top-down crowds and the hard negatives, at the gi
 
 Students are named ``<kind><arch><width>`` (:class:`StudentSpec`): kind ``d`` distilled, ``g``
 ground truth, ``w`` ground truth warm-started from ``--init`` (an exported model of the same
-network, one for all or ``NAME=FILE`` pairs, one per ``w`` student; batch norms keep its statistics, learning rate x ``--init-lr-scale``); arch none for the
-shipped C-CNN, ``f`` for the cheaper :class:`companion.training.model.SLZFastNet`, ``l`` for its
-depthwise body.
+network: one file for every ``w`` student, or ``NAME=FILE`` pairs, one per ``w`` student; batch
+norms keep its statistics, learning rate x ``--init-lr-scale``); arch none for the shipped C-CNN,
+``f`` for the cheaper :class:`companion.training.model.SLZFastNet`, ``l`` for its depthwise body.
 
 Each phase stops at its step count or its wall-clock budget, whichever comes first, with a cosine
 learning rate over that progress (a time budget makes the run fit a lent GPU's lease; steps make it
@@ -167,6 +167,8 @@ def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]
     per ``w`` student (``wf32=v3.onnx,w40=v2.onnx``). Every ``w`` student gets a file that exists."""
     warm = [s.name for s in students if s.kind == "w"]
     if not warm:
+        if arg:  # a start nobody takes is a mistake in the command, not something to train past
+            raise ValueError(f"--init is given but --students names no w student to start from it: {arg!r}")
         return {}
     if not arg:
         raise ValueError("w students need --init, an exported model file (or NAME=FILE pairs)")

@@ -101,9 +101,9 @@ def test_shipped_model_gives_stride_4_map(shipped_model: Path, hw: tuple[int, in
 
 def test_the_shipped_int8_file_scores_like_the_float_one_on_this_cpu(shared_dir: Path) -> None:
     """The int8 file's map on the held-out DroneCrowd frame, on whatever CPU runs this: within a
-    few hundredths of the float model it was quantised from (version 1). Its first form (8-bit weights) was 0.11 away on an
-    x86 CPU without VNNI, where onnxruntime's kernels saturate, and left more ground free there
-    than on the machine it was measured on (MODEL_CARD.md, "int8")."""
+    few hundredths of the float model it was quantised from (version 1). Its first form (8-bit
+    weights) was 0.11 away on an x86 CPU without VNNI, where onnxruntime's kernels saturate, and
+    left more ground free there than on the machine it was measured on (MODEL_CARD.md, "int8")."""
     from companion.evaluation.datasets import dronecrowd_frames
 
     if not INT8.is_file():
@@ -321,12 +321,15 @@ def test_bad_frames(tmp_path: Path, frame: object, match: str) -> None:
 LANDABILITY = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-landability.onnx"
 
 
-def _mirrored_reference(path: Path, frame: np.ndarray, border: int, stride: int) -> np.ndarray:
-    """What a border of ``border`` px must give: the model (border 0) run on the frame mirrored by
-    hand (REFLECT_101, then padded by the runner as any frame), its map cropped by border/stride
-    cells on every side back to the frame's ceil(H/stride) x ceil(W/stride) cells."""
+def _mirrored_reference(plain: DensityModel, frame: np.ndarray, border: int) -> np.ndarray:
+    """What a border of ``border`` px must give: ``plain`` (a model, or its landability subclass,
+    with no border) run on the frame mirrored by hand (REFLECT_101, then padded by the runner as
+    any frame), its map cropped by border/stride cells on every side back to the frame's
+    ceil(H/stride) x ceil(W/stride) cells."""
+    assert plain.spec.border_px == 0
+    stride = plain.spec.stride
     mirrored = cv2.copyMakeBorder(frame, border, border, border, border, cv2.BORDER_REFLECT_101)
-    full = DensityModel(path, threads=1, overrides={"border_px": 0})(mirrored)
+    full = plain(mirrored)
     k, h, w = border // stride, -(-frame.shape[0] // stride), -(-frame.shape[1] // stride)
     return full[..., k : k + h, k : k + w]
 
@@ -352,7 +355,7 @@ def test_border_mirrors_the_frame_and_crops_the_map_back(v1_path: Path, hw: tupl
     assert m.preprocess(frame).shape == (1, 3, hw[0] + 32 + (-hw[0] % 4), hw[1] + 32 + (-hw[1] % 4))
     d = m(frame)
     assert d.shape == plain(frame).shape == (-(-hw[0] // 4), -(-hw[1] // 4)) and d.flags.c_contiguous
-    np.testing.assert_array_equal(d, _mirrored_reference(v1_path, frame, 16, 4))
+    np.testing.assert_array_equal(d, _mirrored_reference(plain, frame, 16))
     assert not np.array_equal(d, plain(frame))  # the edge cells do change
 
 
@@ -362,7 +365,8 @@ def test_border_from_metadata_and_a_grey_frame(v1_path: Path, tmp_path: Path) ->
     assert m.spec.border_px == 8
     assert DensityModel(path, threads=1, overrides={"border_px": 0}).spec.border_px == 0  # a config wins
     grey = np.random.default_rng(7).integers(0, 256, (64, 80), dtype=np.uint8)
-    np.testing.assert_array_equal(m(grey), _mirrored_reference(v1_path, cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), 8, 4))
+    plain = DensityModel(v1_path, threads=1)
+    np.testing.assert_array_equal(m(grey), _mirrored_reference(plain, cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), 8))
 
 
 def test_border_on_the_tiny_model_crops_whole_cells(tmp_path: Path) -> None:
@@ -389,8 +393,7 @@ def test_landability_model_takes_a_border_too(tmp_path: Path) -> None:
     p = m(frame)
     assert m.spec.border_px == 2 * s and p.shape == plain(frame).shape == (len(m.landability.levels), -(-90 // s),
                                                                            -(-130 // s))
-    mirrored = cv2.copyMakeBorder(frame, 2 * s, 2 * s, 2 * s, 2 * s, cv2.BORDER_REFLECT_101)
-    np.testing.assert_array_equal(p, plain(mirrored)[:, 2 : 2 + p.shape[1], 2 : 2 + p.shape[2]])
+    np.testing.assert_array_equal(p, _mirrored_reference(plain, frame, 2 * s))
 
 
 @pytest.mark.parametrize(

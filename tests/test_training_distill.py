@@ -114,18 +114,42 @@ def test_distillation_loss_pulls_toward_the_teacher() -> None:
     assert float(a) == pytest.approx(float(b))
 
 
+def test_log_odds_distillation_pulls_toward_the_teachers_faint_evidence() -> None:
+    """At the service's threshold (p near 0.013) the cross-entropy toward the teacher hardly pulls;
+    the log-odds loss pulls there as hard as anywhere, and converges to the teacher's probability."""
+    torch = pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training.distill import distill_loss, logit_distill_loss
+
+    target = torch.zeros(1, 1, 4, 4)
+    teacher = torch.full((1, 1, 4, 4), 0.02)  # faint evidence of a person, above a 0.013 threshold
+    grads = {}
+    for name, fn in (("bce", distill_loss), ("logit", logit_distill_loss)):
+        s = torch.full((1, 1, 4, 4), -6.0, requires_grad=True)  # the student says p = 0.0025: "free"
+        fn(s, target, teacher, 4.0, 0.0).backward()
+        grads[name] = float(s.grad.abs().mean())
+    assert grads["logit"] > 20 * grads["bce"]
+    logits = torch.zeros(1, 1, 4, 4, requires_grad=True)
+    opt = torch.optim.SGD([logits], lr=20.0)
+    for _ in range(400):
+        opt.zero_grad()
+        logit_distill_loss(logits, target, teacher, 4.0, 0.0).backward()
+        opt.step()
+    assert float(torch.sigmoid(logits.detach()).mean()) == pytest.approx(0.02, rel=0.02)
+
+
 def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
     pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
     from companion.training.distill import main, parse_students
 
-    assert [(s.name, s.kind, s.arch, s.width) for s in parse_students("d40, g40,gf32,wl48")] == \
-        [("d40", "d", "", 40), ("g40", "g", "", 40), ("gf32", "g", "f", 32), ("wl48", "w", "l", 48)]
+    assert [(s.name, s.kind, s.arch, s.width) for s in parse_students("d40, g40,gf32,wl48,kl48")] == \
+        [("d40", "d", "", 40), ("g40", "g", "", 40), ("gf32", "g", "f", 32), ("wl48", "w", "l", 48),
+         ("kl48", "k", "l", 48)]
     base = ["--shared", str(tmp_path), "--out-dir", str(tmp_path / "o"), "--teacher-steps", "1", "--student-steps", "1"]
-    for extra, says in ((["--students", "x40"], "<d|g|w>"), (["--students", "gq40"], "<d|g|w>"),
+    for extra, says in ((["--students", "x40"], "<d|k|g|w>"), (["--students", "gq40"], "<d|k|g|w>"),
                         (["--students", "w40"], "need --init"),
                         (["--students", "w40", "--init", str(tmp_path / "none.onnx")], "is not a file"),
                         (["--students", "w40,wf32", "--init", f"w40={tmp_path}"], "no file for the w student(s) wf32"),
-                        (["--students", "w40", "--init", f"g40={tmp_path}"], "not a w student"),
+                        (["--students", "w40", "--init", f"g40={tmp_path}"], "not a w or d student"),
                         (["--students", "w40", "--init", "w40="], "is not NAME=FILE"),
                         (["--students", "g40", "--init", str(tmp_path)], "no w student"),
                         (["--students", "g40", "--init-lr-scale", "0"], "--init-lr-scale"), (["--students", "d40,d40"], "twice"),
@@ -217,3 +241,71 @@ def test_an_exported_model_loads_back_exactly_and_a_misfit_is_refused(tmp_path: 
         M.load_folded_onnx(M.student("", 16), str(tmp_path / "bad.onnx"))
     with pytest.raises(ValueError, match="unknown student architecture"):
         M.student("q", 16)
+
+
+def test_a_trained_model_as_a_frozen_teacher_run_mirrored_and_a_distilled_student_warm_started(
+        tmp_path: Path, pack_dir: Path) -> None:
+    """``--teacher-init``: an exported model teaches (no phase 1, no teacher.pt), run as the
+    service runs it (mirrored by its ``companion.border_px``); a ``d`` student may start from a file."""
+    torch = pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    import onnx
+
+    from companion.pipeline.density import DensityModel
+    from companion.training import model as M
+    from companion.training.distill import main, mirrored, parse_teacher_init
+    from companion.training.export import export_onnx
+    from companion.training.train import normalise
+
+    torch.manual_seed(4)
+    teacher = M.SLZDensityNet(16)
+    _unlike_a_fresh_batchnorm(teacher)
+    teacher.head.bias.data.zero_()
+    tfile = export_onnx(teacher, tmp_path / "teacher.onnx", {"companion.border_px": 8})
+    t = parse_teacher_init(f"16={tfile}")
+    assert (t.arch, t.width, t.border) == ("", 16, 8)
+    # The teacher's map in training is the runner's map of the same frame, border and all.
+    frame = np.random.default_rng(2).integers(0, 255, (64, 96, 3), np.uint8)
+    x = normalise(torch.from_numpy(frame.transpose(2, 0, 1)[None].copy()))
+    with torch.no_grad():
+        p = torch.sigmoid(mirrored(t.build().eval(), x, t.border))[0, 0].numpy()
+    runner = DensityModel(tfile, threads=1)
+    assert runner.spec.border_px == 8
+    np.testing.assert_allclose(p, runner(frame), atol=2e-5)
+
+    student = M.student("l", 16)
+    _unlike_a_fresh_batchnorm(student)
+    sfile = export_onnx(student, tmp_path / "start.onnx")
+    out = tmp_path / "d"
+    rc = main(["--shared", str(pack_dir), "--out-dir", str(out), "--workers", "0", "--threads", "1",
+               "--students", "dl16,g16", "--teacher-init", f"16={tfile}", "--init", f"dl16={sfile}",
+               "--student-steps", "2", "--batch", "2", "--crop", "64", "--max-images", "3", "--log-every", "1"])
+    assert rc == 0
+    hist = json.loads((out / "history.json").read_text())
+    assert hist["phase1"]["steps"] == 0 and hist["phase2"]["steps"] == 2 and hist["teacher"] == str(tfile)
+    assert not (out / "teacher.pt").exists()
+    note = {q.key: q.value for q in onnx.load(str(out / "slz-dl16.onnx")).metadata_props}["companion.training"]
+    assert "alpha=0.5 teacher=teacher.onnx" in note and "warm-started from start.onnx" in note
+    assert DensityModel(out / "slz-dl16.onnx", threads=1)(frame).shape == (16, 24)
+
+
+def test_a_frozen_teacher_is_checked_before_any_data_loads(tmp_path: Path, capsys) -> None:
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training import model as M
+    from companion.training.distill import main
+    from companion.training.export import export_onnx
+
+    good = export_onnx(M.SLZDensityNet(16), tmp_path / "t.onnx")
+    odd = export_onnx(M.SLZDensityNet(16), tmp_path / "odd.onnx", {"companion.border_px": 6})
+    (tmp_path / "bad.onnx").write_bytes(b"not a model")
+    base = ["--shared", str(tmp_path / "nowhere"), "--out-dir", str(tmp_path / "o"), "--student-steps", "1"]
+    for extra, says in ((["--students", "g16", "--teacher-init", f"16={good}"], "no d student"),
+                        (["--students", "d16", "--teacher-init", str(good)], "is not ARCH=FILE"),
+                        (["--students", "d16", "--teacher-init", f"q16={good}"], "is not ARCH=FILE"),
+                        (["--students", "d16", "--teacher-init", f"16={tmp_path / 'none'}"], "is not a file"),
+                        (["--students", "d16", "--teacher-init", f"16={tmp_path / 'bad.onnx'}"], "not a readable"),
+                        (["--students", "d16", "--teacher-init", f"f16={good}"], "convolutions"),
+                        (["--students", "d16", "--teacher-init", f"16={odd}"], "not a multiple of 4"),
+                        (["--students", "d16,g16", "--teacher-init", f"16={good}", "--init", f"g16={good}"],
+                         "not a w or d student")):
+        assert main([*base, *extra]) == 2, extra
+        assert says in capsys.readouterr().err, extra

@@ -11,18 +11,23 @@ the real photos, the synthetic top-down crowds and the hard negatives, at the gi
 
 1. **Teacher** (:class:`companion.training.model.TeacherNet`, about 5.6 M parameters) and every
    student learn the ground-truth maps with the weighted cross-entropy of the shipped model
-   (:func:`companion.training.train.loss`, biased toward "occupied").
+   (:func:`companion.training.train.loss`, biased toward "occupied"). With ``--teacher-init
+   ARCH=FILE`` an exported model (the shipped version 4, say) is the teacher instead, frozen and
+   run mirrored by its own ``companion.border_px`` as the service runs it, and there is no phase 1.
 2. **Distillation**: the teacher is frozen; each student named ``d<width>`` learns
    ``alpha`` x that loss on the ground truth plus ``1 - alpha`` x the plain cross-entropy toward the
-   teacher's probability map; each student named ``g<width>`` (the control) keeps learning the
-   ground truth alone, so the two differ only by the teacher. Without a ``d`` student there is
-   no teacher and no phase 1: the students learn the ground truth for ``--student-seconds``.
+   teacher's probability map (``k<width>``: a Huber loss toward its log-odds instead); each student
+   named ``g<width>`` (the control) keeps learning the ground truth alone, so the two differ only
+   by the teacher. Without a ``d`` or ``k`` student there is no teacher and no phase 1: the
+   students learn the ground truth for ``--student-seconds``.
 
-Students are named ``<kind><arch><width>`` (:class:`StudentSpec`): kind ``d`` distilled, ``g``
-ground truth, ``w`` ground truth warm-started from ``--init`` (an exported model of the same
-network: one file for every ``w`` student, or ``NAME=FILE`` pairs, one per ``w`` student; batch
-norms keep its statistics, learning rate x ``--init-lr-scale``); arch none for the shipped C-CNN,
-``f`` for the cheaper :class:`companion.training.model.SLZFastNet`, ``l`` for its depthwise body.
+Students are named ``<kind><arch><width>`` (:class:`StudentSpec`): kind ``d`` distilled, ``k``
+distilled on log-odds (:func:`logit_distill_loss`), ``g`` ground truth, ``w`` ground truth
+warm-started from ``--init`` (an exported model of the same network: one file for every ``w``
+student, or ``NAME=FILE`` pairs, one per ``w`` student, where a pair may also start a ``d`` or
+``k`` student; batch norms keep the file's statistics, learning rate x ``--init-lr-scale``); arch
+none for the shipped C-CNN, ``f`` for the cheaper :class:`companion.training.model.SLZFastNet`,
+``l`` for its depthwise body.
 
 Each phase stops at its step count or its wall-clock budget, whichever comes first, with a cosine
 learning rate over that progress (a time budget makes the run fit a lent GPU's lease; steps make it
@@ -131,13 +136,34 @@ def distill_loss(student: torch.Tensor, target: torch.Tensor, teacher_p: torch.T
         student, teacher_p)
 
 
+LOGIT_RANGE = (-9.0, 6.0)
+
+
+def logit_distill_loss(student: torch.Tensor, target: torch.Tensor, teacher_p: torch.Tensor, pos_weight: float,
+                       alpha: float) -> torch.Tensor:
+    """``alpha`` x the shipped loss on the ground truth + ``1 - alpha`` x a Huber loss between the
+    student's and the teacher's log-odds (both clipped to :data:`LOGIT_RANGE`).
+
+    Why not the cross-entropy of :func:`distill_loss`: the service thresholds the map at a
+    probability near 0.013 (log-odds -4.3), where a cross-entropy toward the teacher's probability
+    barely pulls (its gradient is the difference of two small probabilities); on log-odds an error
+    at -4.3 weighs what it weighs at 0, so the student learns the teacher's faint evidence of a
+    small person, which is what decides "occupied" there. Clipping stops the student chasing the
+    teacher's certainty far from the threshold.
+    """
+    lo, hi = LOGIT_RANGE
+    eps = 1e-6
+    t_logit = torch.logit(teacher_p.clamp(eps, 1 - eps)).clamp(lo, hi)
+    return alpha * loss(student, target, pos_weight) + (1 - alpha) * F.smooth_l1_loss(student.clamp(lo, hi), t_logit)
+
+
 @dataclass(frozen=True)
 class StudentSpec:
     """One ``--students`` entry: ``<kind><arch><width>``.
 
-    kind: ``d`` distilled from the teacher, ``g`` ground truth only (the control), ``w`` ground
-    truth only, warm-started from ``--init`` (an exported model of the same architecture and
-    width). arch: none for the shipped C-CNN (:class:`companion.training.model.SLZDensityNet`),
+    kind: ``d`` distilled from the teacher (``k``: on its log-odds), ``g`` ground truth only (the
+    control), ``w`` ground truth only, warm-started from ``--init`` (an exported model of the same
+    architecture and width; ``d`` and ``k`` students may be given one too). arch: none for the shipped C-CNN (:class:`companion.training.model.SLZDensityNet`),
     ``f`` for :class:`companion.training.model.SLZFastNet`, ``l`` for its depthwise body."""
 
     name: str
@@ -150,12 +176,12 @@ class StudentSpec:
 
 
 def parse_students(spec: str) -> list[StudentSpec]:
-    """``"d40,g40,gf32,w40"`` -> one :class:`StudentSpec` each; width 8-256."""
+    """``"d40,k40,g40,gf32,w40"`` -> one :class:`StudentSpec` each; width 8-256."""
     out = []
     for item in (s.strip() for s in spec.split(",") if s.strip()):
-        m = re.fullmatch(r"([dgw])([fl]?)(\d+)", item)
+        m = re.fullmatch(r"([dkgw])([fl]?)(\d+)", item)
         if m is None or not 8 <= int(m.group(3)) <= 256:
-            raise ValueError(f"--students: {item!r} is not <d|g|w>[f|l]<width> with a width of 8-256")
+            raise ValueError(f"--students: {item!r} is not <d|k|g|w>[f|l]<width> with a width of 8-256")
         out.append(StudentSpec(item, m.group(1), m.group(2), int(m.group(3))))
     if len({s.name for s in out}) != len(out):
         raise ValueError(f"--students names a student twice: {spec!r}")
@@ -164,15 +190,18 @@ def parse_students(spec: str) -> list[StudentSpec]:
 
 def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]:
     """``--init``: one exported model for every ``w`` student, or ``NAME=FILE,NAME=FILE`` naming one
-    per ``w`` student (``wf32=v3.onnx,w40=v2.onnx``). Every ``w`` student gets a file that exists."""
+    per ``w`` student (``wf32=v3.onnx,w40=v2.onnx``). Every ``w`` student gets a file that exists.
+    A pair may also name a ``d`` student: it then starts from that file and learns from the teacher
+    (a cheap network already trained, taught on by a better one)."""
     warm = [s.name for s in students if s.kind == "w"]
-    if not warm:
-        if arg:  # a start nobody takes is a mistake in the command, not something to train past
-            raise ValueError(f"--init is given but --students names no w student to start from it: {arg!r}")
-        return {}
+    startable = [s.name for s in students if s.kind in ("w", "d", "k")]
     if not arg:
-        raise ValueError("w students need --init, an exported model file (or NAME=FILE pairs)")
+        if warm:
+            raise ValueError("w students need --init, an exported model file (or NAME=FILE pairs)")
+        return {}
     if "=" not in arg:
+        if not warm:  # a start nobody takes is a mistake in the command, not something to train past
+            raise ValueError(f"--init is given but --students names no w student to start from it: {arg!r}")
         inits = {name: Path(arg) for name in warm}
     else:
         inits = {}
@@ -180,8 +209,9 @@ def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]
             name, sep, file = item.partition("=")
             if not sep or not name or not file:
                 raise ValueError(f"--init: {item!r} is not NAME=FILE")
-            if name not in warm:
-                raise ValueError(f"--init names {name!r}, which is not a w student of --students ({', '.join(warm)})")
+            if name not in startable:
+                raise ValueError(f"--init names {name!r}, which is not a w or d student of --students "
+                                 f"({', '.join(startable) or 'none'})")
             inits[name] = Path(file)
         missing = sorted(set(warm) - set(inits))
         if missing:
@@ -193,7 +223,60 @@ def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]
 
 
 def needs_teacher(students: list[StudentSpec]) -> bool:
-    return any(s.kind == "d" for s in students)
+    return any(s.kind in ("d", "k") for s in students)
+
+
+@dataclass(frozen=True)
+class FrozenTeacher:
+    """``--teacher-init ARCH=FILE``: an exported model (``40`` the C-CNN of width 40, ``f32``, ...)
+    as the teacher, frozen; no phase 1. Run as the service runs it: mirrored by the file's
+    ``companion.border_px`` (version 4's 16 px), so its zero-padding bands at a crop's edge (what
+    the border fixes in the service) are not taught to the students."""
+
+    arch: str
+    width: int
+    path: Path
+    border: int
+
+    def build(self) -> torch.nn.Module:
+        net = M.student(self.arch, self.width)
+        M.load_folded_onnx(net, str(self.path))
+        return net
+
+
+def parse_teacher_init(arg: str) -> FrozenTeacher:
+    spec, sep, file = arg.partition("=")
+    m = re.fullmatch(r"([fl]?)(\d+)", spec.strip())
+    if not sep or m is None or not file:
+        raise ValueError(f"--teacher-init: {arg!r} is not ARCH=FILE (ARCH: [f|l]<width>, e.g. 40=v4.onnx)")
+    path = Path(file)
+    if not path.is_file():
+        raise ValueError(f"--teacher-init: {path} is not a file")
+    import onnx
+
+    try:
+        meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
+    except Exception as exc:  # protobuf's DecodeError, OSError, ...
+        raise ValueError(f"--teacher-init: {path} is not a readable ONNX model ({exc})") from None
+    try:
+        border = int(meta.get("companion.border_px", "0"))
+    except ValueError:
+        raise ValueError(f"--teacher-init: {path} has a companion.border_px that is not an integer") from None
+    if border < 0 or border % M.STRIDE:
+        raise ValueError(f"--teacher-init: {path}'s companion.border_px {border} is not a multiple of {M.STRIDE}")
+    teacher = FrozenTeacher(m.group(1), int(m.group(2)), path, border)
+    teacher.build()  # a misfit (architecture, width) is an error now, not after the data loads
+    return teacher
+
+
+def mirrored(net: torch.nn.Module, x: torch.Tensor, border: int) -> torch.Tensor:
+    """``net``'s stride-4 logits for ``x`` mirrored by ``border`` pixels (reflect without repeating
+    the edge, OpenCV's BORDER_REFLECT_101 as in the runner), cropped back to ``x``'s cells."""
+    if border == 0:
+        return net(x)
+    c = border // M.STRIDE
+    y = net(F.pad(x, (border, border, border, border), mode="reflect"))
+    return y[..., c:y.shape[-2] - c, c:y.shape[-1] - c]
 
 
 class Phase:
@@ -235,13 +318,16 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     torch.set_num_threads(args.threads)
     specs = parse_students(args.students)
     use_teacher = needs_teacher(specs)
-    teacher = Learner("teacher", M.TeacherNet(args.teacher_width).to(device), args.teacher_lr) if use_teacher else None
+    frozen = parse_teacher_init(args.teacher_init) if args.teacher_init and use_teacher else None
+    teacher_net = frozen.build() if frozen is not None else M.TeacherNet(args.teacher_width)
+    teacher = Learner("teacher", teacher_net.to(device), args.teacher_lr) if use_teacher else None
+    t_border = frozen.border if frozen is not None else 0
     inits = parse_inits(args.init, specs)
     students, warm = [], set()
     for spec in specs:
         net = spec.build()
         lr = args.lr
-        if spec.kind == "w":
+        if spec.name in inits:  # every w student, and a d student given a start
             init = inits[spec.name]
             log.info("%s starts from %s (%d convolutions)", spec.name, init, M.load_folded_onnx(net, str(init)))
             lr *= args.init_lr_scale
@@ -257,7 +343,8 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     log.info("teacher %s parameters; students %s", M.count_parameters(teacher.net) if teacher else "no",
              {s.name: M.count_parameters(s.net) for s in students})
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else torch.autocast("cpu", enabled=False)
-    history: dict[str, object] = {"load_s": round(t_load, 1), "args": vars(args)}
+    history: dict[str, object] = {"load_s": round(t_load, 1), "args": vars(args),
+                                  "teacher": str(frozen.path) if frozen is not None else None}
     by_name = {sp.name: sp for sp in specs}
 
     def save_students(tag: str) -> None:
@@ -267,9 +354,9 @@ def run(args: argparse.Namespace) -> dict[str, object]:
 
     phases = ((args.teacher_steps, args.teacher_seconds), (args.student_steps, args.student_seconds))
     for phase_no, (steps, seconds) in enumerate(phases, 1):
-        if phase_no == 1 and teacher is None:
+        if phase_no == 1 and (teacher is None or frozen is not None):
             history["phase1"] = {"steps": 0, "seconds": 0.0, "crops": 0, "crops_per_s": 0.0}
-            continue  # no distilled student: no teacher to train
+            continue  # no distilled student (no teacher), or a teacher already trained: nothing to train
         ph = Phase(steps, seconds)
         if phase_no == 2 and teacher is not None:
             teacher.net.eval()
@@ -287,13 +374,15 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                     t_logits = teacher.net(x)
                 elif teacher is not None:
                     with torch.no_grad():
-                        t_p = torch.sigmoid(teacher.net(x).float())
+                        t_p = torch.sigmoid(mirrored(teacher.net, x, t_border).float())
                 s_logits = [s.net(x) for s in students]
             if phase_no == 1 and teacher is not None:
                 teacher.step(loss(t_logits.float(), y, args.pos_weight), f)
             for s, logits in zip(students, s_logits):
                 if t_p is not None and by_name[s.name].kind == "d":
                     s.step(distill_loss(logits.float(), y, t_p, args.pos_weight, args.alpha), f)
+                elif t_p is not None and by_name[s.name].kind == "k":
+                    s.step(logit_distill_loss(logits.float(), y, t_p, args.pos_weight, args.alpha), f)
                 else:
                     s.step(loss(logits.float(), y, args.pos_weight), f)
             ph.k += 1
@@ -311,7 +400,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         history[f"phase{phase_no}"] = {"steps": ph.k, "seconds": round(el, 1), "crops": crops,
                                        "crops_per_s": round(crops / max(el, 1e-9), 1)}
         log.info("phase %d done: %d steps, %d crops in %.0f s", phase_no, ph.k, crops, el)
-        if phase_no == 1 and teacher is not None:
+        if phase_no == 1 and teacher is not None and frozen is None:
             torch.save({k: v.half().cpu() for k, v in teacher.net.state_dict().items()}, out / "teacher.pt")
         save_students(f"phase {phase_no} done")
     history["losses"] = {lrn.name: [round(float(np.mean(lrn.losses[i:i + 50])), 4)
@@ -323,8 +412,11 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         for s in students:
             net = cast(Any, s.net).float().cpu().eval().to(memory_format=torch.contiguous_format)
             kind = by_name[s.name].kind
-            how = (f"alpha={args.alpha}" if kind == "d" else "ground truth only (no teacher)"
-                   + (f", warm-started from {inits[s.name].name} at lr x{args.init_lr_scale}" if kind == "w" else ""))
+            how = (f"alpha={args.alpha}" + (f" teacher={frozen.path.name}" if frozen is not None else "")
+                   + (" on log-odds" if kind == "k" else "")
+                   if kind in ("d", "k") else "ground truth only (no teacher)")
+            if s.name in inits:
+                how += f", warm-started from {inits[s.name].name} at lr x{args.init_lr_scale}"
             note = (f"distill {s.name} teacher_steps={history['phase1']['steps']} "  # type: ignore[index]
                     f"student_steps={s.steps} batch={args.batch} synthetic_share={args.synthetic_share} "
                     f"negative_share={args.negative_share} {how} device={history['device']}")
@@ -344,13 +436,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=0, help="crop-making processes (0: in this process)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--students", default="d40,g40,d64",
-                   help="comma-separated <kind><arch><width>: kind d distilled, g ground truth only (the "
+                   help="comma-separated <kind><arch><width>: kind d distilled, k distilled on log-odds, g ground truth only (the "
                         "control), w ground truth from --init; arch none (C-CNN), f (SLZFastNet) or l "
                         "(its depthwise body); e.g. g40,gf32,w40")
     p.add_argument("--init", default=None,
                    help="exported model (.onnx) the w students start from, or NAME=FILE,... one per w student")
     p.add_argument("--init-lr-scale", type=float, default=0.3, help="w students' learning rate x this")
     p.add_argument("--teacher-width", type=int, default=64)
+    p.add_argument("--teacher-init", default=None,
+                   help="ARCH=FILE: an exported model ([f|l]<width>, e.g. 40=slz-density-v4.onnx) as the teacher, "
+                        "frozen and run mirrored by its companion.border_px; no phase 1")
     p.add_argument("--teacher-steps", type=int, default=0, help="0: no step limit (then --teacher-seconds)")
     p.add_argument("--teacher-seconds", type=float, default=0.0)
     p.add_argument("--student-steps", type=int, default=0)
@@ -376,7 +471,11 @@ def main(argv: list[str] | None = None) -> int:
         check_shares(args.synthetic_share, args.negative_share, args.max_images)
         specs = parse_students(args.students)
         by_name = {sp.name: sp for sp in specs}
-        if needs_teacher(specs):
+        if args.teacher_init and not needs_teacher(specs):
+            raise ValueError("--teacher-init is given but --students names no d student to learn from it")
+        if args.teacher_init:
+            parse_teacher_init(args.teacher_init)
+        elif needs_teacher(specs):
             Phase(args.teacher_steps, args.teacher_seconds)
         for name, init in parse_inits(args.init, specs).items():
             M.load_folded_onnx(by_name[name].build(), str(init))  # a clear error now, not after the data loads

@@ -149,7 +149,7 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
                         (["--students", "w40"], "need --init"),
                         (["--students", "w40", "--init", str(tmp_path / "none.onnx")], "is not a file"),
                         (["--students", "w40,wf32", "--init", f"w40={tmp_path}"], "no file for the w student(s) wf32"),
-                        (["--students", "w40", "--init", f"g40={tmp_path}"], "not a w or d student"),
+                        (["--students", "w40", "--init", f"g40={tmp_path}"], "not a w, d or k student"),
                         (["--students", "w40", "--init", "w40="], "is not NAME=FILE"),
                         (["--students", "g40", "--init", str(tmp_path)], "no w student"),
                         (["--students", "g40", "--init-lr-scale", "0"], "--init-lr-scale"), (["--students", "d40,d40"], "twice"),
@@ -306,6 +306,6 @@ def test_a_frozen_teacher_is_checked_before_any_data_loads(tmp_path: Path, capsy
                         (["--students", "d16", "--teacher-init", f"f16={good}"], "convolutions"),
                         (["--students", "d16", "--teacher-init", f"16={odd}"], "not a multiple of 4"),
                         (["--students", "d16,g16", "--teacher-init", f"16={good}", "--init", f"g16={good}"],
-                         "not a w or d student")):
+                         "not a w, d or k student")):
         assert main([*base, *extra]) == 2, extra
         assert says in capsys.readouterr().err, extra

@@ -5,6 +5,9 @@
     python -m companion.training.distill --shared .pack/shared --device cuda --workers 15 \\
         --students g40,gf32,gl48,w40 --init companion/models/slz-density-v2.onnx \\
         --student-seconds 480 --out-dir /tmp/students         # no d student: no teacher
+    python -m companion.training.distill --shared .pack/shared --device cuda --workers 15 \
+        --students df32,kl48 --teacher-init 40=companion/models/slz-density-v4.onnx \
+        --init df32=WF32.onnx,kl48=WL48.onnx --student-seconds 470 --out-dir /tmp/taught
 
 Two phases over one stream of training crops (the sources of :mod:`companion.training.train`:
 the real photos, the synthetic top-down crowds and the hard negatives, at the given shares):
@@ -163,8 +166,9 @@ class StudentSpec:
 
     kind: ``d`` distilled from the teacher (``k``: on its log-odds), ``g`` ground truth only (the
     control), ``w`` ground truth only, warm-started from ``--init`` (an exported model of the same
-    architecture and width; ``d`` and ``k`` students may be given one too). arch: none for the shipped C-CNN (:class:`companion.training.model.SLZDensityNet`),
-    ``f`` for :class:`companion.training.model.SLZFastNet`, ``l`` for its depthwise body."""
+    architecture and width; ``d`` and ``k`` students may be given one too). arch: none for the
+    shipped C-CNN (:class:`companion.training.model.SLZDensityNet`), ``f`` for
+    :class:`companion.training.model.SLZFastNet`, ``l`` for its depthwise body."""
 
     name: str
     kind: str
@@ -191,8 +195,8 @@ def parse_students(spec: str) -> list[StudentSpec]:
 def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]:
     """``--init``: one exported model for every ``w`` student, or ``NAME=FILE,NAME=FILE`` naming one
     per ``w`` student (``wf32=v3.onnx,w40=v2.onnx``). Every ``w`` student gets a file that exists.
-    A pair may also name a ``d`` student: it then starts from that file and learns from the teacher
-    (a cheap network already trained, taught on by a better one)."""
+    A pair may also name a ``d`` or ``k`` student: it then starts from that file and learns from
+    the teacher (a cheap network already trained, taught on by a better one)."""
     warm = [s.name for s in students if s.kind == "w"]
     startable = [s.name for s in students if s.kind in ("w", "d", "k")]
     if not arg:
@@ -210,7 +214,7 @@ def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]
             if not sep or not name or not file:
                 raise ValueError(f"--init: {item!r} is not NAME=FILE")
             if name not in startable:
-                raise ValueError(f"--init names {name!r}, which is not a w or d student of --students "
+                raise ValueError(f"--init names {name!r}, which is not a w, d or k student of --students "
                                  f"({', '.join(startable) or 'none'})")
             inits[name] = Path(file)
         missing = sorted(set(warm) - set(inits))

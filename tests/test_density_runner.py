@@ -64,6 +64,7 @@ INT8 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-densi
 V1 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density.onnx"
 V2 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v2.onnx"
 V3 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v3.onnx"
+V5 = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v5.onnx"
 
 
 @pytest.fixture
@@ -74,13 +75,13 @@ def v1_path() -> Path:
     return V1
 
 
-@pytest.fixture(params=["float", "v1", "int8", "v2", "v3"])
+@pytest.fixture(params=["float", "v1", "int8", "v2", "v3", "v5"])
 def shipped_model(request, model_path: Path) -> Path:
     """Each density model the package ships: the runner tests hold for the default (version 4),
-    version 1 (the first default), its int8 form and versions 2 and 3 (beside the default)."""
+    version 1 (the first default), its int8 form and versions 2, 3 and 5 (beside the default)."""
     if request.param == "float":
         return model_path
-    extra = {"v1": V1, "int8": INT8, "v2": V2, "v3": V3}[request.param]
+    extra = {"v1": V1, "int8": INT8, "v2": V2, "v3": V3, "v5": V5}[request.param]
     if not extra.is_file():
         pytest.skip(f"no {request.param} model shipped ({extra.name})")
     return extra

@@ -1,7 +1,7 @@
 """Closed loop on pixels: the shipped density model must find the people the simulator draws.
 
-Runs the real ONNX models (``companion/models/slz-density-v4.onnx``, the default, and versions 1
-and 3 beside it) on rendered frames and checks, through the service's occupancy step with the
+Runs the real ONNX models (``companion/models/slz-density-v4.onnx``, the default, and versions 1,
+3 and 5 beside it) on rendered frames and checks, through the service's occupancy step with the
 model's own threshold, that (a) the heads of >= 95 % of the people in view fall on occupied
 pixels at 20-40 m, and (b) a sparse scene still leaves > 20 % of the frame free. Skips, naming the file, until the trained model is committed.
 """
@@ -24,12 +24,13 @@ from sim.world import default_world
 MODEL = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v4.onnx"  # the default
 V1 = MODEL.with_name("slz-density.onnx")  # the first default, beside it now: held to the same figures
 V3 = MODEL.with_name("slz-density-v3.onnx")  # beside the default: held to the same closed-loop figures
+V5 = MODEL.with_name("slz-density-v5.onnx")  # beside the default: the fast model, held to the same figures
 K = Intrinsics.from_fov(640, 480, 70.0)
 
 pytestmark = pytest.mark.skipif(not MODEL.is_file(), reason=f"the shipped density model {MODEL} is not there yet")
 
 
-@pytest.fixture(scope="module", params=[MODEL, V1, V3], ids=["default", "v1", "v3"])
+@pytest.fixture(scope="module", params=[MODEL, V1, V3, V5], ids=["default", "v1", "v3", "v5"])
 def model(request):
     from companion.pipeline.density import DensityModel
 

@@ -95,6 +95,21 @@ def test_distillation_runs_both_phases_on_cpu_and_exports_students(tmp_path: Pat
         assert ("alpha=0.5" in note) == (name == "d16") and ("no teacher" in note) == (name == "g16")
 
 
+def _fitted_probability(loss_fn, teacher, lr: float, steps: int) -> float:
+    """The mean probability a free map of logits settles at under ``loss_fn`` with alpha = 0 (the
+    teacher's term alone; an all-empty ground truth), by plain gradient descent from p = 0.5."""
+    import torch
+
+    target = torch.zeros_like(teacher)
+    logits = torch.zeros_like(teacher, requires_grad=True)
+    opt = torch.optim.SGD([logits], lr=lr)
+    for _ in range(steps):
+        opt.zero_grad()
+        loss_fn(logits, target, teacher, 4.0, 0.0).backward()
+        opt.step()
+    return float(torch.sigmoid(logits.detach()).mean())
+
+
 def test_distillation_loss_pulls_toward_the_teacher() -> None:
     torch = pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
     from companion.training.distill import distill_loss
@@ -102,13 +117,7 @@ def test_distillation_loss_pulls_toward_the_teacher() -> None:
     target = torch.zeros(1, 1, 4, 4)
     teacher = torch.full((1, 1, 4, 4), 0.3)
     # With alpha = 0 the optimum is the teacher's probability; with alpha = 1 it ignores the teacher.
-    logits = torch.zeros(1, 1, 4, 4, requires_grad=True)
-    opt = torch.optim.SGD([logits], lr=5.0)
-    for _ in range(300):
-        opt.zero_grad()
-        distill_loss(logits, target, teacher, 4.0, 0.0).backward()
-        opt.step()
-    assert float(torch.sigmoid(logits.detach()).mean()) == pytest.approx(0.3, abs=0.01)
+    assert _fitted_probability(distill_loss, teacher, lr=5.0, steps=300) == pytest.approx(0.3, abs=0.01)
     a = distill_loss(torch.zeros(1, 1, 4, 4), target, teacher, 4.0, 1.0)
     b = distill_loss(torch.zeros(1, 1, 4, 4), target, torch.full((1, 1, 4, 4), 0.9), 4.0, 1.0)
     assert float(a) == pytest.approx(float(b))
@@ -128,13 +137,7 @@ def test_log_odds_distillation_pulls_toward_the_teachers_faint_evidence() -> Non
         fn(s, target, teacher, 4.0, 0.0).backward()
         grads[name] = float(s.grad.abs().mean())
     assert grads["logit"] > 20 * grads["bce"]
-    logits = torch.zeros(1, 1, 4, 4, requires_grad=True)
-    opt = torch.optim.SGD([logits], lr=20.0)
-    for _ in range(400):
-        opt.zero_grad()
-        logit_distill_loss(logits, target, teacher, 4.0, 0.0).backward()
-        opt.step()
-    assert float(torch.sigmoid(logits.detach()).mean()) == pytest.approx(0.02, rel=0.02)
+    assert _fitted_probability(logit_distill_loss, teacher, lr=20.0, steps=400) == pytest.approx(0.02, rel=0.02)
 
 
 def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
@@ -301,10 +304,10 @@ def test_a_frozen_teacher_is_checked_before_any_data_loads(tmp_path: Path, capsy
     for extra, says in ((["--students", "g16", "--teacher-init", f"16={good}"], "no d student"),
                         (["--students", "d16", "--teacher-init", str(good)], "is not ARCH=FILE"),
                         (["--students", "d16", "--teacher-init", f"q16={good}"], "is not ARCH=FILE"),
-                        (["--students", "d16", "--teacher-init", f"16={tmp_path / 'none'}"], "is not a file"),
-                        (["--students", "d16", "--teacher-init", f"16={tmp_path / 'bad.onnx'}"], "not a readable"),
+                        (["--students", "d16", "--teacher-init", f"16={tmp_path / 'none'}"], "does not exist"),
+                        (["--students", "d16", "--teacher-init", f"16={tmp_path / 'bad.onnx'}"], "not a loadable ONNX model"),
                         (["--students", "d16", "--teacher-init", f"f16={good}"], "convolutions"),
-                        (["--students", "d16", "--teacher-init", f"16={odd}"], "not a multiple of 4"),
+                        (["--students", "d16", "--teacher-init", f"16={odd}"], "must be a multiple of the model's stride 4"),
                         (["--students", "d16,g16", "--teacher-init", f"16={good}", "--init", f"g16={good}"],
                          "not a w, d or k student")):
         assert main([*base, *extra]) == 2, extra

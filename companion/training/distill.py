@@ -254,20 +254,14 @@ def parse_teacher_init(arg: str) -> FrozenTeacher:
     if not sep or m is None or not file:
         raise ValueError(f"--teacher-init: {arg!r} is not ARCH=FILE (ARCH: [f|l]<width>, e.g. 40=v4.onnx)")
     path = Path(file)
-    if not path.is_file():
-        raise ValueError(f"--teacher-init: {path} is not a file")
-    import onnx
+    from companion.pipeline.density import DensityModel, DensityModelError
 
     try:
-        meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
-    except Exception as exc:  # protobuf's DecodeError, OSError, ...
-        raise ValueError(f"--teacher-init: {path} is not a readable ONNX model ({exc})") from None
-    try:
-        border = int(meta.get("companion.border_px", "0"))
-    except ValueError:
-        raise ValueError(f"--teacher-init: {path} has a companion.border_px that is not an integer") from None
-    if border < 0 or border % M.STRIDE:
-        raise ValueError(f"--teacher-init: {path}'s companion.border_px {border} is not a multiple of {M.STRIDE}")
+        # The service's runner reads and checks the border (present, an integer in range, a
+        # multiple of the model's stride), so the teacher is mirrored by what the service uses.
+        border = DensityModel(path, threads=1).spec.border_px
+    except DensityModelError as exc:
+        raise ValueError(f"--teacher-init: {exc}") from None
     teacher = FrozenTeacher(m.group(1), int(m.group(2)), path, border)
     teacher.build()  # a misfit (architecture, width) is an error now, not after the data loads
     return teacher

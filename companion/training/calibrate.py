@@ -139,7 +139,9 @@ def calibrate(path: Path, shared: Path, threads: int = 2, min_recall: float | No
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default="companion/models/slz-density.onnx")
+    p.add_argument("--model", required=True,
+                   help="the ONNX file to calibrate: its metadata is rewritten in place, so it is never "
+                        "a shipped file by default")
     p.add_argument("--shared", default="../shared")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--rule", choices=sorted(RULES), default=DEFAULT_RULE,

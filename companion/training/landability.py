@@ -483,7 +483,8 @@ def weights_with(changes: list[str] | None) -> tuple[float, ...]:
 
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shared", default="../shared", help="the shared data directory")
-    p.add_argument("--out", default="companion/models/slz-landability.onnx", help="ONNX file to write")
+    p.add_argument("--out", required=True,
+                   help="ONNX file to write (no default: a run never replaces the shipped model unasked)")
     p.add_argument("--steps", type=int, default=6000)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--crop", type=int, default=256, help="crop side in pixels (multiple of 8)")

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 
+from companion.config import SHIPPED_MODEL
 from companion.evaluation import datasets as D
 from companion.pipeline.density import DensityModel
 from companion.training.calibrate import DEFAULT_RULE, RULES, calibrate, rule_minimums
@@ -123,9 +124,11 @@ def quantize(model_path: Path, out: Path, shared: Path, per_source: int = CALIB_
     return calibrate(out, shared, threads, min_recall, rule)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command's arguments (see the module docstring)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", default="companion/models/slz-density.onnx")
+    p.add_argument("--model", type=Path, default=SHIPPED_MODEL,
+                   help="the float ONNX model to quantize (default: the service's default model, %(default)s)")
     p.add_argument("--out", required=True, help="the int8 ONNX file to write")
     p.add_argument("--shared", default="../shared")
     p.add_argument("--per-source", type=int, default=CALIB_PER_SOURCE,
@@ -141,7 +144,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--full-range", action="store_true",
                    help="8-bit weights: exact only where the CPU has VNNI or is ARM; on other x86 CPUs "
                         "onnxruntime's kernels saturate (the default, 7-bit weights, scores the same everywhere)")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     try:
         quantize(Path(args.model), Path(args.out), Path(args.shared), args.per_source, args.threads,

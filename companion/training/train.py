@@ -290,7 +290,8 @@ def train(args: argparse.Namespace) -> Path:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--shared", default="../shared", help="the shared data directory")
-    p.add_argument("--out", default="companion/models/slz-density.onnx", help="ONNX file to write")
+    p.add_argument("--out", required=True,
+                   help="ONNX file to write (no default: a run never replaces a shipped model unasked)")
     p.add_argument("--work", default="/tmp/slz-train", help="checkpoint directory (outside the repo)")
     p.add_argument("--steps", type=int, default=2400)
     p.add_argument("--batch", type=int, default=16)

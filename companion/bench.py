@@ -11,6 +11,15 @@ the controller searches (``SLZPipeline.remembered_zones``). ``landability`` is t
 landability model (the shipped one unless ``--no-landability``; it runs on the same frame after the
 density model and is counted in ``total``, not in ``post_density``). Figures are printed, never
 asserted: this machine is shared and timings are noisy, so compare figures measured in one run.
+
+By default the pipeline is set up as costly as the service can make it (the fused risk map, calm
+and unwalked ground, and the people followed for the walkers' prediction, whatever the flight
+defaults are). ``--configured`` (implied by ``--config FILE`` or ``--set KEY=VALUE``) times it as
+the service's settings build it instead: their model and landability model (``--model``,
+``--landability`` and the ``--no-`` options still win), ``model.threads`` (unless ``--threads``),
+their pipeline and controller settings, and their camera (``camera.width x camera.height``, its
+intrinsics, distortion and mount), at that one resolution: what a configuration costs on the
+machine it will fly on.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from companion import config as settings
 from companion import synthetic
 from companion.config import SHIPPED_LANDABILITY, SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, Pose
@@ -78,19 +88,25 @@ def paced_frame_ms(pipe: SLZPipeline, frame: np.ndarray, fps: float, frames: int
     return out
 
 
+#: The costliest set-up (see the module docstring): the fused risk map, calm and unwalked ground
+#: (in the tracking stage) and the people stage, whatever the flight defaults are.
+COSTLIEST = PipelineConfig(fusion="map", calm=True, unwalked=True, people=PeopleParams())
+
+
 def bench_resolution(width: int, height: int, frames: int, model: DensityFn | None = None, warmup: int = 5,
-                     seed: int = 0, surface: SurfaceFn | None = None, pause_s: float = 0.0
-                     ) -> dict[str, dict[str, float]]:
+                     seed: int = 0, surface: SurfaceFn | None = None, pause_s: float = 0.0,
+                     config: PipelineConfig = COSTLIEST, intrinsics: Intrinsics | None = None,
+                     mount: Mount | None = None) -> dict[str, dict[str, float]]:
     """Per-stage median and p99 milliseconds over ``frames`` frames at one resolution
     (``surface``: the landability model's callable, timed as ``landability``; ``pause_s``: a sleep
-    before each frame, the time a camera's frame period or the models would leave between them)."""
+    before each frame, the time a camera's frame period or the models would leave between them;
+    ``config``, ``intrinsics``, ``mount``: the pipeline's set-up, by default the costliest with a
+    distortion-free 70 deg lens pointing straight down)."""
     frame, ideal = bench_frame(width, height, seed)
     density = model if model is not None else (lambda f: ideal)
-    K = Intrinsics.from_fov(width, height, 70.0)
-    # The fused risk-map, calm and unwalked (in the tracking stage) and people stages are timed
-    # too, whatever the flight defaults are.
-    pipe = SLZPipeline(density, PipelineConfig(fusion="map", calm=True, unwalked=True, people=PeopleParams()),
-                       intrinsics=K, mount=Mount(), surface=surface)
+    K = intrinsics if intrinsics is not None else Intrinsics.from_fov(width, height, 70.0)
+    pipe = SLZPipeline(density, config, intrinsics=K, mount=mount if mount is not None else Mount(),
+                       surface=surface)
     samples: dict[str, list[float]] = {}
     for k in range(frames + warmup):
         t = k / 15.0
@@ -129,7 +145,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--landability", type=Path, default=None,
                         help="ONNX landability model (default: the shipped one, when present)")
     parser.add_argument("--no-landability", action="store_true", help="leave the landability model out")
-    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="onnxruntime threads (default 2; with --configured, model.threads)")
     parser.add_argument("--spinning", action="store_true",
                         help="let onnxruntime's threads busy-wait between runs (model.allow_spinning; off by default)")
     parser.add_argument("--pause-ms", type=float, default=0.0,
@@ -138,6 +155,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "whatever fills the time between (the models, a sleep, a Python loop): "
                              "--no-model --pause-ms 40 shows the post-density stages as a flight runs them")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--configured", action="store_true",
+                        help="time the pipeline as the service's settings build it (the defaults, or --config "
+                             "with --set), at the camera's resolution, instead of the costliest set-up")
+    parser.add_argument("--config", metavar="FILE", help="the service's TOML configuration (implies --configured)")
+    parser.add_argument("--set", metavar="KEY=VALUE", action="append", default=[], dest="set_",
+                        help="a setting over --config's, as for companion run (repeatable; implies --configured)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -147,39 +170,65 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.pause_ms) and 0.0 <= args.pause_ms <= 1000.0):
         print("companion bench: --pause-ms must be between 0 and 1000", file=sys.stderr)
         return 2
+    if args.threads is not None and not 1 <= args.threads <= 64:
+        print("companion bench: --threads must be between 1 and 64", file=sys.stderr)
+        return 2
+    cfg = None
+    if args.configured or args.config is not None or args.set_:
+        try:
+            overrides = dict(settings.parse_assignment(item) for item in args.set_)
+            cfg = settings.load(args.config, overrides)
+        except settings.ConfigError as exc:
+            print(f"companion bench: {exc}", file=sys.stderr)
+            return 2
+    threads = args.threads if args.threads is not None else (cfg.model.threads if cfg is not None else 2)
+    spinning = args.spinning or (cfg is not None and cfg.model.allow_spinning)
     model = None
     if not args.no_model:
-        path = args.model or SHIPPED_MODEL
-        if args.model is not None or path.is_file():
+        path = args.model or (Path(cfg.model.path) if cfg is not None else SHIPPED_MODEL)
+        if args.model is not None or cfg is not None or path.is_file():
             from companion.pipeline.density import DensityModel, DensityModelError
 
             try:
-                model = DensityModel(path, threads=args.threads, allow_spinning=args.spinning)
+                model = DensityModel(path, threads=threads, allow_spinning=spinning,
+                                     overrides=cfg.model.overrides if cfg is not None else None)
             except DensityModelError as exc:
                 print(f"companion bench: {exc}", file=sys.stderr)
                 return 2
     surface = None
-    if not args.no_landability:
-        lpath = args.landability or SHIPPED_LANDABILITY
-        if args.landability is not None or lpath.is_file():
+    if not args.no_landability and (cfg is None or cfg.model.landability or args.landability is not None):
+        lpath = args.landability or (Path(cfg.model.landability_path) if cfg is not None else SHIPPED_LANDABILITY)
+        if args.landability is not None or cfg is not None or lpath.is_file():
             from companion.pipeline.density import DensityModelError
             from companion.pipeline.landability import LandabilityModel
 
             try:
-                surface = LandabilityModel(lpath, threads=args.threads, allow_spinning=args.spinning).unlandable()
-            except DensityModelError as exc:
+                levels = (cfg.pipeline.unlandable_levels or None) if cfg is not None else None
+                surface = LandabilityModel(lpath, threads=threads, allow_spinning=spinning).unlandable(levels)
+            except DensityModelError as exc:  # a LandabilityModelError too
                 print(f"companion bench: {exc}", file=sys.stderr)
                 return 2
-    result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=args.pause_ms / 1e3)
-              for w, h in RESOLUTIONS}
+    pause_s = args.pause_ms / 1e3
+    if cfg is None:
+        result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=pause_s)
+                  for w, h in RESOLUTIONS}
+    else:
+        w, h = cfg.camera.width, cfg.camera.height
+        pipe_cfg = settings.pipeline_config(cfg, model.spec if model is not None else None)
+        result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=pause_s,
+                                               config=pipe_cfg, intrinsics=settings.intrinsics(cfg),
+                                               mount=settings.mount(cfg))}
     if args.json:
         print(json.dumps(result))
         return 0
     print(f"companion bench: {args.frames} frames per resolution, model: "
           f"{model.path if model is not None else 'none (ideal density maps)'}"
-          + (f", {args.threads} thread(s), spinning {'on' if args.spinning else 'off'}" if model is not None else "")
+          + (f", {threads} thread(s), spinning {'on' if spinning else 'off'}" if model is not None else "")
           + f", landability: {surface.model.path if surface is not None else 'none'}"
-          + (f", {args.pause_ms:g} ms pause before each frame" if args.pause_ms > 0 else ""))
+          + (f", {args.pause_ms:g} ms pause before each frame" if args.pause_ms > 0 else "")
+          + (f"; set up as configured ({args.config or 'the defaults'}"
+             + (f" with {len(args.set_)} --set" if args.set_ else "") + ")" if cfg is not None
+             else "; the costliest set-up (fused map, calm, unwalked, people)"))
     for res_name, stages in result.items():
         print(f"\n{res_name}")
         print(f"  {'stage':<14}{'median ms':>11}{'p99 ms':>10}")

@@ -43,3 +43,29 @@ def test_bench_pauses_before_each_frame_when_asked(capsys):
 def test_bench_refuses_a_bad_pause(capsys):
     assert main(["bench", "--frames", "1", "--no-model", "--pause-ms", "nan"]) == 2
     assert "--pause-ms" in capsys.readouterr().err
+
+
+def test_bench_times_the_pipeline_as_configured_at_the_cameras_resolution(capsys, tmp_path):
+    """--configured builds the pipeline from the service's settings: one resolution, the camera's;
+    the people stage runs only where the settings ask for it (controller.predict_people)."""
+    assert main(["bench", "--json", "--frames", "3", "--no-model", "--set", "camera.width=320",
+                 "--set", "camera.height=240"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"320x240"}
+    assert out["320x240"]["people"]["median_ms"] < 0.05  # off by default: not run
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[controller]\npredict_people = true\n[camera]\nwidth = 320\nheight = 240\n")
+    assert main(["bench", "--json", "--frames", "3", "--no-model", "--config", str(cfg)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"320x240"} and out["320x240"]["people"]["median_ms"] > 0.05
+
+
+def test_bench_refuses_a_bad_configuration_with_exit_2(capsys, tmp_path):
+    assert main(["bench", "--frames", "1", "--no-model", "--set", "pipeline.fusion=bogus"]) == 2
+    assert "pipeline.fusion" in capsys.readouterr().err
+    assert main(["bench", "--frames", "1", "--no-model", "--config", str(tmp_path / "none.toml")]) == 2
+    assert "none.toml" in capsys.readouterr().err
+    assert main(["bench", "--frames", "1", "--set", f"model.path={tmp_path / 'gone.onnx'}"]) == 2
+    assert "gone.onnx" in capsys.readouterr().err
+    assert main(["bench", "--frames", "1", "--no-model", "--threads", "0"]) == 2
+    assert "--threads" in capsys.readouterr().err

@@ -29,3 +29,41 @@ def model_path() -> Path:
     """The shipped density model; it is committed, so its absence is a failure, not a skip."""
     assert MODEL.is_file(), f"the shipped density model {MODEL} is missing"
     return MODEL
+
+
+#: Semantic-drone photos kept by ``few_photos_shared``: the first 25 by name, so 5 held out
+#: (every fifth by sorted index, as in the full set) and 20 for training.
+FEW_PHOTOS = 25
+
+
+@pytest.fixture(scope="session")
+def few_photos_shared(shared_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``../shared`` with only the first ``FEW_PHOTOS`` semantic-drone photos (and their class
+    maps), every other file and data set as it is: links to the same files, laid out alike, so
+    the loaders read it as they read ``../shared``. For commands that load every photo of a split
+    (the compositor's people and ground, seconds on the full set) where how many photos they draw
+    from is not what a test shows. The held-out split's first photos are the full set's."""
+    root = tmp_path_factory.mktemp("few_photos") / "shared"
+    root.mkdir()
+    for entry in shared_dir.iterdir():
+        if entry.name != "data":
+            (root / entry.name).symlink_to(entry)
+    (root / "data").mkdir()
+    for entry in (shared_dir / "data").iterdir():
+        if entry.name != "semantic_drone":
+            (root / "data" / entry.name).symlink_to(entry)
+    src = shared_dir / "data" / "semantic_drone"
+    dst = root / "data" / "semantic_drone"
+    (dst / "images").mkdir(parents=True)
+    (dst / "labels").mkdir()
+    for entry in src.iterdir():
+        if entry.is_file():
+            (dst / entry.name).symlink_to(entry)
+    for entry in (src / "labels").iterdir():
+        if entry.suffix != ".png":  # classes.txt
+            (dst / "labels" / entry.name).symlink_to(entry)
+    for photo in sorted((src / "images").glob("*.jpg"))[:FEW_PHOTOS]:
+        (dst / "images" / photo.name).symlink_to(photo)
+        label = src / "labels" / f"{photo.stem}.png"
+        (dst / "labels" / label.name).symlink_to(label)
+    return root

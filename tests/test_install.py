@@ -43,6 +43,23 @@ def _companion(*args: str, cwd: Path | None = None) -> subprocess.CompletedProce
                           cwd=cwd, timeout=120)
 
 
+def _side_by_side(argvs: list[list[str]], cwd: Path | None = None,
+                  env: dict[str, str] | None = None) -> list[subprocess.CompletedProcess[str]]:
+    """Each command of ``argvs`` started at once and waited for, in order (each starts a Python
+    and imports the package: side by side they take the time of about one or two, not of all)."""
+    procs = [subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env)
+             for argv in argvs]
+    done = []
+    for argv, proc in zip(argvs, procs, strict=True):
+        out, err = proc.communicate(timeout=120)
+        done.append(subprocess.CompletedProcess(argv, proc.returncode, out, err))
+    return done
+
+
+def _companions(*argss: tuple[str, ...], cwd: Path | None = None) -> list[subprocess.CompletedProcess[str]]:
+    return _side_by_side([[sys.executable, "-m", "companion", *args] for args in argss], cwd=cwd)
+
+
 # ---- check-config ---------------------------------------------------------------------------
 
 def test_the_settings_load_without_the_kalman_filters_statistics() -> None:
@@ -81,16 +98,37 @@ def test_check_config_accepts_the_example_and_prints_what_it_resolves_to(tmp_pat
     assert config_mod.from_dict(resolved) == replace(config_mod.load(EXAMPLE), source=None)
 
 
-@pytest.mark.parametrize(("text", "key"), [
+BAD_CONFIGS = [
     ("[camera]\nfsp = 10\n", "camera.fsp"),                # a wrong key
     ("[camera]\nfps = -3\n", "camera.fps"),                # a wrong value
     ("[link]\nurl = \"udpin:127.0.0.1:99999\"\n", "link.url"),
     ("[model]\npath = \"no-such-model.onnx\"\n", "model.path"),  # the model is loaded, not just named
-])
-def test_check_config_exits_2_naming_the_key(tmp_path: Path, text: str, key: str) -> None:
-    f = tmp_path / "c.toml"
-    f.write_text(text)
-    r = _companion("check-config", str(f), cwd=tmp_path)
+]
+
+
+@pytest.fixture(scope="module")
+def bad_config_checks(tmp_path_factory: pytest.TempPathFactory) -> dict[str, subprocess.CompletedProcess[str]]:
+    """``companion check-config`` of each of BAD_CONFIGS (its own file in its own folder), the
+    commands started at once: the text -> what the command did."""
+    folders = []
+    for text, _key in BAD_CONFIGS:
+        folder = tmp_path_factory.mktemp("bad_config")
+        (folder / "c.toml").write_text(text)
+        folders.append(folder)
+    procs = [subprocess.Popen([sys.executable, "-m", "companion", "check-config", str(folder / "c.toml")],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=folder)
+             for folder in folders]
+    done = {}
+    for (text, _key), proc in zip(BAD_CONFIGS, procs, strict=True):
+        out, err = proc.communicate(timeout=120)
+        done[text] = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    return done
+
+
+@pytest.mark.parametrize(("text", "key"), BAD_CONFIGS)
+def test_check_config_exits_2_naming_the_key(bad_config_checks: dict[str, subprocess.CompletedProcess[str]],
+                                             text: str, key: str) -> None:
+    r = bad_config_checks[text]
     assert r.returncode == 2, (r.stdout, r.stderr)
     assert key in r.stderr and "Traceback" not in r.stderr
     assert r.stdout == ""
@@ -107,16 +145,17 @@ def test_check_config_exits_2_on_a_malformed_model(tmp_path: Path) -> None:
 def test_check_config_exits_2_on_malformed_toml_and_a_missing_file(tmp_path: Path) -> None:
     f = tmp_path / "c.toml"
     f.write_text("[camera\nfps = 10\n")
-    r = _companion("check-config", str(f), cwd=tmp_path)
+    r, missing = _companions(("check-config", str(f)), ("check-config", str(tmp_path / "missing.toml")), cwd=tmp_path)
     assert r.returncode == 2 and "not valid TOML" in r.stderr and str(f) in r.stderr
-    r = _companion("check-config", str(tmp_path / "missing.toml"), cwd=tmp_path)
+    r = missing
     assert r.returncode == 2 and "does not exist" in r.stderr and "missing.toml" in r.stderr
 
 
 def test_check_config_takes_set_overrides_as_run_does(tmp_path: Path) -> None:
-    r = _companion("check-config", str(EXAMPLE), "--set", "camera.fps=15", cwd=tmp_path)
+    r, bad = _companions(("check-config", str(EXAMPLE), "--set", "camera.fps=15"),
+                         ("check-config", str(EXAMPLE), "--set", "camera.fps=0"), cwd=tmp_path)
     assert r.returncode == 0 and tomllib.loads(r.stdout)["camera"]["fps"] == 15.0
-    r = _companion("check-config", str(EXAMPLE), "--set", "camera.fps=0", cwd=tmp_path)
+    r = bad
     assert r.returncode == 2 and "camera.fps" in r.stderr
 
 
@@ -139,14 +178,12 @@ def test_help_shows_no_restructuredtext(command: str | None) -> None:
 
 def test_a_missing_optional_package_names_its_extra(tmp_path: Path) -> None:
     # sys.modules[name] = None makes the import fail exactly as an absent package does.
-    code = ("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
-            "sys.exit(main(['replay', '--help']))")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+    codes = [("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
+              f"sys.exit(main({argv!r}))")
+             for argv in (["replay", "--help"], ["replay", str(tmp_path)], ["sim-scenarios", "--seeds", "1-3", "--json"])]
+    r, *runs = _side_by_side([[sys.executable, "-c", code] for code in codes], cwd=tmp_path)
     assert "Traceback" not in r.stderr
-    for argv in (["replay", str(tmp_path)], ["sim-scenarios", "--seeds", "1-3", "--json"]):
-        code = ("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
-                f"sys.exit(main({argv!r}))")
-        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+    for r in runs:
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert "pip install 'companion-slz[tools]'" in r.stderr and "tqdm" in r.stderr, r.stderr
 
@@ -251,14 +288,15 @@ def test_a_wheel_installed_outside_the_clone_runs_and_finds_its_model(tmp_path: 
     assert r.returncode == 0, r.stderr
     assert all(Path(line).is_relative_to(site) for line in r.stdout.split()), r.stdout
 
-    r = run(str(companion), "--version")
-    assert r.returncode == 0 and r.stdout.strip() == f"companion {__version__}"
-    r = run(str(companion), "demo", "--help")
-    assert r.returncode == 0 and "--flavour" in r.stdout, r.stderr
-
     example = run_dir / "companion.toml"
     shutil.copy(EXAMPLE, example)  # as docs/install.md copies it to /etc/companion
-    r = run(str(companion), "check-config", str(example))
+    r, demo_help, check = _side_by_side([[str(companion), "--version"], [str(companion), "demo", "--help"],
+                                         [str(companion), "check-config", str(example)]], cwd=run_dir, env=env)
+    assert r.returncode == 0 and r.stdout.strip() == f"companion {__version__}"
+    r = demo_help
+    assert r.returncode == 0 and "--flavour" in r.stdout, r.stderr
+
+    r = check
     assert r.returncode == 0, r.stderr
     model = Path(tomllib.loads(r.stdout)["model"]["path"])
     assert model.is_relative_to(site) and model.is_file() and model.stat().st_size > 100_000

@@ -11,7 +11,6 @@ import asyncio
 import json
 import multiprocessing
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -33,17 +32,9 @@ from sim.evidence import (
 from sim.flight import STARVED_SHARE, FlightSpec, claim_port, fly, reserve_port, starved, summarise
 from sim.scenarios import FlightJob, plan, run_jobs
 from tests.patched_service import patched_env
+from tests.port_holder import reserve_and_hold
 
 # ---- ports -----------------------------------------------------------------------------------
-
-
-def _reserve_and_hold(folder: str, count: int, barrier: Any, queue: Any) -> None:
-    claims = [reserve_port(socket.SOCK_DGRAM if i % 2 else socket.SOCK_STREAM, Path(folder))
-              for i in range(count)]
-    queue.put((os.getpid(), [c.port for c in claims]))
-    barrier.wait(timeout=60)  # every process holds its claims until all have reserved
-    for c in claims:
-        c.release()
 
 
 def test_concurrent_reservations_never_get_the_same_port(tmp_path: Path) -> None:
@@ -67,9 +58,12 @@ def test_concurrent_reservations_never_get_the_same_port(tmp_path: Path) -> None
     assert len(held) == 16 * 15 and len(set(held)) == len(held)
 
     # ... and processes reserving at once, while this one still holds all of the threads' claims.
-    ctx = multiprocessing.get_context("spawn")
+    # Forked by a fork server that has imported sim.flight once: spawned, each imported it
+    # itself (a second each, one after another on two cores) before it could reserve anything.
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["tests.port_holder"])
     barrier, queue = ctx.Barrier(4), ctx.Queue()
-    procs = [ctx.Process(target=_reserve_and_hold, args=(str(folder), 25, barrier, queue)) for _ in range(4)]
+    procs = [ctx.Process(target=reserve_and_hold, args=(str(folder), 25, barrier, queue)) for _ in range(4)]
     for p in procs:
         p.start()
     got = [queue.get(timeout=60) for _ in procs]
@@ -408,6 +402,24 @@ def test_ray_auto_flies_seeds_as_ray_tasks(tmp_path: Path, model_path) -> None:
     assert len(read_rows(out)[0]) == 2
 
 
+def _exited(pid: int) -> bool:
+    """Whether process ``pid`` has ended: gone, or a zombie (exited, its status not yet collected).
+    A killed runner's children become init's, which collects them when it gets round to it (1.4
+    to 1.9 s after they exited, on a 2-core CI machine); ``kill(pid, 0)`` succeeds on a zombie,
+    so /proc tells."""
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:  # gone since, or no /proc: the next look decides
+        return False
+    return stat[stat.rindex(")") + 2] in "ZX"
+
+
 def test_a_killed_runner_leaves_no_service_running(tmp_path):
     # sim-scenarios killed mid-flight used to leave the flight's service running on, its camera
     # gone, eating the CPU of the flights after it. The service now dies with its parent.
@@ -417,8 +429,14 @@ def test_a_killed_runner_leaves_no_service_running(tmp_path):
     import sys
     import time
 
+    import companion.parallel
+    import sim.flight
+
+    # The flight's service is started with sim.flight's die_with_parent, which is this one:
+    # imported from companion.parallel, the parent does not spend a second importing sim.flight.
+    assert sim.flight.die_with_parent is companion.parallel.die_with_parent
     code = ("import subprocess, sys, time\n"
-            "from sim.flight import die_with_parent\n"
+            "from companion.parallel import die_with_parent\n"
             "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=die_with_parent)\n"
             "print(p.pid, flush=True)\n"
             "time.sleep(60)\n")
@@ -429,12 +447,9 @@ def test_a_killed_runner_leaves_no_service_running(tmp_path):
     parent.wait(timeout=10)
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
-        try:
-            os.kill(child, 0)
-        except ProcessLookupError:
+        if _exited(child):  # it was the parent's, not ours: the init process reaps it
             break
-        # Reap it if it became ours (it did not: it was the parent's); the init process reaps it.
-        time.sleep(0.05)
+        time.sleep(0.01)
     else:
         os.kill(child, signal.SIGKILL)
         raise AssertionError("the child outlived its parent")
@@ -452,13 +467,24 @@ def test_a_killed_runner_leaves_no_worker_flying(tmp_path):
     code = ("import multiprocessing, threading, time\n"
             "from companion.parallel import fan_out\n"
             "threading.Thread(target=lambda: list(fan_out(time.sleep, [60, 60], workers=2)), daemon=True).start()\n"
-            "while len(multiprocessing.active_children()) < 2: time.sleep(0.05)\n"
-            "time.sleep(1.0)\n"  # the workers' initializer has run by now
+            "while len(multiprocessing.active_children()) < 2: time.sleep(0.01)\n"
             "print(' '.join(str(p.pid) for p in multiprocessing.active_children()), flush=True)\n"
             "time.sleep(60)\n")
     parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     workers = [int(p) for p in parent.stdout.readline().split()]
     assert len(workers) == 2
+
+    def in_task(pid: int) -> bool:  # in time.sleep, its task: its initializer has run
+        try:
+            return "nanosleep" in Path(f"/proc/{pid}/wchan").read_text()
+        except OSError:
+            return False
+
+    # Until both workers are in their task (where the kernel does not tell, 10 s: more than the
+    # second that was once waited blindly for the initializers).
+    started = time.monotonic()
+    while not all(in_task(pid) for pid in workers) and time.monotonic() - started < 10:
+        time.sleep(0.01)
     for pid in workers:
         os.kill(pid, 0)  # running
     parent.send_signal(signal.SIGKILL)
@@ -466,12 +492,8 @@ def test_a_killed_runner_leaves_no_worker_flying(tmp_path):
     deadline = time.monotonic() + 10
     alive = set(workers)
     while alive and time.monotonic() < deadline:
-        for pid in list(alive):
-            try:
-                os.kill(pid, 0)
-            except ProcessLookupError:
-                alive.discard(pid)
-        time.sleep(0.05)
+        alive = {pid for pid in alive if not _exited(pid)}
+        time.sleep(0.01)
     for pid in alive:
         os.kill(pid, signal.SIGKILL)
     assert not alive, "a worker outlived the runner"

@@ -197,9 +197,11 @@ def test_real_hard_negatives(shared_dir: Path) -> None:
         assert img.shape == (96, 96, 3) and not tgt.any()
 
 
-def test_compositor_command_times_and_writes_samples(shared_dir: Path, tmp_path: Path, capsys) -> None:
+def test_compositor_command_times_and_writes_samples(few_photos_shared: Path, tmp_path: Path, capsys) -> None:
     import json
 
+    # The command loads every photo of the split (seconds on the full set): five held-out ones here.
+    shared_dir = few_photos_shared
     assert C.main(["--shared", str(shared_dir), "--split", "val", "--n", "2", "--size", "64", "--out", str(tmp_path)]) == 0
     assert "2 samples of 64x64: median" in capsys.readouterr().out
     labels = json.loads((tmp_path / "labels.json").read_text())

@@ -43,3 +43,30 @@ def test_matrix_shape_and_symmetry():
     assert m.shape == (3, 3)
     assert np.allclose(m, m.T) and np.allclose(np.diag(m), 1)
     assert iou_matrix(np.zeros((0, 3)), a).shape == (0, 3)
+
+
+def test_the_pair_by_pair_form_equals_the_array_form():
+    """A few circles go pair by pair (SMALL_PAIRS); the values are the array form's, on every
+    case the formulas branch on: apart, touching, overlapping, nested, equal, zero and negative
+    radii, and a non-finite input (the array form decides it)."""
+    from companion.pipeline import circles as C
+
+    rng = np.random.default_rng(7)
+    a = np.column_stack([rng.uniform(-5, 5, 6), rng.uniform(-5, 5, 6), rng.uniform(-1, 4, 6)])
+    b = np.vstack([np.column_stack([rng.uniform(-5, 5, 4), rng.uniform(-5, 5, 4), rng.uniform(0, 4, 4)]),
+                   [a[0, 0], a[0, 1], a[0, 2]],            # the same circle
+                   [a[1, 0] + 0.1, a[1, 1], a[1, 2] + 3],  # containing one
+                   [a[2, 0] + abs(a[2, 2]) + 1.0, a[2, 1], 1.0],  # touching from outside
+                   [0.0, 0.0, 0.0]])
+    assert len(a) * len(b) <= C.SMALL_PAIRS
+    small = iou_matrix(a, b)
+    inter = C.intersection_area(a, b)
+    area_a = np.pi * np.maximum(a[:, 2], 0)[:, None] ** 2
+    area_b = np.pi * np.maximum(b[:, 2], 0)[None, :] ** 2
+    union = area_a + area_b - inter
+    with np.errstate(invalid="ignore", divide="ignore"):
+        array_form = np.clip(np.where(union > 0, inter / union, 0.0), 0.0, 1.0)
+    np.testing.assert_allclose(small, array_form, rtol=1e-12, atol=1e-12)
+    assert small[0, 4] == pytest.approx(1.0) and small.shape == (6, 8)
+    bad = iou_matrix(np.array([[np.nan, 0.0, 1.0]]), np.array([[0.0, 0.0, 1.0]]))
+    assert bad.shape == (1, 1) and bad[0, 0] == 0.0

@@ -245,6 +245,10 @@ def test_unwalked_survives_looking_away_and_restarts_only_on_a_sighting():
     assert risk.unwalked_s(math.nan, 0.0, 3.0, 6.9) == 0.0
     assert GroundRiskMap(RiskMapConfig(half_extent_m=5.0)).unwalked_s(0.0, 0.0, 3.0, 0.0) == 0.0
 
+    # Both from one read of the map (what the pipeline asks every frame): the same two figures.
+    for x, y, t in ((-5.0, 0.0, 6.9), (5.0, -6.0, 6.9), (5.0, 0.0, 6.9), (-0.5, 0.0, 1.9), (5.0, 0.0, 1.9),
+                    (math.nan, 0.0, 6.9), (0.0, 0.0, 4.0), (40.0, 0.0, 6.9)):
+        assert risk.calm_and_unwalked_s(x, y, 3.0, t) == (risk.calm_s(x, y, 3.0, t), risk.unwalked_s(x, y, 3.0, t))
 
 def test_the_frame_pipeline_measures_unwalked_only_when_asked():
     base = np.zeros((240, 320), np.float32)

@@ -402,6 +402,26 @@ class GroundRiskMap:
         start = max(float(np.max(first)), float(np.max(self.last_occ[rows, cols][disc])))
         return max(0.0, self._rel(t) - start)
 
+    def calm_and_unwalked_s(self, x: float, y: float, radius_m: float, t: float) -> tuple[float, float]:
+        """``(calm_s(...), unwalked_s(...))`` of one disc, reading the map once for both (the
+        pipeline asks both for every confirmed zone, every frame)."""
+        found = self._disc_at(x, y, radius_m, t)
+        if found is None:
+            return 0.0, 0.0
+        rows, cols, disc = found
+        now = self._rel(t)
+        occ = None
+        calm = 0.0
+        if not np.any(self.last_seen[rows, cols][disc] < np.float32(now - self.config.watch_gap_s)):
+            occ = float(np.max(self.last_occ[rows, cols][disc]))
+            calm = max(0.0, now - max(occ, float(np.max(self.seen_since[rows, cols][disc]))))
+        first = self.first_seen[rows, cols][disc]
+        if np.any(first == NEVER):
+            return calm, 0.0
+        if occ is None:
+            occ = float(np.max(self.last_occ[rows, cols][disc]))
+        return calm, max(0.0, self._rel(t) - max(float(np.max(first)), occ))
+
     def quiet_s(self, x: float, y: float, radius_m: float, t: float) -> float:
         """How long (s, at time ``t``) nobody has been seen within ``radius_m`` of plane point
         (x, y): the time since a person was last seen on a cell of that disc that the map still

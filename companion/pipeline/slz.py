@@ -146,6 +146,10 @@ class FrameResult:
     unlandable: np.ndarray | None = None
 
 
+def _with_calm(track: Track, calm_s: float, unwalked_s: float) -> Track:
+    return replace(track, calm_s=calm_s, unwalked_s=unwalked_s)
+
+
 class SLZPipeline:
     """Runs steps 1-5 on each frame and keeps the tracker's state between frames.
 
@@ -302,7 +306,11 @@ class SLZPipeline:
 
         measure = pose is not None and self.config.calm
         walked = pose is not None and self.config.unwalked
-        if measure or walked:
+        if measure and walked and calm_map is not None:
+            # Confirmed zones only, both measures from one read of the map.
+            both = calm_map.calm_and_unwalked_s
+            tracks = [_with_calm(tr, *both(tr.x, tr.y, calm_r, t)) if tr.misses == 0 else tr for tr in tracks]
+        elif measure or walked:
             # Confirmed zones only, in one pass; what is not asked for keeps the track's NaN.
             tracks = [replace(tr, calm_s=calm(tr.x, tr.y) if measure else tr.calm_s,
                               unwalked_s=unwalked(tr.x, tr.y) if walked else tr.unwalked_s)

@@ -378,10 +378,11 @@ class GroundRiskMap:
         disc is not watched now (out of view, outside the map, never seen), or on a map with no
         frame; never more than the time since the map's first frame."""
         found = self._disc_at(x, y, radius_m, t)
-        if found is None:
-            return 0.0  # no frame yet, not finite, or part of the disc outside the map: not watched
-        rows, cols, disc = found
-        now = self._rel(t)
+        # None: no frame yet, not finite, or part of the disc outside the map: not watched.
+        return 0.0 if found is None else self._calm_in(*found, self._rel(t))
+
+    def _calm_in(self, rows: slice, cols: slice, disc: np.ndarray, now: float) -> float:
+        """``calm_s`` of the disc ``_disc_at`` found, at ``now`` in the arrays' time base."""
         if np.any(self.last_seen[rows, cols][disc] < np.float32(now - self.config.watch_gap_s)):
             return 0.0
         start = max(float(np.max(self.last_occ[rows, cols][disc])), float(np.max(self.seen_since[rows, cols][disc])))
@@ -393,34 +394,24 @@ class GroundRiskMap:
         first looks or of anybody seen there, whatever the camera looked at meanwhile. 0 where any
         cell of the disc was never seen or lies outside the map, or on a map with no frame."""
         found = self._disc_at(x, y, radius_m, t)
-        if found is None:
-            return 0.0
-        rows, cols, disc = found
+        return 0.0 if found is None else self._unwalked_in(*found, self._rel(t))
+
+    def _unwalked_in(self, rows: slice, cols: slice, disc: np.ndarray, now: float) -> float:
+        """``unwalked_s`` of the disc ``_disc_at`` found, at ``now`` in the arrays' time base."""
         first = self.first_seen[rows, cols][disc]
         if np.any(first == NEVER):
             return 0.0
         start = max(float(np.max(first)), float(np.max(self.last_occ[rows, cols][disc])))
-        return max(0.0, self._rel(t) - start)
+        return max(0.0, now - start)
 
     def calm_and_unwalked_s(self, x: float, y: float, radius_m: float, t: float) -> tuple[float, float]:
-        """``(calm_s(...), unwalked_s(...))`` of one disc, reading the map once for both (the
+        """``(calm_s(...), unwalked_s(...))`` of one disc, found on the map once for both (the
         pipeline asks both for every confirmed zone, every frame)."""
         found = self._disc_at(x, y, radius_m, t)
         if found is None:
             return 0.0, 0.0
-        rows, cols, disc = found
         now = self._rel(t)
-        occ = None
-        calm = 0.0
-        if not np.any(self.last_seen[rows, cols][disc] < np.float32(now - self.config.watch_gap_s)):
-            occ = float(np.max(self.last_occ[rows, cols][disc]))
-            calm = max(0.0, now - max(occ, float(np.max(self.seen_since[rows, cols][disc]))))
-        first = self.first_seen[rows, cols][disc]
-        if np.any(first == NEVER):
-            return calm, 0.0
-        if occ is None:
-            occ = float(np.max(self.last_occ[rows, cols][disc]))
-        return calm, max(0.0, self._rel(t) - max(float(np.max(first)), occ))
+        return self._calm_in(*found, now), self._unwalked_in(*found, now)
 
     def quiet_s(self, x: float, y: float, radius_m: float, t: float) -> float:
         """How long (s, at time ``t``) nobody has been seen within ``radius_m`` of plane point

@@ -43,12 +43,14 @@ def _companion(*args: str, cwd: Path | None = None) -> subprocess.CompletedProce
                           cwd=cwd, timeout=120)
 
 
-def _side_by_side(argvs: list[list[str]], cwd: Path | None = None,
+def _side_by_side(argvs: list[list[str]], cwd: Path | list[Path] | None = None,
                   env: dict[str, str] | None = None) -> list[subprocess.CompletedProcess[str]]:
     """Each command of ``argvs`` started at once and waited for, in order (each starts a Python
-    and imports the package: side by side they take the time of about one or two, not of all)."""
-    procs = [subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env)
-             for argv in argvs]
+    and imports the package: side by side they take the time of about one or two, not of all).
+    ``cwd``: one folder for all, or one per command."""
+    cwds = cwd if isinstance(cwd, list) else [cwd] * len(argvs)
+    procs = [subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=where, env=env)
+             for argv, where in zip(argvs, cwds, strict=True)]
     done = []
     for argv, proc in zip(argvs, procs, strict=True):
         out, err = proc.communicate(timeout=120)
@@ -115,14 +117,9 @@ def bad_config_checks(tmp_path_factory: pytest.TempPathFactory) -> dict[str, sub
         folder = tmp_path_factory.mktemp("bad_config")
         (folder / "c.toml").write_text(text)
         folders.append(folder)
-    procs = [subprocess.Popen([sys.executable, "-m", "companion", "check-config", str(folder / "c.toml")],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=folder)
-             for folder in folders]
-    done = {}
-    for (text, _key), proc in zip(BAD_CONFIGS, procs, strict=True):
-        out, err = proc.communicate(timeout=120)
-        done[text] = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
-    return done
+    runs = _side_by_side([[sys.executable, "-m", "companion", "check-config", str(folder / "c.toml")]
+                          for folder in folders], cwd=folders)
+    return {text: r for (text, _key), r in zip(BAD_CONFIGS, runs, strict=True)}
 
 
 @pytest.mark.parametrize(("text", "key"), BAD_CONFIGS)

@@ -1,0 +1,39 @@
+"""The models and the pipeline the settings describe, apart from the daemon's wiring (link,
+camera, recorder, web): the service, ``check-config``, the simulated flights and ``companion bench
+--configured`` build them the same way."""
+
+from __future__ import annotations
+
+from companion import config as settings
+from companion.config import Config
+from companion.pipeline.density import DensityModel
+from companion.pipeline.landability import LandabilityModel, LandabilityModelError, UnlandableMap
+from companion.pipeline.slz import SLZPipeline
+
+
+def load_model(cfg: Config) -> DensityModel:
+    """The density model; raises DensityModelError naming the file."""
+    return DensityModel(cfg.model.path, threads=cfg.model.threads, overrides=cfg.model.overrides,
+                        allow_spinning=cfg.model.allow_spinning)
+
+
+def load_landability(cfg: Config) -> UnlandableMap | None:
+    """The landability model bound to ``pipeline.unlandable_levels``, or None when
+    ``model.landability`` is off; raises LandabilityModelError (a DensityModelError) naming the
+    file, or the key for a level the model does not have."""
+    if not cfg.model.landability:
+        return None
+    model = LandabilityModel(cfg.model.landability_path, threads=cfg.model.threads,
+                             allow_spinning=cfg.model.allow_spinning)
+    levels = cfg.pipeline.unlandable_levels or None
+    try:
+        return model.unlandable(levels)
+    except LandabilityModelError as exc:
+        raise LandabilityModelError(f"pipeline.unlandable_levels: {exc}") from None
+
+
+def build_pipeline(cfg: Config, model: DensityModel, surface: UnlandableMap | None = None) -> SLZPipeline:
+    """The pipeline the settings describe, for frames of ``camera.width x camera.height``;
+    ``surface``: the landability model (``load_landability``), None for people alone."""
+    return SLZPipeline(model, settings.pipeline_config(cfg, model.spec),
+                       intrinsics=settings.intrinsics(cfg), mount=settings.mount(cfg), surface=surface)

@@ -30,7 +30,6 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -41,10 +40,6 @@ from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.pipeline.people import PeopleParams
 from companion.pipeline.slz import STAGES, DensityFn, PipelineConfig, SLZPipeline, SurfaceFn
 from companion.replay.live_figure import live_jpeg
-
-if TYPE_CHECKING:
-    from companion.pipeline.density import DensityModel
-    from companion.pipeline.landability import UnlandableMap
 
 RESOLUTIONS = ((640, 480), (1280, 720))
 
@@ -178,92 +173,65 @@ def run(args: argparse.Namespace) -> int:
     if args.threads is not None and not 1 <= args.threads <= 64:
         print("companion bench: --threads must be between 1 and 64", file=sys.stderr)
         return 2
+    cfg = None
     if args.configured or args.config is not None or args.set_:
-        return _run_configured(args)
-    threads = args.threads if args.threads is not None else 2
+        try:
+            overrides = dict(settings.parse_assignment(item) for item in args.set_)
+            cfg = settings.load(args.config, overrides)
+        except settings.ConfigError as exc:
+            print(f"companion bench: {exc}", file=sys.stderr)
+            return 2
+    threads = args.threads if args.threads is not None else (cfg.model.threads if cfg is not None else 2)
+    spinning = args.spinning or (cfg is not None and cfg.model.allow_spinning)
     model = None
     if not args.no_model:
-        path = args.model or SHIPPED_MODEL
-        if args.model is not None or path.is_file():
+        path = args.model or (Path(cfg.model.path) if cfg is not None else SHIPPED_MODEL)
+        if args.model is not None or cfg is not None or path.is_file():
             from companion.pipeline.density import DensityModel, DensityModelError
 
             try:
-                model = DensityModel(path, threads=threads, allow_spinning=args.spinning)
+                model = DensityModel(path, threads=threads, allow_spinning=spinning,
+                                     overrides=cfg.model.overrides if cfg is not None else None)
             except DensityModelError as exc:
                 print(f"companion bench: {exc}", file=sys.stderr)
                 return 2
     surface = None
-    if not args.no_landability:
-        lpath = args.landability or SHIPPED_LANDABILITY
-        if args.landability is not None or lpath.is_file():
+    if not args.no_landability and (cfg is None or cfg.model.landability or args.landability is not None):
+        lpath = args.landability or (Path(cfg.model.landability_path) if cfg is not None else SHIPPED_LANDABILITY)
+        if args.landability is not None or cfg is not None or lpath.is_file():
             from companion.pipeline.density import DensityModelError
             from companion.pipeline.landability import LandabilityModel
 
             try:
-                surface = LandabilityModel(lpath, threads=threads, allow_spinning=args.spinning).unlandable()
-            except DensityModelError as exc:
+                levels = (cfg.pipeline.unlandable_levels or None) if cfg is not None else None
+                surface = LandabilityModel(lpath, threads=threads, allow_spinning=spinning).unlandable(levels)
+            except DensityModelError as exc:  # a LandabilityModelError too
                 print(f"companion bench: {exc}", file=sys.stderr)
                 return 2
-    result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=args.pause_ms / 1e3)
-              for w, h in RESOLUTIONS}
-    _report(args, result, model, threads, args.spinning, surface, "the costliest set-up (fused map, calm, "
-                                                                  "unwalked, people)")
-    return 0
-
-
-def _run_configured(args: argparse.Namespace) -> int:
-    """``--configured``: the models and the pipeline as the service's settings build them
-    (``companion.service.models``), the command's model options folded in as settings."""
-    from companion.pipeline.density import DensityModelError
-    from companion.service.models import load_landability, load_model
-
-    try:
-        overrides = dict(settings.parse_assignment(item) for item in args.set_)
-        if args.model is not None:
-            overrides["model.path"] = str(args.model)
-        if args.threads is not None:
-            overrides["model.threads"] = args.threads
-        if args.spinning:
-            overrides["model.allow_spinning"] = True
-        if args.landability is not None:
-            overrides["model.landability"] = True
-            overrides["model.landability_path"] = str(args.landability)
-        if args.no_landability:
-            overrides["model.landability"] = False
-        cfg = settings.load(args.config, overrides)
-    except settings.ConfigError as exc:
-        print(f"companion bench: {exc}", file=sys.stderr)
-        return 2
-    try:
-        model = None if args.no_model else load_model(cfg)
-        surface = load_landability(cfg)  # a LandabilityModelError is a DensityModelError
-    except DensityModelError as exc:
-        print(f"companion bench: {exc}", file=sys.stderr)
-        return 2
-    w, h = cfg.camera.width, cfg.camera.height
-    result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=args.pause_ms / 1e3,
-                                           config=settings.pipeline_config(cfg, model.spec if model else None),
-                                           intrinsics=settings.intrinsics(cfg), mount=settings.mount(cfg))}
-    _report(args, result, model, cfg.model.threads, cfg.model.allow_spinning, surface,
-            f"set up as configured ({args.config or 'the defaults'}"
-            + (f" with {len(args.set_)} --set" if args.set_ else "") + ")")
-    return 0
-
-
-def _report(args: argparse.Namespace, result: dict[str, dict[str, dict[str, float]]], model: DensityModel | None,
-            threads: int, spinning: bool, surface: UnlandableMap | None, setup: str) -> None:
-    """Print ``result`` as JSON (``--json``) or as a table per resolution."""
+    pause_s = args.pause_ms / 1e3
+    if cfg is None:
+        result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=pause_s)
+                  for w, h in RESOLUTIONS}
+    else:
+        w, h = cfg.camera.width, cfg.camera.height
+        pipe_cfg = settings.pipeline_config(cfg, model.spec if model is not None else None)
+        result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=pause_s,
+                                               config=pipe_cfg, intrinsics=settings.intrinsics(cfg),
+                                               mount=settings.mount(cfg))}
     if args.json:
         print(json.dumps(result))
-        return
+        return 0
     print(f"companion bench: {args.frames} frames per resolution, model: "
           f"{model.path if model is not None else 'none (ideal density maps)'}"
           + (f", {threads} thread(s), spinning {'on' if spinning else 'off'}" if model is not None else "")
           + f", landability: {surface.model.path if surface is not None else 'none'}"
           + (f", {args.pause_ms:g} ms pause before each frame" if args.pause_ms > 0 else "")
-          + f"; {setup}")
+          + (f"; set up as configured ({args.config or 'the defaults'}"
+             + (f" with {len(args.set_)} --set" if args.set_ else "") + ")" if cfg is not None
+             else "; the costliest set-up (fused map, calm, unwalked, people)"))
     for res_name, stages in result.items():
         print(f"\n{res_name}")
         print(f"  {'stage':<14}{'median ms':>11}{'p99 ms':>10}")
         for stage, s in stages.items():
             print(f"  {stage:<14}{s['median_ms']:>11.2f}{s['p99_ms']:>10.2f}")
+    return 0

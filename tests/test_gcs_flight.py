@@ -26,9 +26,8 @@ from companion import config
 from companion.control.events import Phase, TargetChosen
 from companion.mavlink.link import MavLink
 from companion.recording import RecordingReader
-from companion.service.app import Service
+from companion.service.app import Service, load_model
 from companion.service.gcs import CONDITIONS, PHASE_CODES
-from companion.service.models import load_model
 from sim.flight import FlightSpec, build_scene, reserve_port
 from tests.mavpeer import join_statustexts
 

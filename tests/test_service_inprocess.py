@@ -16,8 +16,7 @@ import pytest
 from companion import config
 from companion.control.events import HandedBack, Phase, TargetChosen
 from companion.mavlink.link import MavLink
-from companion.service.app import Service
-from companion.service.models import load_model
+from companion.service.app import Service, load_model
 from sim.flight import FlightSpec, build_scene, reserve_port
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(180)]

@@ -62,7 +62,7 @@ from companion.mavlink.statustext import event_severity, send_statustext, shadow
 from companion.mavlink.timesync import run_timesync
 from companion.pipeline.circles import Circle
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
-from companion.pipeline.landability import UnlandableMap
+from companion.pipeline.landability import LandabilityModel, LandabilityModelError, UnlandableMap
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
@@ -71,7 +71,6 @@ from companion.service.camera import CameraSource, Frame
 from companion.service.gcs import PHASE_CODES, GroundStation
 from companion.service.health import PIPELINE_STUCK_S, FaultLog, FrameCounters, Health, StageTimings, assess
 from companion.service.landing_runner import LandingRunner
-from companion.service.models import build_pipeline
 from companion.service.notify import Notifier
 from companion.service.web import LiveView, Snapshot, WebServer, live_video_stream, stream_uri
 
@@ -90,6 +89,34 @@ SHUTDOWN_STEP_MIN_S = 0.05
 #: While the controller searches, the ground the risk map remembers free is read again this often
 #: (s): it says where to look next, and a read costs 1-3 ms.
 MEMORY_PERIOD_S = 1.0
+
+
+def load_model(cfg: Config) -> DensityModel:
+    """The density model; raises DensityModelError naming the file."""
+    return DensityModel(cfg.model.path, threads=cfg.model.threads, overrides=cfg.model.overrides,
+                        allow_spinning=cfg.model.allow_spinning)
+
+
+def load_landability(cfg: Config) -> UnlandableMap | None:
+    """The landability model bound to ``pipeline.unlandable_levels``, or None when
+    ``model.landability`` is off; raises LandabilityModelError (a DensityModelError) naming the
+    file, or the key for a level the model does not have."""
+    if not cfg.model.landability:
+        return None
+    model = LandabilityModel(cfg.model.landability_path, threads=cfg.model.threads,
+                             allow_spinning=cfg.model.allow_spinning)
+    levels = cfg.pipeline.unlandable_levels or None
+    try:
+        return model.unlandable(levels)
+    except LandabilityModelError as exc:
+        raise LandabilityModelError(f"pipeline.unlandable_levels: {exc}") from None
+
+
+def build_pipeline(cfg: Config, model: DensityModel, surface: UnlandableMap | None = None) -> SLZPipeline:
+    """The pipeline the settings describe, for frames of ``camera.width x camera.height``;
+    ``surface``: the landability model (``load_landability``), None for people alone."""
+    return SLZPipeline(model, settings.pipeline_config(cfg, model.spec),
+                       intrinsics=settings.intrinsics(cfg), mount=settings.mount(cfg), surface=surface)
 
 
 def build_camera(cfg: Config) -> CameraSource:

@@ -325,6 +325,11 @@ class ControllerSettings:
     hold_looks: bool = _f(False, "while holding, fly over free ground glimpsed at the edge of the view (as the "
                                  "search does) so the camera sees it whole, instead of hovering until "
                                  "hold_timeout_s")
+    place_lookback_s: float = _f(0.0, "place the landing point inside the zone where the ground is farthest "
+                                      "from anybody seen within this many seconds, and move it there again "
+                                      "before the zone is judged when that is 0.5 m farther from them (s; 0 = "
+                                      "the zone's centre when chosen; docs/design.md, 'Where people walked')",
+                                 min=0.0, max=600.0)
     search_memory_s: float = _f(0.0, "the search flies over ground the risk map remembers free (seen free "
                                      "within this many seconds), nearest first, when none is in view (s; 0 = "
                                      "not at all); the zone is still chosen on what the camera sees there",
@@ -753,7 +758,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),
         search_s=c.search_s, search_radius_m=c.search_radius_m, search_reserve_s=c.search_reserve_s,
-        search_memory_s=c.search_memory_s, hold_looks=c.hold_looks,
+        search_memory_s=c.search_memory_s, hold_looks=c.hold_looks, place_lookback_s=c.place_lookback_s,
         view_ratio=min(k.cx / k.fx, k.cy / k.fy),
         trust_height_m=person_trust_height(min(k.fx, k.fy), min_px or None, head_m=cfg.pipeline.head_height_m),
     )

@@ -87,6 +87,7 @@ from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
 from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.people import Person, predicted_clearance
+from companion.pipeline.riskmap import Spot, SpotRequest
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
@@ -94,6 +95,10 @@ log = logging.getLogger(__name__)
 
 #: A view radius (m) under which a zone that drops out of view during LAND commits the landing.
 BLIND_VIEW_M = 2 * MIN_VIEW_M
+#: ``place_lookback_s``: the landing point moves to the farthest point from where people were
+#: seen only when that is this much farther from them (m) than the present point: a point that
+#: moves for every tenth of a metre is a vehicle that never settles over it.
+PLACE_GAIN_M = 0.5
 
 ACTIVE = frozenset({Phase.SELECT, Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD, Phase.SEARCH})
 FLYING = frozenset({Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD, Phase.SEARCH})
@@ -208,6 +213,14 @@ class LandingConfig:
     #: sees only its rim, a zone too small to choose; the search that follows then takes the first
     #: gap of the crowd it confirms (PX4 seed 47).
     hold_looks: bool = False
+    #: Place the landing point inside the zone where the ground is farthest from anybody the
+    #: risk map saw within this many seconds (0 = off: the zone's centre when chosen), and move it
+    #: there again while approaching and before the zone is judged, whenever the farthest point
+    #: lies ``PLACE_GAIN_M`` farther from them than the present one. A zone's centre is the point
+    #: farthest from the people of one frame: a circle spanning a lawn and a momentary gap of the
+    #: crowd beside it has its centre at the lawn's edge, where walkers go round; what the map
+    #: saw over the last seconds shows where they go (docs/design.md, "Where people walked").
+    place_lookback_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -219,7 +232,7 @@ class LandingConfig:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
         for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m",
-                     "land_alt_m", "avoid_lost_s", "search_memory_s", "select_empty_s"):
+                     "land_alt_m", "avoid_lost_s", "search_memory_s", "select_empty_s", "place_lookback_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
@@ -333,6 +346,9 @@ class LandingController:
         self._over_memory: tuple[float, float, float] | None = None
         self._looked_at: list[tuple[float, float]] = []
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
+        #: Where the risk map would put the landing point (latest frame's ``spot``; ``place_lookback_s``).
+        self.spot: Spot | None = None
+        self.placements = 0  # landing points moved away from where people were seen (place_lookback_s)
         self._candidate_seen = False  # a zone of at least r0 seen since the trigger (select_empty_s)
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.obedience = ObedienceMonitor(self.config.obedience)
@@ -397,7 +413,7 @@ class LandingController:
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
                  below: GroundBelow | None = None, people: Sequence[Person] | None = None,
-                 remembered: Sequence[Circle] | None = None) -> list[Command]:
+                 remembered: Sequence[Circle] | None = None, spot: Spot | None = None) -> list[Command]:
         self._advance(t)
         if not self._frame_usable(t, pose):
             self.frames_ignored += 1
@@ -409,6 +425,8 @@ class LandingController:
                                                           (q.x, q.y, q.vx, q.vy, q.pos_std_m, q.last_t))]
         ok = below is not None and all(math.isfinite(v) for v in (below.x, below.y, below.r, below.r_view))
         self.below = below if ok else None
+        ok = spot is not None and all(math.isfinite(v) for v in (spot.x, spot.y, spot.clear_m))
+        self.spot = spot if ok else None
         if self.phase == Phase.SELECT and not self._candidate_seen:
             self._candidate_seen = self._candidate_in(self.tracks)
         if self.phase in (Phase.SELECT, Phase.HOLD, Phase.SEARCH):
@@ -432,6 +450,57 @@ class LandingController:
         """Whether the frames should bring the ground the risk map remembers free (``on_frame``'s
         ``remembered``): while searching, with ``search_memory_s`` on."""
         return self.phase == Phase.SEARCH and self.config.search_memory_s > 0
+
+    def spot_request(self, tracks: Sequence[Track]) -> SpotRequest | None:
+        """Where the landing point may go on this frame (``place_lookback_s``), for the pipeline's
+        ``landing_spot``, asked with the frame's ``tracks`` before ``on_frame``: while approaching
+        the target or descending to judge it (not once judged, nor in LAND), within the part of
+        the zone whose landing points keep the room the zone must hold around them. None
+        otherwise."""
+        c = self.config
+        if c.place_lookback_s <= 0 or self.target is None or self.phase not in (Phase.APPROACH, Phase.DESCEND) \
+                or self._judged == self.target.id:
+            return None
+        track = next((t for t in tracks if t.id == self.target.id and t.misses == 0), None)
+        if track is None or not all(math.isfinite(v) for v in (track.x, track.y, track.r)):
+            return None
+        radius = track.r - self._room(track)
+        if radius <= 0:
+            return None
+        return SpotRequest(track.x, track.y, radius, c.place_lookback_s, self._aim_for(track))
+
+    def _room(self, track: Track) -> float:
+        """How much of the zone (m) must stay free around its landing point for the point to stay
+        put: r0 plus the margin, or ``MIN_VIEW_M`` for a zone bounded by the view (see ``_follow``)."""
+        p = self.config.planner
+        return MIN_VIEW_M if track.view_limited and track.r_view >= MIN_VIEW_M else p.r0_m + p.radius_margin_m
+
+    def _aim_for(self, track: Track) -> tuple[float, float]:
+        """The landing point over ``track`` now: the present one while the zone holds ``_room``
+        around it, else the zone's centre."""
+        aim = self._aim
+        if aim is None or track.r - math.hypot(aim[0] - track.x, aim[1] - track.y) < self._room(track):
+            return (track.x, track.y)
+        return aim
+
+    def _place(self, track: Track, aim: tuple[float, float]) -> tuple[float, float]:
+        """With ``place_lookback_s``: the risk map's spot (``self.spot``) instead of ``aim`` when it
+        is ``PLACE_GAIN_M`` farther from where people were seen and inside the part of ``track``
+        that keeps its room around it; says so (a Note). Else ``aim``."""
+        c, spot = self.config, self.spot
+        if c.place_lookback_s <= 0 or spot is None or self.phase not in (Phase.APPROACH, Phase.DESCEND) \
+                or self._judged == track.id:
+            return aim
+        was = spot.aim_clear_m if math.isfinite(spot.aim_clear_m) else 0.0
+        if spot.clear_m < was + PLACE_GAIN_M:
+            return aim
+        if track.r - math.hypot(spot.x - track.x, spot.y - track.y) < self._room(track) - 1e-6:
+            return aim  # another frame's zone: not this one's room
+        moved = math.hypot(spot.x - aim[0], spot.y - aim[1])
+        self.placements += 1
+        self._event(f"zone {track.id}: landing point moved {moved:.1f} m, {spot.clear_m:.1f} m from where people "
+                    f"were seen in the last {c.place_lookback_s:g} s (was {was:.1f} m)")
+        return (spot.x, spot.y)
 
     def tick(self, now: float) -> list[Command]:
         self._advance(now)
@@ -716,16 +785,14 @@ class LandingController:
         # it; only then does it move to the zone's new centre (see the module docstring). A zone
         # bounded by the view (everything seen is free) keeps it while the view still shows
         # MIN_VIEW_M around it: low down the view is smaller than r0 plus the margin.
-        aim = self._aim
-        room = MIN_VIEW_M if seen_all_free else c.planner.r0_m + c.planner.radius_margin_m
-        off = math.inf if aim is None else math.hypot(aim[0] - track.x, aim[1] - track.y)
-        if aim is None or track.r - off < room:
-            aim = self._aim = (track.x, track.y)
-        elif c.recentre_m > 0 and off > c.recentre_m and not track.view_limited and \
+        aim = self._aim = self._aim_for(track)
+        off = math.hypot(aim[0] - track.x, aim[1] - track.y)
+        if c.recentre_m > 0 and off > c.recentre_m and not track.view_limited and \
                 self.phase in (Phase.APPROACH, Phase.DESCEND):
             # Bounded by what the camera saw, not by its view: the centre is the farthest point
             # from it. Never in LAND (the autopilot lands where the vehicle is).
             aim = self._aim = (track.x, track.y)
+        aim = self._aim = self._place(track, aim)
         dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
         if self.phase == Phase.LAND and s.height > c.land_abort_above_m and \
                 self._walker_in_the_way(s.north, s.east, "pausing the LAND"):

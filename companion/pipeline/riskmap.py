@@ -113,6 +113,32 @@ class RiskMapConfig:
                              f"(more than {2 * MAX_HALF_CELLS + 1} cells a side)")
 
 
+@dataclass(frozen=True)
+class Spot:
+    """A landing point placed on the map (``GroundRiskMap.farthest_from_walkers``): plane point
+    (x, y) (m; world north/east), its distance to the nearest ground people were seen on lately
+    (m, capped at the reach asked for), and the same distance at the point it may replace (m;
+    NaN when not measured)."""
+
+    x: float
+    y: float
+    clear_m: float
+    aim_clear_m: float = math.nan
+
+
+@dataclass(frozen=True)
+class SpotRequest:
+    """Where a landing point may go (the controller asks, ``SLZPipeline.landing_spot`` answers):
+    within ``radius_m`` of plane point (x, y) (m; world north/east), away from the ground people
+    were seen on within ``lookback_s`` (s); ``aim`` the present landing point, or None."""
+
+    x: float
+    y: float
+    radius_m: float
+    lookback_s: float
+    aim: tuple[float, float] | None = None
+
+
 @dataclass
 class RiskMapStats:
     """Counters since start: frames fused, recentrings, frames dropped (``RiskMapError``), and
@@ -433,6 +459,73 @@ class GroundRiskMap:
             return 0.0
         last = max(float(np.max(self.last_occ[rows, cols][disc][known])), 0.0)
         return max(0.0, now - last)
+
+    def farthest_from_walkers(self, x: float, y: float, radius_m: float, t: float, lookback_s: float,
+                              reach_m: float, aim: tuple[float, float] | None = None,
+                              factor: int = 3) -> Spot | None:
+        """The point within ``radius_m`` of plane point (x, y) farthest from every cell seen
+        occupied within ``lookback_s`` of ``t`` (where people stood or walked lately), and that
+        distance (m, at most ``reach_m``); also the same distance at ``aim`` (NaN when ``aim`` is
+        None or off the window). Where to land inside a zone: a zone's centre is the point
+        farthest from the people of *one* frame, and a circle that spans a lawn and an empty gap
+        of the crowd beside it has its centre at the lawn's edge, where walkers go round
+        (docs/design.md, "Five unsafe landings, one cause"); the map remembers where they went.
+
+        Ties (within one coarse cell) go to the point nearest ``aim`` (else nearest (x, y)), so
+        that the answer stays put while the evidence does. Cells are coarsened ``factor`` times
+        (a coarse cell is occupied when any of its cells is: coarsening never frees ground).
+        Distances are to a cell's nearest side, so a person on a coarse cell's corner is not
+        farther than measured. None on a map with no frame, for a non-finite argument, or where
+        the window would reach past the map. Cost: one max-pool and one distance transform over
+        ``2 * (radius_m + reach_m)`` metres square (0.1-0.3 ms for a 7 m zone)."""
+        if self._origin is None or self.t is None or \
+                not all(math.isfinite(v) for v in (x, y, radius_m, t, lookback_s, reach_m)):
+            return None
+        if radius_m < 0 or reach_m <= 0 or lookback_s < 0 or factor < 1:
+            raise ValueError(f"farthest_from_walkers needs radius_m >= 0, reach_m > 0, lookback_s >= 0 and "
+                             f"factor >= 1, got {radius_m!r}, {reach_m!r}, {lookback_s!r}, {factor!r}")
+        c = self.config.cell_m
+        big = factor * c
+        k = int(math.ceil((radius_m + reach_m) / big)) + 1  # coarse cells from the middle to an edge
+        row = int(round(y / c)) - self._origin[0]
+        col = int(round(x / c)) - self._origin[1]
+        half = k * factor + factor // 2
+        r0, c0 = row - half, col - half
+        n = (2 * k + 1) * factor
+        if r0 < 0 or c0 < 0 or r0 + n > self.size or c0 + n > self.size:
+            return None
+        since = np.float32(self._rel(t) - lookback_s)
+        # Ground not looked at within the lookback may have had anybody on it: as if seen occupied
+        # (else a point beside the edge of the view looks far from everybody).
+        fine = ((self.last_occ[r0:r0 + n, c0:c0 + n] >= since)
+                | (self.last_seen[r0:r0 + n, c0:c0 + n] < since)).view(np.uint8) * np.uint8(255)
+        # Area averaging over whole blocks is > 0 exactly where any cell of a block is occupied.
+        m = 2 * k + 1
+        recent = (cv2.resize(fine, (m, m), interpolation=cv2.INTER_AREA) if factor > 1 else fine) > 0
+        # Coarse cell centres on the plane (m): rows are y (east), columns x (north).
+        ys = (r0 + self._origin[0] + (factor - 1) / 2 + np.arange(m) * factor) * c
+        xs = (c0 + self._origin[1] + (factor - 1) / 2 + np.arange(m) * factor) * c
+        if recent.any():
+            free = np.where(recent, np.uint8(0), np.uint8(1))
+            dist = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64)
+            dist = np.minimum(dist * big - big * math.sqrt(0.5), reach_m)
+            dist[recent] = 0.0
+        else:
+            dist = np.full(recent.shape, reach_m)
+        within = np.hypot(xs[None, :] - x, ys[:, None] - y) <= radius_m + big / 2
+        if not within.any():
+            within[k, k] = True
+        best = float(np.max(dist[within]))
+        ax, ay = aim if aim is not None else (x, y)
+        ties = within & (dist >= best - big)
+        near = np.where(ties, np.hypot(xs[None, :] - ax, ys[:, None] - ay), np.inf)
+        i, j = np.unravel_index(int(np.argmin(near)), near.shape)
+        aim_clear = math.nan
+        if aim is not None and all(math.isfinite(v) for v in aim):
+            ai, aj = int(round((aim[1] - ys[0]) / big)), int(round((aim[0] - xs[0]) / big))
+            if 0 <= ai < dist.shape[0] and 0 <= aj < dist.shape[1]:
+                aim_clear = float(dist[ai, aj])
+        return Spot(float(xs[j]), float(ys[i]), float(dist[i, j]), aim_clear)
 
     def _disc_at(self, x: float, y: float, radius_m: float, t: float) -> tuple[slice, slice, np.ndarray] | None:
         """The map's window around plane point (x, y) and the mask of its cells within

@@ -30,7 +30,7 @@ from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sa
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, propose
-from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError
+from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError, Spot, SpotRequest
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
 DensityFn = Callable[[np.ndarray], np.ndarray]
@@ -46,6 +46,9 @@ FUSIONS = ("map", "frame")
 #: 0.1 m: a free circle loses at most half a coarse diagonal, 0.2 m) and this many circles given.
 MEMORY_FACTOR = 3
 MEMORY_ZONES = 8
+#: ``landing_spot``: distances to where people were seen are measured up to this (m). Farther
+#: makes no difference to where the point goes inside a zone of a few metres, and costs more.
+PLACE_REACH_M = 8.0
 
 
 @dataclass(frozen=True)
@@ -207,6 +210,18 @@ class SLZPipeline:
             return []
         free, grid = found
         return propose(free, grid, n_max, self.config.r0_m)
+
+    def landing_spot(self, request: SpotRequest, t: float) -> Spot | None:
+        """Where to land inside a zone (the controller's ``SpotRequest``, ``controller.place_lookback_s``):
+        the point within ``request.radius_m`` of its centre farthest from the ground people were
+        seen on within ``request.lookback_s`` of ``t`` (``GroundRiskMap.farthest_from_walkers``,
+        distances up to ``PLACE_REACH_M``), with that distance at the present landing point.
+        None without a map (no posed frame yet, or a pipeline that keeps none) or where the zone
+        reaches past it. Call after ``process`` with the same frame (0.1-0.5 ms)."""
+        if self.risk is None:
+            return None
+        return self.risk.farthest_from_walkers(request.x, request.y, request.radius_m, t, request.lookback_s,
+                                               PLACE_REACH_M, aim=request.aim, factor=MEMORY_FACTOR)
 
     def process(self, frame: np.ndarray, t: float, pose: Pose | None = None) -> FrameResult:
         """One frame: BGR uint8 (H, W, 3) captured at ``t`` seconds, seen from ``pose``."""

@@ -63,6 +63,7 @@ from companion.mavlink.timesync import run_timesync
 from companion.pipeline.circles import Circle
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
 from companion.pipeline.landability import LandabilityModel, LandabilityModelError, UnlandableMap
+from companion.pipeline.riskmap import Spot
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
@@ -502,6 +503,20 @@ class Service:
                 self._memory = []
         return self._memory
 
+    def _spot(self, tracks: list[Track], t: float) -> Spot | None:
+        """Where the risk map would put the landing point on this frame, when the controller asks
+        (``controller.place_lookback_s``; 0.1-0.5 ms, in the loop: the frame's decision waits for it)."""
+        assert self.runner is not None
+        request = self.runner.controller.spot_request(tracks)
+        if request is None:
+            return None
+        try:
+            return self.pipeline.landing_spot(request, t)
+        except ValueError as exc:  # a bug, not the vehicle's fault: the point stays where it is
+            self.counters.errors += 1
+            log.warning("landing point not placed: %s", exc)
+            return None
+
     async def _frame_loop(self) -> None:
         pending: deque[Frame] = deque(maxlen=64)
         while not self.stop_event.is_set():
@@ -543,7 +558,8 @@ class Service:
             target: Track | None = None
             if self.runner is not None:
                 remembered = await self._remembered(frame.t) if self.runner.controller.wants_memory() else None
-                self.runner.on_frame(frame.t, result.tracks, pose, result.below, result.people, remembered)
+                self.runner.on_frame(frame.t, result.tracks, pose, result.below, result.people, remembered,
+                                     self._spot(result.tracks, frame.t))
                 # The zone the vehicle flies to, or would fly to now: the planner's choice, the
                 # one rule (the pipeline reports tracks; it does not pick).
                 target = self.runner.controller.zone_target()

@@ -49,6 +49,7 @@ from companion.mavlink.state import VehicleState
 from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
 from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.people import Person
+from companion.pipeline.riskmap import Spot
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
@@ -135,8 +136,8 @@ class LandingRunner:
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
                  below: GroundBelow | None = None, people: Sequence[Person] | None = None,
-                 remembered: Sequence[Circle] | None = None) -> None:
-        self._submit(self.controller.on_frame(t, tracks, pose, below, people, remembered))
+                 remembered: Sequence[Circle] | None = None, spot: Spot | None = None) -> None:
+        self._submit(self.controller.on_frame(t, tracks, pose, below, people, remembered, spot))
 
     # -- loop ----------------------------------------------------------------------------------
 

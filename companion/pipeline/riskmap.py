@@ -409,9 +409,9 @@ class GroundRiskMap:
 
     def _calm_in(self, rows: slice, cols: slice, disc: np.ndarray, now: float) -> float:
         """``calm_s`` of the disc ``_disc_at`` found, at ``now`` in the arrays' time base."""
-        if np.any(self.last_seen[rows, cols][disc] < np.float32(now - self.config.watch_gap_s)):
+        if _extremes(self.last_seen[rows, cols], disc)[0] < np.float32(now - self.config.watch_gap_s):
             return 0.0
-        start = max(float(np.max(self.last_occ[rows, cols][disc])), float(np.max(self.seen_since[rows, cols][disc])))
+        start = max(_extremes(self.last_occ[rows, cols], disc)[1], _extremes(self.seen_since[rows, cols], disc)[1])
         return max(0.0, now - start)
 
     def unwalked_s(self, x: float, y: float, radius_m: float, t: float) -> float:
@@ -424,10 +424,10 @@ class GroundRiskMap:
 
     def _unwalked_in(self, rows: slice, cols: slice, disc: np.ndarray, now: float) -> float:
         """``unwalked_s`` of the disc ``_disc_at`` found, at ``now`` in the arrays' time base."""
-        first = self.first_seen[rows, cols][disc]
-        if np.any(first == NEVER):
+        first_min, first_max = _extremes(self.first_seen[rows, cols], disc)
+        if first_min == NEVER:
             return 0.0
-        start = max(float(np.max(first)), float(np.max(self.last_occ[rows, cols][disc])))
+        start = max(first_max, _extremes(self.last_occ[rows, cols], disc)[1])
         return max(0.0, now - start)
 
     def calm_and_unwalked_s(self, x: float, y: float, radius_m: float, t: float) -> tuple[float, float]:
@@ -454,10 +454,11 @@ class GroundRiskMap:
             return 0.0  # no frame yet, not finite, or part of the disc outside the map: unknown
         rows, cols, disc = found
         now = self._rel(t)
-        known = self.last_seen[rows, cols][disc] >= np.float32(now - self.config.memory_s)
+        inside = disc.view(np.bool_)
+        known = self.last_seen[rows, cols][inside] >= np.float32(now - self.config.memory_s)
         if np.count_nonzero(known) < QUIET_KNOWN * known.size:
             return 0.0
-        last = max(float(np.max(self.last_occ[rows, cols][disc][known])), 0.0)
+        last = max(float(np.max(self.last_occ[rows, cols][inside][known])), 0.0)
         return max(0.0, now - last)
 
     def farthest_from_walkers(self, x: float, y: float, radius_m: float, t: float, lookback_s: float,
@@ -545,10 +546,21 @@ class GroundRiskMap:
 
 @functools.lru_cache(maxsize=8)
 def _disc(k: int, radius_m: float, cell_m: float) -> np.ndarray:
-    """(2k+1, 2k+1) bool: the cells whose square reaches within ``radius_m`` of the middle cell's
-    centre (centre within the radius plus half a diagonal). Cached: a pipeline asks for one radius
-    every frame, for each zone. Read-only."""
+    """(2k+1, 2k+1) uint8, 1 on the cells whose square reaches within ``radius_m`` of the middle
+    cell's centre (centre within the radius plus half a diagonal), else 0: OpenCV's mask as it is,
+    a boolean index as ``disc.view(np.bool_)``. Cached: a pipeline asks for one radius every
+    frame, for each zone. Read-only."""
     off = np.arange(-k, k + 1) * cell_m
-    disc: np.ndarray = np.hypot(off[:, None], off[None, :]) <= radius_m + cell_m * math.sqrt(0.5)
+    disc: np.ndarray = (np.hypot(off[:, None], off[None, :]) <= radius_m + cell_m * math.sqrt(0.5)).astype(np.uint8)
     disc.flags.writeable = False
     return disc
+
+
+def _extremes(window: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """(min, max) of the float32 ``window``'s cells under ``mask``, exactly as ``np.min`` and
+    ``np.max`` of ``window[mask > 0]`` (NEVER included), without gathering them into a copy:
+    the calm and unwalked measures read five discs per zone per frame, and the copies cost
+    three times the reads (``companion bench``'s tracking stage)."""
+    low, high, _, _ = cv2.minMaxLoc(window, mask)
+    return float(low), float(high)
+

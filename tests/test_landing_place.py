@@ -208,3 +208,47 @@ def test_off_by_default_no_request_and_spots_change_nothing():
     assert ctl.spot_request([track(0.1)]) is None
     frame(ctl, 0.1, Spot(10.0, -2.5, 7.0, 3.0))
     assert ctl.placements == 0 and ctl._aim == (10.0, 0.0)
+
+
+# -- the pipeline --------------------------------------------------------------------------------
+
+from companion.geometry.camera import Intrinsics, Mount  # noqa: E402
+from companion.pipeline.riskmap import _disc, _extremes  # noqa: E402
+from companion.pipeline.slz import PipelineConfig, SLZPipeline  # noqa: E402
+
+
+def test_the_pipeline_answers_with_its_map_and_without_one_says_none():
+    """Posed frames over a crowd-free view: a pipeline that keeps a map (calm on, as by default)
+    places the point, with nobody seen the farthest distance everywhere; one that keeps none
+    (the paper's per-frame rule alone) answers None, and so does a map with no frame yet."""
+    base = np.zeros((240, 320), np.float32)
+    image = np.zeros((240, 320, 3), np.uint8)
+    K = Intrinsics.from_fov(320, 240, 70.0)
+    with_map = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True), intrinsics=K, mount=Mount())
+    without = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
+    request = SpotRequest(0.0, 0.0, 1.0, 30.0, (0.0, 0.0))
+    assert with_map.landing_spot(request, 0.0) is None  # no frame yet
+    for k in range(10):
+        t = 0.1 * k
+        pose = Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
+        with_map.process(image, t, pose)
+        without.process(image, t, pose)
+    spot = with_map.landing_spot(request, 0.9)
+    assert spot is not None and math.hypot(spot.x, spot.y) <= 1.0
+    # 20 m up the view reaches about 9 m: the unseen ground beyond it bounds the distance.
+    assert 5.0 < spot.clear_m <= 8.0 and spot.aim_clear_m == pytest.approx(spot.clear_m, abs=0.31)
+    assert without.landing_spot(request, 0.9) is None
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_disc_extremes_equal_numpys_over_the_same_cells(seed):
+    """The calm and unwalked measures read a disc's min and max with OpenCV under a mask: the
+    same numbers as numpy over the gathered cells, NEVER (-inf) included."""
+    rng = np.random.default_rng(seed)
+    big = rng.uniform(-50, 50, (200, 200)).astype(np.float32)
+    big[rng.random((200, 200)) < 0.05] = -np.inf
+    disc = _disc(30, 3.0, 0.1)
+    rows, cols = slice(40 + seed, 101 + seed), slice(70, 131)
+    low, high = _extremes(big[rows, cols], disc)
+    cells = big[rows, cols][disc.view(np.bool_)]
+    assert (low, high) == (float(cells.min()), float(cells.max()))

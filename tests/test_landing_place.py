@@ -5,29 +5,29 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import pytest
 
+from companion.control.events import Note
+from companion.control.landing import Goto, LandingConfig, LandingController, Phase
+from companion.control.planner import PlannerConfig
+from companion.geometry.camera import Intrinsics, Mount
 from companion.pipeline.headplane import GridSpec
-from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, Spot, SpotRequest
+from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, Spot, SpotRequest, _disc, _extremes
+from companion.pipeline.slz import PipelineConfig, SLZPipeline
+from companion.pipeline.tracker import Track
+from tests.test_landing_controller import pose, status, trigger, zone
+from tests.test_riskmap import frame_grids
 
 CELL = 0.1
 GRID = GridSpec(x0=-15.0, y0=-15.0, cell=CELL, rows=301, cols=301)  # 30 m square around (0, 0)
 
 
-def grids(people: list[tuple[float, float]], radius: float = 0.4,
-          seen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(free, seen) uint8 grids over GRID: all seen and free but disks of ``radius`` at ``people``
-    (plane x = north, y = east)."""
-    ys, xs = np.mgrid[0:GRID.rows, 0:GRID.cols]
-    x, y = GRID.x0 + xs * CELL, GRID.y0 + ys * CELL
-    free = np.full(GRID.shape, 255, np.uint8)
-    for px, py in people:
-        free[np.hypot(x - px, y - py) <= radius] = 0
-    seen_grid = np.full(GRID.shape, 255, np.uint8) if seen is None else seen
-    free[seen_grid == 0] = 0
-    return free, seen_grid
+def grids(people: list[tuple[float, float]], **kw: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``frame_grids`` over this module's 30 m GRID (plane x = north, y = east)."""
+    return frame_grids(people, GRID, **kw)
 
 
 def walk(risk: GroundRiskMap, path: list[tuple[float, float]], t0: float = 0.0, dt: float = 0.1) -> float:
@@ -112,39 +112,31 @@ def test_a_spot_request_carries_what_the_pipeline_needs():
 
 # -- the controller ------------------------------------------------------------------------------
 
-from companion.control.events import Note  # noqa: E402
-from companion.control.landing import Goto, LandingConfig, LandingController, Phase, VehicleStatus  # noqa: E402
-from companion.control.planner import PlannerConfig  # noqa: E402
-from companion.control.trigger import Trigger, TriggerSource  # noqa: E402
-from companion.geometry.camera import Pose  # noqa: E402
-from companion.geometry.geodesy import GeoPoint  # noqa: E402
-from companion.pipeline.tracker import Track  # noqa: E402
-
-HOME = GeoPoint(47.397742, 8.545594, 488.0)
 PLACE = LandingConfig(
     planner=PlannerConfig(r0_m=2.0, radius_margin_m=1.0, min_track_age_s=1.0, min_track_hits=3, zone_max_age_s=1.0),
     select_timeout_s=5.0, hold_timeout_s=4.0, descend_alt_m=10.0, land_abort_above_m=5.0, search_s=0.0,
     place_lookback_s=30.0)
 
 
-def track(t: float, x: float = 10.0, y: float = 0.0, r: float = 6.0) -> Track:
-    return Track(id=1, x=x, y=y, r=r, r_filtered=r, age=20, hits=20, misses=0, born_t=t - 8.0, last_t=t)
+def track(t: float) -> Track:
+    """Zone 1: centre (10, 0), radius 6 m, tracked for 8 s, confirmed at ``t``."""
+    return zone(1, 10.0, 0.0, t, r=6.0, born=t - 8.0)
 
 
 def fly_to_zone(cfg: LandingConfig = PLACE) -> LandingController:
     """Triggered at 20 m over (0, 0), approaching zone 1 (centre (10, 0), radius 6 m)."""
     ctl = LandingController(cfg)
-    ctl.on_state(VehicleStatus(0.0, 0.0, 0.0, -20.0, HOME, mode="LOITER"))
-    ctl.on_trigger(Trigger("battery critical", TriggerSource.BATTERY, 0.0))
-    ctl.on_frame(0.0, [track(0.0)], Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    ctl.on_state(status(0.0, 0.0, 0.0, 20.0))
+    ctl.on_trigger(trigger(0.0))
+    ctl.on_frame(0.0, [track(0.0)], pose(0.0, 0.0, 0.0, 20.0))
     assert ctl.phase == Phase.APPROACH
     ctl.pop_events()
     return ctl
 
 
 def frame(ctl: LandingController, t: float, spot: Spot | None, north: float = 5.0) -> list:
-    ctl.on_state(VehicleStatus(t, north, 0.0, -20.0, HOME, mode="GUIDED"))
-    return ctl.on_frame(t, [track(t)], Pose(t, north, 0.0, -20.0, 0.0, 0.0, 0.0), spot=spot)
+    ctl.on_state(status(t, north, 0.0, 20.0, mode="GUIDED"))
+    return ctl.on_frame(t, [track(t)], pose(t, north, 0.0, 20.0), spot=spot)
 
 
 def goto_ned(cmd: Goto) -> tuple[float, float]:
@@ -191,15 +183,15 @@ def test_once_judged_or_in_land_the_point_stays_and_nothing_is_asked():
     # Over the zone: descend to the judging height, where the zone is judged and the LAND follows.
     alt = 20.0
     while ctl.phase != Phase.LAND and t < 20.0:
-        ctl.on_state(VehicleStatus(t, 10.0, 0.0, -alt, HOME, mode="GUIDED"))
-        for c in ctl.on_frame(t, [track(t)], Pose(t, 10.0, 0.0, -alt, 0.0, 0.0, 0.0)):
+        ctl.on_state(status(t, 10.0, 0.0, alt, mode="GUIDED"))
+        for c in ctl.on_frame(t, [track(t)], pose(t, 10.0, 0.0, alt)):
             if isinstance(c, Goto):
                 alt = c.target.rel_alt_m
         t += 0.1
     assert ctl.phase == Phase.LAND
     assert ctl.spot_request([track(t)]) is None
-    ctl.on_state(VehicleStatus(t, 10.0, 0.0, -9.0, HOME, mode="LAND"))
-    ctl.on_frame(t, [track(t)], Pose(t, 10.0, 0.0, -9.0, 0.0, 0.0, 0.0), spot=Spot(10.0, -2.5, 7.0, 3.0))
+    ctl.on_state(status(t, 10.0, 0.0, 9.0, mode="LAND"))
+    ctl.on_frame(t, [track(t)], pose(t, 10.0, 0.0, 9.0), spot=Spot(10.0, -2.5, 7.0, 3.0))
     assert ctl.placements == 0 and ctl._aim == (10.0, 0.0)
 
 
@@ -211,11 +203,6 @@ def test_off_by_default_no_request_and_spots_change_nothing():
 
 
 # -- the pipeline --------------------------------------------------------------------------------
-
-from companion.geometry.camera import Intrinsics, Mount  # noqa: E402
-from companion.pipeline.riskmap import _disc, _extremes  # noqa: E402
-from companion.pipeline.slz import PipelineConfig, SLZPipeline  # noqa: E402
-
 
 def test_the_pipeline_answers_with_its_map_and_without_one_says_none():
     """Posed frames over a crowd-free view: a pipeline that keeps a map (calm on, as by default)
@@ -230,9 +217,9 @@ def test_the_pipeline_answers_with_its_map_and_without_one_says_none():
     assert with_map.landing_spot(request, 0.0) is None  # no frame yet
     for k in range(10):
         t = 0.1 * k
-        pose = Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
-        with_map.process(image, t, pose)
-        without.process(image, t, pose)
+        at = pose(t, 0.0, 0.0, 20.0)
+        with_map.process(image, t, at)
+        without.process(image, t, at)
     spot = with_map.landing_spot(request, 0.9)
     assert spot is not None and math.hypot(spot.x, spot.y) <= 1.0
     # 20 m up the view reaches about 9 m: the unseen ground beyond it bounds the distance.

@@ -80,7 +80,7 @@ from dataclasses import dataclass, field, replace
 from companion.control.commands import Command, Goto, Handback, Land, PositionTarget
 from companion.control.events import Event, HandedBack, Holding, Note, Phase, PhaseChanged, TargetChosen
 from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
-from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner
+from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner, seen_all_free
 from companion.control.touchdown import DescentProfile
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
@@ -457,9 +457,7 @@ class LandingController:
         the target or descending to judge it (not once judged, nor in LAND), within the part of
         the zone whose landing points keep the room the zone must hold around them. None
         otherwise."""
-        c = self.config
-        if c.place_lookback_s <= 0 or self.target is None or self.phase not in (Phase.APPROACH, Phase.DESCEND) \
-                or self._judged == self.target.id:
+        if self.target is None or not self._placing(self.target.id):
             return None
         track = next((t for t in tracks if t.id == self.target.id and t.misses == 0), None)
         if track is None or not all(math.isfinite(v) for v in (track.x, track.y, track.r)):
@@ -467,13 +465,19 @@ class LandingController:
         radius = track.r - self._room(track)
         if radius <= 0:
             return None
-        return SpotRequest(track.x, track.y, radius, c.place_lookback_s, self._aim_for(track))
+        return SpotRequest(track.x, track.y, radius, self.config.place_lookback_s, self._aim_for(track))
+
+    def _placing(self, zone_id: int) -> bool:
+        """Whether the landing point over zone ``zone_id`` may still move (``place_lookback_s``):
+        approaching it or descending to judge it, not once judged, nor in LAND."""
+        return self.config.place_lookback_s > 0 and self.phase in (Phase.APPROACH, Phase.DESCEND) \
+            and self._judged != zone_id
 
     def _room(self, track: Track) -> float:
         """How much of the zone (m) must stay free around its landing point for the point to stay
         put: r0 plus the margin, or ``MIN_VIEW_M`` for a zone bounded by the view (see ``_follow``)."""
         p = self.config.planner
-        return MIN_VIEW_M if track.view_limited and track.r_view >= MIN_VIEW_M else p.r0_m + p.radius_margin_m
+        return MIN_VIEW_M if seen_all_free(track) else p.r0_m + p.radius_margin_m
 
     def _aim_for(self, track: Track) -> tuple[float, float]:
         """The landing point over ``track`` now: the present one while the zone holds ``_room``
@@ -487,9 +491,8 @@ class LandingController:
         """With ``place_lookback_s``: the risk map's spot (``self.spot``) instead of ``aim`` when it
         is ``PLACE_GAIN_M`` farther from where people were seen and inside the part of ``track``
         that keeps its room around it; says so (a Note). Else ``aim``."""
-        c, spot = self.config, self.spot
-        if c.place_lookback_s <= 0 or spot is None or self.phase not in (Phase.APPROACH, Phase.DESCEND) \
-                or self._judged == track.id:
+        spot = self.spot
+        if spot is None or not self._placing(track.id):
             return aim
         was = spot.aim_clear_m if math.isfinite(spot.aim_clear_m) else 0.0
         if spot.clear_m < was + PLACE_GAIN_M:
@@ -499,7 +502,7 @@ class LandingController:
         moved = math.hypot(spot.x - aim[0], spot.y - aim[1])
         self.placements += 1
         self._event(f"zone {track.id}: landing point moved {moved:.1f} m, {spot.clear_m:.1f} m from where people "
-                    f"were seen in the last {c.place_lookback_s:g} s (was {was:.1f} m)")
+                    f"were seen in the last {self.config.place_lookback_s:g} s (was {was:.1f} m)")
         return (spot.x, spot.y)
 
     def tick(self, now: float) -> list[Command]:
@@ -760,8 +763,7 @@ class LandingController:
         s = self.status
         assert s is not None
         c = self.config
-        seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
-        if verdict == ZoneCheck.OK and self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free:
+        if verdict == ZoneCheck.OK and self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free(track):
             # Over the zone the vehicle lands where it is, not at the zone's centre: what must be
             # free is r0 around the vehicle.
             free, all_free = self._free_below(track)

@@ -44,6 +44,13 @@ from companion.pipeline.tracker import Track
 MIN_VIEW_M = 0.75
 
 
+def seen_all_free(track: Track) -> bool:
+    """On its confirming frame ``track`` was bounded by the view, not by anything seen occupied,
+    with at least ``MIN_VIEW_M`` of view around its centre: everything the camera saw there was
+    free (low over a zone the view is smaller than r0)."""
+    return track.view_limited and track.r_view >= MIN_VIEW_M
+
+
 @dataclass(frozen=True)
 class PlannerConfig:
     """Zone acceptance thresholds (metres, seconds, frames)."""
@@ -160,8 +167,7 @@ class ZonePlanner:
             return ZoneCheck.LOST, track, f"not confirmed for {now - track.last_t:.1f} s"
         # Low over the zone the camera sees less than r0 around it; then everything it does see
         # must be free (the tracker says so with view_limited), and it must see at least 0.75 m.
-        seen_all_free = track.view_limited and track.r_view >= MIN_VIEW_M
-        if track.r < self.config.r0_m and not seen_all_free:
+        if track.r < self.config.r0_m and not seen_all_free(track):
             return ZoneCheck.SMALL, track, f"shrank to r {track.r:.1f} m < r0 {self.config.r0_m:g} m"
         if track.misses > 0:
             return ZoneCheck.UNCONFIRMED, track, f"missed by {track.misses} frame(s)"

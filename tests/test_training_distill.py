@@ -144,9 +144,9 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
     pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
     from companion.training.distill import main, parse_students
 
-    assert [(s.name, s.kind, s.arch, s.width) for s in parse_students("d40, g40,gf32,wl48,kl48")] == \
+    assert [(s.name, s.kind, s.arch, s.width) for s in parse_students("d40, g40,gf32,wl48,kl48,kl48-a25")] == \
         [("d40", "d", "", 40), ("g40", "g", "", 40), ("gf32", "g", "f", 32), ("wl48", "w", "l", 48),
-         ("kl48", "k", "l", 48)]
+         ("kl48", "k", "l", 48), ("kl48-a25", "k", "l", 48)]
     base = ["--shared", str(tmp_path), "--out-dir", str(tmp_path / "o"), "--teacher-steps", "1", "--student-steps", "1"]
     for extra, says in ((["--students", "x40"], "<d|k|g|w>"), (["--students", "gq40"], "<d|k|g|w>"),
                         (["--students", "w40"], "need --init"),
@@ -157,6 +157,14 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
                         (["--students", "g40", "--init", str(tmp_path)], "no w student"),
                         (["--students", "g40", "--init-lr-scale", "0"], "--init-lr-scale"), (["--students", "d40,d40"], "twice"),
                         (["--students", "d4"], "8-256"), (["--alpha", "2"], "--alpha"),
+                        (["--students", "kl48-"], "[-tag]"), (["--students", "kl48-A"], "[-tag]"),
+                        (["--students", "kl48,kl48-a,kl48-a"], "twice"),
+                        (["--students", "d40", "--alpha-of", "g40=0.2"], "not a d or k student"),
+                        (["--students", "d40,g40", "--alpha-of", "g40=0.2"], "not a d or k student"),
+                        (["--students", "d40", "--alpha-of", "d40"], "is not NAME=ALPHA"),
+                        (["--students", "d40", "--alpha-of", "d40=1.5"], "[0, 1]"),
+                        (["--students", "d40", "--alpha-of", "d40=nan"], "[0, 1]"),
+                        (["--students", "d40", "--alpha-of", "d40=x"], "[0, 1]"),
                         (["--crop", "30"], "--crop"), (["--teacher-steps", "0"], "a phase needs"),
                         (["--synthetic-share", "0.9", "--negative-share", "0.2"], "must be <= 1")):
         assert main([*base, *extra]) == 2
@@ -280,9 +288,19 @@ def test_a_trained_model_as_a_frozen_teacher_run_mirrored_and_a_distilled_studen
     sfile = export_onnx(student, tmp_path / "start.onnx")
     out = tmp_path / "d"
     rc = main(["--shared", str(pack_dir), "--out-dir", str(out), "--workers", "0", "--threads", "1",
-               "--students", "dl16,g16", "--teacher-init", f"16={tfile}", "--init", f"dl16={sfile}",
+               "--students", "dl16,g16,dl16-gt,wl16", "--teacher-init", f"16={tfile}",
+               "--init", f"dl16={sfile},dl16-gt={sfile},wl16={sfile}", "--alpha-of", "dl16-gt=1",
                "--student-steps", "2", "--batch", "2", "--crop", "64", "--max-images", "3", "--log-every", "1"])
     assert rc == 0
+    # Its own weight reaches the step: taught with alpha 1 (ground truth only), a student learns
+    # exactly what the w student of the same start learns on the same crops; at 0.5 it does not.
+    weights = {k: v["state_dict"] for k, v in torch.load(out / "students.pt").items()}
+    for key, w in weights["wl16"].items():
+        assert torch.equal(weights["dl16-gt"][key], w), key
+    assert any(not torch.equal(weights["dl16"][k], w) for k, w in weights["wl16"].items())
+    notes = {n: {q.key: q.value for q in onnx.load(str(out / f"slz-{n}.onnx")).metadata_props}["companion.training"]
+             for n in ("dl16", "dl16-gt")}
+    assert "distill dl16-gt " in notes["dl16-gt"] and "alpha=1.0 teacher=teacher.onnx" in notes["dl16-gt"]
     hist = json.loads((out / "history.json").read_text())
     assert hist["phase1"]["steps"] == 0 and hist["phase2"]["steps"] == 2 and hist["teacher"] == str(tfile)
     assert not (out / "teacher.pt").exists()

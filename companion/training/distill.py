@@ -24,13 +24,15 @@ the real photos, the synthetic top-down crowds and the hard negatives, at the gi
    by the teacher. Without a ``d`` or ``k`` student there is no teacher and no phase 1: the
    students learn the ground truth for ``--student-seconds``.
 
-Students are named ``<kind><arch><width>`` (:class:`StudentSpec`): kind ``d`` distilled, ``k``
+Students are named ``<kind><arch><width>[-tag]`` (:class:`StudentSpec`): kind ``d`` distilled, ``k``
 distilled on log-odds (:func:`logit_distill_loss`), ``g`` ground truth, ``w`` ground truth
 warm-started from ``--init`` (an exported model of the same network: one file for every ``w``
 student, or ``NAME=FILE`` pairs, one per ``w`` student, where a pair may also start a ``d`` or
 ``k`` student; batch norms keep the file's statistics, learning rate x ``--init-lr-scale``); arch
 none for the shipped C-CNN, ``f`` for the cheaper :class:`companion.training.model.SLZFastNet`,
-``l`` for its depthwise body.
+``l`` for its depthwise body; a tag tells apart students of one network, which ``--alpha-of
+NAME=ALPHA`` may give their own weight of the ground truth (``--students kl48,kl48-a25 --alpha-of
+kl48-a25=0.25``: the same start, the same crops, a quarter of the loss on the ground truth).
 
 Each phase stops at its step count or its wall-clock budget, whichever comes first, with a cosine
 learning rate over that progress (a time budget makes the run fit a lent GPU's lease; steps make it
@@ -162,13 +164,15 @@ def logit_distill_loss(student: torch.Tensor, target: torch.Tensor, teacher_p: t
 
 @dataclass(frozen=True)
 class StudentSpec:
-    """One ``--students`` entry: ``<kind><arch><width>``.
+    """One ``--students`` entry: ``<kind><arch><width>[-tag]``.
 
     kind: ``d`` distilled from the teacher (``k``: on its log-odds), ``g`` ground truth only (the
     control), ``w`` ground truth only, warm-started from ``--init`` (an exported model of the same
     architecture and width; ``d`` and ``k`` students may be given one too). arch: none for the
     shipped C-CNN (:class:`companion.training.model.SLZDensityNet`), ``f`` for
-    :class:`companion.training.model.SLZFastNet`, ``l`` for its depthwise body."""
+    :class:`companion.training.model.SLZFastNet`, ``l`` for its depthwise body. tag: letters and
+    digits naming one of several students of the same network in one run (``kl48-a25``), so that
+    they can differ by ``--alpha-of`` or ``--init``."""
 
     name: str
     kind: str
@@ -180,12 +184,13 @@ class StudentSpec:
 
 
 def parse_students(spec: str) -> list[StudentSpec]:
-    """``"d40,k40,g40,gf32,w40"`` -> one :class:`StudentSpec` each; width 8-256."""
+    """``"d40,k40,g40,gf32,w40,kl48-a25"`` -> one :class:`StudentSpec` each; width 8-256."""
     out = []
     for item in (s.strip() for s in spec.split(",") if s.strip()):
-        m = re.fullmatch(r"([dkgw])([fl]?)(\d+)", item)
+        m = re.fullmatch(r"([dkgw])([fl]?)(\d+)(-[a-z0-9]{1,12})?", item)
         if m is None or not 8 <= int(m.group(3)) <= 256:
-            raise ValueError(f"--students: {item!r} is not <d|k|g|w>[f|l]<width> with a width of 8-256")
+            raise ValueError(f"--students: {item!r} is not <d|k|g|w>[f|l]<width>[-tag] with a width of 8-256 "
+                             "and a tag of 1-12 lower-case letters and digits")
         out.append(StudentSpec(item, m.group(1), m.group(2), int(m.group(3))))
     if len({s.name for s in out}) != len(out):
         raise ValueError(f"--students names a student twice: {spec!r}")
@@ -224,6 +229,29 @@ def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]
         if not path.is_file():
             raise ValueError(f"--init for {name}: {path} is not a file")
     return inits
+
+
+def parse_alphas(arg: str | None, students: list[StudentSpec], default: float) -> dict[str, float]:
+    """``--alpha-of NAME=A,...``: the weight of the ground truth for each ``d`` or ``k`` student,
+    ``--alpha`` (``default``) for those not named. One run can then compare how much each student
+    learns from the teacher on the very same crops, which two runs cannot."""
+    taught = [s.name for s in students if s.kind in ("d", "k")]
+    alphas = dict.fromkeys(taught, default)
+    for item in (i.strip() for i in (arg or "").split(",") if i.strip()):
+        name, sep, value = item.partition("=")
+        if not sep or not name or not value:
+            raise ValueError(f"--alpha-of: {item!r} is not NAME=ALPHA")
+        if name not in taught:
+            raise ValueError(f"--alpha-of names {name!r}, which is not a d or k student of --students "
+                             f"({', '.join(taught) or 'none'})")
+        try:
+            alpha = float(value)
+        except ValueError:
+            alpha = math.nan
+        if not 0 <= alpha <= 1:  # NaN fails this too
+            raise ValueError(f"--alpha-of {name}: the weight must be in [0, 1], got {value!r}")
+        alphas[name] = alpha
+    return alphas
 
 
 def needs_teacher(students: list[StudentSpec]) -> bool:
@@ -321,6 +349,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     teacher = Learner("teacher", teacher_net.to(device), args.teacher_lr) if use_teacher else None
     t_border = frozen.border if frozen is not None else 0
     inits = parse_inits(args.init, specs)
+    alphas = parse_alphas(args.alpha_of, specs, args.alpha)
     students, warm = [], set()
     for spec in specs:
         net = spec.build()
@@ -378,9 +407,9 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                 teacher.step(loss(t_logits.float(), y, args.pos_weight), f)
             for s, logits in zip(students, s_logits):
                 if t_p is not None and by_name[s.name].kind == "d":
-                    s.step(distill_loss(logits.float(), y, t_p, args.pos_weight, args.alpha), f)
+                    s.step(distill_loss(logits.float(), y, t_p, args.pos_weight, alphas[s.name]), f)
                 elif t_p is not None and by_name[s.name].kind == "k":
-                    s.step(logit_distill_loss(logits.float(), y, t_p, args.pos_weight, args.alpha), f)
+                    s.step(logit_distill_loss(logits.float(), y, t_p, args.pos_weight, alphas[s.name]), f)
                 else:
                     s.step(loss(logits.float(), y, args.pos_weight), f)
             ph.k += 1
@@ -410,7 +439,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         for s in students:
             net = cast(Any, s.net).float().cpu().eval().to(memory_format=torch.contiguous_format)
             kind = by_name[s.name].kind
-            how = (f"alpha={args.alpha}" + (f" teacher={frozen.path.name}" if frozen is not None else "")
+            how = (f"alpha={alphas.get(s.name)}" + (f" teacher={frozen.path.name}" if frozen is not None else "")
                    + (" on log-odds" if kind == "k" else "")
                    if kind in ("d", "k") else "ground truth only (no teacher)")
             if s.name in inits:
@@ -455,6 +484,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=200, help="warm-up steps of each phase")
     p.add_argument("--pos-weight", type=float, default=4.0)
     p.add_argument("--alpha", type=float, default=0.5, help="weight of the ground truth in distillation")
+    p.add_argument("--alpha-of", default=None,
+                   help="NAME=ALPHA,...: another weight of the ground truth for the named d or k students")
     p.add_argument("--synthetic-share", type=float, default=0.35)
     p.add_argument("--negative-share", type=float, default=0.1)
     p.add_argument("--max-images", type=int, default=0)
@@ -482,6 +513,7 @@ def main(argv: list[str] | None = None) -> int:
         Phase(args.student_steps, args.student_seconds)
         if not 0 <= args.alpha <= 1:
             raise ValueError(f"--alpha must be in [0, 1], got {args.alpha}")
+        parse_alphas(args.alpha_of, specs, args.alpha)
         if args.crop % M.STRIDE or args.crop < 32 or args.batch < 1 or args.workers < 0:
             raise ValueError("--crop must be a multiple of 4 and >= 32, --batch >= 1, --workers >= 0")
     except ValueError as exc:

@@ -371,7 +371,8 @@ def run(args: argparse.Namespace) -> dict[str, object]:
              {s.name: M.count_parameters(s.net) for s in students})
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else torch.autocast("cpu", enabled=False)
     history: dict[str, object] = {"load_s": round(t_load, 1), "args": vars(args),
-                                  "teacher": str(frozen.path) if frozen is not None else None}
+                                  "teacher": str(frozen.path) if frozen is not None else None,
+                                  "alphas": alphas}  # each taught student's weight, as trained
     by_name = {sp.name: sp for sp in specs}
 
     def save_students(tag: str) -> None:
@@ -439,7 +440,7 @@ def run(args: argparse.Namespace) -> dict[str, object]:
         for s in students:
             net = cast(Any, s.net).float().cpu().eval().to(memory_format=torch.contiguous_format)
             kind = by_name[s.name].kind
-            how = (f"alpha={alphas.get(s.name)}" + (f" teacher={frozen.path.name}" if frozen is not None else "")
+            how = (f"alpha={alphas[s.name]}" + (f" teacher={frozen.path.name}" if frozen is not None else "")
                    + (" on log-odds" if kind == "k" else "")
                    if kind in ("d", "k") else "ground truth only (no teacher)")
             if s.name in inits:

@@ -197,6 +197,21 @@ def parse_students(spec: str) -> list[StudentSpec]:
     return out
 
 
+def named_pairs(arg: str | None, option: str, value: str, names: list[str], kinds: str) -> list[tuple[str, str]]:
+    """``option``'s ``NAME=VALUE,...`` pairs, each NAME one of ``names`` (the students of
+    ``kinds``, named in the error), each VALUE non-empty: what ``--init`` and ``--alpha-of`` share."""
+    pairs = []
+    for item in (i.strip() for i in (arg or "").split(",") if i.strip()):
+        name, sep, text = item.partition("=")
+        if not sep or not name or not text:
+            raise ValueError(f"{option}: {item!r} is not NAME={value}")
+        if name not in names:
+            raise ValueError(f"{option} names {name!r}, which is not {kinds} student of --students "
+                             f"({', '.join(names) or 'none'})")
+        pairs.append((name, text))
+    return pairs
+
+
 def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]:
     """``--init``: one exported model for every ``w`` student, or ``NAME=FILE,NAME=FILE`` naming one
     per ``w`` student (``wf32=v3.onnx,w40=v2.onnx``). Every ``w`` student gets a file that exists.
@@ -213,15 +228,7 @@ def parse_inits(arg: str | None, students: list[StudentSpec]) -> dict[str, Path]
             raise ValueError(f"--init is given but --students names no w student to start from it: {arg!r}")
         inits = {name: Path(arg) for name in warm}
     else:
-        inits = {}
-        for item in (i.strip() for i in arg.split(",") if i.strip()):
-            name, sep, file = item.partition("=")
-            if not sep or not name or not file:
-                raise ValueError(f"--init: {item!r} is not NAME=FILE")
-            if name not in startable:
-                raise ValueError(f"--init names {name!r}, which is not a w, d or k student of --students "
-                                 f"({', '.join(startable) or 'none'})")
-            inits[name] = Path(file)
+        inits = {name: Path(file) for name, file in named_pairs(arg, "--init", "FILE", startable, "a w, d or k")}
         missing = sorted(set(warm) - set(inits))
         if missing:
             raise ValueError(f"--init gives no file for the w student(s) {', '.join(missing)}")
@@ -237,13 +244,7 @@ def parse_alphas(arg: str | None, students: list[StudentSpec], default: float) -
     learns from the teacher on the very same crops, which two runs cannot."""
     taught = [s.name for s in students if s.kind in ("d", "k")]
     alphas = dict.fromkeys(taught, default)
-    for item in (i.strip() for i in (arg or "").split(",") if i.strip()):
-        name, sep, value = item.partition("=")
-        if not sep or not name or not value:
-            raise ValueError(f"--alpha-of: {item!r} is not NAME=ALPHA")
-        if name not in taught:
-            raise ValueError(f"--alpha-of names {name!r}, which is not a d or k student of --students "
-                             f"({', '.join(taught) or 'none'})")
+    for name, value in named_pairs(arg, "--alpha-of", "ALPHA", taught, "a d or k"):
         try:
             alpha = float(value)
         except ValueError:

@@ -41,7 +41,8 @@ def test_example_documents_every_key_with_its_default() -> None:
         if key not in ("model.path", "model.landability_path"):  # the example leaves them empty (= the shipped
             # models); the defaults are absolute
             assert node == default, f"{key}: example says {node!r}, default is {default!r}"
-    assert Path(cfg.model.path) == (REPO / "companion" / "models" / "slz-density-v4.onnx")
+    assert Path(cfg.model.path) == config.shipped_model()
+    assert Path(cfg.model.path).parent == REPO / "companion" / "models"
     assert Path(cfg.model.landability_path) == (REPO / "companion" / "models" / "slz-landability.onnx")
     assert cfg.camera == defaults.camera
     # Every key line is preceded by a comment (the example is the reference documentation).

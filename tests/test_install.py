@@ -260,7 +260,8 @@ def test_a_wheel_installed_outside_the_clone_runs_and_finds_its_model(tmp_path: 
                    check=True, capture_output=True, text=True, timeout=300)
     (wheel,) = dist.glob("companion_slz-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    assert {"companion/models/slz-density-v5.onnx", "companion/models/slz-density-v4.onnx", "companion/models/slz-density.onnx"} <= set(names) and "companion/models/MODEL_CARD.md" in names
+    assert {"companion/models/slz-density-v5.onnx", "companion/models/slz-density-v4.onnx", "companion/models/slz-density-v4-x86.onnx",
+            "companion/models/slz-density.onnx"} <= set(names) and "companion/models/MODEL_CARD.md" in names
 
     env_dir = tmp_path / "venv"
     venv.create(env_dir, with_pip=False, symlinks=True)

@@ -48,15 +48,11 @@ if sys.version_info >= (3, 11):
 else:  # Python 3.10 (NVIDIA JetPack 6): tomli is the package tomllib was taken from
     import tomli as tomllib
 
-#: The shipped density model: package data in ``companion/models/``, so it is found the same way
-#: in a source checkout, an editable install and an installed wheel (``pip install .`` from any
-#: directory). The one definition the service, replay, evaluation and the benchmark use. A wheel is
-#: always unpacked on disk, so the resource is a real file onnxruntime can open by path.
 #: Version 4 (MODEL_CARD.md) is shipped in two layouts with the same map: as trained, and with
 #: its concatenated channels in whole blocks of 16 (``companion.training.layout``), which keeps
-#: onnxruntime's blocked convolutions (NCHWc) through the concatenation on x86-64: 11 % less time
-#: a frame on the development machine, where the plain file takes 7 % less on a CPU that does not
-#: block (onnxruntime's ARM builds without their NEON NCHWc kernels).
+#: onnxruntime's blocked convolutions (NCHWc) through the concatenation on x86-64: about 10 % less
+#: density time on the development machine, and 7 % more on a CPU that does not block
+#: (onnxruntime's ARM builds without their NEON NCHWc kernels), where the plain file is taken.
 PLAIN_MODEL = Path(str(importlib.resources.files("companion") / "models" / "slz-density-v4.onnx"))
 X86_MODEL = Path(str(importlib.resources.files("companion") / "models" / "slz-density-v4-x86.onnx"))
 #: ``platform.machine()`` names (lower case) of the CPUs whose onnxruntime blocks convolutions:
@@ -71,6 +67,10 @@ def shipped_model(machine: str | None = None) -> Path:
     return X86_MODEL if name in BLOCKED_MACHINES and X86_MODEL.is_file() else PLAIN_MODEL
 
 
+#: The shipped density model: package data in ``companion/models/``, so it is found the same way
+#: in a source checkout, an editable install and an installed wheel (``pip install .`` from any
+#: directory). The one definition the service, replay, evaluation and the benchmark use. A wheel is
+#: always unpacked on disk, so the resource is a real file onnxruntime can open by path.
 SHIPPED_MODEL = shipped_model()
 #: The shipped landability model (water, vehicles, trees, roofs, ...: ground that is no place to
 #: land), beside the density model; ``model.landability`` switches it on.

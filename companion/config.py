@@ -48,13 +48,19 @@ if sys.version_info >= (3, 11):
 else:  # Python 3.10 (NVIDIA JetPack 6): tomli is the package tomllib was taken from
     import tomli as tomllib
 
+
+def _packaged(name: str) -> Path:
+    """A model file shipped as package data in ``companion/models/``."""
+    return Path(str(importlib.resources.files("companion") / "models" / name))
+
+
 #: Version 4 (MODEL_CARD.md) is shipped in two layouts with the same map: as trained, and with
 #: its concatenated channels in whole blocks of 16 (``companion.training.layout``), which keeps
 #: onnxruntime's blocked convolutions (NCHWc) through the concatenation on x86-64: about 10 % less
 #: density time on the development machine, and 7 % more on a CPU that does not block
 #: (onnxruntime's ARM builds without their NEON NCHWc kernels), where the plain file is taken.
-PLAIN_MODEL = Path(str(importlib.resources.files("companion") / "models" / "slz-density-v4.onnx"))
-X86_MODEL = Path(str(importlib.resources.files("companion") / "models" / "slz-density-v4-x86.onnx"))
+PLAIN_MODEL = _packaged("slz-density-v4.onnx")
+X86_MODEL = _packaged("slz-density-v4-x86.onnx")
 #: ``platform.machine()`` names (lower case) of the CPUs whose onnxruntime blocks convolutions:
 #: mlas sets its NCHWc block size on 64-bit x86 only.
 BLOCKED_MACHINES = frozenset({"x86_64", "amd64"})
@@ -74,7 +80,7 @@ def shipped_model(machine: str | None = None) -> Path:
 SHIPPED_MODEL = shipped_model()
 #: The shipped landability model (water, vehicles, trees, roofs, ...: ground that is no place to
 #: land), beside the density model; ``model.landability`` switches it on.
-SHIPPED_LANDABILITY = Path(str(importlib.resources.files("companion") / "models" / "slz-landability.onnx"))
+SHIPPED_LANDABILITY = _packaged("slz-landability.onnx")
 #: Whether the landability model runs unless the configuration says otherwise: off, because on
 #: the simulator's drawn ground the shipped model errs both ways (companion/models/LANDABILITY_CARD.md,
 #: "On the simulator's ground"; docs/design.md, step 1b).

@@ -301,8 +301,8 @@ def test_a_trained_model_as_a_frozen_teacher_run_mirrored_and_a_distilled_studen
     notes = {n: {q.key: q.value for q in onnx.load(str(out / f"slz-{n}.onnx")).metadata_props}["companion.training"]
              for n in ("dl16", "dl16-gt")}
     assert "distill dl16-gt " in notes["dl16-gt"] and "alpha=1.0 teacher=teacher.onnx" in notes["dl16-gt"]
-    assert json.loads((out / "history.json").read_text())["alphas"] == {"dl16": 0.5, "dl16-gt": 1.0}
     hist = json.loads((out / "history.json").read_text())
+    assert hist["alphas"] == {"dl16": 0.5, "dl16-gt": 1.0}
     assert hist["phase1"]["steps"] == 0 and hist["phase2"]["steps"] == 2 and hist["teacher"] == str(tfile)
     assert not (out / "teacher.pt").exists()
     note = {q.key: q.value for q in onnx.load(str(out / "slz-dl16.onnx")).metadata_props}["companion.training"]

@@ -224,6 +224,18 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
         return int(s.getsockname()[1])
 
 
+@dataclass(frozen=True)
+class Touchdown:
+    """The first land detection of a flight, judged on the simulator's truth: when
+    (``time.monotonic()`` s), where (north, east m), the nearest person then (m) and whether the
+    world says nobody walks there (None where it cannot tell)."""
+
+    t: float
+    point: tuple[float, float]
+    clearance_m: float
+    free_ground: bool | None
+
+
 @dataclass
 class PortClaim:
     """A loopback port this process has claimed node-wide (see :func:`reserve_port`)."""
@@ -552,15 +564,15 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     world.paused = spec.companion
     result = FlightResult(spec, "timeout",
                           free_circle=None if free is None else (free.north, free.east, free.radius))
-    touchdown: dict[str, object] = {}
+    touchdown: list[Touchdown] = []  # the first land detection, judged on the truth
 
     def on_touchdown() -> None:
-        if "t" not in touchdown:
+        if not touchdown:
             tr = sim.truth
             point = (float(tr.position[0]), float(tr.position[1]))
-            touchdown.update(t=time.monotonic(), point=point,
-                             clearance=world.nearest_person_distance(point),
-                             free_ground=world.nobody_walks_at(point))
+            touchdown.append(Touchdown(t=time.monotonic(), point=point,
+                                       clearance_m=world.nearest_person_distance(point),
+                                       free_ground=world.nobody_walks_at(point)))
 
     sim.on_touchdown(on_touchdown)
     climb: dict[str, float] = {}
@@ -570,7 +582,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     def watch_truth(_dt: float) -> None:
         # The truth from the trigger to touchdown: every physics step, how high it went; every
         # TRUTH_PERIOD_S, the nearest person under the vehicle, for the zone losses' judgement.
-        if "trigger_alt" not in climb or "t" in touchdown:
+        if "trigger_alt" not in climb or touchdown:
             return
         climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.vehicle.altitude)
         now = time.monotonic()
@@ -597,7 +609,8 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
                 *service_command(spec, link_port, camera.url, record_dir), stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=dict(env),
                 preexec_fn=die_with_parent)
-            pump = asyncio.create_task(_pump(proc.stderr, lines, sink))  # type: ignore[arg-type]
+            assert proc.stderr is not None  # asked for with stderr=PIPE
+            pump = asyncio.create_task(_pump(proc.stderr, lines, sink))
             if not await notify.wait_ready(proc, timeout=60.0):
                 result.outcome = "timeout"
                 result.log_tail = "\n".join(lines[-30:])
@@ -619,16 +632,16 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             # Walkers cross the free circle (the zone the companion lands in) during the descent.
             add_crossing_walkers(world, free, world.t, spec.seed)
         end = t_trigger + spec.timeout_s
-        while "t" not in touchdown and time.monotonic() < end:
+        while not touchdown and time.monotonic() < end:
             if proc is not None and proc.returncode is not None:
                 break
             await asyncio.sleep(0.1)
-        window["end"] = float(touchdown["t"]) if "t" in touchdown else time.monotonic()  # type: ignore[arg-type]
-        if "t" in touchdown:
-            result.touchdown = touchdown["point"]  # type: ignore[assignment]
-            result.clearance_m = float(touchdown["clearance"])  # type: ignore[arg-type]
-            result.in_free_area = touchdown["free_ground"]  # type: ignore[assignment]
-            result.time_to_touchdown_s = float(touchdown["t"]) - t_trigger  # type: ignore[arg-type]
+        window["end"] = touchdown[0].t if touchdown else time.monotonic()
+        if touchdown:
+            result.touchdown = touchdown[0].point
+            result.clearance_m = touchdown[0].clearance_m
+            result.in_free_area = touchdown[0].free_ground
+            result.time_to_touchdown_s = touchdown[0].t - t_trigger
         # Let the last events of the landing (LANDED) be recorded before stopping the service:
         # the landed state reaches it in EXTENDED_SYS_STATE, which the autopilots send at 1-2 Hz.
         await asyncio.sleep(LANDED_GRACE_S)

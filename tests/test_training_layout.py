@@ -22,17 +22,23 @@ from sim.world import default_world  # noqa: E402
 
 
 def _branchy(widths: tuple[int, ...] = (3, 5, 8), shared_weight: bool = False,
-             second_reader: bool = False) -> onnx.ModelProto:
+             second_reader: bool = False, input_shape: tuple[int | None, ...] = (1, 3, None, None)) -> onnx.ModelProto:
     """A C-CNN-like model: conv branches of ``widths`` channels -> Relu -> Concat -> MaxPool ->
-    Conv -> Sigmoid, random weights (seeded)."""
+    Conv -> Sigmoid, random weights (seeded). An ``input_shape`` of three dimensions (C, H, W) is
+    unsqueezed to a batch of one before the branches."""
     rng = np.random.default_rng(1)
     nodes, inits = [], []
+    image = "input"
+    if len(input_shape) == 3:
+        inits.append(numpy_helper.from_array(np.array([0], np.int64), "axes"))
+        nodes.append(helper.make_node("Unsqueeze", ["input", "axes"], ["batch"], name="batch"))
+        image = "batch"
     for k, (w, size) in enumerate(zip(widths, (5, 3, 1, 3, 5))):
         wname = "w0" if shared_weight else f"w{k}"
         if not shared_weight or k == 0:
             inits.append(numpy_helper.from_array(rng.normal(0, 0.3, (w, 3, size, size)).astype(np.float32), wname))
         inits.append(numpy_helper.from_array(rng.normal(0, 0.1, w).astype(np.float32), f"b{k}"))
-        nodes += [helper.make_node("Conv", ["input", wname, f"b{k}"], [f"c{k}"], name=f"branch{k}",
+        nodes += [helper.make_node("Conv", [image, wname, f"b{k}"], [f"c{k}"], name=f"branch{k}",
                                    kernel_shape=[size, size], pads=[size // 2] * 4, strides=[2, 2]),
                   helper.make_node("Relu", [f"c{k}"], [f"r{k}"], name=f"relu{k}")]
     total = sum(widths)
@@ -51,7 +57,7 @@ def _branchy(widths: tuple[int, ...] = (3, 5, 8), shared_weight: bool = False,
         nodes.append(helper.make_node("Identity", ["cat"], ["cat_copy"], name="copy"))
         outputs.append(helper.make_tensor_value_info("cat_copy", TensorProto.FLOAT, [1, None, None, None]))
     graph = helper.make_graph(nodes, "branchy", [helper.make_tensor_value_info("input", TensorProto.FLOAT,
-                                                                               [1, 3, None, None])],
+                                                                               list(input_shape))],
                               outputs, inits)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
@@ -112,6 +118,17 @@ def test_the_command_writes_only_a_proven_model_and_says_why_not(tmp_path: Path,
     out = onnx.load(str(tmp_path / "o.onnx"))
     meta = {p.key: p.value for p in out.metadata_props}
     assert meta["companion.layout"].startswith("concatenated channels in blocks of 8")
+
+
+def test_a_model_it_cannot_run_to_compare_is_exit_2_and_not_written(tmp_path: Path, capsys) -> None:
+    # The padding itself reads only the graph, but nothing is written unproven: a model whose
+    # input is not an image batch (N, C, H, W) is not run on random frames to compare.
+    src = tmp_path / "flat.onnx"
+    onnx.save(_branchy(input_shape=(3, None, None)), str(src))
+    assert main(["--model", str(src), "--out", str(tmp_path / "o.onnx"), "--block", "8"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot run" in err and "(N, C, H, W)" in err
+    assert not (tmp_path / "o.onnx").exists()
 
 
 def _frame() -> np.ndarray:

@@ -53,6 +53,10 @@ from scipy.stats import beta
 CONFIDENCE = 0.95
 #: The last element of a baseline flight's key in a results file.
 BASELINE = "baseline"
+#: The scenarios' LAND descent speed (m/s; ``sim.flight.FlightSpec.land_speed``'s default): the
+#: simulated autopilot's ``LAND_SPEED`` / ``MPC_LAND_SPEED``. Rows flown at another speed
+#: (``companion sim-scenarios --land-speed``) are keyed apart.
+SCENARIO_LAND_SPEED = 1.0
 #: A flight's key in a results file: ``(seed, flavour)``, or ``(seed, flavour, "baseline")``.
 RowKey = tuple[Any, ...]
 #: The unsafe-rate upper bound the runner reports the distance to (further clean flights needed).
@@ -225,13 +229,17 @@ def baseline_text(summary: dict[str, Any]) -> str:
 
 def row_key(row: dict[str, Any]) -> RowKey:
     """What identifies a flight in a results file: its seed and the autopilot it flew with,
-    ``"baseline"`` for a baseline flight (so neither kind ever stands for the other on resume), and
-    the service settings it flew with (``settings``, from ``--set``) when it had any."""
+    ``"baseline"`` for a baseline flight (so neither kind ever stands for the other on resume),
+    the service settings it flew with (``settings``, from ``--set``) when it had any, and the
+    autopilot's LAND speed (``land_speed``) when it was not the scenarios' own."""
     key: tuple[Any, ...] = (int(row["seed"]), str(row["flavour"]))
     if row.get("baseline"):
         key = (*key, BASELINE)
     if row.get("settings"):
         key = (*key, "set:" + ";".join(str(s) for s in row["settings"]))
+    land = row.get("land_speed")
+    if land is not None and float(land) != SCENARIO_LAND_SPEED:
+        key = (*key, f"land:{float(land):g}")
     return key
 
 

@@ -54,7 +54,7 @@ from companion.parallel import die_with_parent  # also the preexec_fn of a fligh
 from companion.recording import RecordingError, RecordingReader
 from sim.autopilot import AutopilotConfig
 from sim.camera_server import CameraServer
-from sim.evidence import summarise_rows
+from sim.evidence import SCENARIO_LAND_SPEED, summarise_rows
 from sim.ground import FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
@@ -104,7 +104,9 @@ class FlightSpec:
     packet_loss: share of MAVLink datagrams dropped each way.
     latency_ms: one-way MAVLink latency added each way (ms), from the moment the service is ready.
     intrusion_after_s: for ``intrusion``, seconds after the failsafe when walkers reach the circle.
-    land_speed: final-descent speed of the autopilot's LAND (m/s; ArduPilot LAND_SPEED).
+    land_speed: final-descent speed of the autopilot's LAND (m/s; ArduPilot LAND_SPEED, PX4
+        MPC_LAND_SPEED). 1 m/s by default, faster than either autopilot's own default (0.5 and
+        0.7 m/s): the blind end of a landing is shorter here than on a vehicle left at defaults.
     home_origin_offset_m: the simulated PX4's home altitude minus its estimator origin's altitude
         (m). The real PX4 converts frame-6 position targets wrongly unless this is 0.
     record_dir: where the service records the flight (a temporary folder when None: the judge
@@ -132,7 +134,7 @@ class FlightSpec:
     r0_m: float = 2.0
     hfov_deg: float = 70.0
     fps: float = 10.0
-    land_speed: float = 1.0
+    land_speed: float = SCENARIO_LAND_SPEED
     record_dir: Path | None = None
     service_log: Path | None = None
     service_set: tuple[str, ...] = ()

@@ -44,6 +44,11 @@ here (not on Ray), the run times the flights' own pipeline at the camera's rate 
 and says on stderr whether this machine leaves its flights room (``machine_check`` in the JSON;
 ``--no-machine-check`` skips it); a model that does not load is exit 2 then, before anything flies.
 
+``--land-speed M/S`` flies the simulated autopilot's LAND at that speed (ArduPilot ``LAND_SPEED``,
+PX4 ``MPC_LAND_SPEED``; the scenarios' own 1 m/s is faster than either autopilot's default, 0.5
+and 0.7 m/s, so its blind last metres are shorter than a vehicle left at defaults has); rows
+record it, and resume only from rows flown at the same speed.
+
 ``--set KEY=VALUE`` (repeatable) flies every seed with that service setting, as ``companion run
 --set`` takes it (``--set model.path=my.onnx`` flies a researcher's own model in closed loop). A bad
 key or value, or a model file that is not there, is exit 2 before anything flies. Rows record the
@@ -75,6 +80,7 @@ from tqdm import tqdm
 from companion import config as settings
 from companion.parallel import ParallelError, default_workers, fan_out
 from sim.evidence import (
+    SCENARIO_LAND_SPEED,
     ResultsFile,
     RowKey,
     baseline_text,
@@ -141,6 +147,10 @@ def scenario(seed: int, flavour: str | None = None) -> FlightSpec:
                       free_radius_m=radius, failsafe=failsafe, home_origin_offset_m=offset_m)
 
 
+#: The fastest LAND ``--land-speed`` takes (m/s). ArduPilot's LAND_SPEED spans 0.3-2 m/s and PX4's
+#: MPC_LAND_SPEED 0.6 m/s up to its MPC_Z_VEL_MAX_DN; 3 m/s leaves room for either.
+MAX_LAND_SPEED = 3.0
+
 #: The share of free-area seeds whose free circle walkers cross during the descent (``crossing``).
 CROSSING_SHARE = 1 / 3
 #: The share of dense-crowd seeds with one free circle out of the first view (``dense_beyond``).
@@ -174,11 +184,16 @@ class FlightJob:
     threads: int | None = None
     #: ``KEY=VALUE`` service settings (``--set``) the flight flies with; part of its key.
     service_set: tuple[str, ...] = ()
+    #: The simulated autopilot's LAND speed (m/s, ``--land-speed``; None: the scenario's own,
+    #: ``sim.evidence.SCENARIO_LAND_SPEED``); part of its key when it is another.
+    land_speed: float | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
         if self.baseline:
             spec = dataclasses.replace(spec, companion=False)
+        if self.land_speed is not None:
+            spec = dataclasses.replace(spec, land_speed=self.land_speed)
         if self.overrides:
             spec = dataclasses.replace(spec, **dict(self.overrides))
         if self.service_set:
@@ -202,8 +217,9 @@ class FlightJob:
     def key(self) -> RowKey:
         """Its key in a results file (``sim.evidence.row_key``): a baseline flight's is its own,
         and so is one flown with other settings."""
-        return row_key({"seed": self.seed, "flavour": self.spec().flavour, "baseline": self.baseline,
-                        "settings": list(self.service_set)})
+        spec = self.spec()
+        return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
+                        "settings": list(self.service_set), "land_speed": spec.land_speed})
 
 
 def _cpu_s() -> float:
@@ -221,7 +237,8 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     row = result.as_dict()
     row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
                wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
-               host=socket.gethostname(), model_threads=job.model_threads(), settings=list(job.service_set))
+               host=socket.gethostname(), model_threads=job.model_threads(), settings=list(job.service_set),
+               land_speed=spec.land_speed)
     return row
 
 
@@ -376,6 +393,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", dest="set_", action="append", default=[], metavar="KEY=VALUE",
                         help="fly with this service setting, as 'companion run --set' (repeatable; "
                              "e.g. model.path=my.onnx); recorded in each row")
+    parser.add_argument("--land-speed", type=float, default=None, metavar="M/S",
+                        help=f"the simulated autopilot's LAND descent speed (ArduPilot LAND_SPEED, PX4 "
+                             f"MPC_LAND_SPEED; default {SCENARIO_LAND_SPEED:g} m/s, faster than their own "
+                             f"defaults of 0.5 and 0.7): fly your vehicle's; recorded in each row")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -414,10 +435,16 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"companion sim-scenarios: --set: {exc}", file=sys.stderr)
         return 2
+    land = args.land_speed
+    if land is not None and not (math.isfinite(land) and 0.1 <= land <= MAX_LAND_SPEED):
+        print(f"companion sim-scenarios: --land-speed must be 0.1-{MAX_LAND_SPEED:g} m/s, not {land:g}",
+              file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     jobs = [job for seed in dict.fromkeys(seeds)
-            for job in ([FlightJob(seed, args.flavour, threads=threads, service_set=service_set)]
-                        + ([FlightJob(seed, args.flavour, baseline=True, threads=threads, service_set=service_set)]
+            for job in ([FlightJob(seed, args.flavour, threads=threads, service_set=service_set, land_speed=land)]
+                        + ([FlightJob(seed, args.flavour, baseline=True, threads=threads, service_set=service_set,
+                                      land_speed=land)]
                            if args.baseline else []))]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

@@ -275,3 +275,45 @@ def test_a_bad_setting_is_exit_2_before_anything_flies(item, says, monkeypatch, 
     assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--set", item]) == 2
     err = capsys.readouterr().err
     assert "--set" in err and says in err
+
+
+def test_the_land_speed_flies_the_autopilots_land_and_keeps_its_rows_apart(tmp_path, monkeypatch, capsys):
+    # `--land-speed 0.5` flies the simulated autopilot's LAND as a vehicle left at ArduPilot's
+    # default; rows flown at the scenarios' own speed are not resumed from, nor mixed in.
+    from sim.evidence import SCENARIO_LAND_SPEED
+    from sim.flight import build_scene
+
+    assert scenario(3).land_speed == SCENARIO_LAND_SPEED == 1.0
+    job = FlightJob(3, "ardupilot", land_speed=0.5)
+    assert job.spec().land_speed == 0.5 and FlightJob(3, "ardupilot", baseline=True, land_speed=0.5).spec().land_speed == 0.5
+    _world, _free, sim, _camera = build_scene(job.spec(), 14550, 8080)  # built, not started
+    assert sim.vehicle.params.land_speed == 0.5
+    assert job.key() == (3, "ardupilot", "land:0.5")
+    assert FlightJob(3, "ardupilot").key() == (3, "ardupilot") == row_key({**_row(3, "safe"), "land_speed": 1.0})
+    assert FlightJob(3, "ardupilot", land_speed=1.0).key() == (3, "ardupilot")  # the scenarios' own speed
+
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append({**_row(1, "safe"), "land_speed": 1.0})  # the scenarios' speed: not this experiment's
+    flown: list[float | None] = []
+
+    def fake(j: FlightJob) -> dict[str, Any]:
+        flown.append(j.land_speed)
+        return {**_row(j.seed, "safe"), "land_speed": j.spec().land_speed}
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    jobs = [FlightJob(s, "ardupilot", land_speed=0.5) for s in (1, 2)]
+    assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0 and flown == [0.5, 0.5]
+    s = json.loads(capsys.readouterr().out)
+    assert [(r["seed"], r["land_speed"]) for r in s["flights"]] == [(1, 0.5), (2, 0.5)]
+    flown.clear()
+    assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0 and flown == []  # resumed
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "3.5"])
+def test_a_bad_land_speed_is_exit_2_before_anything_flies(value, monkeypatch, capsys):
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--land-speed", value]) == 2
+    assert "--land-speed must be 0.1-3 m/s" in capsys.readouterr().err

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest, wilcoxon
 
-from sim.evidence import read_rows
+from sim.evidence import SCENARIO_LAND_SPEED, read_rows
 
 #: The level below which a difference is called beyond chance.
 ALPHA = 0.05
@@ -206,6 +206,16 @@ def _companion_rows(rows: list[dict[str, Any]], label: str) -> dict[tuple[int, s
     return out
 
 
+def _flown_with(row: dict[str, Any]) -> tuple[str, ...]:
+    """What a row was flown with beside the defaults: its service settings (``--set``), and the
+    autopilot's LAND speed when it was not the scenarios' own (``--land-speed``)."""
+    out = tuple(str(x) for x in row.get("settings") or ())
+    land = row.get("land_speed")
+    if land is not None and float(land) != SCENARIO_LAND_SPEED:
+        out = (*out, f"land_speed={float(land):g}")
+    return out
+
+
 def _verdict(row: dict[str, Any]) -> str:
     c = row.get("clearance_m")
     clear = "" if not isinstance(c, (int, float)) else f" {c:.1f} m"
@@ -220,8 +230,7 @@ def compare(before: list[dict[str, Any]], after: list[dict[str, Any]], include_s
         raise CompareError("the two files have no seed flown on the same autopilot in common")
     result = Comparison(only_before=sorted(set(a) - set(b)), only_after=sorted(set(b) - set(a)))
     result.settings_before, result.settings_after = (
-        [list(s) for s in sorted({tuple(str(x) for x in r.get("settings") or ()) for r in rows.values()})]
-        for rows in (a, b))
+        [list(s) for s in sorted({_flown_with(r) for r in rows.values()})] for rows in (a, b))
     pairs = []
     for key in common:
         if not include_starved and (a[key].get("starved") or b[key].get("starved")):

@@ -113,3 +113,13 @@ def test_the_command_compares_two_results_files_and_refuses_bad_ones(tmp_path: P
     assert data["pairs"] == 6 and "handback" in data["beyond_chance"]
     assert main([str(a), str(tmp_path / "missing.jsonl")]) == 2
     assert main([str(dup), str(b)]) == 2 and "two rows of seed 1" in capsys.readouterr().err
+
+
+def test_the_settings_line_names_a_land_speed_other_than_the_scenarios() -> None:
+    # `sim-scenarios --land-speed` rows pair with the scenarios' own by seed, and say what differs.
+    before = [{**_row(s, "safe"), "land_speed": 1.0} for s in (1, 2)]
+    after = [{**_row(1, "safe"), "land_speed": 0.5}, {**_row(2, "safe", settings=["controller.x=1"]), "land_speed": 0.5}]
+    c = compare(before, after)
+    assert c.pairs == 2 and c.settings_before == [[]]
+    assert c.settings_after == [["controller.x=1", "land_speed=0.5"], ["land_speed=0.5"]]
+    assert "AFTER [['controller.x=1', 'land_speed=0.5'], ['land_speed=0.5']]" in comparison_text(c)

@@ -216,7 +216,7 @@ class FlightJob:
 
     def key(self) -> RowKey:
         """Its key in a results file (``sim.evidence.row_key``): a baseline flight's is its own,
-        and so is one flown with other settings."""
+        and so is one flown with other settings or another LAND speed."""
         spec = self.spec()
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
                         "settings": list(self.service_set), "land_speed": spec.land_speed})

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest, wilcoxon
 
-from sim.evidence import SCENARIO_LAND_SPEED, read_rows
+from sim.evidence import other_land_speed, read_rows
 
 #: The level below which a difference is called beyond chance.
 ALPHA = 0.05
@@ -210,10 +210,8 @@ def _flown_with(row: dict[str, Any]) -> tuple[str, ...]:
     """What a row was flown with beside the defaults: its service settings (``--set``), and the
     autopilot's LAND speed when it was not the scenarios' own (``--land-speed``)."""
     out = tuple(str(x) for x in row.get("settings") or ())
-    land = row.get("land_speed")
-    if land is not None and float(land) != SCENARIO_LAND_SPEED:
-        out = (*out, f"land_speed={float(land):g}")
-    return out
+    land = other_land_speed(row)
+    return out if land is None else (*out, f"land_speed={land:g}")
 
 
 def _verdict(row: dict[str, Any]) -> str:

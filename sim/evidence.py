@@ -237,10 +237,17 @@ def row_key(row: dict[str, Any]) -> RowKey:
         key = (*key, BASELINE)
     if row.get("settings"):
         key = (*key, "set:" + ";".join(str(s) for s in row["settings"]))
-    land = row.get("land_speed")
-    if land is not None and float(land) != SCENARIO_LAND_SPEED:
-        key = (*key, f"land:{float(land):g}")
+    land = other_land_speed(row)
+    if land is not None:
+        key = (*key, f"land:{land:g}")
     return key
+
+
+def other_land_speed(row: dict[str, Any]) -> float | None:
+    """The LAND speed a row was flown at (m/s) when it is not the scenarios' own
+    (:data:`SCENARIO_LAND_SPEED`), else None: what keys it apart and what a comparison names."""
+    land = row.get("land_speed")
+    return None if land is None or float(land) == SCENARIO_LAND_SPEED else float(land)
 
 
 def read_rows(path: Path) -> tuple[list[dict[str, Any]], int]:

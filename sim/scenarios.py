@@ -441,11 +441,10 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     threads = model_threads(args.cpus_per_flight)
-    jobs = [job for seed in dict.fromkeys(seeds)
-            for job in ([FlightJob(seed, args.flavour, threads=threads, service_set=service_set, land_speed=land)]
-                        + ([FlightJob(seed, args.flavour, baseline=True, threads=threads, service_set=service_set,
-                                      land_speed=land)]
-                           if args.baseline else []))]
+    kinds = (False, True) if args.baseline else (False,)
+    jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
+                      land_speed=land)
+            for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,
                     check_machine=not args.no_machine_check)

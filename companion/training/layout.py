@@ -42,7 +42,7 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from companion.training.metadata import set_metadata
+from companion.training.metadata import replace_metadata
 
 #: Channels per block: 16 (AVX-512) is also a multiple of AVX2's 8.
 BLOCK = 16
@@ -232,11 +232,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: the aligned model's outputs differ by {diff:.3g} (> {TOLERANCE:g}); not written",
               file=sys.stderr)
         return 2
+    # Replaces a layout note the input already had (a file aligned again), as every metadata write does.
+    replace_metadata(result.model, {"companion.layout": f"concatenated channels in blocks of {args.block} "
+                                    f"(companion.training.layout) from {args.model.name}; outputs within "
+                                    f"{diff:.1e} of it"})
     args.out.parent.mkdir(parents=True, exist_ok=True)
     onnx.save(result.model, str(args.out))
-    # Replaces a layout note the input already had (a file aligned again), as every metadata write does.
-    set_metadata(args.out, {"companion.layout": f"concatenated channels in blocks of {args.block} "
-                            f"(companion.training.layout) from {args.model.name}; outputs within {diff:.1e} of it"})
     print(f"wrote {args.out} (outputs within {diff:.1e} of {args.model.name} on {args.runs} random inputs)")
     return 0
 

@@ -12,6 +12,13 @@ import onnx
 def set_metadata(path: Path, meta: Mapping[str, object]) -> None:
     """Write (replace) ``companion.*`` style metadata_props of the ONNX file at ``path``."""
     proto = onnx.load(str(path))
+    replace_metadata(proto, meta)
+    onnx.save(proto, str(path))
+
+
+def replace_metadata(proto: onnx.ModelProto, meta: Mapping[str, object]) -> None:
+    """Replace the metadata_props of ``proto`` named in ``meta`` (a None value removes the key
+    without writing it) and check the model, in memory: for a model about to be saved anyway."""
     keep = [p for p in proto.metadata_props if p.key not in meta]
     del proto.metadata_props[:]
     proto.metadata_props.extend(keep)
@@ -21,4 +28,3 @@ def set_metadata(path: Path, meta: Mapping[str, object]) -> None:
         entry = proto.metadata_props.add()
         entry.key, entry.value = k, str(v)
     onnx.checker.check_model(proto)
-    onnx.save(proto, str(path))

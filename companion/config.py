@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, cast
 
-from companion.control.landing import LandingConfig, person_trust_height
+from companion.control.landing import LAND_AGL_MIN_M, LandingConfig, person_trust_height
 from companion.control.obedience import ObedienceConfig
 from companion.control.planner import PlannerConfig
 from companion.control.touchdown import DescentProfile
@@ -302,6 +302,12 @@ class ControllerSettings:
                                 "(somebody within r0: HOLD); a shorter slow LAND leaves walkers less time to "
                                 "reach the landing point; 0 = LAND at descend_alt_m (docs/design.md)",
                           min=0.0, max=200.0)
+    land_agl_m: float = _f(1.0, "with a fresh downward rangefinder, the LAND commanded at land_alt_m is first "
+                                "the companion's own committed descent, straight down at descend_speed_mps, to "
+                                "this height above the ground the rangefinder measures, and the autopilot's "
+                                "slower LAND only there (m); without a fresh rangefinder, or when it goes stale "
+                                "or out of range on the way, the LAND at once; 0 = off (docs/design.md, "
+                                "\"The last metres by the rangefinder\")", min=0.0, max=200.0)
     descend_speed_mps: float = _f(1.5, "how fast the stepped descent comes down (m/s; ArduPilot WPNAV_SPEED_DN, "
                                        "PX4 MPC_Z_VEL_MAX_DN): the time to touchdown", min=0.1, max=10.0)
     land_speed_mps: float = _f(0.5, "the autopilot's LAND descent speed (m/s; ArduPilot LAND_SPEED 50 cm/s, "
@@ -567,6 +573,13 @@ def _cross_checks(cfg: Config) -> None:
                           f"controller.descend_alt_m ({cfg.controller.descend_alt_m:g} m), where the zone is "
                           "judged before it; set controller.land_alt_m at or below it (0: the LAND at "
                           "controller.descend_alt_m)")
+    c = cfg.controller
+    lands_at = c.land_alt_m or c.descend_alt_m
+    if c.land_agl_m and not LAND_AGL_MIN_M <= c.land_agl_m < lands_at:
+        raise ConfigError(f"controller.land_agl_m ({c.land_agl_m:g} m) must be 0 (off) or from "
+                          f"{LAND_AGL_MIN_M:g} m up to below the height where the LAND is commanded "
+                          f"(controller.land_alt_m, {lands_at:g} m): the companion's descent goes on "
+                          "below that, by the rangefinder, to it")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")
@@ -779,7 +792,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         predict_people=c.predict_people, pose_uncertainty_m=c.pose_uncertainty_m,
         predict_lead_s=c.predict_lead_s, predict_min_height_m=c.predict_min_height_m,
         predict_rejudge=c.predict_rejudge,
-        calm_wait_s=c.calm_wait_s, avoid_lost_s=c.avoid_lost_s, recentre_m=c.recentre_m, land_alt_m=c.land_alt_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
+        calm_wait_s=c.calm_wait_s, avoid_lost_s=c.avoid_lost_s, recentre_m=c.recentre_m, land_alt_m=c.land_alt_m, land_agl_m=c.land_agl_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),

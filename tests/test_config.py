@@ -110,6 +110,12 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[controller]\nland_alt_m = -1\n", r"controller\.land_alt_m must be >= 0"),
         ("[controller]\nland_alt_m = 12\n", r"controller\.land_alt_m \(12 m\) must not be above "
                                              r"controller\.descend_alt_m \(10 m\)"),
+        ("[controller]\nland_agl_m = -1\n", r"controller\.land_agl_m must be >= 0"),
+        ("[controller]\nland_agl_m = 0.3\n", r"controller\.land_agl_m \(0\.3 m\) must be 0 \(off\) or from 0\.5 m"),
+        ("[controller]\nland_agl_m = 4\n", r"controller\.land_agl_m \(4 m\) must be 0 \(off\) or from 0\.5 m up "
+                                              r"to below the height where the LAND is commanded "
+                                              r"\(controller\.land_alt_m, 4 m\)"),
+        ("[controller]\nland_alt_m = 0\nland_agl_m = 10\n", r"controller\.land_alt_m, 10 m"),
         ("[pipeline]\ncalm_margin_m = -1\n", r"pipeline\.calm_margin_m must be >= 0"),
         ("[pipeline]\noccupied_trail_s = 20\n", r"pipeline\.occupied_trail_s \(20\.0 s\) must not exceed "
                                                 r"pipeline\.map_memory_s"),

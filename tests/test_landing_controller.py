@@ -896,6 +896,131 @@ def test_land_alt_m_off_or_above_the_judging_height():
         dataclasses.replace(CFG, land_alt_m=-1.0)
 
 
+#: LOW with the last metres flown by the companion, by the rangefinder, to 1 m (land_agl_m).
+AGL = dataclasses.replace(LOW, land_agl_m=1.0)
+
+
+def _at_the_land(ctl: LandingController, ground: float = 0.0) -> tuple[float, list]:
+    """Judge zone 1 at 9.8 m and follow the stepped descent to the LAND height with a rangefinder
+    over ground ``ground`` m above home (the vehicle reaches each target). Returns the time and
+    the commands of the frame that reached the LAND height."""
+    t = _low_over_zone(ctl)
+    alt, cmds = 9.8, []
+    while t < 30.0:
+        ctl.on_state(status(t, 10, 0, alt, mode="GUIDED", agl=alt - ground))
+        calm = 6.3 if alt >= 9.5 else math.nan
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8)], pose(t, 10, 0, alt), below(t, calm))
+        t += 0.1
+        if ctl.phase == Phase.LAND or any(isinstance(c, Land) for c in cmds):
+            return t, cmds
+        alt = next((c.target.rel_alt_m for c in cmds if isinstance(c, Goto)), alt)
+    raise AssertionError("never reached the LAND")
+
+
+def test_with_a_rangefinder_the_last_metres_are_the_companions_own_descent_then_the_land():
+    """land_agl_m: at the LAND height (4 m) the companion does not command the autopilot's slow
+    LAND yet; it flies straight down over the landing point (GUIDED) to 1 m above the ground the
+    rangefinder measures, watched by the obedience check, and commands the LAND there."""
+    ctl = LandingController(AGL)
+    t, cmds = _at_the_land(ctl)
+    assert ctl.phase == Phase.LAND and not any(isinstance(c, Land) for c in cmds)
+    goto = [c for c in cmds if isinstance(c, Goto)]
+    assert len(goto) == 1 and goto[0].target.rel_alt_m == pytest.approx(1.0)
+    assert (goto[0].north, goto[0].east) == pytest.approx((10.0, 0.0))
+    land = [e for e in ctl.pop_events() if e.phase == Phase.LAND]
+    assert land[0].text == "SLZ: LAND over zone 1 at 4.0 m, radius 4.1 m, first down to 1 m by the rangefinder"
+    # The time to touchdown judged from here is the shorter one: 3 m at 1.5 m/s, 1 m at 0.5 m/s.
+    assert ctl._descent_now().time_to_touchdown(4.0) == pytest.approx(3.0 / 1.5 + 1.0 / 0.5)
+    assert land[0].as_record()["touchdown_clearance_m"] == pytest.approx(4.1 - 1.5 * 4.0)
+    for alt in (3.4, 2.5, 1.6):
+        cmds = ctl.on_state(status(t, 10, 0, alt, mode="GUIDED", agl=alt, vd=1.5))
+        assert not any(isinstance(c, Land) for c in cmds) and ctl.phase == Phase.LAND
+        assert ctl.obedience.engaged  # it flies our target: a vehicle that climbs is handed back
+        t += 0.7
+    assert ctl.on_state(status(t, 10, 0, 1.15, mode="GUIDED", agl=1.15)) == [Land()]
+    assert texts(ctl)[-1] == "SLZ: zone 1: LAND now, 1.1 m above the ground by the rangefinder"
+    assert ctl.on_state(status(t + 0.1, 10, 0, 1.1, mode="LAND", agl=1.1)) == []  # the autopilot lands it
+    assert not ctl.obedience.engaged
+    ctl.on_state(status(t + 2.5, 10, 0, 0.0, mode="LAND", on_ground=True))
+    assert ctl.phase == Phase.LANDED
+
+
+def test_the_rangefinder_target_is_the_ground_it_measures_fixed_once():
+    """Over ground 1.5 m above home the target is 2.5 m above home, and a later reading (a bump,
+    a long echo) does not move it."""
+    ctl = LandingController(AGL)
+    _, cmds = _at_the_land(ctl, ground=1.5)
+    goto = [c for c in cmds if isinstance(c, Goto)]
+    assert goto and goto[0].target.rel_alt_m == pytest.approx(2.5)
+    assert ctl._low_to == pytest.approx(2.5)
+    ctl.on_state(status(50.0, 10, 0, 4.5, mode="GUIDED", agl=30.0))
+    assert ctl._low_to == pytest.approx(2.5)
+
+
+@pytest.mark.parametrize("agl", [None, math.nan])
+def test_a_rangefinder_lost_on_the_way_down_commands_the_land_at_once(agl):
+    ctl = LandingController(AGL)
+    t, _ = _at_the_land(ctl)
+    assert Land() not in ctl.on_state(status(t, 10, 0, 3.0, mode="GUIDED", agl=3.0))
+    assert ctl.on_state(status(t + 0.5, 10, 0, 2.6, mode="GUIDED", agl=agl)) == [Land()]
+    assert "LAND now, no rangefinder height at 2.6 m above home" in texts(ctl)[-1]
+
+
+def test_without_a_rangefinder_or_with_the_setting_off_the_land_is_commanded_at_land_alt():
+    no_rangefinder = LandingController(AGL)
+    t = _low_over_zone(no_rangefinder)
+    _t, _alt, _alts, cmds = _descend_low(no_rangefinder, t)  # statuses without agl
+    assert cmds == [Land()] and no_rangefinder.phase == Phase.LAND
+    off = LandingController(dataclasses.replace(AGL, land_agl_m=0.0))
+    _, cmds = _at_the_land(off)
+    assert cmds == [Land()]
+
+
+def test_the_ground_before_the_rangefinder_height_hands_to_the_land_that_disarms():
+    ctl = LandingController(AGL)
+    t, _ = _at_the_land(ctl)
+    cmds = ctl.on_state(status(t, 10, 0, 2.0, mode="GUIDED", agl=0.3, on_ground=True, armed=True))
+    assert cmds == [Land()] and ctl.phase == Phase.LAND  # in GUIDED it would sit there armed
+    ctl.on_state(status(t + 0.5, 10, 0, 2.0, mode="LAND", agl=0.3, on_ground=True, armed=False))
+    assert ctl.phase == Phase.LANDED
+
+
+def test_the_companions_last_metres_are_committed_below_the_abort_height():
+    """Below land_abort_above_m (5 m here) nothing the camera sees sends it back up: a view of
+    the last metres cannot confirm r0 and a zone seen small there is the low view, not a walker
+    the vehicle could still avoid (as for the autopilot's LAND)."""
+    ctl = LandingController(AGL)
+    t, _ = _at_the_land(ctl)
+    for _ in range(3):
+        ctl.on_state(status(t, 10, 0, 3.0, mode="GUIDED", agl=3.0))
+        cmds = ctl.on_frame(t, [zone(1, 10, 0, t, born=-8, r=0.6)], pose(t, 10, 0, 3.0),
+                            GroundBelow(10, 0, 0.6, 0.7, calm_s=0.0))
+        assert not any(isinstance(c, (Handback, Land)) for c in cmds)
+        t += 0.1
+    assert ctl.phase == Phase.LAND and ctl._low_to == pytest.approx(1.0)
+    assert ctl.on_state(status(t, 10, 0, 1.0, mode="GUIDED", agl=1.0)) == [Land()]
+
+
+def test_a_vehicle_that_climbs_in_the_companions_last_metres_is_handed_back():
+    ctl = LandingController(AGL)
+    t, _ = _at_the_land(ctl)
+    cmds: list = []
+    for i in range(20):
+        alt = 4.0 + 0.2 * i
+        cmds = ctl.on_state(status(t, 10, 0, alt, mode="GUIDED", agl=alt, vd=-0.5))
+        t += 0.2
+        if cmds:
+            break
+    assert cmds and isinstance(cmds[0], Handback) and cmds[0].action == "LAND"
+    assert ctl.phase == Phase.HANDBACK
+
+
+@pytest.mark.parametrize("bad", [0.3, -1.0, math.nan, math.inf, 4.0, 6.0])
+def test_land_agl_m_is_off_or_between_its_floor_and_the_land_height(bad):
+    with pytest.raises(ValueError, match="land_agl_m"):
+        dataclasses.replace(LOW, land_agl_m=bad)
+
+
 def test_a_zone_that_never_becomes_calm_is_given_up_for_another_and_not_chosen_again():
     ctl = LandingController(CALM)  # calm_wait_s = 3 s
     t = _low_over_zone(ctl)

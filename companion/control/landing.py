@@ -46,7 +46,10 @@ the same stepped descent goes on over the judged zone to ``land_alt_m``, every f
 the ground under the vehicle as above (a lost zone: HOLD). There it
 commands the autopilot's LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
 sequence is used for both autopilots so that the descent down to ``descend_alt_m`` is always
-re-checked. During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends
+re-checked. With ``land_agl_m`` and a fresh downward rangefinder, that LAND is first the
+companion's own descent, straight down at the descent's speed, to ``land_agl_m`` above the ground
+the rangefinder measures, and the autopilot's LAND only there (at once if the rangefinder goes
+stale or out of range, or the ground comes first). During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends
 the vehicle back to HOLD; below it the landing is committed. It is committed too when the zone,
 last seen all free in a view smaller than ``BLIND_VIEW_M``, drops out of the tracks: the camera
 has come too low to confirm anything (seen occupied, it is lost as before). HOLD is a position
@@ -99,6 +102,11 @@ BLIND_VIEW_M = 2 * MIN_VIEW_M
 #: seen only when that is this much farther from them (m) than the present point: a point that
 #: moves for every tenth of a metre is a vehicle that never settles over it.
 PLACE_GAIN_M = 0.5
+#: ``land_agl_m`` may not be lower than this (m): downward rangefinders read from 0.2-0.3 m, and
+#: the autopilot's LAND needs a little height to settle its descent before the ground.
+LAND_AGL_MIN_M = 0.5
+#: The rangefinder's height within this of ``land_agl_m`` (m) counts as there: the LAND then.
+LAND_AGL_REACHED_M = 0.2
 
 ACTIVE = frozenset({Phase.SELECT, Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD, Phase.SEARCH})
 FLYING = frozenset({Phase.APPROACH, Phase.DESCEND, Phase.LAND, Phase.HOLD, Phase.SEARCH})
@@ -186,6 +194,15 @@ class LandingConfig:
     #: slow (ArduPilot 0.5 m/s, PX4 0.7 m/s) against its guided descent (1.5 m/s), and the time
     #: to touchdown is what a walker has to reach the landing point (``touchdown``).
     land_alt_m: float = 0.0
+    #: With a fresh downward rangefinder (``VehicleStatus.agl``), the LAND commanded at
+    #: ``land_alt_m`` is first the companion's own descent (GUIDED/OFFBOARD, the descent's speed,
+    #: straight down over the landing point) to this height above the ground the rangefinder
+    #: measures, and the autopilot's LAND only there (m; 0 = off: the LAND at ``land_alt_m``, as
+    #: without a rangefinder). It is the same committed end, flown three times faster than
+    #: ArduPilot's LAND (1.5 against 0.5 m/s): the time a walker has to reach the point is shorter
+    #: (docs/design.md, "The last metres by the rangefinder"). Without a fresh rangefinder, or
+    #: when it goes stale or out of range on the way, the LAND is commanded at once.
+    land_agl_m: float = 0.0
     #: Over a zone bounded by people or unlandable ground (not by the view), in APPROACH and
     #: DESCEND, the landing point moves to the zone's centre once it is more than this far from
     #: it (m; 0 = only when the zone no longer holds r0 plus the margin around the point). The
@@ -236,6 +253,12 @@ class LandingConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
+        if not (math.isfinite(self.land_agl_m) and (self.land_agl_m == 0 or LAND_AGL_MIN_M <= self.land_agl_m)):
+            raise ValueError(f"controller land_agl_m must be 0 (off) or at least {LAND_AGL_MIN_M:g} m, "
+                             f"not {self.land_agl_m!r}")
+        if self.land_agl_m > 0 and self.land_agl_m >= (self.land_alt_m or self.descend_alt_m):
+            raise ValueError(f"controller land_agl_m ({self.land_agl_m:g} m) must be below the height where the "
+                             f"LAND is commanded ({self.land_alt_m or self.descend_alt_m:g} m)")
         if self.land_alt_m > self.descend_alt_m:
             raise ValueError(f"controller land_alt_m ({self.land_alt_m:g} m) must not be above "
                              f"descend_alt_m ({self.descend_alt_m:g} m): the zone is judged there first")
@@ -326,6 +349,9 @@ class LandingController:
         self._level = math.nan  # the planned altitude (m above home)
         self._aim: tuple[float, float] | None = None  # landing point, north/east metres
         self._blind = False  # in LAND, the zone went out of view: committed
+        # In LAND, the companion's own descent to land_agl_m by the rangefinder: its target (m
+        # above home, fixed when it starts) until the autopilot's LAND is commanded; else None.
+        self._low_to: float | None = None
         self._search: list[tuple[float, float]] = []  # waypoints left (north, east)
         self._search_t = math.nan  # when the search started
         self._dwell_until = -math.inf  # hovering at a reached search waypoint until then
@@ -380,6 +406,10 @@ class LandingController:
             refused = self._set_ceiling()
             if refused:
                 return refused
+        if self.phase == Phase.LAND and self._low_to is not None and status.on_ground and status.armed is not False:
+            # The ground came before land_agl_m (a slope, a rangefinder reading long): in
+            # GUIDED/OFFBOARD the autopilot would sit on it armed; its LAND finishes and disarms.
+            return self._low_land(f"on the ground at {status.height:.1f} m by the rangefinder")
         if self.phase == Phase.LAND and (status.on_ground or status.armed is False):
             self._set_phase(Phase.LANDED, f"landed in zone {self._zone_id()}",
                             zone_id=None if self.target is None else self.target.id)
@@ -409,6 +439,9 @@ class LandingController:
                 # Someone else (pilot, GCS, the autopilot's own failsafe) took over: stop at once.
                 self._set_phase(Phase.HANDBACK, f"mode changed to {status.mode} by someone else: companion stops",
                                 warning=True, event=HandedBack, reason=f"mode changed to {status.mode}")
+                return []
+        if self.phase == Phase.LAND and self._low_to is not None:
+            return self._low_step(status)
         return []
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
@@ -561,13 +594,22 @@ class LandingController:
         d = self.descent
         self._event(f"descent {d.descend_speed_mps:.1f} m/s, LAND {d.land_speed_mps:.1f} m/s ({source})")
 
+    def _descent_now(self) -> DescentProfile:
+        """The descent the vehicle will fly from here: with ``land_agl_m`` and a fresh rangefinder,
+        the companion's own descent goes on down to ``land_agl_m`` and the autopilot's LAND is
+        that much shorter."""
+        s, low = self.status, self.config.land_agl_m
+        if low <= 0 or s is None or s.agl is None or low >= self.descent.land_alt_m:
+            return self.descent
+        return replace(self.descent, land_alt_m=low)
+
     def touchdown_clearance(self, track: Track) -> float | None:
         """The least clearance (m) ``track`` can have at touchdown if the vehicle came down over it
         now from its present height, with every walker heading for it (``DescentProfile``); None
         without a vehicle position."""
         if self.status is None:
             return None
-        value = self.descent.clearance_at_touchdown(track.r, self.status.height)
+        value = self._descent_now().clearance_at_touchdown(track.r, self.status.height)
         return round(value, 2) if math.isfinite(value) else None
 
     def predicted_clearance(self, north: float, east: float) -> tuple[float, Person | None]:
@@ -585,10 +627,11 @@ class LandingController:
             return math.inf, None
         if s.height < c.predict_min_height_m and self._paused_for is None:
             return math.inf, None
-        horizon = self.descent.time_to_touchdown(s.height)
+        descent = self._descent_now()
+        horizon = descent.time_to_touchdown(s.height)
         if not math.isfinite(horizon):
             return math.inf, None
-        blind_from = max(0.0, horizon - self.descent.time_to_touchdown(min(s.height, c.land_abort_above_m)))
+        blind_from = max(0.0, horizon - descent.time_to_touchdown(min(s.height, c.land_abort_above_m)))
         if blind_from > c.predict_lead_s:
             return math.inf, None  # not yet: the camera watches until the commit is near
         clear, worst = min(((predicted_clearance([q], north, east, self.now, horizon, blind_from), q)
@@ -653,7 +696,8 @@ class LandingController:
 
     def _check_obedience(self, status: VehicleStatus) -> list[Command]:
         """Hand back to LAND when the vehicle does not follow our targets (see ``obedience``)."""
-        ours = (self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.HOLD, Phase.SEARCH)
+        ours = ((self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.HOLD, Phase.SEARCH)
+                 or (self.phase == Phase.LAND and self._low_to is not None))
                 and status.mode in self.config.external_modes and self._last_goto is not None)
         if not ours:
             self.obedience.disengage()
@@ -847,10 +891,16 @@ class LandingController:
             elif s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 calm = self._calm_here()
-                self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m",
-                                zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track),
+                low_to = None if s.on_ground else self._low_target(s)
+                how = "" if low_to is None else f", first down to {c.land_agl_m:g} m by the rangefinder"
+                self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m"
+                                + how, zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track),
                                 calm_s=round(calm, 1) if math.isfinite(calm) else None)
-                return [Land()]
+                if low_to is None:
+                    return [Land()]
+                self._low_to = low_to
+                self._last_goto = None
+                return self._goto(aim[0], aim[1], low_to, track.id)
             # The plan's next step: one step down once the vehicle has reached the current level
             # over the zone, so a lost zone never leaves the vehicle committed to a long descent.
             # Never below descend_alt_m above the ground under the vehicle (a rangefinder may show
@@ -862,6 +912,42 @@ class LandingController:
                 self._level = max(self._level - c.descend_step_m, floor)
             return self._goto(aim[0], aim[1], self._level, track.id)
         return []
+
+    def _low_target(self, s: VehicleStatus) -> float | None:
+        """Where the companion's own descent to ``land_agl_m`` goes (m above home: the ground the
+        rangefinder measures under the vehicle, plus ``land_agl_m``), or None when the LAND is to
+        be commanded now: the setting off, no fresh rangefinder, or already that low. The target
+        is fixed here, once, from one reading at the LAND height (a few metres at most), so no
+        later reading can move it."""
+        c = self.config
+        if c.land_agl_m <= 0 or s.agl is None or not math.isfinite(s.agl):
+            return None
+        if s.agl <= c.land_agl_m + LAND_AGL_REACHED_M:
+            return None
+        return s.alt - s.agl + c.land_agl_m
+
+    def _low_step(self, s: VehicleStatus) -> list[Command]:
+        """The companion's own committed descent to ``land_agl_m``, on every vehicle status: the
+        autopilot's LAND once the rangefinder says the vehicle is there, or at once when it no
+        longer gives a height (stale or out of range); meanwhile the target, re-sent as any other."""
+        assert self._low_to is not None
+        c = self.config
+        if s.agl is None or not math.isfinite(s.agl):
+            return self._low_land(f"no rangefinder height at {s.height:.1f} m above home")
+        if s.agl <= c.land_agl_m + LAND_AGL_REACHED_M or s.alt <= self._low_to + LAND_AGL_REACHED_M:
+            return self._low_land(f"{s.agl:.1f} m above the ground by the rangefinder")
+        aim = self._aim if self._aim is not None else (s.north, s.east)
+        return self._goto(aim[0], aim[1], self._low_to, self._zone_id_or_none())
+
+    def _low_land(self, why: str) -> list[Command]:
+        """End the companion's low descent: the autopilot's LAND from here."""
+        self._low_to = None
+        self._last_goto = None
+        self._event(f"zone {self._zone_id()}: LAND now, {why}")
+        return [Land()]
+
+    def _zone_id_or_none(self) -> int | None:
+        return None if self.target is None else self.target.id
 
     def _rejudge(self, track: Track) -> str:
         """With ``predict_rejudge``, below the height where zones are judged (``descend_alt_m``,
@@ -1021,7 +1107,7 @@ class LandingController:
         if self.now - self._search_t > c.search_s:
             return f"searched {c.search_s:g} s without a safe zone"
         if s is not None and s.battery_s is not None and math.isfinite(s.battery_s):
-            need = self.descent.time_to_touchdown(s.height) + c.search_reserve_s
+            need = self._descent_now().time_to_touchdown(s.height) + c.search_reserve_s
             if s.battery_s < need:
                 return f"battery {s.battery_s:.0f} s left, landing needs {need:.0f} s with the reserve"
         return None
@@ -1177,6 +1263,8 @@ class LandingController:
         old = self.phase
         if phase not in (Phase.DESCEND, Phase.LAND):
             self._judged = None  # a zone flown to again is judged again
+        if phase != Phase.LAND:
+            self._low_to = None
         if phase != old:
             log.info("landing: %s -> %s", old.value, phase.value)
             self.phase = phase

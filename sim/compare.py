@@ -15,7 +15,9 @@ the comparison says how likely a difference that large would be if the change di
   flight): the pairs where only BEFORE says yes
   and where only AFTER says yes, and the exact two-sided McNemar p-value (the binomial test of
   those discordant pairs at one half; scipy). Pairs that agree say nothing about the change;
-- time from trigger to touchdown (over the pairs where both landed), phase changes, zone
+- time from trigger to touchdown (over the pairs where both landed), the time the vehicle took
+  over its last 3.5 m (``last_metres_s``, whoever landed: what a walker has to reach the point
+  unseen; over the pairs whose rows carry it), phase changes, zone
   losses (``sim.flight.zone_losses``; over the pairs whose rows carry them) and the service's
   frame time at the 95th percentile (what a change in speed moves): the medians of each
   side, the median paired difference and the two-sided Wilcoxon signed-rank p-value (scipy);
@@ -90,6 +92,11 @@ def _time(row: dict[str, Any]) -> float | None:
     return float(t) if _landed(row) and isinstance(t, (int, float)) else None
 
 
+def _last_metres(row: dict[str, Any]) -> float | None:
+    t = row.get("last_metres_s")
+    return float(t) if isinstance(t, (int, float)) and not isinstance(t, bool) else None
+
+
 def _losses(row: dict[str, Any]) -> float | None:
     n = row.get("zone_losses")
     return float(n) if isinstance(n, int) else None
@@ -103,6 +110,7 @@ def _frame_p95(row: dict[str, Any]) -> float | None:
 #: Per-flight numbers compared pair by pair: name -> the number (None: the row cannot say).
 NUMERIC: dict[str, Callable[[dict[str, Any]], float | None]] = {
     "time from trigger to touchdown (s; both landed)": _time,
+    "time over the last 3.5 m (s; a walker's, unseen)": _last_metres,
     "phase changes": _phases,
     "zones given up over them": _losses,
     "service frame time, p95 (ms; what starves a flight)": _frame_p95,

@@ -22,6 +22,10 @@ Counting (docs/scale.md says why):
   figure and takes the clean flights, and so do ``median_phase_changes`` and
   ``max_phase_changes`` (a flight's phase changes: the controller's recorded phase-change events,
   ``len(row["phases"])``; the controller changes phase only by emitting one);
+- ``median_last_metres_s``: over the clean companion landings whose rows carry it, the time the
+  vehicle took over its last 3.5 m (``sim.flight.LAST_METRES_M``, on the truth): committed, the
+  camera seeing less than ``r_0`` around the point, it is a walker's time to reach it unseen (the
+  baseline's: over its touchdowns); None when no row says;
 - ``companion_landings_in_free_area`` of ``companion_landings_judged_for_area``: the clean
   companion landings that came down on ground nobody walks into (``in_free_area``: the scene's
   free circle, or beyond every crowd; ``sim.world.World.nobody_walks_at``), of those whose row
@@ -123,12 +127,14 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     judged = [r for r in clean if r.get("outcome") in ("safe", "unsafe") and r.get("in_free_area") is not None]
     u, s, c = _proportion(unsafe, n), _proportion(strikes, n), _proportion(landings, n)
     with_losses = [r for r in clean if isinstance(r.get("zone_losses"), int)]
+    last = _last_metres([r for r in clean if r.get("outcome") in ("safe", "unsafe")])
     return {
         "total": len(rows), "safe": count(clean, "safe"), "handbacks": count(clean, "handback"),
         "unsafe": unsafe, "timeouts": count(clean, "timeout"),
         "min_clearance_m": round(min(clear), 3) if clear else None,
         "median_time_to_touchdown_s": round(float(np.median(times)), 2) if times else None,
         "max_climb_m": round(max(climbs), 2) if climbs else None,
+        "median_last_metres_s": last,
         "median_phase_changes": float(np.median(changes)) if changes else None,
         "max_phase_changes": max(changes) if changes else None,
         "starved": len(starved),
@@ -150,6 +156,12 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def _last_metres(rows: list[dict[str, Any]]) -> float | None:
+    """The median of the rows' ``last_metres_s`` (s), None when none carries it."""
+    t = [float(r["last_metres_s"]) for r in rows if isinstance(r.get("last_metres_s"), (int, float))]
+    return round(float(np.median(t)), 2) if t else None
+
+
 def phase_changes(row: dict[str, Any]) -> int:
     """How many times the flight's landing controller changed phase (its recorded phase-change
     events: ``FlightResult.phases`` lists the phase each entered)."""
@@ -166,7 +178,8 @@ def summarise_baseline(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     clear = [r["clearance_m"] for r in rows if r.get("clearance_m") is not None]
     keys = ("total", "clean_flights", "starved", "timeouts", "strikes", "strike_rate", "strike_rate_ci95",
             "strike_rate_upper95", "median_time_to_touchdown_s", "max_climb_m")
-    return {**{k: s[k] for k in keys}, "min_clearance_m": round(min(clear), 3) if clear else None}
+    return {**{k: s[k] for k in keys}, "min_clearance_m": round(min(clear), 3) if clear else None,
+            "median_last_metres_s": _last_metres([r for r in rows if not r.get("starved")])}
 
 
 def _pct(x: float | None) -> str:
@@ -196,6 +209,9 @@ def summary_text(summary: dict[str, Any]) -> str:
                      f"(95 % exact interval {_pct(lo)} to {_pct(hi)})")
     lines.append(f"phase changes per flight: median {summary['median_phase_changes']}, "
                  f"most {summary['max_phase_changes']}")
+    if summary.get("median_last_metres_s") is not None:
+        lines.append(f"the companion's landings took a median {summary['median_last_metres_s']} s over their last "
+                     "3.5 m (committed, the camera seeing less than r_0: a walker's time to reach the point unseen)")
     if summary.get("companion_landings_judged_for_area"):
         lines.append(f"companion landings on ground nobody walks into (the free area, or beyond the crowd): "
                      f"{summary['companion_landings_in_free_area']} of {summary['companion_landings_judged_for_area']}")
@@ -217,7 +233,9 @@ def baseline_text(summary: dict[str, Any]) -> str:
         lines.append(f"strikes, {label}: {s['strikes']}/{s['clean_flights']} clean flights = "
                      f"{_pct(s['strike_rate'])} (95 % exact interval {_pct(lo)} to {_pct(hi)})")
     lines[-1] += (f"; minimum clearance at touchdown {b['min_clearance_m']} m, median time to touchdown "
-                  f"{b['median_time_to_touchdown_s']} s, no touchdown {b['timeouts']}")
+                  f"{b['median_time_to_touchdown_s']} s, no touchdown {b['timeouts']}"
+                  + (f", last 3.5 m in a median {b['median_last_metres_s']} s"
+                     if b.get("median_last_metres_s") is not None else ""))
     ratio = summary.get("strikes_vs_baseline")
     none = "- (the baseline struck nobody)" if b["strikes"] == 0 else "-"
     lines.append("companion strike rate / baseline strike rate: "

@@ -73,6 +73,11 @@ LANDED_GRACE_S = 1.5
 #: Seconds between the flight's samples of the truth under the vehicle (``zone_losses``): the
 #: camera's frame period at 10 Hz; a walker moves 0.15 m meanwhile.
 TRUTH_PERIOD_S = 0.1
+#: The last metres of a landing (m above the flat ground): below this the landing is committed
+#: (``controller.land_abort_above_m``'s default) and the camera sees less than ``r_0`` around the
+#: point, so the time from the vehicle's last moment above it to touchdown (``last_metres_s``, on
+#: the truth, whoever landed) is the time a walker has to reach the point unseen.
+LAST_METRES_M = 3.5
 #: A flight is **starved** (its CPU, not the software under test, decided it) when its service
 #: processed frames at less than STARVED_SHARE of the camera's rate, from READY to touchdown (or to
 #: the end of the flight), or when the pipeline's time per frame (95th percentile) exceeded
@@ -159,6 +164,8 @@ class FlightResult:
     touchdown: tuple[float, float] | None = None
     clearance_m: float | None = None
     time_to_touchdown_s: float | None = None
+    # From the vehicle's last moment above LAST_METRES_M (truth) to touchdown (s); None without one.
+    last_metres_s: float | None = None
     phases: list[str] = field(default_factory=list)  # every phase the controller entered, in order
     messages: list[str] = field(default_factory=list)  # the events' STATUSTEXT lines, each once
     events: list[dict] = field(default_factory=list)  # the controller's events as recorded
@@ -201,6 +208,7 @@ class FlightResult:
             else round(self.clearance_m, 3),
             "time_to_touchdown_s": None if self.time_to_touchdown_s is None
             else round(self.time_to_touchdown_s, 2),
+            "last_metres_s": None if self.last_metres_s is None else round(self.last_metres_s, 2),
             "trigger_alt_m": None if self.trigger_alt_m is None else round(self.trigger_alt_m, 2),
             "max_climb_m": None if self.max_climb_m is None else round(self.max_climb_m, 2),
             "home_origin_offset_m": round(self.spec.home_origin_offset_m, 3),
@@ -588,6 +596,8 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             return
         climb["max_alt"] = max(climb.get("max_alt", -math.inf), sim.vehicle.altitude)
         now = time.monotonic()
+        if sim.vehicle.altitude > LAST_METRES_M:
+            climb["above_t"] = now  # the last metres start after the last such step
         if not truth or now - truth[-1][0] >= TRUTH_PERIOD_S:
             p = sim.truth.position
             truth.append((now, world.nearest_person_distance((float(p[0]), float(p[1])))))
@@ -644,6 +654,8 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             result.clearance_m = touchdown[0].clearance_m
             result.in_free_area = touchdown[0].free_ground
             result.time_to_touchdown_s = touchdown[0].t - t_trigger
+            if "above_t" in climb:
+                result.last_metres_s = max(0.0, touchdown[0].t - climb["above_t"])
         # Let the last events of the landing (LANDED) be recorded before stopping the service:
         # the landed state reaches it in EXTENDED_SYS_STATE, which the autopilots send at 1-2 Hz.
         await asyncio.sleep(LANDED_GRACE_S)

@@ -83,5 +83,9 @@ def test_the_service_in_process_lands_on_free_ground_and_reports_every_phase(fla
     assert not any(isinstance(e, HandedBack) for e in svc.events), [e.text for e in svc.events]
     assert any(isinstance(e, TargetChosen) for e in svc.events)
     assert svc.phase == "LANDED" and truth["clearance"] > 2.0
+    # The last metres by the rangefinder (controller.land_agl_m) in OFFBOARD, then AUTO.LAND.
+    said = [e.text for e in svc.events]
+    assert any("first down to 1 m by the rangefinder" in x for x in said), said
+    assert any("LAND now" in x and "above the ground by the rangefinder" in x for x in said), said
     # PX4's home 1.5 m below its estimator's origin: frame-6 targets would climb (issue 19).
     assert truth["alt_max"] - truth["alt0"] <= 1.0, truth

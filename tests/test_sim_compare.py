@@ -123,3 +123,17 @@ def test_the_settings_line_names_a_land_speed_other_than_the_scenarios() -> None
     assert c.pairs == 2 and c.settings_before == [[]]
     assert c.settings_after == [["controller.x=1", "land_speed=0.5"], ["land_speed=0.5"]]
     assert "AFTER [['controller.x=1', 'land_speed=0.5'], ['land_speed=0.5']]" in comparison_text(c)
+
+
+def test_the_last_metres_are_paired_where_both_rows_carry_them() -> None:
+    """``last_metres_s`` (the truth's time over the last 3.5 m, whoever landed) is compared pair by
+    pair, like the time to touchdown; rows of older runs, which lack it, pair nothing."""
+    before = [{**_row(s, "safe"), "last_metres_s": 4.4 + 0.1 * s} for s in range(1, 8)]
+    after = [{**_row(s, "safe"), "last_metres_s": 2.2 + 0.1 * s} for s in range(1, 8)]
+    last = next(n for n in compare(before, after).numeric if n.name.startswith("time over the last 3.5 m"))
+    assert (last.pairs, last.before_median, last.after_median) == (7, pytest.approx(4.8), pytest.approx(2.6))
+    assert last.median_difference == pytest.approx(-2.2)
+    assert last.p == pytest.approx(wilcoxon([4.4 + 0.1 * s for s in range(1, 8)],
+                                            [2.2 + 0.1 * s for s in range(1, 8)]).pvalue, abs=1e-4)
+    old = [_row(s, "safe") for s in range(1, 8)]
+    assert next(n for n in compare(old, after).numeric if n.name.startswith("time over the last")).pairs == 0

@@ -29,7 +29,7 @@ from sim.evidence import (
     summarise_rows,
     summary_text,
 )
-from sim.flight import STARVED_SHARE, FlightSpec, claim_port, fly, reserve_port, starved, summarise
+from sim.flight import STARVED_SHARE, FlightResult, FlightSpec, claim_port, fly, reserve_port, starved, summarise
 from sim.scenarios import FlightJob, plan, run_jobs
 from tests.patched_service import patched_env
 from tests.port_holder import reserve_and_hold
@@ -528,3 +528,19 @@ def test_zones_given_up_over_them_are_judged_on_the_truth_under_the_vehicle() ->
     old = {k: v for k, v in row.items() if not k.startswith("zone_loss")}
     assert summarise_rows([old])["zone_losses"] is None
     assert "given up" not in summary_text(summarise_rows([old]))
+
+
+def test_the_last_metres_are_measured_on_the_truth_and_summarised_over_clean_companion_landings():
+    row = FlightResult(FlightSpec(seed=1), "safe", touchdown=(0.0, 0.0), clearance_m=4.0,
+                       last_metres_s=2.345).as_dict()
+    assert row["last_metres_s"] == 2.35
+    rows = [row, {**row, "seed": 2, "last_metres_s": 3.1}, {**row, "seed": 3, "last_metres_s": 9.0, "starved": True},
+            {**row, "seed": 4, "outcome": "handback", "last_metres_s": 7.0}]
+    s = summarise_rows(rows)
+    # The starved flight and the autopilot's landing after a handback are not the companion's.
+    assert s["median_last_metres_s"] == round((2.35 + 3.1) / 2, 2)
+    assert "a median 2.73 s over their last 3.5 m" in summary_text(s)
+    old = {k: v for k, v in row.items() if k != "last_metres_s"}
+    assert summarise_rows([old])["median_last_metres_s"] is None
+    assert "last 3.5 m" not in summary_text(summarise_rows([old]))
+    assert FlightResult(FlightSpec(seed=1), "timeout").as_dict()["last_metres_s"] is None

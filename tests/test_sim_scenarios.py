@@ -14,6 +14,7 @@ import pytest
 from sim import scenarios
 from sim.evidence import (
     ResultsFile,
+    baseline_text,
     phase_changes,
     read_rows,
     row_key,
@@ -180,6 +181,13 @@ def test_the_summary_counts_phase_changes_and_strikes_from_rows():
     assert (base["total"], base["clean_flights"], base["strikes"], base["timeouts"]) == (4, 4, 2, 1)
     assert base["strike_rate"] == 0.5 and base["min_clearance_m"] == 0.3
     assert base["strike_rate_ci95"][0] < 0.5 < base["strike_rate_upper95"]
+    # The autopilot's own LAND over its last 3.5 m, the baseline's touchdowns (None: not recorded).
+    assert base["median_last_metres_s"] is None
+    timed = summarise_baseline([{**_row(s, "handback", phases=0, baseline=True), "last_metres_s": v}
+                                for s, v in ((1, 3.6), (2, 3.8), (3, 7.1))])
+    assert timed["median_last_metres_s"] == 3.8
+    assert "last 3.5 m in a median 3.8 s" in baseline_text({**summarise_rows([_row(1, "safe")]), "baseline": timed})
+    assert "last 3.5 m" not in baseline_text({**summarise_rows([_row(1, "safe")]), "baseline": base})
 
 
 def test_baseline_rows_are_kept_apart_from_the_companions_on_resume(tmp_path, monkeypatch, capsys):

@@ -128,6 +128,10 @@ def test_uniform_free_ground_lands_under_the_companion_within_the_budget(flavour
                         home_origin_offset_m=-1.5))
     assert r.outcome == "safe" and not r.handed_back, _explain(r)
     assert r.max_climb_m <= 1.0, _explain(r)
+    # The simulator's downward rangefinder (DISTANCE_SENSOR over MAVLink) gives the height: the
+    # last metres are the companion's own descent to controller.land_agl_m, then the LAND.
+    assert any("first down to 1 m by the rangefinder" in m for m in r.messages), _explain(r)
+    assert any("LAND now" in m and "above the ground by the rangefinder" in m for m in r.messages), _explain(r)
 
 
 def test_two_hundred_ms_of_link_latency_takes_over_and_never_lands_near_anyone(model_path):

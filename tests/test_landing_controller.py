@@ -952,9 +952,9 @@ def test_the_rangefinder_target_is_the_ground_it_measures_fixed_once():
     _, cmds = _at_the_land(ctl, ground=1.5)
     goto = [c for c in cmds if isinstance(c, Goto)]
     assert goto and goto[0].target.rel_alt_m == pytest.approx(2.5)
-    assert ctl._low_to == pytest.approx(2.5)
+    assert ctl._low_to == pytest.approx((10.0, 0.0, 2.5))
     ctl.on_state(status(50.0, 10, 0, 4.5, mode="GUIDED", agl=30.0))
-    assert ctl._low_to == pytest.approx(2.5)
+    assert ctl._low_to == pytest.approx((10.0, 0.0, 2.5))
 
 
 @pytest.mark.parametrize("agl", [None, math.nan])
@@ -997,8 +997,20 @@ def test_the_companions_last_metres_are_committed_below_the_abort_height():
                             GroundBelow(10, 0, 0.6, 0.7, calm_s=0.0))
         assert not any(isinstance(c, (Handback, Land)) for c in cmds)
         t += 0.1
-    assert ctl.phase == Phase.LAND and ctl._low_to == pytest.approx(1.0)
+    assert ctl.phase == Phase.LAND and ctl._low_to == pytest.approx((10.0, 0.0, 1.0))
     assert ctl.on_state(status(t, 10, 0, 1.0, mode="GUIDED", agl=1.0)) == [Land()]
+
+
+def test_the_last_metres_go_straight_down_where_they_started_whatever_the_zone_does():
+    """A zone bounded by the view moves with the camera: its centre must not pull the committed
+    descent sideways."""
+    ctl = LandingController(AGL)
+    t, _ = _at_the_land(ctl)
+    ctl.on_state(status(t, 10, 0, 3.4, mode="GUIDED", agl=3.4))
+    ctl.on_frame(t, [zone(1, 12.5, 1.5, t, born=-8, r=5.0)], pose(t, 10, 0, 3.4), below(t, math.nan))
+    cmds = ctl.on_state(status(t + 1.5, 10, 0, 3.0, mode="GUIDED", agl=3.0))  # past the refresh
+    goto = [c for c in cmds if isinstance(c, Goto)]
+    assert goto and (goto[0].north, goto[0].east, goto[0].target.rel_alt_m) == pytest.approx((10.0, 0.0, 1.0))
 
 
 def test_a_vehicle_that_climbs_in_the_companions_last_metres_is_handed_back():

@@ -349,9 +349,10 @@ class LandingController:
         self._level = math.nan  # the planned altitude (m above home)
         self._aim: tuple[float, float] | None = None  # landing point, north/east metres
         self._blind = False  # in LAND, the zone went out of view: committed
-        # In LAND, the companion's own descent to land_agl_m by the rangefinder: its target (m
-        # above home, fixed when it starts) until the autopilot's LAND is commanded; else None.
-        self._low_to: float | None = None
+        # In LAND, the companion's own descent to land_agl_m by the rangefinder: its target
+        # (north, east, m above home; fixed when it starts) until the autopilot's LAND is
+        # commanded; else None.
+        self._low_to: tuple[float, float, float] | None = None
         self._search: list[tuple[float, float]] = []  # waypoints left (north, east)
         self._search_t = math.nan  # when the search started
         self._dwell_until = -math.inf  # hovering at a reached search waypoint until then
@@ -891,16 +892,18 @@ class LandingController:
             elif s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 calm = self._calm_here()
-                low_to = None if s.on_ground else self._low_target(s)
-                how = "" if low_to is None else f", first down to {c.land_agl_m:g} m by the rangefinder"
+                low_alt = None if s.on_ground else self._low_target(s)
+                how = "" if low_alt is None else f", first down to {c.land_agl_m:g} m by the rangefinder"
                 self._set_phase(Phase.LAND, f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m"
                                 + how, zone_id=track.id, touchdown_clearance_m=self.touchdown_clearance(track),
                                 calm_s=round(calm, 1) if math.isfinite(calm) else None)
-                if low_to is None:
+                if low_alt is None:
                     return [Land()]
-                self._low_to = low_to
+                # Straight down over the landing point as it is now: a zone bounded by the view
+                # moves with the camera, and the committed descent must not chase it.
+                self._low_to = (aim[0], aim[1], low_alt)
                 self._last_goto = None
-                return self._goto(aim[0], aim[1], low_to, track.id)
+                return self._goto(aim[0], aim[1], low_alt, track.id)
             # The plan's next step: one step down once the vehicle has reached the current level
             # over the zone, so a lost zone never leaves the vehicle committed to a long descent.
             # Never below descend_alt_m above the ground under the vehicle (a rangefinder may show
@@ -934,10 +937,10 @@ class LandingController:
         c = self.config
         if s.agl is None or not math.isfinite(s.agl):
             return self._low_land(f"no rangefinder height at {s.height:.1f} m above home")
-        if s.agl <= c.land_agl_m + LAND_AGL_REACHED_M or s.alt <= self._low_to + LAND_AGL_REACHED_M:
+        north, east, alt = self._low_to
+        if s.agl <= c.land_agl_m + LAND_AGL_REACHED_M or s.alt <= alt + LAND_AGL_REACHED_M:
             return self._low_land(f"{s.agl:.1f} m above the ground by the rangefinder")
-        aim = self._aim if self._aim is not None else (s.north, s.east)
-        return self._goto(aim[0], aim[1], self._low_to, self._zone_id_or_none())
+        return self._goto(north, east, alt, self._zone_id_or_none())
 
     def _low_land(self, why: str) -> list[Command]:
         """End the companion's low descent: the autopilot's LAND from here."""

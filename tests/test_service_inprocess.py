@@ -31,7 +31,8 @@ async def _fly_with_ports(flavour: str, link_port: int, cam_port: int) -> tuple[
     spec = FlightSpec(flavour=flavour, world="uniform", seed=6, altitude_m=18.0, home_origin_offset_m=-1.5)
     world, _, sim, camera = build_scene(spec, link_port, cam_port)
     cfg = config.load(None, {"link.url": f"udpin:127.0.0.1:{link_port}", "link.flavour": flavour,
-                             "camera.source": camera.url, "camera.hfov_deg": spec.hfov_deg})
+                             "camera.source": camera.url, "camera.hfov_deg": spec.hfov_deg,
+                             "controller.land_agl_m": 1.0})
     model = load_model(cfg)
     svc = Service(cfg, model, link=MavLink(config.link_config(cfg)))  # a part handed in, typed
     truth: dict[str, float] = {}

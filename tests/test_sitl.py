@@ -125,11 +125,11 @@ def test_uniform_free_ground_lands_under_the_companion_within_the_budget(flavour
     # Every frame the same: the free circle is bounded by the view and moves with the camera. The
     # vehicle must converge and land instead of chasing it.
     r = _fly(FlightSpec(flavour=flavour, world="uniform", seed=6, altitude_m=18.0,
-                        home_origin_offset_m=-1.5))
+                        home_origin_offset_m=-1.5, service_set=("controller.land_agl_m=1",)))
     assert r.outcome == "safe" and not r.handed_back, _explain(r)
     assert r.max_climb_m <= 1.0, _explain(r)
-    # The simulator's downward rangefinder (DISTANCE_SENSOR over MAVLink) gives the height: the
-    # last metres are the companion's own descent to controller.land_agl_m, then the LAND.
+    # The simulator's downward rangefinder (DISTANCE_SENSOR over MAVLink) gives the height: with
+    # controller.land_agl_m the last metres are the companion's own descent, then the LAND.
     assert any("first down to 1 m by the rangefinder" in m for m in r.messages), _explain(r)
     assert any("LAND now" in m and "above the ground by the rangefinder" in m for m in r.messages), _explain(r)
 

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest, wilcoxon
 
-from sim.evidence import other_land_speed, read_rows
+from sim.evidence import other_crossing_window, other_land_speed, read_rows
 
 #: The level below which a difference is called beyond chance.
 ALPHA = 0.05
@@ -215,11 +215,15 @@ def _companion_rows(rows: list[dict[str, Any]], label: str) -> dict[tuple[int, s
 
 
 def _flown_with(row: dict[str, Any]) -> tuple[str, ...]:
-    """What a row was flown with beside the defaults: its service settings (``--set``), and the
-    autopilot's LAND speed when it was not the scenarios' own (``--land-speed``)."""
+    """What a row was flown with beside the defaults: its service settings (``--set``), the
+    autopilot's LAND speed when it was not the scenarios' own (``--land-speed``), and the
+    crossing world's window when it was not its own (``--crossing-window``)."""
     out = tuple(str(x) for x in row.get("settings") or ())
     land = other_land_speed(row)
-    return out if land is None else (*out, f"land_speed={land:g}")
+    if land is not None:
+        out = (*out, f"land_speed={land:g}")
+    window = other_crossing_window(row)
+    return out if window is None else (*out, f"crossing_window={window[0]:g}-{window[1]:g}")
 
 
 def _verdict(row: dict[str, Any]) -> str:

@@ -61,6 +61,9 @@ BASELINE = "baseline"
 #: simulated autopilot's ``LAND_SPEED`` / ``MPC_LAND_SPEED``. Rows flown at another speed
 #: (``companion sim-scenarios --land-speed``) are keyed apart.
 SCENARIO_LAND_SPEED = 1.0
+#: The crossing world's window (s after the failsafe; ``sim.world.CROSSING_WINDOW_S``): rows flown
+#: with another (``companion sim-scenarios --crossing-window``) are keyed apart.
+SCENARIO_CROSSING_WINDOW_S = (4.0, 24.0)
 #: A flight's key in a results file: ``(seed, flavour)``, or ``(seed, flavour, "baseline")``.
 RowKey = tuple[Any, ...]
 #: The unsafe-rate upper bound the runner reports the distance to (further clean flights needed).
@@ -258,6 +261,9 @@ def row_key(row: dict[str, Any]) -> RowKey:
     land = other_land_speed(row)
     if land is not None:
         key = (*key, f"land:{land:g}")
+    window = other_crossing_window(row)
+    if window is not None:
+        key = (*key, f"cross:{window[0]:g}-{window[1]:g}")
     return key
 
 
@@ -266,6 +272,17 @@ def other_land_speed(row: dict[str, Any]) -> float | None:
     (:data:`SCENARIO_LAND_SPEED`), else None: what keys it apart and what a comparison names."""
     land = row.get("land_speed")
     return None if land is None or float(land) == SCENARIO_LAND_SPEED else float(land)
+
+
+def other_crossing_window(row: dict[str, Any]) -> tuple[float, float] | None:
+    """The crossing world's window a row was flown with (seconds after the failsafe) when it is
+    not the scenarios' own (:data:`SCENARIO_CROSSING_WINDOW_S`), else None: what keys it apart
+    and what a comparison names."""
+    window = row.get("crossing_window")
+    if window is None:
+        return None
+    lo, hi = (float(v) for v in window)
+    return None if (lo, hi) == SCENARIO_CROSSING_WINDOW_S else (lo, hi)
 
 
 def read_rows(path: Path) -> tuple[list[dict[str, Any]], int]:

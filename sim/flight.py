@@ -59,7 +59,14 @@ from sim.ground import FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
 from sim.walkers import Circle
-from sim.world import World, add_crossing_walkers, crowd_with_free_area, dense_crowd, dronecrowd_world
+from sim.world import (
+    CROSSING_WINDOW_S,
+    World,
+    add_crossing_walkers,
+    crowd_with_free_area,
+    dense_crowd,
+    dronecrowd_world,
+)
 
 log = logging.getLogger("sim.flight")
 
@@ -112,6 +119,10 @@ class FlightSpec:
     land_speed: final-descent speed of the autopilot's LAND (m/s; ArduPilot LAND_SPEED, PX4
         MPC_LAND_SPEED). 1 m/s by default, faster than either autopilot's own default (0.5 and
         0.7 m/s): the blind end of a landing is shorter here than on a vehicle left at defaults.
+    crossing_window: for ``crossing``, when its walkers cross the free circle's edge (seconds after
+        the failsafe, drawn uniformly; ``sim.world.CROSSING_WINDOW_S`` by default, timed for
+        landings at 1 m/s). A wider window keeps the same rate of crossings with more walkers, so
+        that crossings come at any time of a landing, whatever its speed.
     home_origin_offset_m: the simulated PX4's home altitude minus its estimator origin's altitude
         (m). The real PX4 converts frame-6 position targets wrongly unless this is 0.
     record_dir: where the service records the flight (a temporary folder when None: the judge
@@ -140,6 +151,7 @@ class FlightSpec:
     hfov_deg: float = 70.0
     fps: float = 10.0
     land_speed: float = SCENARIO_LAND_SPEED
+    crossing_window: tuple[float, float] = CROSSING_WINDOW_S
     record_dir: Path | None = None
     service_log: Path | None = None
     service_set: tuple[str, ...] = ()
@@ -642,7 +654,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
                                 speed=1.4)
         elif spec.world == "crossing" and free is not None:
             # Walkers cross the free circle (the zone the companion lands in) during the descent.
-            add_crossing_walkers(world, free, world.t, spec.seed)
+            add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window)
         end = t_trigger + spec.timeout_s
         while not touchdown and time.monotonic() < end:
             if proc is not None and proc.returncode is not None:

@@ -49,6 +49,12 @@ PX4 ``MPC_LAND_SPEED``; the scenarios' own 1 m/s is faster than either autopilot
 and 0.7 m/s, so its blind last metres are shorter than a vehicle left at defaults has); rows
 record it, and resume only from rows flown at the same speed.
 
+``--crossing-window FROM-TO`` draws the crossing world's walkers' crossings over that many seconds
+after the failsafe instead of its own 4-24 s (timed for the scenarios' landings at 1 m/s), with as
+many more walkers as keep the same rate: landings of different lengths (another LAND speed, the
+last metres by the rangefinder) then meet crossings at any time of their descent, not the ones
+the window was timed for. Rows record it, and resume only from rows flown with the same window.
+
 ``--set KEY=VALUE`` (repeatable) flies every seed with that service setting, as ``companion run
 --set`` takes it (``--set model.path=my.onnx`` flies a researcher's own model in closed loop). A bad
 key or value, or a model file that is not there, is exit 2 before anything flies. Rows record the
@@ -187,6 +193,9 @@ class FlightJob:
     #: The simulated autopilot's LAND speed (m/s, ``--land-speed``; None: the scenario's own,
     #: ``sim.evidence.SCENARIO_LAND_SPEED``); part of its key when it is another.
     land_speed: float | None = None
+    #: The crossing world's window (s after the failsafe, ``--crossing-window``; None: the
+    #: world's own, ``sim.world.CROSSING_WINDOW_S``); part of its key when it is another.
+    crossing_window: tuple[float, float] | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
@@ -194,6 +203,8 @@ class FlightJob:
             spec = dataclasses.replace(spec, companion=False)
         if self.land_speed is not None:
             spec = dataclasses.replace(spec, land_speed=self.land_speed)
+        if self.crossing_window is not None:
+            spec = dataclasses.replace(spec, crossing_window=self.crossing_window)
         if self.overrides:
             spec = dataclasses.replace(spec, **dict(self.overrides))
         if self.service_set:
@@ -219,7 +230,8 @@ class FlightJob:
         and so is one flown with other settings or another LAND speed."""
         spec = self.spec()
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
-                        "settings": list(self.service_set), "land_speed": spec.land_speed})
+                        "settings": list(self.service_set), "land_speed": spec.land_speed,
+                        "crossing_window": list(spec.crossing_window)})
 
 
 def _cpu_s() -> float:
@@ -238,7 +250,7 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
                wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
                host=socket.gethostname(), model_threads=job.model_threads(), settings=list(job.service_set),
-               land_speed=spec.land_speed)
+               land_speed=spec.land_speed, crossing_window=list(spec.crossing_window))
     return row
 
 
@@ -381,6 +393,24 @@ def service_settings(items: list[str]) -> tuple[str, ...]:
     return tuple(f"{k}={json.dumps(v) if not isinstance(v, str) else v}" for k, v in sorted(overrides.items()))
 
 
+#: The latest a crossing may start, seconds after the failsafe: past the 90 s takeover budget
+#: and the autopilot's LAND after a handback.
+MAX_CROSSING_S = 300.0
+
+
+def parse_window(text: str) -> tuple[float, float]:
+    """``FROM-TO`` seconds (``--crossing-window``): 0 <= FROM < TO <= :data:`MAX_CROSSING_S`."""
+    parts = text.split("-")
+    try:
+        lo, hi = (float(p) for p in parts) if len(parts) == 2 else (math.nan, math.nan)
+    except ValueError:
+        lo = hi = math.nan
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo < hi <= MAX_CROSSING_S):
+        raise ValueError(f"want FROM-TO seconds after the failsafe, 0 <= FROM < TO <= {MAX_CROSSING_S:g}, "
+                         f"not {text!r}")
+    return lo, hi
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", default="1-10", help="seeds, e.g. 1-50 or 1,4,9-12 (default 1-10)")
     parser.add_argument("--flavour", choices=("ardupilot", "px4"), default=None,
@@ -397,6 +427,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help=f"the simulated autopilot's LAND descent speed (ArduPilot LAND_SPEED, PX4 "
                              f"MPC_LAND_SPEED; default {SCENARIO_LAND_SPEED:g} m/s, faster than their own "
                              f"defaults of 0.5 and 0.7): fly your vehicle's; recorded in each row")
+    parser.add_argument("--crossing-window", default=None, metavar="FROM-TO",
+                        help="seconds after the failsafe over which the crossing world's walkers "
+                             "cross the free circle (default 4-24, timed for landings at 1 m/s); a "
+                             "wider window keeps the rate with more walkers, so that crossings come "
+                             "at any time of a landing: to compare landings of different lengths "
+                             "fairly; recorded in each row")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -440,10 +476,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"companion sim-scenarios: --land-speed must be 0.1-{MAX_LAND_SPEED:g} m/s, not {land:g}",
               file=sys.stderr)
         return 2
+    try:
+        window = None if args.crossing_window is None else parse_window(args.crossing_window)
+    except ValueError as exc:
+        print(f"companion sim-scenarios: --crossing-window: {exc}", file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
-                      land_speed=land)
+                      land_speed=land, crossing_window=window)
             for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

@@ -219,20 +219,28 @@ def largest_free_circle(positions: np.ndarray, centre: tuple[float, float], half
 
 
 def add_crossing_walkers(world: World, circle: Circle, t_from: float, seed: int,
-                         count: int | None = None) -> list[Crossing]:
+                         count: int | None = None,
+                         window: tuple[float, float] = CROSSING_WINDOW_S) -> list[Crossing]:
     """Walkers who cross ``circle`` (a landing zone) during the descent: ``count`` of them (2-4
     drawn when None), each at a speed drawn from :data:`CROSSING_SPEEDS`, from a bearing drawn
     all round, along a chord within half the radius of the centre, crossing the edge at world
-    time ``t_from`` plus a delay drawn from :data:`CROSSING_WINDOW_S`, then walking on out of it.
-    Drawn from ``seed`` alone (its own stream: the scene's other draws are not touched)."""
+    time ``t_from`` plus a delay drawn from ``window`` (:data:`CROSSING_WINDOW_S`), then walking
+    on out of it. A wider window keeps the default's rate: the drawn count is multiplied by its
+    width over the default's, rounded (at least 1). Drawn from ``seed`` alone (its own stream:
+    the scene's other draws are not touched; the default window draws what it always drew)."""
+    lo, hi = window
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo < hi):
+        raise ValueError(f"crossing window must be 0 <= from < to seconds, not {window!r}")
     rng = np.random.default_rng([int(seed), 0xC405])
     n = int(rng.integers(2, 5)) if count is None else int(count)
+    if count is None:
+        n *= max(1, round((hi - lo) / (CROSSING_WINDOW_S[1] - CROSSING_WINDOW_S[0])))
     out = []
     for _ in range(n):
         speed = float(rng.uniform(*CROSSING_SPEEDS))
         bearing = float(rng.uniform(0.0, 2 * math.pi))
         offset = float(rng.uniform(-0.5, 0.5)) * circle.radius
-        t_enter = t_from + float(rng.uniform(*CROSSING_WINDOW_S))
+        t_enter = t_from + float(rng.uniform(lo, hi))
         out.append(world.add_crossing(Crossing(circle, t_enter, speed, bearing, offset)))
     return out
 

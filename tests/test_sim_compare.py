@@ -123,6 +123,11 @@ def test_the_settings_line_names_a_land_speed_other_than_the_scenarios() -> None
     assert c.pairs == 2 and c.settings_before == [[]]
     assert c.settings_after == [["controller.x=1", "land_speed=0.5"], ["land_speed=0.5"]]
     assert "AFTER [['controller.x=1', 'land_speed=0.5'], ['land_speed=0.5']]" in comparison_text(c)
+    # `--crossing-window` likewise: named when it is not the world's own 4-24 s.
+    wide = [{**_row(s, "safe"), "land_speed": 0.5, "crossing_window": [4.0, 84.0]} for s in (1, 2)]
+    own = [{**_row(s, "safe"), "crossing_window": [4.0, 24.0]} for s in (1, 2)]
+    c = compare(own, wide)
+    assert c.settings_before == [[]] and c.settings_after == [["land_speed=0.5", "crossing_window=4-84"]]
 
 
 def test_the_last_metres_are_paired_where_both_rows_carry_them() -> None:

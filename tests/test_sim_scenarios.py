@@ -325,3 +325,59 @@ def test_a_bad_land_speed_is_exit_2_before_anything_flies(value, monkeypatch, ca
     monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
     assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--land-speed", value]) == 2
     assert "--land-speed must be 0.1-3 m/s" in capsys.readouterr().err
+
+
+def test_a_crossing_window_draws_crossings_over_it_at_the_same_rate_and_keeps_its_rows_apart(tmp_path, monkeypatch,
+                                                                                              capsys):
+    # `--crossing-window 4-84`: the crossing world's walkers cross over 80 s after the failsafe, as
+    # many more of them as keep the rate of its own 4-24 s; rows are keyed apart.
+    from sim.evidence import SCENARIO_CROSSING_WINDOW_S
+    from sim.flight import build_world
+    from sim.world import CROSSING_WINDOW_S, Circle, World, add_crossing_walkers
+
+    assert SCENARIO_CROSSING_WINDOW_S == CROSSING_WINDOW_S == scenario(3).crossing_window
+    circle = Circle(0.0, 0.0, 6.0)
+    own = add_crossing_walkers(World(seed=1), circle, 10.0, seed=7)
+    wide = add_crossing_walkers(World(seed=1), circle, 10.0, seed=7, window=(4.0, 84.0))
+    assert 2 <= len(own) <= 4 and len(wide) == 4 * len(own)  # 80 s against 20 s: four times as many
+    assert all(14.0 <= c.t_enter <= 34.0 for c in own) and all(14.0 <= c.t_enter <= 94.0 for c in wide)
+    assert max(c.t_enter for c in wide) > 34.0
+    # The default window draws what it always drew (the seeds' scenes stay).
+    again = add_crossing_walkers(World(seed=1), circle, 10.0, seed=7, window=CROSSING_WINDOW_S)
+    assert [c.t_enter for c in again] == [c.t_enter for c in own]
+    with pytest.raises(ValueError, match="crossing window"):
+        add_crossing_walkers(World(seed=1), circle, 10.0, seed=7, window=(5.0, 5.0))
+
+    crossing = next(s for s in range(1, 60) if scenario(s).world == "crossing")
+    job = FlightJob(crossing, "ardupilot", crossing_window=(4.0, 84.0))
+    assert job.spec().crossing_window == (4.0, 84.0)
+    assert build_world(job.spec())[1] is not None
+    assert job.key() == (crossing, "ardupilot", "cross:4-84")
+    assert FlightJob(crossing, "ardupilot", crossing_window=(4.0, 24.0)).key() == (crossing, "ardupilot")
+    assert row_key({**_row(3, "safe"), "crossing_window": [4.0, 24.0]}) == (3, "ardupilot")
+
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append({**_row(1, "safe"), "crossing_window": [4.0, 24.0]})  # the world's own window
+    flown: list[tuple[float, float] | None] = []
+
+    def fake(j: FlightJob) -> dict[str, Any]:
+        flown.append(j.crossing_window)
+        return {**_row(j.seed, "safe"), "crossing_window": list(j.spec().crossing_window)}
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    jobs = [FlightJob(s, "ardupilot", crossing_window=(4.0, 84.0)) for s in (1, 2)]
+    assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0 and flown == [(4.0, 84.0)] * 2
+    capsys.readouterr()
+    flown.clear()
+    assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0 and flown == []  # resumed
+
+
+@pytest.mark.parametrize("value", ["24-4", "5-5", "-1-10", "4", "a-b", "4-400", "nan-10"])
+def test_a_bad_crossing_window_is_exit_2_before_anything_flies(value, monkeypatch, capsys):
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress",
+                 f"--crossing-window={value}"]) == 2
+    assert "--crossing-window: want FROM-TO seconds after the failsafe" in capsys.readouterr().err

@@ -964,6 +964,8 @@ def test_a_rangefinder_lost_on_the_way_down_commands_the_land_at_once(agl):
     assert Land() not in ctl.on_state(status(t, 10, 0, 3.0, mode="GUIDED", agl=3.0))
     assert ctl.on_state(status(t + 0.5, 10, 0, 2.6, mode="GUIDED", agl=agl)) == [Land()]
     assert "LAND now, no rangefinder height at 2.6 m above home" in texts(ctl)[-1]
+    # The time to touchdown judged from here is the autopilot's LAND's again: 2.6 m at 0.5 m/s.
+    assert ctl._descent_now().time_to_touchdown(2.6) == pytest.approx(2.6 / 0.5)
 
 
 def test_without_a_rangefinder_or_with_the_setting_off_the_land_is_commanded_at_land_alt():

@@ -600,8 +600,8 @@ class LandingController:
         the companion's own descent goes on down to ``land_agl_m`` and the autopilot's LAND is
         that much shorter."""
         s, low = self.status, self.config.land_agl_m
-        if low <= 0 or s is None or s.agl is None or low >= self.descent.land_alt_m:
-            return self.descent
+        if low <= 0 or s is None or s.agl is None or not math.isfinite(s.agl) or low >= self.descent.land_alt_m:
+            return self.descent  # no rangefinder height: the LAND at land_alt_m, as _low_target says
         return replace(self.descent, land_alt_m=low)
 
     def touchdown_clearance(self, track: Track) -> float | None:

@@ -92,9 +92,12 @@ def _time(row: dict[str, Any]) -> float | None:
     return float(t) if _landed(row) and isinstance(t, (int, float)) else None
 
 
-def _last_metres(row: dict[str, Any]) -> float | None:
-    t = row.get("last_metres_s")
-    return float(t) if isinstance(t, (int, float)) and not isinstance(t, bool) else None
+def _number(key: str) -> Callable[[dict[str, Any]], float | None]:
+    """The row's number under ``key`` (None when it has none, or not a number)."""
+    def get(row: dict[str, Any]) -> float | None:
+        v = row.get(key)
+        return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+    return get
 
 
 def _losses(row: dict[str, Any]) -> float | None:
@@ -102,18 +105,13 @@ def _losses(row: dict[str, Any]) -> float | None:
     return float(n) if isinstance(n, int) else None
 
 
-def _frame_p95(row: dict[str, Any]) -> float | None:
-    ms = row.get("frame_ms_p95")
-    return float(ms) if isinstance(ms, (int, float)) and not isinstance(ms, bool) else None
-
-
 #: Per-flight numbers compared pair by pair: name -> the number (None: the row cannot say).
 NUMERIC: dict[str, Callable[[dict[str, Any]], float | None]] = {
     "time from trigger to touchdown (s; both landed)": _time,
-    "time over the last 3.5 m (s; a walker's, unseen)": _last_metres,
+    "time over the last 3.5 m (s; a walker's, unseen)": _number("last_metres_s"),
     "phase changes": _phases,
     "zones given up over them": _losses,
-    "service frame time, p95 (ms; what starves a flight)": _frame_p95,
+    "service frame time, p95 (ms; what starves a flight)": _number("frame_ms_p95"),
 }
 
 

@@ -312,9 +312,16 @@ class VehicleStatus:
         return -self.down
 
     @property
+    def measured_agl(self) -> float | None:
+        """Metres above the ground below as the rangefinder measures it; None without a usable
+        reading (none fresh, or not a number)."""
+        return self.agl if self.agl is not None and math.isfinite(self.agl) else None
+
+    @property
     def height(self) -> float:
         """Metres above the ground below: a fresh downward rangefinder if any, else above home."""
-        return self.agl if self.agl is not None and math.isfinite(self.agl) else self.alt
+        agl = self.measured_agl
+        return self.alt if agl is None else agl
 
 
 class LandingController:
@@ -413,14 +420,14 @@ class LandingController:
             return self._low_land(f"on the ground at {status.height:.1f} m by the rangefinder")
         if self.phase == Phase.LAND and (status.on_ground or status.armed is False):
             self._set_phase(Phase.LANDED, f"landed in zone {self._zone_id()}",
-                            zone_id=None if self.target is None else self.target.id)
+                            zone_id=self._zone_id_or_none())
             return []
         if self.phase in FLYING and status.armed is False:
             # Disarmed outside our LAND: PX4's land detector disarms in OFFBOARD too (its heartbeat
             # still says OFFBOARD). Nothing more to command to a vehicle with its motors off.
             if status.on_ground:
                 self._set_phase(Phase.LANDED, f"vehicle on the ground and disarmed (zone {self._zone_id()})",
-                                zone_id=None if self.target is None else self.target.id)
+                                zone_id=self._zone_id_or_none())
             else:
                 self.target = None
                 self._set_phase(Phase.HANDBACK, "vehicle disarmed in the air: companion stops", warning=True,
@@ -600,7 +607,7 @@ class LandingController:
         the companion's own descent goes on down to ``land_agl_m`` and the autopilot's LAND is
         that much shorter."""
         s, low = self.status, self.config.land_agl_m
-        if low <= 0 or s is None or s.agl is None or not math.isfinite(s.agl) or low >= self.descent.land_alt_m:
+        if low <= 0 or s is None or s.measured_agl is None or low >= self.descent.land_alt_m:
             return self.descent  # no rangefinder height: the LAND at land_alt_m, as _low_target says
         return replace(self.descent, land_alt_m=low)
 
@@ -922,24 +929,22 @@ class LandingController:
         be commanded now: the setting off, no fresh rangefinder, or already that low. The target
         is fixed here, once, from one reading at the LAND height (a few metres at most), so no
         later reading can move it."""
-        c = self.config
-        if c.land_agl_m <= 0 or s.agl is None or not math.isfinite(s.agl):
+        c, agl = self.config, s.measured_agl
+        if c.land_agl_m <= 0 or agl is None or agl <= c.land_agl_m + LAND_AGL_REACHED_M:
             return None
-        if s.agl <= c.land_agl_m + LAND_AGL_REACHED_M:
-            return None
-        return s.alt - s.agl + c.land_agl_m
+        return s.alt - agl + c.land_agl_m
 
     def _low_step(self, s: VehicleStatus) -> list[Command]:
         """The companion's own committed descent to ``land_agl_m``, on every vehicle status: the
         autopilot's LAND once the rangefinder says the vehicle is there, or at once when it no
         longer gives a height (stale or out of range); meanwhile the target, re-sent as any other."""
         assert self._low_to is not None
-        c = self.config
-        if s.agl is None or not math.isfinite(s.agl):
+        agl = s.measured_agl
+        if agl is None:
             return self._low_land(f"no rangefinder height at {s.height:.1f} m above home")
         north, east, alt = self._low_to
-        if s.agl <= c.land_agl_m + LAND_AGL_REACHED_M or s.alt <= alt + LAND_AGL_REACHED_M:
-            return self._low_land(f"{s.agl:.1f} m above the ground by the rangefinder")
+        if agl <= self.config.land_agl_m + LAND_AGL_REACHED_M or s.alt <= alt + LAND_AGL_REACHED_M:
+            return self._low_land(f"{agl:.1f} m above the ground by the rangefinder")
         return self._goto(north, east, alt, self._zone_id_or_none())
 
     def _low_land(self, why: str) -> list[Command]:

@@ -116,6 +116,10 @@ def test_unknown_section(tmp_path: Path) -> None:
                                               r"to below the height where the LAND is commanded "
                                               r"\(controller\.land_alt_m, 4 m\)"),
         ("[controller]\nland_alt_m = 0\nland_agl_m = 10\n", r"controller\.land_alt_m, 10 m"),
+        # On by default (1 m): a LAND height at or below it names the key the user did not set,
+        # and how to turn it off.
+        ("[controller]\nland_alt_m = 1\n", r"controller\.land_agl_m \(1 m\) must be 0 \(off\).*"
+                                            r"controller\.land_agl_m = 0 turns it off"),
         ("[pipeline]\ncalm_margin_m = -1\n", r"pipeline\.calm_margin_m must be >= 0"),
         ("[pipeline]\noccupied_trail_s = 20\n", r"pipeline\.occupied_trail_s \(20\.0 s\) must not exceed "
                                                 r"pipeline\.map_memory_s"),

@@ -867,12 +867,17 @@ def failsafe_config(cfg: Config) -> FailsafeConfig:
 def from_recording(meta_config: Mapping[str, Any], overrides: Mapping[str, Any] | None = None) -> Config:
     """The settings a recording was flown with (its ``meta.json`` ``config``), with ``overrides``
     (dotted keys) on top, validated as a file would be. The signing key is never recorded (it
-    reads ``<redacted>``) and is dropped."""
+    reads ``<redacted>``) and is dropped. A recording without ``controller.land_agl_m`` was flown
+    before it existed, with the LAND at ``land_alt_m`` whatever the rangefinder said: 0 there,
+    not today's default."""
     raw = json.loads(json.dumps(dict(meta_config)))  # a deep copy of plain JSON data
     link = raw.get("link")
     if isinstance(link, dict):
         link.pop("signing_key", None)
         link.pop("signing_key_file", None)
+    controller = raw.setdefault("controller", {})
+    if isinstance(controller, dict):
+        controller.setdefault("land_agl_m", 0.0)
     for dotted, value in (overrides or {}).items():
         _set_dotted(raw, dotted, value)
     return from_dict(raw)

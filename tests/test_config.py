@@ -226,3 +226,13 @@ def test_the_search_settings_reach_the_controller() -> None:
     c = config.landing_config(config.load(None, {"controller.select_empty_s": 0.0, "controller.search_memory_s": 60.0,
                                                  "controller.hold_looks": True}))
     assert (c.select_empty_s, c.search_memory_s, c.hold_looks) == (0.0, 60.0, True)
+
+
+def test_a_recording_flown_before_land_agl_m_existed_is_read_with_it_off() -> None:
+    # Recordings hold the whole resolved config; one without controller.land_agl_m was flown
+    # before the setting existed, with the LAND at land_alt_m: replay must not figure its
+    # touchdowns with today's default (1 m by the rangefinder).
+    assert config.from_recording({"controller": {"land_alt_m": 4.0}}).controller.land_agl_m == 0.0
+    assert config.from_recording({}).controller.land_agl_m == 0.0
+    assert config.from_recording(config.load(None).to_dict()).controller.land_agl_m == 1.0
+    assert config.from_recording({}, {"controller.land_agl_m": 1.0}).controller.land_agl_m == 1.0

@@ -24,10 +24,14 @@ def _track(tid: int, x: float, y: float, r: float) -> Track:
                  r_view=20.0, born_t=100.0, last_t=101.0)
 
 
-def _recording(root: Path, n: int = 30) -> Path:
+def _recording(root: Path, n: int = 30, ranges: tuple[tuple[float, int], ...] = ()) -> Path:
+    """``ranges``: recorded downward DISTANCE_SENSOR readings (time s, distance cm)."""
     rec = FlightRecorder(root, fps=10, queue_size=n + 1, intrinsics=K, mount=Mount(),
-                         meta={"config": {"pipeline": {"head_height_m": 1.7}}})
+                         meta={"config": {"pipeline": {"head_height_m": 1.7}, "controller": {"land_agl_m": 1.0}}})
     path = rec.start()
+    for t, cm in ranges:
+        rec.add_event("telemetry", t, msg="DISTANCE_SENSOR", orientation=25, current_distance=cm,
+                      min_distance=20, max_distance=4000)
     grey = np.full((240, 320, 3), 90, np.uint8)  # plain ground: every colour on it is the drawing's
     target = _track(3, 2.0, 1.0, 4.0)
     rec.add_event("trigger", 100.5, reason="battery critical", source="battery")
@@ -133,3 +137,29 @@ def test_the_demo_evidence_video_replays_the_recording_with_the_risk_map(tmp_pat
     assert summary["frames"] == 6 and "pipeline.fusion=map" in summary["settings"]
     # A recording that cannot be replayed gives None and the demo goes on.
     assert evidence_video(tmp_path / "nothing-here", tmp_path / "x.mp4") is None
+
+
+def test_the_video_figures_clearance_from_the_recorded_rangefinder_as_the_controller_did(tmp_path: Path) -> None:
+    # Live, a fresh downward rangefinder gives the height the controller figures touchdown from
+    # and, with controller.land_agl_m, the shorter LAND: the video's labels follow it on the
+    # frames it was fresh for (a reading at 100.15 s: frames 2-6, at most 0.5 s old), only there.
+    from companion import config as settings
+    from companion.control.touchdown import by_rangefinder
+    from companion.recording import RecordingReader
+
+    plain = list(flight_video.frames(_recording(tmp_path / "plain", n=10)))
+    path = _recording(tmp_path / "ranged", n=10, ranges=((100.15, 1500),))
+    ranged = list(flight_video.frames(path))
+    differ = [i for i, (a, b) in enumerate(zip(plain, ranged)) if np.abs(a.astype(int) - b.astype(int)).sum() > 0]
+    assert differ == [2, 3, 4, 5, 6]
+    # Frame 4 drawn by hand as the controller figured it: 15 m by the rangefinder, the LAND from
+    # 1 m; the status line keeps the height above home.
+    fr = next(f for f in RecordingReader(path).frames() if f.index == 4)
+    assert fr.pose is not None
+    flown = settings.from_recording({"pipeline": {"head_height_m": 1.7}, "controller": {"land_agl_m": 1.0}})
+    profile = by_rangefinder(settings.descent_profile(flown), 1.0)
+    proj = PlaneProjection.from_pose(K, Mount(), fr.pose, 1.7)
+    tracks = [_track(3, 2.0, 1.0, 4.0), _track(5, -6.0, -6.0, 2.5)]
+    expect = flight_video.annotate(fr.frame_bgr, tracks, None, proj, "MONITOR", "", -fr.pose.down, None,
+                                   profile, 15.0)
+    assert np.array_equal(expect, ranged[4])

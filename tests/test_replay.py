@@ -336,6 +336,69 @@ def test_recording_replays_with_its_poses(work: dict[str, Path], tmp_path: Path)
     assert ok and img.shape[0] == 480 and img.shape[1] > 640 + 400  # head-plane panel beside
 
 
+def _range(t: float, cm: int, orientation: int = 25) -> dict[str, object]:
+    """A recorded DISTANCE_SENSOR telemetry line (the service writes the message's fields)."""
+    return {"t": t, "kind": "telemetry", "msg": "DISTANCE_SENSOR", "orientation": orientation,
+            "current_distance": cm, "min_distance": 20, "max_distance": 4000}
+
+
+def test_a_recordings_rangefinder_gives_the_height_the_service_had_at_each_moment() -> None:
+    from companion.replay.sources import RangefinderHeights
+
+    heights = RangefinderHeights(iter([
+        _range(1.0, 2100),
+        _range(1.2, 300, orientation=0),  # facing forward: leaves the downward reading as it was
+        _range(2.0, 5000),  # out of the sensor's range: no height from then on
+        {**_range(3.0, 800), "current_distance": True},  # malformed lines: skipped
+        {**_range(3.1, 800), "t": "soon"},
+        {**_range(3.2, 800), "t": math.nan},
+        {**_range(3.3, 800), "min_distance": None},
+        {"t": 4.0, "kind": "telemetry", "msg": "ATTITUDE", "roll": 0.0},
+        _range(5.0, 800),
+    ]))
+    assert heights.at(0.9) is None  # nothing measured yet
+    assert heights.at(1.0) == pytest.approx(21.0) and heights.at(1.4) == pytest.approx(21.0)
+    assert heights.at(1.6) is None  # over 0.5 s old: stale, as live
+    assert heights.at(2.1) is None and heights.at(3.4) is None
+    assert heights.at(5.2) == pytest.approx(8.0) and heights.at(5.6) is None
+
+
+def test_replay_figures_clearance_from_the_recorded_rangefinder_as_the_live_controller(
+        work: dict[str, Path], tmp_path: Path) -> None:
+    # The live controller figures a zone's clearance at touchdown from the rangefinder's height
+    # and, with controller.land_agl_m (1 m by default), a LAND only over the last metre; replay
+    # reads the recorded DISTANCE_SENSOR lines and figures it the same way.
+    from companion.recording import FlightRecorder
+
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    rec = FlightRecorder(tmp_path / "rec", intrinsics=K, mount=Mount(), fps=10.0)
+    run_dir = rec.start()
+    for k, s in enumerate(_scenes()[:5]):
+        assert rec.add_frame(k, 100.0 + 0.1 * k, synthetic.render(s, seed=k),
+                             Pose(100.0 + 0.1 * k, 10.0, -5.0, -25.0, 0.0, 0.0, 0.0))
+    # Ground 4 m above home: 21 m measured from 100.05 s (frames 1-3), out of range from 100.35 s.
+    for line in (_range(100.05, 2100), _range(100.35, 5000)):
+        assert rec.add_event(**line)
+    rec.close()
+    walked = {}
+    for name, extra in (("default", []), ("off", ["--set", "controller.land_agl_m=0"])):
+        out = tmp_path / name
+        assert main(["replay", str(run_dir), "--model", str(work["model"]), "--threads", "1", "--r0", "1",
+                     "--jsonl", str(out / "r.jsonl"), *extra]) == 0
+        walked[name] = {r["frame"]: {round(t["r"] - t["clearance_m"], 6) for t in r["tracks"]}
+                        for r in _read_jsonl(out / "r.jsonl") if r["tracks"]}
+    above_home = 1.5 * (21.0 / 1.5 + 4.0 / 0.5)  # 25 m above home: 21 m of descent, 4 m of LAND
+    by_range = 1.5 * (20.0 / 1.5 + 1.0 / 0.5)  # 21 m measured: 20 m of descent, 1 m of LAND
+    by_range_off = 1.5 * (17.0 / 1.5 + 4.0 / 0.5)  # 21 m measured, the LAND from 4 m
+    assert walked["default"] and walked["default"].keys() == walked["off"].keys()
+    for frame, values in walked["default"].items():
+        fresh = frame in (1, 2, 3)
+        assert all(v == pytest.approx(by_range if fresh else above_home, abs=1e-5) for v in values), frame
+        assert all(v == pytest.approx(by_range_off if fresh else above_home, abs=1e-5)
+                   for v in walked["off"][frame]), frame
+    assert {1, 2, 3} & walked["default"].keys() and {0, 4} & walked["default"].keys()
+
+
 def test_recording_replays_with_the_settings_it_was_flown_with(work: dict[str, Path], tmp_path: Path) -> None:
     from companion import config
     from companion.recording import FlightRecorder

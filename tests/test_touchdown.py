@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from companion.control.touchdown import DescentProfile, guaranteed_clearance
+from companion.control.touchdown import DescentProfile, by_rangefinder, guaranteed_clearance, touchdown_basis
 
 
 def test_time_to_touchdown_is_the_two_descents():
@@ -60,3 +60,23 @@ def test_guaranteed_clearance_refuses_nonsense():
         guaranteed_clearance(DescentProfile(), math.nan, K_SIM)
     with pytest.raises(ValueError):
         guaranteed_clearance(DescentProfile(), 10.0, -1.0)
+
+
+def test_by_the_rangefinder_the_autopilots_land_is_only_the_last_metres():
+    # controller.land_agl_m: the companion's own descent goes on to 1 m by the rangefinder, the
+    # autopilot's slow LAND flies only that metre.
+    p = DescentProfile(descend_speed_mps=1.5, land_alt_m=4.0, land_speed_mps=0.5)
+    low = by_rangefinder(p, 1.0)
+    assert low.land_alt_m == 1.0 and low.time_to_touchdown(10.0) == pytest.approx(9.0 / 1.5 + 1.0 / 0.5)
+    # Off, or not below the LAND height: the profile as it is.
+    assert by_rangefinder(p, 0.0) is p and by_rangefinder(p, 4.0) is p and by_rangefinder(p, 6.0) is p
+
+
+def test_the_touchdown_is_figured_from_a_fresh_rangefinder_else_from_above_home():
+    p = DescentProfile(descend_speed_mps=1.5, land_alt_m=4.0, land_speed_mps=0.5)
+    assert touchdown_basis(25.0, None, p, 1.0) == (25.0, p)
+    assert touchdown_basis(25.0, math.nan, p, 1.0) == (25.0, p)  # no usable reading
+    assert touchdown_basis(None, None, p, 1.0) == (None, p)
+    # Ground 4 m above home under the vehicle: 21 m by the rangefinder, and the shorter LAND.
+    assert touchdown_basis(25.0, 21.0, p, 1.0) == (21.0, by_rangefinder(p, 1.0))
+    assert touchdown_basis(25.0, 21.0, p, 0.0) == (21.0, p)  # the setting off: the height still

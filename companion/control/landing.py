@@ -84,7 +84,7 @@ from companion.control.commands import Command, Goto, Handback, Land, PositionTa
 from companion.control.events import Event, HandedBack, Holding, Note, Phase, PhaseChanged, TargetChosen
 from companion.control.obedience import ObedienceConfig, ObedienceMonitor, Sample
 from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner, seen_all_free
-from companion.control.touchdown import DescentProfile
+from companion.control.touchdown import DescentProfile, by_rangefinder
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
@@ -606,10 +606,10 @@ class LandingController:
         """The descent the vehicle will fly from here: with ``land_agl_m`` and a fresh rangefinder,
         the companion's own descent goes on down to ``land_agl_m`` and the autopilot's LAND is
         that much shorter."""
-        s, low = self.status, self.config.land_agl_m
-        if low <= 0 or s is None or s.measured_agl is None or low >= self.descent.land_alt_m:
+        s = self.status
+        if s is None or s.measured_agl is None:
             return self.descent  # no rangefinder height: the LAND at land_alt_m, as _low_target says
-        return replace(self.descent, land_alt_m=low)
+        return by_rangefinder(self.descent, self.config.land_agl_m)
 
     def touchdown_clearance(self, track: Track) -> float | None:
         """The least clearance (m) ``track`` can have at touchdown if the vehicle came down over it

@@ -13,7 +13,7 @@ the ground under the zone (above home when nothing better is known), speeds in m
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,29 @@ class DescentProfile:
         """The least clearance (m) a zone of ``clearance_now_m`` can have at touchdown from
         ``height_m``: less the distance a walker covers meanwhile (negative: somebody may be there)."""
         return clearance_now_m - self.walk_speed_mps * self.time_to_touchdown(height_m)
+
+
+def by_rangefinder(profile: DescentProfile, land_agl_m: float) -> DescentProfile:
+    """The descent when a fresh downward rangefinder measures the height (``controller.land_agl_m``,
+    docs/design.md, "The last metres by the rangefinder"): the companion's own descent goes on
+    down to ``land_agl_m`` above the ground and the autopilot's LAND flies only that. ``profile``
+    itself when ``land_agl_m`` is 0 (off) or not below the profile's LAND height. One rule for the
+    controller and for replay's ``clearance_m``."""
+    if not 0 < land_agl_m < profile.land_alt_m:
+        return profile
+    return replace(profile, land_alt_m=land_agl_m)
+
+
+def touchdown_basis(alt_m: float | None, agl_m: float | None, profile: DescentProfile,
+                    land_agl_m: float) -> tuple[float | None, DescentProfile]:
+    """The height a touchdown time is figured from and the descent flown from it, as the landing
+    controller figures them (``VehicleStatus.height``, ``LandingController._descent_now``): a
+    fresh downward rangefinder's height ``agl_m`` and the descent by it (``by_rangefinder``),
+    else the height above home ``alt_m`` (None: unknown) and ``profile`` as it is. For replay,
+    which reads both from a recording."""
+    if agl_m is not None and math.isfinite(agl_m):
+        return agl_m, by_rangefinder(profile, land_agl_m)
+    return alt_m, profile
 
 
 def guaranteed_clearance(profile: DescentProfile, height_m: float, view_ratio: float, head_m: float = 1.7,

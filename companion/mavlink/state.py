@@ -117,6 +117,22 @@ class Battery:
     time_remaining_s: float | None = None  # BATTERY_STATUS.time_remaining; None when 0 (not given)
 
 
+#: A rangefinder reading older than this (s) is no height above ground: the vehicle may have moved
+#: a metre and more since (the controller's low descent comes down at 1.5 m/s).
+RANGEFINDER_MAX_AGE_S = 0.5
+#: DISTANCE_SENSOR.orientation of a rangefinder facing down (25), the only one that measures height.
+DOWNWARD_ORIENTATION: int = m.MAV_SENSOR_ROTATION_PITCH_270
+
+
+def downward_range_m(orientation: int, current_cm: int, min_cm: int, max_cm: int) -> float | None:
+    """DISTANCE_SENSOR's fields as metres above the ground, or None: not facing down
+    (MAV_SENSOR_ROTATION_PITCH_270), or outside the sensor's own valid range. One rule for the
+    live state and for replay, which reads the recorded messages."""
+    if orientation != DOWNWARD_ORIENTATION or not min_cm <= current_cm <= max_cm:
+        return None
+    return current_cm / 100.0
+
+
 @dataclass(frozen=True)
 class Rangefinder:
     """DISTANCE_SENSOR facing down: metres above ground, when within the sensor's valid range."""
@@ -305,13 +321,11 @@ class VehicleState:
         self.battery = self.battery_status
 
     def _on_distance_sensor(self, msg: Any, t: float) -> None:
-        if msg.orientation != m.MAV_SENSOR_ROTATION_PITCH_270:
+        if msg.orientation != DOWNWARD_ORIENTATION:
             return  # only a downward rangefinder measures height above ground
-        d_cm = msg.current_distance
-        if msg.min_distance <= d_cm <= msg.max_distance:
-            self.rangefinder = Rangefinder(t, d_cm / 100.0)
-        else:
-            self.rangefinder = None  # out of range: no height above ground rather than a wrong one
+        d = downward_range_m(msg.orientation, msg.current_distance, msg.min_distance, msg.max_distance)
+        # Out of range: no height above ground rather than a wrong one.
+        self.rangefinder = None if d is None else Rangefinder(t, d)
 
     def _on_gimbal_device_attitude_status(self, msg: Any, t: float) -> None:
         q = tuple(float(v) for v in msg.q)
@@ -360,7 +374,7 @@ class VehicleState:
         """Metres above home from the latest position (GLOBAL_POSITION_INT.relative_alt)."""
         return None if self.position is None else self.position.relative_alt_m
 
-    def altitude_above_ground(self, now: float, max_age_s: float = 0.5) -> float | None:
+    def altitude_above_ground(self, now: float, max_age_s: float = RANGEFINDER_MAX_AGE_S) -> float | None:
         """Metres above ground from a fresh downward rangefinder, else None (not measured)."""
         rf = self.rangefinder
         if rf is None or now - rf.t > max_age_s:

@@ -270,7 +270,7 @@ def replay_input(args: argparse.Namespace, path: Path, out: OutputPaths,
         try:
             summary = replay(source, pipe, ReplayOutputs(jsonl, out.masks, video), use_pose,
                              max_frames=args.max_frames, progress=progress, planner=planner,
-                             descent=settings.descent_profile(cfg))
+                             descent=settings.descent_profile(cfg), land_agl_m=cfg.controller.land_agl_m)
         except ReplayOutputError as exc:
             raise _Fail(str(exc)) from None
     finally:

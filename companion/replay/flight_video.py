@@ -5,7 +5,8 @@ flew to (the ``zones`` events, matched to the frame by its camera index), the co
 and last message (the ``controller`` events), the height above home (the frame's recorded pose)
 and the time from the failsafe trigger (the ``trigger`` event); each zone is labelled with its
 predicted clearance at touchdown if the vehicle committed on that frame (the flight's own descent
-settings, ``companion.control.touchdown``). The recording holds no density
+settings, from a fresh recorded rangefinder's height where there was one, as the controller
+figured it: ``companion.control.touchdown.touchdown_basis``). The recording holds no density
 or occupancy maps, so people are not marked: the picture is the decision, not the evidence;
 ``companion replay`` re-runs the pipeline when the evidence is wanted.
 
@@ -26,12 +27,13 @@ import cv2
 import numpy as np
 
 from companion import config as settings
-from companion.control.touchdown import DescentProfile
+from companion.control.touchdown import DescentProfile, touchdown_basis
 from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.occupancy import FREE
 from companion.pipeline.tracker import Track
 from companion.recording import RecordingReader
 from companion.replay import draw
+from companion.replay.sources import RangefinderHeights
 
 TITLE = "companion: what the service decided (its flight recording)"
 HEADER_PX, FOOTER_PX = 28, 48
@@ -88,15 +90,17 @@ def _legend(img: np.ndarray) -> None:
 
 def annotate(frame_bgr: np.ndarray, tracks: list[Track], target_id: int | None, proj: PlaneProjection | None,
              phase: str, message: str, height_m: float | None, t_rel: float | None,
-             descent: DescentProfile | None = None) -> np.ndarray:
+             descent: DescentProfile | None = None, touchdown_from_m: float | None = None) -> np.ndarray:
     """One video frame: title bar, the frame with the tracks and target (each with its predicted
-    clearance at touchdown when ``descent`` and the height are known), a legend, and a status
+    clearance at touchdown when ``descent`` and the height are known: from ``touchdown_from_m``
+    above the ground when given, a rangefinder's, else from ``height_m``), a legend, and a status
     line (phase, height above home in metres, time from the trigger in seconds, last message)."""
     h, w = frame_bgr.shape[:2]
     if proj is not None:
         clearances = None
-        if descent is not None and height_m is not None:
-            clearances = draw.touchdown_clearances(tracks, descent, height_m)
+        start = height_m if touchdown_from_m is None else touchdown_from_m
+        if descent is not None and start is not None:
+            clearances = draw.touchdown_clearances(tracks, descent, start)
         view = draw.draw_image_view(frame_bgr, np.full((h, w), FREE, np.uint8), proj, [], tracks, target_id,
                                     clearances=clearances)
     else:
@@ -122,10 +126,14 @@ def frames(recording: Path) -> Iterator[np.ndarray]:
     zones = {int(e["frame"]): e for e in events if e.get("kind") == "zones" and isinstance(e.get("frame"), int)}
     timeline = _Timeline(events)
     head = float(((reader.meta.get("config") or {}).get("pipeline") or {}).get("head_height_m", 1.7))
+    land_agl_m = 0.0
     try:
-        descent: DescentProfile | None = settings.descent_profile(settings.from_recording(reader.meta.get("config") or {}))
+        cfg = settings.from_recording(reader.meta.get("config") or {})
+        descent: DescentProfile | None = settings.descent_profile(cfg)
+        land_agl_m = cfg.controller.land_agl_m
     except (settings.ConfigError, TypeError, ValueError):
         descent = None  # a recording from another version: zones without their clearance
+    rangefinder = RangefinderHeights(reader.events("telemetry"))
     for fr in reader.frames():
         z = zones.get(fr.index, {})
         tracks = [t for t in (_track(d) for d in z.get("tracks", []) if isinstance(d, dict)) if t is not None]
@@ -138,11 +146,15 @@ def frames(recording: Path) -> Iterator[np.ndarray]:
         phase, message = timeline.at(fr.t)
         t_rel = None if timeline.trigger_t is None or fr.t < timeline.trigger_t else fr.t - timeline.trigger_t
         height = None if fr.pose is None else -fr.pose.down
+        # The clearance as the controller figured it live: from a fresh rangefinder's height,
+        # the descent going on down to land_agl_m by it.
+        agl = rangefinder.at(fr.t)
+        start, profile = touchdown_basis(height, agl, descent, land_agl_m) if descent is not None else (height, None)
         image = fr.frame_bgr
         if reader.intrinsics is not None and image.shape[:2] != (reader.intrinsics.height, reader.intrinsics.width):
             image = cv2.resize(image, (reader.intrinsics.width, reader.intrinsics.height))
         yield annotate(image, tracks, z.get("target") if isinstance(z.get("target"), int) else None,
-                       proj, phase, message, height, t_rel, descent)
+                       proj, phase, message, height, t_rel, profile, start)
 
 
 def write_h264(recording: Path, out: Path, fps: float | None = None,

@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from companion.control.planner import PlannerConfig, ZonePlanner
-from companion.control.touchdown import DescentProfile
+from companion.control.touchdown import DescentProfile, touchdown_basis
 from companion.geometry.camera import GeometryError
 from companion.pipeline.density import DensityModelError
 from companion.pipeline.slz import FrameResult, SLZPipeline
@@ -129,11 +129,15 @@ def _log_skip(counts: dict[str, int], reason: str, index: int, why: str) -> None
 def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_pose: bool,
            max_frames: int | None = None, progress: bool | None = None,
            on_result: Callable[[ReplayFrame, FrameResult], None] | None = None,
-           planner: ZonePlanner | None = None, descent: DescentProfile | None = None) -> dict[str, Any]:
+           planner: ZonePlanner | None = None, descent: DescentProfile | None = None,
+           land_agl_m: float = 0.0) -> dict[str, Any]:
     """Run ``pipe`` over ``source``; returns the summary (see summary.SummaryBuilder.build).
 
     descent: the time to touchdown from a frame's height, for each track's ``clearance_m`` in the
-    JSONL (frames with a pose only); default ``DescentProfile()``.
+    JSONL (frames with a pose only); default ``DescentProfile()``. land_agl_m: the flight's
+    ``controller.land_agl_m``: where a recording's downward rangefinder was fresh at a frame
+    (``ReplayFrame.agl``), the height is the rangefinder's and the descent goes on down to it
+    before the LAND, as the live controller figured it (``touchdown_basis``).
 
     planner: picks the target of each frame (the JSONL ``target``, the video's highlighted zone,
     the summary's switches) by the landing controller's rule; default: the default settings with
@@ -168,19 +172,17 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
             target = frame_target(result, planner)
             target_id = None if target is None else target.id
             summary.add_frame(frame.t, result.timings_ms, target_id)
+            posed = use_pose and frame.pose is not None
+            height, profile = touchdown_basis(-frame.pose.down if posed and frame.pose is not None else None,
+                                              frame.agl if posed else None, descent or DescentProfile(), land_agl_m)
             if outputs.jsonl is not None:
-                height = -frame.pose.down if use_pose and frame.pose is not None else None
-                outputs.jsonl.write(dumps_record(frame_record(frame.index, result, planner, height,
-                                                              descent or DescentProfile())) + "\n")
+                outputs.jsonl.write(dumps_record(frame_record(frame.index, result, planner, height, profile)) + "\n")
             if outputs.masks is not None:
                 path = outputs.masks / mask_name(frame.index)
                 if not cv2.imwrite(str(path), occupied_mask_image(result.occupancy)):
                     raise ReplayOutputError(f"cannot write the mask {path}")
             if outputs.video is not None:
-                posed = use_pose and frame.pose is not None
-                clearances = None
-                if posed and frame.pose is not None:  # (posed says it; mypy needs it said here)
-                    clearances = draw.touchdown_clearances(result.tracks, descent or DescentProfile(), -frame.pose.down)
+                clearances = None if height is None else draw.touchdown_clearances(result.tracks, profile, height)
                 outputs.video.write(draw.figure(
                     frame.image, result.occupancy, result.projection, result.proposals,
                     result.tracks, target_id,

@@ -7,6 +7,7 @@ Problems that make the whole input unusable raise :class:`ReplayInputError` nami
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -18,6 +19,7 @@ import numpy as np
 
 from companion.frames import IMAGE_SUFFIXES, as_bgr, image_files, read_image, read_video_frame
 from companion.geometry.camera import Intrinsics, Mount, Pose
+from companion.mavlink.state import DOWNWARD_ORIENTATION, RANGEFINDER_MAX_AGE_S, downward_range_m
 from companion.recording import RecordingError, RecordingReader
 
 KINDS = ("auto", "frames", "video", "recording")
@@ -39,6 +41,9 @@ class ReplayFrame:
     pose: Pose | None = None
     problem: str | None = None
     name: str = ""
+    #: Metres above the ground by a fresh downward rangefinder at capture (a recording's
+    #: DISTANCE_SENSOR telemetry at most ``RANGEFINDER_MAX_AGE_S`` old), else None.
+    agl: float | None = None
 
 
 @dataclass
@@ -122,6 +127,38 @@ def open_video(path: Path, fps: float | None) -> ReplaySource:
     return ReplaySource("video", path, frames(), total=count or None, fps=rate)
 
 
+class RangefinderHeights:
+    """A recording's downward rangefinder over time, from its DISTANCE_SENSOR telemetry lines:
+    the height above the ground the live service had at any moment (``at``), by the service's
+    own rule (``companion.mavlink.state``). A reading out of the sensor's range ends the last one,
+    as it does live; a malformed line is skipped."""
+
+    def __init__(self, telemetry: Iterator[dict[str, Any]]) -> None:
+        readings: list[tuple[float, float | None]] = []
+        for e in telemetry:
+            if e.get("msg") != "DISTANCE_SENSOR":
+                continue
+            t = e.get("t")
+            fields = [v for v in (e.get(k) for k in ("orientation", "current_distance", "min_distance",
+                                                      "max_distance")) if isinstance(v, int) and not isinstance(v, bool)]
+            if not isinstance(t, (int, float)) or not math.isfinite(t) or len(fields) != 4:
+                continue
+            if fields[0] != DOWNWARD_ORIENTATION:
+                continue  # another sensor's reading leaves the downward one as it was, as live
+            readings.append((float(t), downward_range_m(*fields)))
+        readings.sort(key=lambda r: r[0])
+        self._t = [r[0] for r in readings]
+        self._m = [r[1] for r in readings]
+
+    def at(self, t: float) -> float | None:
+        """Metres above the ground at ``t`` (s, the recording's clock): the latest reading at or
+        before ``t``, at most ``RANGEFINDER_MAX_AGE_S`` old and within range; else None."""
+        i = bisect.bisect_right(self._t, t)
+        if i == 0 or t - self._t[i - 1] > RANGEFINDER_MAX_AGE_S:
+            return None
+        return self._m[i - 1]
+
+
 def open_recording(path: Path) -> ReplaySource:
     """A flight recording made by the service (``companion.recording``)."""
     if not path.exists():
@@ -131,11 +168,13 @@ def open_recording(path: Path) -> ReplaySource:
     except RecordingError as exc:
         raise ReplayInputError(str(exc)) from None
 
+    heights = RangefinderHeights(reader.events("telemetry"))
+
     def frames() -> Iterator[ReplayFrame]:
         for rec in reader.frames():
             img = as_bgr(rec.frame_bgr)
             problem = None if img is not None else f"{path}: recorded frame {rec.index} is not an image"
-            yield ReplayFrame(int(rec.index), float(rec.t), img, rec.pose, problem)
+            yield ReplayFrame(int(rec.index), float(rec.t), img, rec.pose, problem, agl=heights.at(float(rec.t)))
 
     def upstream() -> dict[str, int]:
         st = reader.stats

@@ -133,7 +133,7 @@ def frames(recording: Path) -> Iterator[np.ndarray]:
         land_agl_m = cfg.controller.land_agl_m
     except (settings.ConfigError, TypeError, ValueError):
         descent = None  # a recording from another version: zones without their clearance
-    rangefinder = RangefinderHeights(reader.events("telemetry"))
+    rangefinder = RangefinderHeights(e for e in events if e.get("kind") == "telemetry")
     for fr in reader.frames():
         z = zones.get(fr.index, {})
         tracks = [t for t in (_track(d) for d in z.get("tracks", []) if isinstance(d, dict)) if t is not None]

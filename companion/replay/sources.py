@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -133,7 +133,7 @@ class RangefinderHeights:
     own rule (``companion.mavlink.state``). A reading out of the sensor's range ends the last one,
     as it does live; a malformed line is skipped."""
 
-    def __init__(self, telemetry: Iterator[dict[str, Any]]) -> None:
+    def __init__(self, telemetry: Iterable[dict[str, Any]]) -> None:
         readings: list[tuple[float, float | None]] = []
         for e in telemetry:
             if e.get("msg") != "DISTANCE_SENSOR":

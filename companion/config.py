@@ -302,13 +302,13 @@ class ControllerSettings:
                                 "(somebody within r0: HOLD); a shorter slow LAND leaves walkers less time to "
                                 "reach the landing point; 0 = LAND at descend_alt_m (docs/design.md)",
                           min=0.0, max=200.0)
-    land_agl_m: float = _f(1.0, "with a fresh downward rangefinder, the LAND commanded at land_alt_m is first "
+    land_agl_m: float = _f(0.0, "with a fresh downward rangefinder, the LAND commanded at land_alt_m is first "
                                 "the companion's own committed descent, straight down at descend_speed_mps, to "
                                 "this height above the ground the rangefinder measures, and the autopilot's "
                                 "slower LAND only there (m); without a fresh rangefinder, or when it goes stale "
-                                "or out of range on the way, the LAND at once; 0 = off (the LAND at land_alt_m "
-                                "whatever the rangefinder says); on by default since its written rule was met "
-                                "(docs/design.md, \"The last metres by the rangefinder\")", min=0.0, max=200.0)
+                                "or out of range on the way, the LAND at once; 0 = off, the default until a "
+                                "fair measurement says otherwise (docs/design.md, \"The last metres by the "
+                                "rangefinder\"); 1 m is the value measured", min=0.0, max=200.0)
     descend_speed_mps: float = _f(1.5, "how fast the stepped descent comes down (m/s; ArduPilot WPNAV_SPEED_DN, "
                                        "PX4 MPC_Z_VEL_MAX_DN): the time to touchdown", min=0.1, max=10.0)
     land_speed_mps: float = _f(0.5, "the autopilot's LAND descent speed (m/s; ArduPilot LAND_SPEED 50 cm/s, "
@@ -580,8 +580,7 @@ def _cross_checks(cfg: Config) -> None:
         raise ConfigError(f"controller.land_agl_m ({c.land_agl_m:g} m) must be 0 (off) or from "
                           f"{LAND_AGL_MIN_M:g} m up to below the height where the LAND is commanded "
                           f"(controller.land_alt_m, {lands_at:g} m): the companion's descent goes on "
-                          "below that, by the rangefinder, to it (it is 1 m unless set; "
-                          "controller.land_agl_m = 0 turns it off)")
+                          "below that, by the rangefinder, to it")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")

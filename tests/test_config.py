@@ -116,10 +116,6 @@ def test_unknown_section(tmp_path: Path) -> None:
                                               r"to below the height where the LAND is commanded "
                                               r"\(controller\.land_alt_m, 4 m\)"),
         ("[controller]\nland_alt_m = 0\nland_agl_m = 10\n", r"controller\.land_alt_m, 10 m"),
-        # On by default (1 m): a LAND height at or below it names the key the user did not set,
-        # and how to turn it off.
-        ("[controller]\nland_alt_m = 1\n", r"controller\.land_agl_m \(1 m\) must be 0 \(off\).*"
-                                            r"controller\.land_agl_m = 0 turns it off"),
         ("[pipeline]\ncalm_margin_m = -1\n", r"pipeline\.calm_margin_m must be >= 0"),
         ("[pipeline]\noccupied_trail_s = 20\n", r"pipeline\.occupied_trail_s \(20\.0 s\) must not exceed "
                                                 r"pipeline\.map_memory_s"),
@@ -231,8 +227,9 @@ def test_the_search_settings_reach_the_controller() -> None:
 def test_a_recording_flown_before_land_agl_m_existed_is_read_with_it_off() -> None:
     # Recordings hold the whole resolved config; one without controller.land_agl_m was flown
     # before the setting existed, with the LAND at land_alt_m: replay must not figure its
-    # touchdowns with today's default (1 m by the rangefinder).
+    # touchdowns with whatever the default is today.
     assert config.from_recording({"controller": {"land_alt_m": 4.0}}).controller.land_agl_m == 0.0
     assert config.from_recording({}).controller.land_agl_m == 0.0
-    assert config.from_recording(config.load(None).to_dict()).controller.land_agl_m == 1.0
+    flown = config.load(None, {"controller.land_agl_m": 1.0}).to_dict()
+    assert config.from_recording(flown).controller.land_agl_m == 1.0
     assert config.from_recording({}, {"controller.land_agl_m": 1.0}).controller.land_agl_m == 1.0

@@ -366,7 +366,7 @@ def test_a_recordings_rangefinder_gives_the_height_the_service_had_at_each_momen
 def test_replay_figures_clearance_from_the_recorded_rangefinder_as_the_live_controller(
         work: dict[str, Path], tmp_path: Path) -> None:
     # The live controller figures a zone's clearance at touchdown from the rangefinder's height
-    # and, with controller.land_agl_m (1 m by default), a LAND only over the last metre; replay
+    # and, with controller.land_agl_m (off by default), a LAND only over the last metre; replay
     # reads the recorded DISTANCE_SENSOR lines and figures it the same way.
     from companion.recording import FlightRecorder
 
@@ -381,7 +381,7 @@ def test_replay_figures_clearance_from_the_recorded_rangefinder_as_the_live_cont
         assert rec.add_event(**line)
     rec.close()
     walked = {}
-    for name, extra in (("default", []), ("off", ["--set", "controller.land_agl_m=0"])):
+    for name, extra in (("on", ["--set", "controller.land_agl_m=1"]), ("off", [])):
         out = tmp_path / name
         assert main(["replay", str(run_dir), "--model", str(work["model"]), "--threads", "1", "--r0", "1",
                      "--jsonl", str(out / "r.jsonl"), *extra]) == 0
@@ -390,13 +390,13 @@ def test_replay_figures_clearance_from_the_recorded_rangefinder_as_the_live_cont
     above_home = 1.5 * (21.0 / 1.5 + 4.0 / 0.5)  # 25 m above home: 21 m of descent, 4 m of LAND
     by_range = 1.5 * (20.0 / 1.5 + 1.0 / 0.5)  # 21 m measured: 20 m of descent, 1 m of LAND
     by_range_off = 1.5 * (17.0 / 1.5 + 4.0 / 0.5)  # 21 m measured, the LAND from 4 m
-    assert walked["default"] and walked["default"].keys() == walked["off"].keys()
-    for frame, values in walked["default"].items():
+    assert walked["on"] and walked["on"].keys() == walked["off"].keys()
+    for frame, values in walked["on"].items():
         fresh = frame in (1, 2, 3)
         assert all(v == pytest.approx(by_range if fresh else above_home, abs=1e-5) for v in values), frame
         assert all(v == pytest.approx(by_range_off if fresh else above_home, abs=1e-5)
                    for v in walked["off"][frame]), frame
-    assert {1, 2, 3} & walked["default"].keys() and {0, 4} & walked["default"].keys()
+    assert {1, 2, 3} & walked["on"].keys() and {0, 4} & walked["on"].keys()
 
 
 def test_recording_replays_with_the_settings_it_was_flown_with(work: dict[str, Path], tmp_path: Path) -> None:

@@ -306,9 +306,9 @@ class ControllerSettings:
                                 "the companion's own committed descent, straight down at descend_speed_mps, to "
                                 "this height above the ground the rangefinder measures, and the autopilot's "
                                 "slower LAND only there (m); without a fresh rangefinder, or when it goes stale "
-                                "or out of range on the way, the LAND at once; 0 = off, the default until a "
-                                "fair measurement says otherwise (docs/design.md, \"The last metres by the "
-                                "rangefinder\"); 1 m is the value measured", min=0.0, max=200.0)
+                                "or out of range on the way, the LAND at once; 0 = off, the default (docs/design.md, "
+                                "\"The last metres by the rangefinder\": measured, and why it stays off); "
+                                "1 m is the value measured", min=0.0, max=200.0)
     descend_speed_mps: float = _f(1.5, "how fast the stepped descent comes down (m/s; ArduPilot WPNAV_SPEED_DN, "
                                        "PX4 MPC_Z_VEL_MAX_DN): the time to touchdown", min=0.1, max=10.0)
     land_speed_mps: float = _f(0.5, "the autopilot's LAND descent speed (m/s; ArduPilot LAND_SPEED 50 cm/s, "

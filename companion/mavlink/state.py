@@ -124,13 +124,12 @@ RANGEFINDER_MAX_AGE_S = 0.5
 DOWNWARD_ORIENTATION: int = m.MAV_SENSOR_ROTATION_PITCH_270
 
 
-def downward_range_m(orientation: int, current_cm: int, min_cm: int, max_cm: int) -> float | None:
-    """DISTANCE_SENSOR's fields as metres above the ground, or None: not facing down
-    (MAV_SENSOR_ROTATION_PITCH_270), or outside the sensor's own valid range. One rule for the
-    live state and for replay, which reads the recorded messages."""
-    if orientation != DOWNWARD_ORIENTATION or not min_cm <= current_cm <= max_cm:
-        return None
-    return current_cm / 100.0
+def downward_range_m(current_cm: int, min_cm: int, max_cm: int) -> float | None:
+    """A downward DISTANCE_SENSOR's fields (``DOWNWARD_ORIENTATION``; callers skip the others,
+    which leave the height as it was) as metres above the ground, or None outside the sensor's
+    own valid range. One rule for the live state and for replay, which reads the recorded
+    messages."""
+    return current_cm / 100.0 if min_cm <= current_cm <= max_cm else None
 
 
 @dataclass(frozen=True)
@@ -323,7 +322,7 @@ class VehicleState:
     def _on_distance_sensor(self, msg: Any, t: float) -> None:
         if msg.orientation != DOWNWARD_ORIENTATION:
             return  # only a downward rangefinder measures height above ground
-        d = downward_range_m(msg.orientation, msg.current_distance, msg.min_distance, msg.max_distance)
+        d = downward_range_m(msg.current_distance, msg.min_distance, msg.max_distance)
         # Out of range: no height above ground rather than a wrong one.
         self.rangefinder = None if d is None else Rangefinder(t, d)
 

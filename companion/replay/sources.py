@@ -145,7 +145,7 @@ class RangefinderHeights:
                 continue
             if fields[0] != DOWNWARD_ORIENTATION:
                 continue  # another sensor's reading leaves the downward one as it was, as live
-            readings.append((float(t), downward_range_m(*fields)))
+            readings.append((float(t), downward_range_m(*fields[1:])))
         readings.sort(key=lambda r: r[0])
         self._t = [r[0] for r in readings]
         self._m = [r[1] for r in readings]

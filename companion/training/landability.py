@@ -50,6 +50,7 @@ from companion.training import model as M
 from companion.training.augment import photometric
 from companion.training.distill import Phase, lr_factor
 from companion.training.export import set_metadata
+from companion.training.tensor_crops import TensorCrops
 
 log = logging.getLogger("companion.training.landability")
 
@@ -379,13 +380,19 @@ def train(args: argparse.Namespace) -> Path:
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda k: min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(k, args.steps) / args.steps)))
     batches = None
+    crops: TensorCrops | None = None
+    if args.tensor_crops:
+        crops = TensorCrops(train_set.images, train_set.levels, len(LEVELS), device, STRIDE)
+        crop_rng = torch.Generator(device=device)
+        crop_rng.manual_seed(args.seed)
+        log.info("tensor crops: %d training photos on %s", len(train_set.images), device)
     if args.workers:
         batches = iter(torch.utils.data.DataLoader(
             BatchStream(train_set, args.batch, args.crop, args.seed), batch_size=None,
             num_workers=args.workers, prefetch_factor=4, persistent_workers=True,
             pin_memory=device.type == "cuda"))
     phase = Phase(0 if budget else args.steps, budget)
-    running = 0.0
+    running = torch.zeros((), device=device)
     hard: HardCells | None = None
     net.train()
     while not phase.done():
@@ -399,8 +406,11 @@ def train(args: argparse.Namespace) -> Path:
             log.info("step %d: mined %d false-landable and %d false-unlandable cells on %d of %d training "
                      "photos in %.1f s", phase.k, len(hard) - wrong_way, wrong_way, len(np.unique(hard.photo)),
                      len(train_set.images), time.monotonic() - tm)
-        x, y = (next(batches) if batches is not None
-                else make_batch(train_set, args.batch, args.crop, rng, hard, args.hard_share))
+        if crops is not None:
+            x, y = crops.batch(args.batch, args.crop, crop_rng)
+        else:
+            x, y = (next(batches) if batches is not None
+                    else make_batch(train_set, args.batch, args.crop, rng, hard, args.hard_share))
         if device.type != "cpu":
             x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
         batch_loss = loss(net(x), y, weights)
@@ -409,15 +419,16 @@ def train(args: argparse.Namespace) -> Path:
         opt.step()
         if not budget:
             sched.step()
-        running += batch_loss.item()
+        # Summed on the device: reading the loss each step would wait for the GPU each step.
+        running += batch_loss.detach()
         phase.k += 1
         step = phase.k
         if step % 50 == 0 or (not budget and step == args.steps):
             el = time.monotonic() - phase.t0
             log.info("step %d%s loss %.4f lr %.2e %.3f s/step elapsed %.1f min", step,
-                     "" if budget else f"/{args.steps}", running / (50 if step % 50 == 0 else step % 50),
+                     "" if budget else f"/{args.steps}", float(running) / (50 if step % 50 == 0 else step % 50),
                      opt.param_groups[0]["lr"], el / step, el / 60)
-            running = 0.0
+            running = torch.zeros((), device=device)
     step, t0 = phase.k, phase.t0
     log.info("trained %d steps, %d crops, in %.1f min", step, step * args.batch, (time.monotonic() - t0) / 60)
     net = net.cpu().eval()
@@ -433,7 +444,7 @@ def train(args: argparse.Namespace) -> Path:
     for name, share in left_landable_by_level(pix, val_set.levels, thr).items():
         log.info("validation: %s pixels left landable at %.3f: %.2f %%", name, thr, 100 * share)
     note = (f"steps={step} batch={args.batch} crop={args.crop} lr={args.lr} seed={args.seed} width={args.width} "
-            f"workers={args.workers} seconds={args.seconds:g} context={args.context} "
+            f"workers={args.workers} tensor_crops={int(args.tensor_crops)} seconds={args.seconds:g} context={args.context} "
             f"level_weights={','.join(f'{w:g}' for w in level_weights)} "
             + (f"hard_share={args.hard_share:g} mine={args.mine} mine_every={args.mine_every} "
                f"mine_threshold={args.mine_threshold:g} " if args.hard_share > 0 else "") +
@@ -500,6 +511,9 @@ def configure(p: argparse.ArgumentParser) -> None:
                    help="train for this long instead of --steps (the learning-rate cosine follows the time)")
     p.add_argument("--workers", type=int, default=0,
                    help="make the crops in this many worker processes (0: in the training loop)")
+    p.add_argument("--tensor-crops", action="store_true",
+                   help="make the crops on --device from the photos held there (companion.training.tensor_crops): "
+                        "on a GPU, no CPU worker limits the steps; the CPU path's changes, two approximated")
     p.add_argument("--max-images", type=int, default=0,
                    help="use only the first N photos of the training split (quick runs and tests; 0: all)")
     p.add_argument("--hard-share", type=float, default=0.0,
@@ -536,6 +550,8 @@ def run(args: argparse.Namespace) -> int:
                              f"got {args.hard_share}, {args.mine_every} and {args.mine_threshold}")
         if args.hard_share > 0 and args.workers:
             raise ValueError("--hard-share mines in the training loop: use it with --workers 0")
+        if args.tensor_crops and (args.workers or args.hard_share > 0):
+            raise ValueError("--tensor-crops makes the crops on the device: it takes no --workers or --hard-share")
         if args.max_images < 0:
             raise ValueError(f"--max-images must be >= 0, got {args.max_images}")
         weights_with(args.level_weight)

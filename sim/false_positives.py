@@ -9,6 +9,11 @@ occupancy step, and the share of the free circle's head-plane area marked occupi
 (plus the share of the whole frame). Anything marked is a false positive: paths across lawns,
 benches, trees. A zone's landing point can only be as central as the lawn the model leaves free
 (docs/design.md, "Why landing points sit at a lawn's edge").
+
+``--landability FILE.onnx`` asks the same of a landability model instead: the share of the lawn it
+calls unlandable (every level but its landable one, summed, above its own threshold, through the
+service's ``surface_free_map``). A lawn is landable ground, so anything marked is a mistake there
+too; the landability card's "On the simulator's ground" quotes these figures.
 """
 
 from __future__ import annotations
@@ -25,7 +30,8 @@ import numpy as np
 from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.density import DensityModel
-from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map
+from companion.pipeline.landability import LandabilityModel
+from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.slz import PipelineConfig
 from sim.flight import build_world
 from sim.ground import ProceduralGround
@@ -52,6 +58,17 @@ class LawnFigure:
     frame_pct: float
 
 
+def marked_map(model: DensityModel, img: np.ndarray) -> np.ndarray:
+    """(H, W) bool: where the service's occupancy step, fed by ``model`` at its own threshold,
+    marks the frame: people for a density model, unlandable ground for a landability model."""
+    if isinstance(model, LandabilityModel):
+        spec = model.landability
+        unlandable = 1.0 - model(img)[spec.names.index(spec.landable)]
+        return surface_free_map(unlandable, img.shape[:2], spec.threshold) == OCCUPIED
+    threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
+    return occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
+
+
 def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[float]) -> list[LawnFigure]:
     """The figures of ``seed`` from each of ``heights_m`` (m above the ground); none for a world
     without a free circle."""
@@ -60,14 +77,13 @@ def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[flo
     if free is None:
         return []
     empty, ground = World(seed=seed), ProceduralGround(seed)
-    threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
     vv, uu = np.mgrid[0:K.height:STEP, 0:K.width:STEP]
     pixels = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)
     figures = []
     for height_m in heights_m:
         pose = Pose(0.0, free.north, free.east, -height_m, 0.0, 0.0, 0.0)
         img = render_world(empty, pose, K, Mount(), ground)
-        occ = occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
+        occ = marked_map(model, img)
         xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M).image_to_plane(pixels)
         inside = np.hypot(xy[:, 0] - free.north, xy[:, 1] - free.east) < free.radius
         marked = occ[vv.ravel(), uu.ravel()]
@@ -82,6 +98,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seeds", default="1-34", help="seeds, e.g. 1-34 or 5,6,28 (default 1-34)")
     ap.add_argument("--heights", default="10,20", help="heights above the ground in m (default 10,20)")
     ap.add_argument("--model", type=Path, default=SHIPPED_MODEL, help="ONNX density model (default: the shipped one)")
+    ap.add_argument("--landability", type=Path, default=None,
+                    help="measure this ONNX landability model's unlandable marks instead of --model's people")
     ap.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     args = ap.parse_args(argv)
     try:
@@ -93,10 +111,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not all(0.0 < h - HEAD_M < 500.0 for h in heights):
         print(f"error: heights must lie between {HEAD_M} m (the head plane) and 500 m", file=sys.stderr)
         return 2
-    if not args.model.is_file():
-        print(f"error: no model at {args.model}", file=sys.stderr)
+    path = args.landability or args.model
+    if not path.is_file():
+        print(f"error: no model at {path}", file=sys.stderr)
         return 2
-    model = DensityModel(args.model, threads=2)
+    try:
+        model = LandabilityModel(path, threads=2) if args.landability else DensityModel(path, threads=2)
+    except (ValueError, OSError) as e:  # the runners' errors name the file and what is wrong
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     for seed in seeds:
         figures = lawn_false_positives(model, seed, heights)
         if not figures:

@@ -93,6 +93,24 @@ def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys:
     assert "error" in capsys.readouterr().err
 
 
+def test_lawn_false_positives_of_a_landability_model(capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m sim.false_positives --landability``: the same lawn measured for unlandable
+    marks by the shipped landability model, through the service's surface step at the model's
+    threshold; a density model given as a landability model is a clear error."""
+    from companion.config import SHIPPED_LANDABILITY
+    from companion.pipeline.landability import LandabilityModel
+    from sim.false_positives import lawn_false_positives, main
+
+    land = LandabilityModel(SHIPPED_LANDABILITY, threads=1)
+    (fig,) = lawn_false_positives(land, 18, [20.0])
+    assert 0.0 <= fig.circle_pct <= 100.0 and 0.0 <= fig.frame_pct <= 100.0
+    assert main(["--seeds", "18", "--heights", "20", "--landability", str(SHIPPED_LANDABILITY), "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert len(rows) == 1 and rows[0]["circle_pct"] == fig.circle_pct
+    assert main(["--seeds", "18", "--landability", str(MODEL)]) == 2  # one channel: not a landability model
+    assert "error" in capsys.readouterr().err
+
+
 def test_walker_alarms_command_scores_each_seed_and_refuses_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
     """``python -m sim.walker_alarms``: a short descent over crossing seed 9's circle gives one
     JSON row per margin and the totals; a dense world has no circle and is skipped, said on

@@ -463,7 +463,7 @@ def test_training_by_time_with_worker_processes_and_another_width(tmp_path: Path
     import onnxruntime as ort
     meta = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"]).get_modelmeta().custom_metadata_map
     assert "width=8 workers=1 seconds=2" in meta["companion.training"]
-    assert int(meta["companion.parameters"]) < 39015  # narrower than the shipped width 32
+    assert int(meta["companion.parameters"]) < 39015  # narrower than the default width 32
 
 
 def test_the_grouping_covers_every_class_once(shared_dir: Path) -> None:
@@ -514,7 +514,7 @@ def test_a_second_context_branch_trains_exports_and_runs(tmp_path: Path, shared_
     pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
     from companion.training import landability as T
 
-    assert T.M.count_parameters(T.LandabilityNet()) == 39015  # the shipped file's network
+    assert T.M.count_parameters(T.LandabilityNet()) == 39015  # the default width 32 (the first shipped file)
     assert T.M.count_parameters(T.LandabilityNet(context=2)) > 39015
     with pytest.raises(ValueError, match="context"):
         T.LandabilityNet(context=3)
@@ -532,3 +532,53 @@ def test_a_second_context_branch_trains_exports_and_runs(tmp_path: Path, shared_
     assert "context=2 " in meta["companion.training"]
     with pytest.raises(SystemExit):
         T.main(["--shared", str(shared_dir), "--out", str(out), "--context", "3"])
+
+
+def test_the_threshold_rule_caps_the_obstacle_pixels_left_landable() -> None:
+    """A model that is precise enough at a high threshold but leaves part of a roof landable
+    there: the precision alone takes the high threshold; the cap on obstacle pixels (the rule
+    since 2026-11-28) takes the one below it, where the roof is unlandable."""
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training import landability as T
+
+    names = [lv.name for lv in T.LEVELS]
+    land, obst = names.index("landable"), names.index("obstacles")
+    h = w = 400
+    levels = np.full((h, w), land, np.uint8)
+    levels[100:140, 100:140] = obst  # a 40x40 roof, 1 % of the pixels
+    unl = np.full((h, w), 0.02, np.float32)
+    unl[100:140, 100:140] = 0.9
+    unl[100:140, 120:140] = 0.12  # half the roof only weakly unlandable: left landable above 0.12
+    probs = np.zeros((len(names), h, w), np.float32)
+    probs[land], probs[obst] = 1.0 - unl, unl
+    t_prec, curve = T.choose_threshold([probs], [levels], max_left={})
+    t_capped, capped = T.choose_threshold([probs], [levels])
+    assert t_prec > 0.12 >= t_capped, (t_prec, t_capped)
+    at = {round(c["threshold"], 3): c for c in capped}
+    assert at[round(t_prec, 3)]["precision"] >= T.LANDABLE_PRECISION
+    assert at[round(t_prec, 3)]["left_obstacles"] >= T.MAX_LEFT_LANDABLE["obstacles"]
+    assert at[round(t_capped, 3)]["left_obstacles"] == 0.0
+    assert "obstacles pixels left landable < 0.43 %" in T.threshold_rule()
+    for bad in ({"landable": 0.1}, {"roofs": 0.1}):
+        with pytest.raises(ValueError, match="unlandable level"):
+            T.choose_threshold([probs], [levels], max_left=bad)
+
+
+def test_rethreshold_keeps_the_shipped_threshold_and_refuses_other_models(tmp_path: Path, shared_dir: Path,
+                                                                          model_path: Path) -> None:
+    """``--rethreshold`` applies the current rule to an exported model on the validation photos:
+    the shipped file was chosen by that rule, so its threshold stays and the note says so; a
+    model of other levels (or not a landability model) is a clear error, exit 2."""
+    pytest.importorskip("torch", reason="training needs torch (the 'train' extra; not a dev dependency)")
+    from companion.training import landability as T
+
+    out = tmp_path / "re.onnx"
+    assert T.main(["--shared", str(shared_dir), "--rethreshold", str(LANDABILITY), "--out", str(out),
+                   "--threads", "2"]) == 0
+    shipped, again = LandabilityModel(LANDABILITY, threads=1), LandabilityModel(out, threads=1)
+    assert again.landability.threshold == shipped.landability.threshold
+    import onnxruntime as ort
+    meta = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"]).get_modelmeta().custom_metadata_map
+    assert "threshold re-chosen" in meta["companion.training"]
+    assert T.main(["--shared", str(shared_dir), "--rethreshold", str(model_path), "--out", str(out)]) == 2
+    assert T.main(["--shared", str(shared_dir), "--rethreshold", str(tmp_path / "none.onnx"), "--out", str(out)]) == 2

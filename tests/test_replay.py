@@ -361,6 +361,7 @@ def test_a_recordings_rangefinder_gives_the_height_the_service_had_at_each_momen
     assert heights.at(1.6) is None  # over 0.5 s old: stale, as live
     assert heights.at(2.1) is None and heights.at(3.4) is None
     assert heights.at(5.2) == pytest.approx(8.0) and heights.at(5.6) is None
+    assert heights.malformed == 4  # counted, for the replay's summary
 
 
 def test_replay_figures_clearance_from_the_recorded_rangefinder_as_the_live_controller(
@@ -377,14 +378,18 @@ def test_replay_figures_clearance_from_the_recorded_rangefinder_as_the_live_cont
         assert rec.add_frame(k, 100.0 + 0.1 * k, synthetic.render(s, seed=k),
                              Pose(100.0 + 0.1 * k, 10.0, -5.0, -25.0, 0.0, 0.0, 0.0))
     # Ground 4 m above home: 21 m measured from 100.05 s (frames 1-3), out of range from 100.35 s.
-    for line in (_range(100.05, 2100), _range(100.35, 5000)):
+    for line in (_range(100.05, 2100), _range(100.35, 5000), {**_range(100.4, 800), "max_distance": "far"}):
         assert rec.add_event(**line)
     rec.close()
     walked = {}
     for name, extra in (("on", ["--set", "controller.land_agl_m=1"]), ("off", [])):
         out = tmp_path / name
         assert main(["replay", str(run_dir), "--model", str(work["model"]), "--threads", "1", "--r0", "1",
-                     "--jsonl", str(out / "r.jsonl"), *extra]) == 0
+                     "--jsonl", str(out / "r.jsonl"), "--summary-json", str(out / "s.json"), *extra]) == 0
+        # The malformed line is dropped and counted apart from the frames.
+        summary = json.loads((out / "s.json").read_text())
+        assert summary["telemetry_dropped"] == {"DISTANCE_SENSOR line malformed": 1}
+        assert summary["frames_skipped"] == 0
         walked[name] = {r["frame"]: {round(t["r"] - t["clearance_m"], 6) for t in r["tracks"]}
                         for r in _read_jsonl(out / "r.jsonl") if r["tracks"]}
     above_home = 1.5 * (21.0 / 1.5 + 4.0 / 0.5)  # 25 m above home: 21 m of descent, 4 m of LAND

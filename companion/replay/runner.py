@@ -194,6 +194,7 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
             for reason, count in source.skipped_upstream().items():
                 for _ in range(count):
                     summary.add_skip(reason)
+        summary.telemetry_dropped.update(source.telemetry_dropped)
     finally:
         bar.close()
         close = getattr(source.frames, "close", None)

@@ -63,6 +63,9 @@ class ReplaySource:
     # Frames the input itself dropped without yielding them (a recording's deleted or truncated
     # segments): reason -> count, read once the frames are exhausted.
     skipped_upstream: Callable[[], dict[str, int]] | None = None
+    # Telemetry lines of the input that could not be used (a recording's malformed rangefinder
+    # lines): reason -> count. Not frames: the summary reports them apart.
+    telemetry_dropped: dict[str, int] = field(default_factory=dict)
 
 
 def _check_fps(fps: float) -> float:
@@ -131,17 +134,20 @@ class RangefinderHeights:
     """A recording's downward rangefinder over time, from its DISTANCE_SENSOR telemetry lines:
     the height above the ground the live service had at any moment (``at``), by the service's
     own rule (``companion.mavlink.state``). A reading out of the sensor's range ends the last one,
-    as it does live; a malformed line is skipped."""
+    as it does live; a malformed line (no finite time, or a field missing or not an integer) is
+    skipped and counted in ``malformed``, which the replay's summary reports."""
 
     def __init__(self, telemetry: Iterable[dict[str, Any]]) -> None:
         readings: list[tuple[float, float | None]] = []
+        self.malformed = 0
         for e in telemetry:
             if e.get("msg") != "DISTANCE_SENSOR":
                 continue
             t = e.get("t")
             fields = [v for v in (e.get(k) for k in ("orientation", "current_distance", "min_distance",
                                                       "max_distance")) if isinstance(v, int) and not isinstance(v, bool)]
-            if not isinstance(t, (int, float)) or not math.isfinite(t) or len(fields) != 4:
+            if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or len(fields) != 4:
+                self.malformed += 1
                 continue
             if fields[0] != DOWNWARD_ORIENTATION:
                 continue  # another sensor's reading leaves the downward one as it was, as live
@@ -187,7 +193,9 @@ def open_recording(path: Path) -> ReplaySource:
     return ReplaySource("recording", path, frames(), total=len(reader),
                         fps=float(rate) if isinstance(rate, (int, float)) and rate > 0 else None,
                         intrinsics=reader.intrinsics, mount=reader.mount, meta=dict(reader.meta),
-                        skipped_upstream=upstream)
+                        skipped_upstream=upstream,
+                        telemetry_dropped={"DISTANCE_SENSOR line malformed": heights.malformed}
+                        if heights.malformed else {})
 
 
 def guess_kind(path: Path) -> str:

@@ -28,6 +28,8 @@ class SummaryBuilder:
     frames: int = 0
     skipped: int = 0
     skip_reasons: Counter = field(default_factory=Counter)
+    #: Telemetry lines of the input dropped as unusable, by reason (not frames).
+    telemetry_dropped: dict[str, int] = field(default_factory=dict)
     timings: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in STAGE_KEYS})
     switches: int = 0
     frames_with_target: int = 0
@@ -84,6 +86,7 @@ class SummaryBuilder:
             "target_switches": self.switches,
             "target_switches_per_min": self.switches / (span_s / 60.0) if span_s > 0 else None,
             "time_on_target_s": self.time_on_target_s(),
+            "telemetry_dropped": dict(self.telemetry_dropped),
         }
 
     def time_on_target_s(self) -> float:
@@ -111,4 +114,6 @@ def format_summary(s: dict[str, Any]) -> str:
                  f"{_fmt(s['target_switches_per_min'], '.2f')} per minute")
     for reason, n in s["skip_reasons"].items():
         lines.append(f"skipped {n}: {reason}")
+    for reason, n in s.get("telemetry_dropped", {}).items():
+        lines.append(f"telemetry dropped {n}: {reason}")
     return "\n".join(lines)

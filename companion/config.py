@@ -863,20 +863,28 @@ def failsafe_config(cfg: Config) -> FailsafeConfig:
                           local_socket=f.local_socket or None)
 
 
+#: Settings added after recordings were first made, with the value that flew before each existed
+#: (a recording's ``meta.json`` without the key was flown so): ``controller.land_agl_m``, the
+#: LAND at ``land_alt_m`` whatever the rangefinder said. Add a row when a new setting changes
+#: what flies, so that old recordings replay as they were flown.
+BEFORE_RECORDED: dict[str, Any] = {"controller.land_agl_m": 0.0}
+
+
 def from_recording(meta_config: Mapping[str, Any], overrides: Mapping[str, Any] | None = None) -> Config:
     """The settings a recording was flown with (its ``meta.json`` ``config``), with ``overrides``
     (dotted keys) on top, validated as a file would be. The signing key is never recorded (it
-    reads ``<redacted>``) and is dropped. A recording without ``controller.land_agl_m`` was flown
-    before it existed, with the LAND at ``land_alt_m`` whatever the rangefinder said: 0 there,
-    not today's default."""
+    reads ``<redacted>``) and is dropped. A setting the recording lacks was added after it was
+    flown: it takes the value that flew then (:data:`BEFORE_RECORDED`), not today's default."""
     raw = json.loads(json.dumps(dict(meta_config)))  # a deep copy of plain JSON data
     link = raw.get("link")
     if isinstance(link, dict):
         link.pop("signing_key", None)
         link.pop("signing_key_file", None)
-    controller = raw.setdefault("controller", {})
-    if isinstance(controller, dict):
-        controller.setdefault("land_agl_m", 0.0)
+    for dotted, then in BEFORE_RECORDED.items():
+        section, key = dotted.split(".", 1)
+        table = raw.setdefault(section, {})
+        if isinstance(table, dict):
+            table.setdefault(key, then)
     for dotted, value in (overrides or {}).items():
         _set_dotted(raw, dotted, value)
     return from_dict(raw)
@@ -890,5 +898,5 @@ __all__ = [
     "PLAIN_MODEL", "X86_MODEL", "BLOCKED_MACHINES", "shipped_model",
     "LANDABILITY_DEFAULT", "threshold_setting",
     "intrinsics", "mount", "pipeline_config", "planner_config", "landing_config", "signing_key",
-    "link_config", "failsafe_config", "from_recording",
+    "link_config", "failsafe_config", "from_recording", "BEFORE_RECORDED",
 ]

@@ -122,10 +122,13 @@ def test_missing_corrupt_or_one_channel_files_are_clear_errors(tmp_path: Path, m
         LandabilityModel(model_path)
 
 
-def test_the_shipped_landability_model_is_small_and_well_formed() -> None:
-    assert LANDABILITY.is_file(), "the shipped landability model is missing"
-    assert LANDABILITY.stat().st_size < 1_000_000
-    m = LandabilityModel(LANDABILITY, threads=1)
+@pytest.mark.parametrize("path", [LANDABILITY, LANDABILITY.with_name("slz-landability-v1.onnx")],
+                         ids=["shipped", "first"])
+def test_the_shipped_landability_model_is_small_and_well_formed(path: Path) -> None:
+    """The default file and the first model, kept beside it for recordings flown with it."""
+    assert path.is_file(), f"the landability model {path.name} is missing"
+    assert path.stat().st_size < 1_000_000
+    m = LandabilityModel(path, threads=1)
     assert m.landability.landable == "landable" and len(m.landability.levels) == 7
     assert m.spec.stride == 8 and 0 < m.landability.threshold < 1
     classes = {c for lv in m.landability.levels for c in lv.classes}

@@ -2,8 +2,10 @@
 
     python -m companion.training.pack --shared ../shared --out .pack/shared
 
-A GPU machine receives a copy of the working tree (64 MiB at most, see ``docs/training.md``), and
-``../shared`` does not travel with it. This writes what :mod:`companion.training.train` and
+A GPU machine receives a copy of the working tree (64 MiB at most, with what a call carries), and
+``../shared`` does not travel with it. The landability training (``companion train-landability``)
+reads only the semantic-drone part: carrying ``.pack/shared/data/semantic_drone`` (35 MiB) is
+enough for it (``docs/training-runs/2026-11-28-h200-landability-tensor/run.sh``). This writes what :mod:`companion.training.train` and
 :mod:`companion.training.distill` read, in the same layout as ``../shared`` so the same loaders
 read it (``--shared .pack/shared``), and nothing they do not read:
 

@@ -52,6 +52,7 @@ from companion.training import model as M
 from companion.training.augment import photometric
 from companion.training.distill import Phase, lr_factor
 from companion.training.export import set_metadata
+from companion.training.metadata import read_metadata
 from companion.training.tensor_crops import TensorCrops
 
 log = logging.getLogger("companion.training.landability")
@@ -331,12 +332,7 @@ def choose_threshold(probs: list[np.ndarray], levels: list[np.ndarray], precisio
             raise ValueError(f"a cap on the pixels left landable names an unlandable level, not {name!r}")
     curve = []
     for t in THRESHOLDS:
-        kept_by = np.zeros(len(LEVELS), np.int64)
-        total_by = np.zeros(len(LEVELS), np.int64)
-        for p, lv in zip(probs, levels):
-            free = surface_free_map(1.0 - p[land], lv.shape, t, occupancy) == FREE
-            total_by += np.bincount(lv.ravel(), minlength=len(LEVELS))[: len(LEVELS)]
-            kept_by += np.bincount(lv[free].ravel(), minlength=len(LEVELS))[: len(LEVELS)]
+        kept_by, total_by = _kept_by_level(probs, levels, t, occupancy)
         kept, total = int(kept_by.sum()), int(total_by.sum())
         c = {"threshold": float(t), "precision": float(kept_by[land]) / kept if kept else 1.0,
              "landable": kept / total if total else 0.0}
@@ -463,12 +459,9 @@ def train(args: argparse.Namespace) -> Path:
     log.info("trained %d steps, %d crops, in %.1f min", step, step * args.batch, (time.monotonic() - t0) / 60)
     net = net.cpu().eval()
     probs = [predict(net, img) for img in val_set.images]
-    pix = [cv2.resize(p.transpose(1, 2, 0), (lv.shape[1], lv.shape[0]), interpolation=cv2.INTER_NEAREST)
-           .transpose(2, 0, 1) for p, lv in zip(probs, val_set.levels)]
+    pix = [at_pixels(p, lv) for p, lv in zip(probs, val_set.levels)]
     thr, curve = choose_threshold(pix, val_set.levels)
-    for c in curve:
-        log.info("validation: threshold %.3f landable precision %.4f landable share %.3f obstacles left %.4f",
-                 c["threshold"], c["precision"], c["landable"], c["left_obstacles"])
+    log_curve(curve)
     log.info("threshold %.3f (%s; %d validation photos)", thr, threshold_rule(), len(val_set.images))
     for name, share in left_landable_by_level(pix, val_set.levels, thr).items():
         log.info("validation: %s pixels left landable at %.3f: %.2f %%", name, thr, 100 * share)
@@ -501,18 +494,11 @@ def rethreshold(model: Path, shared: Path, out: Path, threads: int = 1) -> tuple
         raise ValueError(f"{model}: its levels are {', '.join(m.landability.names)}, not this training's "
                          f"{', '.join(want)}: the threshold cannot be chosen on the same maps")
     _, val = load_photos(shared)
-    pix = []
-    for img, lv in zip(val.images, val.levels):
-        p = m(img)
-        pix.append(cv2.resize(p.transpose(1, 2, 0), (lv.shape[1], lv.shape[0]), interpolation=cv2.INTER_NEAREST)
-                   .transpose(2, 0, 1))
+    pix = [at_pixels(m(img), lv) for img, lv in zip(val.images, val.levels)]
     thr, curve = choose_threshold(pix, val.levels)
-    for c in curve:
-        log.info("validation: threshold %.3f landable precision %.4f landable share %.3f obstacles left %.4f",
-                 c["threshold"], c["precision"], c["landable"], c["left_obstacles"])
+    log_curve(curve)
     old = float(m.landability.threshold)
-    meta = m._session.get_modelmeta().custom_metadata_map
-    note = meta.get("companion.training", "")
+    note = read_metadata(model).get("companion.training", "")
     out = Path(out)
     if out.resolve() != Path(model).resolve():
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -531,6 +517,14 @@ def left_landable_by_level(probs: list[np.ndarray], levels: list[np.ndarray], th
     """Per level, the share of its pixels (pooled over the photos) that the pipeline's decision
     at ``threshold`` leaves landable: for ``landable`` what is kept, for the others the mistakes
     that could end up inside a landing circle. ``probs`` are (L, H, W) at the photos' pixels."""
+    kept, total = _kept_by_level(probs, levels, threshold, occupancy)
+    return {lv.name: float(k / t) if t else 0.0 for lv, k, t in zip(LEVELS, kept, total)}
+
+
+def _kept_by_level(probs: list[np.ndarray], levels: list[np.ndarray], threshold: float,
+                   occupancy: OccupancyParams) -> tuple[np.ndarray, np.ndarray]:
+    """Per level (pooled over the photos): how many of its pixels the pipeline's decision at
+    ``threshold`` leaves landable, and how many there are; (L,) int64 each."""
     land = [lv.name for lv in LEVELS].index(LANDABLE)
     kept = np.zeros(len(LEVELS), np.int64)
     total = np.zeros(len(LEVELS), np.int64)
@@ -538,7 +532,20 @@ def left_landable_by_level(probs: list[np.ndarray], levels: list[np.ndarray], th
         free = surface_free_map(1.0 - p[land], lv.shape, threshold, occupancy) == FREE
         total += np.bincount(lv.ravel(), minlength=len(LEVELS))[: len(LEVELS)]
         kept += np.bincount(lv[free].ravel(), minlength=len(LEVELS))[: len(LEVELS)]
-    return {lv.name: float(k / t) if t else 0.0 for lv, k, t in zip(LEVELS, kept, total)}
+    return kept, total
+
+
+def at_pixels(probs: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """(L, H, W): a photo's cell probabilities brought to its level map's pixels (nearest)."""
+    return cv2.resize(probs.transpose(1, 2, 0), (levels.shape[1], levels.shape[0]),
+                      interpolation=cv2.INTER_NEAREST).transpose(2, 0, 1)
+
+
+def log_curve(curve: list[dict[str, float]]) -> None:
+    """The validation curve of :func:`choose_threshold`, a line a threshold."""
+    for c in curve:
+        log.info("validation: threshold %.3f landable precision %.4f landable share %.3f obstacles left %.4f",
+                 c["threshold"], c["precision"], c["landable"], c["left_obstacles"])
 
 
 def weights_with(changes: list[str] | None) -> tuple[float, ...]:

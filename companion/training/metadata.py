@@ -16,6 +16,11 @@ def set_metadata(path: Path, meta: Mapping[str, object]) -> None:
     onnx.save(proto, str(path))
 
 
+def read_metadata(path: Path) -> dict[str, str]:
+    """The metadata_props of the ONNX file at ``path``, key -> value."""
+    return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+
+
 def replace_metadata(proto: onnx.ModelProto, meta: Mapping[str, object]) -> None:
     """Replace the metadata_props of ``proto`` named in ``meta`` (a None value removes the key
     without writing it) and check the model, in memory: for a model about to be saved anyway."""

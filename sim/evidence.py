@@ -31,6 +31,11 @@ Counting (docs/scale.md says why):
   free circle, or beyond every crowd; ``sim.world.World.nobody_walks_at``), of those whose row
   says either way. A landing in a gap of the crowd may be safe at touchdown and still was a
   gamble on the walkers around it.
+- ``unlandable_touchdowns`` of ``touchdowns_judged_for_surface``: the clean flights that touched
+  down with part of the vehicle's footprint on ground that is not landable (a tree, a bench, a
+  car, a roof: ``unlandable_touchdown``, on the procedural ground's truth), whoever landed, of
+  those whose row says either way; ``companion_landings_unlandable``, the companion's landings
+  among them. None when no row says (rows flown before the judge knew the ground).
 - ``zone_losses`` and ``zone_losses_r0_free``: over the clean flights whose rows carry them, the
   zones the controller gave up while over them (``sim.flight.zone_losses``), and how many of those
   had, by the simulator's truth, nobody within ``r_0`` of the vehicle at that moment: the price of
@@ -130,6 +135,7 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     judged = [r for r in clean if r.get("outcome") in ("safe", "unsafe") and r.get("in_free_area") is not None]
     u, s, c = _proportion(unsafe, n), _proportion(strikes, n), _proportion(landings, n)
     with_losses = [r for r in clean if isinstance(r.get("zone_losses"), int)]
+    on_ground = [r for r in clean if isinstance(r.get("unlandable_touchdown"), bool)]
     last = _last_metres([r for r in clean if r.get("outcome") in ("safe", "unsafe")])
     return {
         "total": len(rows), "safe": count(clean, "safe"), "handbacks": count(clean, "handback"),
@@ -149,6 +155,10 @@ def summarise_rows(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
         "companion_landings": landings,
         "companion_landings_in_free_area": sum(bool(r["in_free_area"]) for r in judged),
         "companion_landings_judged_for_area": len(judged),
+        "touchdowns_judged_for_surface": len(on_ground),
+        "unlandable_touchdowns": sum(r["unlandable_touchdown"] for r in on_ground) if on_ground else None,
+        "companion_landings_unlandable": sum(r["unlandable_touchdown"] for r in on_ground
+                                             if r.get("outcome") in ("safe", "unsafe")) if on_ground else None,
         "zone_losses": sum(r["zone_losses"] for r in with_losses) if with_losses else None,
         "zone_losses_r0_free": sum(int(r.get("zone_losses_r0_free") or 0) for r in with_losses)
         if with_losses else None,
@@ -180,7 +190,8 @@ def summarise_baseline(rows: Iterable[dict[str, Any]]) -> dict[str, Any]:
     s = summarise_rows(rows)
     clear = [r["clearance_m"] for r in rows if r.get("clearance_m") is not None]
     keys = ("total", "clean_flights", "starved", "timeouts", "strikes", "strike_rate", "strike_rate_ci95",
-            "strike_rate_upper95", "median_time_to_touchdown_s", "max_climb_m")
+            "strike_rate_upper95", "median_time_to_touchdown_s", "max_climb_m",
+            "touchdowns_judged_for_surface", "unlandable_touchdowns")
     return {**{k: s[k] for k in keys}, "min_clearance_m": round(min(clear), 3) if clear else None,
             "median_last_metres_s": _last_metres([r for r in rows if not r.get("starved")])}
 
@@ -218,6 +229,11 @@ def summary_text(summary: dict[str, Any]) -> str:
     if summary.get("companion_landings_judged_for_area"):
         lines.append(f"companion landings on ground nobody walks into (the free area, or beyond the crowd): "
                      f"{summary['companion_landings_in_free_area']} of {summary['companion_landings_judged_for_area']}")
+    if summary.get("unlandable_touchdowns") is not None:
+        lines.append(f"touchdowns with the vehicle's footprint on unlandable ground (a tree, a bench, a car, a "
+                     f"roof; the ground's truth): {summary['unlandable_touchdowns']} of "
+                     f"{summary['touchdowns_judged_for_surface']}, the companion's landings "
+                     f"{summary['companion_landings_unlandable']}")
     if summary.get("zone_losses") is not None:
         lines.append(f"zones given up while over them: {summary['zone_losses']}, of which "
                      f"{summary['zone_losses_r0_free']} with nobody within r_0 of the vehicle by the truth")

@@ -12,8 +12,18 @@ benches, trees. A zone's landing point can only be as central as the lawn the mo
 
 ``--landability FILE.onnx`` asks the same of a landability model instead: the share of the lawn it
 calls unlandable (every level but its landable one, summed, above its own threshold, through the
-service's ``surface_free_map``). A lawn is landable ground, so anything marked is a mistake there
-too; the landability card's "On the simulator's ground" quotes these figures.
+service's ``surface_free_map``); the landability card's "On the simulator's ground" quotes these
+figures.
+
+A lawn is not all landable: the procedural ground puts trees, benches and paths on it, and the
+scenario's free circle often holds a tree or a bench (``sim.ground.SURFACES``, the ground's own
+truth). So each row also judges the marks on the truth, on the ground plane (where a tree or a
+bench is, not the head plane where people's heads are): ``landable_marked_pct``, the share of the
+circle's truly landable ground (grass, paths, paving) that is marked (a false alarm for either
+kind of model); ``unlandable_pct``, the share of the circle that is not landable (trees,
+benches); and ``unlandable_left_pct``, the share of that which is left unmarked (a miss for a
+landability model; for a density model, what the landability model is there for). The last is
+None where the circle holds nothing unlandable.
 """
 
 from __future__ import annotations
@@ -34,7 +44,7 @@ from companion.pipeline.landability import LandabilityModel
 from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.slz import PipelineConfig
 from sim.flight import build_world
-from sim.ground import ProceduralGround
+from sim.ground import LANDABLE_SURFACES, SURFACES, ProceduralGround
 from sim.render import render_world
 from sim.scenarios import parse_seeds, scenario
 from sim.world import World
@@ -44,6 +54,9 @@ K = Intrinsics.from_fov(640, 480, 70.0)
 HEAD_M = PipelineConfig().head_height_m
 #: Sample every STEP-th pixel in both directions (the occupancy map is smooth at that scale).
 STEP = 4
+#: The truth's resolution (m/px) when judging marks on the ground plane.
+TRUTH_RES = 0.04
+_LANDABLE = np.array([name in LANDABLE_SURFACES for name in SURFACES])
 
 
 @dataclass(frozen=True)
@@ -56,6 +69,9 @@ class LawnFigure:
     height_m: float
     circle_pct: float
     frame_pct: float
+    landable_marked_pct: float | None = None
+    unlandable_pct: float | None = None
+    unlandable_left_pct: float | None = None
 
 
 def marked_map(model: DensityModel, img: np.ndarray) -> np.ndarray:
@@ -88,9 +104,34 @@ def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[flo
         inside = np.hypot(xy[:, 0] - free.north, xy[:, 1] - free.east) < free.radius
         marked = occ[vv.ravel(), uu.ravel()]
         circle = float(marked[inside].mean()) if inside.any() else float("nan")
+        truth = _truth_figures(ground, pose, pixels, marked, free)
         figures.append(LawnFigure(seed, spec.world, height_m, round(100 * circle, 2),
-                                  round(100 * float(marked.mean()), 2)))
+                                  round(100 * float(marked.mean()), 2), *truth))
     return figures
+
+
+def _truth_figures(ground: ProceduralGround, pose: Pose, pixels: np.ndarray, marked: np.ndarray,
+                   free: object) -> tuple[float | None, float | None, float | None]:
+    """``(landable_marked_pct, unlandable_pct, unlandable_left_pct)`` of the free circle, judged
+    on the ground's truth at the pixels' ground points (see the module docstring)."""
+    cn, ce, r = free.north, free.east, free.radius  # type: ignore[attr-defined]
+    xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=0.0).image_to_plane(pixels)
+    inside = np.hypot(xy[:, 0] - cn, xy[:, 1] - ce) < r
+    if not inside.any():
+        return None, None, None
+    labels, A = ground.surface_labels(cn - r, cn + r, ce - r, ce + r, TRUTH_RES)
+    pts = xy[inside]
+    col = np.clip((A[0, 1] * pts[:, 1] + A[0, 2]).astype(int), 0, labels.shape[1] - 1)
+    row = np.clip((A[1, 0] * pts[:, 0] + A[1, 2]).astype(int), 0, labels.shape[0] - 1)
+    landable = _LANDABLE[labels[row, col]]
+    m = marked[inside]
+    pct = lambda a: round(100 * float(a.mean()), 2)  # noqa: E731
+    return (pct(m[landable]) if landable.any() else None, pct(~landable),
+            pct(~m[~landable]) if (~landable).any() else None)
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{v:.1f} %"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -128,8 +169,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             for f in figures:
                 print(json.dumps(asdict(f)), flush=True)
         else:
-            cells = "  ".join(f"{f.height_m:g} m: lawn {f.circle_pct:5.1f} %, frame {f.frame_pct:4.1f} %"
-                              for f in figures)
+            cells = "  ".join(f"{f.height_m:g} m: lawn {f.circle_pct:5.1f} %, frame {f.frame_pct:4.1f} %, "
+                              f"landable ground {_pct(f.landable_marked_pct)}, unlandable {_pct(f.unlandable_pct)} "
+                              f"({_pct(f.unlandable_left_pct)} left)" for f in figures)
             print(f"seed {seed:>3} {figures[0].world:<13} {cells}", flush=True)
     return 0
 

@@ -17,6 +17,12 @@ systemd sees it:
   it), and the autopilot landed where it was; counted apart, neither safe nor unsafe;
 - ``timeout``: no touchdown within the time limit.
 
+Verdicts are about people. What the vehicle touched down *on* is judged apart, on the procedural
+ground's own truth (``sim.ground.SURFACES``): every touchdown's row lists the surfaces under the
+vehicle's footprint (a disc of ``FOOTPRINT_M``), and says whether any of them is not landable
+ground (a tree, a bench, a car, a roof): the scenario's free circle often holds a tree or a bench,
+and a landing on one is no safe landing whoever stood near.
+
 A **baseline** flight (``FlightSpec.companion = False``) flies the same scene with no service at
 all: the simulator raises the same failsafe ``watch_s`` after it starts and the autopilot's own
 LAND (PX4: after its COM_FAIL_ACT_T hold) brings the vehicle down where it was. It is judged on
@@ -55,7 +61,7 @@ from companion.recording import RecordingError, RecordingReader
 from sim.autopilot import AutopilotConfig
 from sim.camera_server import CameraServer
 from sim.evidence import SCENARIO_LAND_SPEED, summarise_rows
-from sim.ground import FlatGround, ProceduralGround
+from sim.ground import LANDABLE_SURFACES, FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
 from sim.walkers import Circle
@@ -73,6 +79,9 @@ log = logging.getLogger("sim.flight")
 WORLDS = ("free_area", "dense", "dense_beyond", "intrusion", "crossing", "dronecrowd", "uniform")
 OUTCOMES = ("safe", "unsafe", "handback", "timeout")
 UNIFORM_GROUND_BGR = (70, 140, 95)  # mown grass
+#: Radius of the ground a vehicle touches down on (m): a small multirotor's half-span with its
+#: props (a 0.7-1 m frame), what must be clear of trees and benches for a landing to be on ground.
+FOOTPRINT_M = 0.5
 #: Seconds the flight goes on after the land detector fires (touchdown), so that the service sees
 #: the landed state and records LANDED before it is stopped: EXTENDED_SYS_STATE comes at 2 Hz
 #: (ArduPilot) or 1 Hz (PX4), plus time for a loaded machine. 0.5 s lost LANDED on a loaded CI run.
@@ -197,6 +206,17 @@ class FlightResult:
     # Each zone the controller gave up while over it (DESCEND or LAND), with the truth then
     # (:func:`zone_losses`); in time order.
     zone_losses: list[ZoneLoss] = field(default_factory=list)
+    # The surfaces under the vehicle's footprint at touchdown (sim.ground.SURFACES, sorted); None
+    # without a touchdown, or on a ground that does not say (the uniform world's).
+    touchdown_surfaces: list[str] | None = None
+
+    @property
+    def unlandable_touchdown(self) -> bool | None:
+        """Touched down with part of its footprint on ground that is not landable (a tree, a
+        bench, a car, a roof), whoever landed; None where the ground does not say."""
+        if self.touchdown_surfaces is None:
+            return None
+        return not set(self.touchdown_surfaces) <= LANDABLE_SURFACES
 
     @property
     def took_control(self) -> bool:
@@ -232,6 +252,8 @@ class FlightResult:
             "baseline": not self.spec.companion,
             "world_t_trigger": None if self.world_t_trigger is None else round(self.world_t_trigger, 2),
             "in_free_area": self.in_free_area,
+            "touchdown_surfaces": self.touchdown_surfaces,
+            "unlandable_touchdown": self.unlandable_touchdown,
             "zone_losses": len(self.zone_losses),
             "zone_losses_r0_free": sum(z.nearest_m >= self.spec.r0_m for z in self.zone_losses),
             "zone_loss_nearest_m": [None if not math.isfinite(z.nearest_m) else round(z.nearest_m, 2)
@@ -578,6 +600,14 @@ def build_scene(spec: FlightSpec, link_port: int, cam_port: int
     return world, free, sim, camera
 
 
+def touchdown_surfaces(ground: object, point: tuple[float, float]) -> list[str] | None:
+    """The surfaces under a vehicle's footprint (``FOOTPRINT_M`` around ``point``, world NED
+    metres) on ``ground``'s truth, sorted; None for a ground that does not say (``FlatGround``)."""
+    if not isinstance(ground, ProceduralGround):
+        return None
+    return sorted(ground.surfaces_within(point[0], point[1], FOOTPRINT_M))
+
+
 async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
     world, free, sim, camera = build_scene(spec, link_port, cam_port)
     # The world's clock starts when the service is ready (at once for the baseline), so the
@@ -666,6 +696,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             result.clearance_m = touchdown[0].clearance_m
             result.in_free_area = touchdown[0].free_ground
             result.time_to_touchdown_s = touchdown[0].t - t_trigger
+            result.touchdown_surfaces = touchdown_surfaces(camera.ground, touchdown[0].point)
             if "above_t" in climb:
                 result.last_metres_s = max(0.0, touchdown[0].t - climb["above_t"])
         # Let the last events of the landing (LANDED) be recorded before stopping the service:

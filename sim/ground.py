@@ -59,14 +59,31 @@ def value_noise(seed: int, north: np.ndarray, east: np.ndarray, scale: float) ->
     return 2.0 * ((a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv) - 1.0
 
 
+#: What the ground is, per shape (``Shape.surface``): the simulator's truth for judging where a
+#: vehicle touched down and for measuring a landability model on rendered frames. Index 0 is
+#: "nothing drawn" (outside every block: never happens on the endless ground).
+SURFACES = ("none", "grass", "paving", "gravel", "path", "road", "roof", "tree", "bench", "car")
+#: Each surface's risk level, in the landability model's grouping (companion/models/
+#: LANDABILITY_CARD.md): grass, paving, gravel, paths and roads are ``landable`` there (the data
+#: set's paved-area holds roads too); a bench (or bin) is an ``obstacles`` thing, as a roof is.
+SURFACE_LEVEL = {"none": "unknown", "grass": "landable", "paving": "landable", "gravel": "landable",
+                 "path": "landable", "road": "landable", "roof": "obstacles", "tree": "vegetation",
+                 "bench": "obstacles", "car": "vehicles"}
+#: The surfaces a vehicle may touch down on: flat, firm, open ground.
+LANDABLE_SURFACES = frozenset(k for k, v in SURFACE_LEVEL.items() if v == "landable")
+
+
 @dataclass(frozen=True)
 class Shape:
     """A filled polygon in ground metres (north, east) with a BGR colour; ``line`` > 0 draws an
-    open polyline of that width in metres instead."""
+    open polyline of that width in metres instead. ``surface``: what the ground under it is (one
+    of ``SURFACES``), or None for paint that leaves the ground what it was (mowing stripes, a
+    tree's shade, paving joints, a road's dashes)."""
 
     pts: np.ndarray
     color: tuple[int, int, int]
     line: float = 0.0
+    surface: str | None = None
 
 
 def _rect(cn: float, ce: float, ln: float, le: float, angle: float = 0.0) -> np.ndarray:
@@ -158,7 +175,8 @@ class ProceduralGround:
         road_e = bj % 4 == 0  # a road along the block's west edge (runs north-south)
         kind = self._draw_kind(rng)
         base = {"grass": GRASS, "paving": PAVING, "gravel": GRAVEL, "building": PAVING}[kind]
-        shapes.append(Shape(_rect(n0 + BLOCK / 2, e0 + BLOCK / 2, BLOCK, BLOCK), _jit(rng, base, 12)))
+        shapes.append(Shape(_rect(n0 + BLOCK / 2, e0 + BLOCK / 2, BLOCK, BLOCK), _jit(rng, base, 12),
+                            surface="paving" if kind == "building" else kind))
         # The usable lot, inside the roads.
         ln0 = n0 + (ROAD_W if road_n else 0.0)
         le0 = e0 + (ROAD_W if road_e else 0.0)
@@ -180,14 +198,14 @@ class ProceduralGround:
                 seg = np.vstack([p - d, p + d])
                 seg[:, 0] = np.clip(seg[:, 0], ln0, ln1)
                 seg[:, 1] = np.clip(seg[:, 1], le0, le1)
-                shapes.append(Shape(seg, _jit(rng, PATH, 10), line=float(rng.uniform(1.5, 2.5))))
+                shapes.append(Shape(seg, _jit(rng, PATH, 10), line=float(rng.uniform(1.5, 2.5)), surface="path"))
             for _ in range(int(rng.integers(0, 4))):
                 r = float(rng.uniform(1.8, 3.2))
                 tn, te = rng.uniform(ln0 + r, ln1 - r), rng.uniform(le0 + r, le1 - r)
                 shapes.append(Shape(_disc(tn + 0.4, te + 0.4, r, 20), (35, 70, 45)))  # its shade
-                shapes.append(Shape(_disc(tn, te, r, 20), _jit(rng, (45, 105, 60), 12)))
+                shapes.append(Shape(_disc(tn, te, r, 20), _jit(rng, (45, 105, 60), 12), surface="tree"))
                 shapes.append(Shape(_disc(tn - 0.3 * r, te - 0.3 * r, 0.45 * r, 12),
-                                    _jit(rng, (60, 130, 80), 10)))
+                                    _jit(rng, (60, 130, 80), 10)))  # its sunlit crown: still the tree
         elif kind == "paving":
             joint = (PAVING[0] - 25, PAVING[1] - 25, PAVING[2] - 25)
             for x in np.arange(ln0, ln1, 1.0):
@@ -196,7 +214,7 @@ class ProceduralGround:
                 shapes.append(Shape(np.array([[ln0, y], [ln1, y]]), joint, line=0.05))
         elif kind == "building":
             bn, be = rng.uniform(8, 16), rng.uniform(8, 16)
-            shapes.append(Shape(_rect(cn, ce, bn, be), _jit(rng, (175, 175, 178), 25)))
+            shapes.append(Shape(_rect(cn, ce, bn, be), _jit(rng, (175, 175, 178), 25), surface="roof"))
             shapes.append(Shape(_rect(cn, ce, bn - 0.8, be - 0.8), _jit(rng, (150, 152, 155), 20)))
             for _ in range(int(rng.integers(1, 5))):
                 un, ue = cn + rng.uniform(-bn / 3, bn / 3), ce + rng.uniform(-be / 3, be / 3)
@@ -206,28 +224,80 @@ class ProceduralGround:
         for _ in range(int(rng.integers(0, 4))):
             bn_, be_ = rng.uniform(ln0 + 1, ln1 - 1), rng.uniform(le0 + 1, le1 - 1)
             shapes.append(Shape(_rect(bn_, be_, 1.8, 0.5, float(rng.choice([0, math.pi / 2]))),
-                                _jit(rng, (40, 70, 110), 15)))
+                                _jit(rng, (40, 70, 110), 15), surface="bench"))
         if road_n:
-            shapes.append(Shape(_rect(n0 + ROAD_W / 2, e0 + BLOCK / 2, ROAD_W, BLOCK), _jit(rng, ASPHALT, 5)))
+            shapes.append(Shape(_rect(n0 + ROAD_W / 2, e0 + BLOCK / 2, ROAD_W, BLOCK), _jit(rng, ASPHALT, 5),
+                                surface="road"))
             for x in np.arange(e0, e0 + BLOCK, 6.0):
                 shapes.append(Shape(np.array([[n0 + ROAD_W / 2, x], [n0 + ROAD_W / 2, x + 3.0]]),
                                     (220, 220, 220), line=0.15))
             for _ in range(int(rng.integers(0, 4))):
                 x = rng.uniform(e0 + 3, e0 + BLOCK - 3)
                 shapes.append(Shape(_rect(n0 + 1.3, x, 1.8, 4.4),
-                                    CAR_COLORS[int(rng.integers(len(CAR_COLORS)))]))
+                                    CAR_COLORS[int(rng.integers(len(CAR_COLORS)))], surface="car"))
                 shapes.append(Shape(_rect(n0 + 1.3, x + 0.4, 1.5, 1.4), (60, 55, 50)))
         if road_e:
-            shapes.append(Shape(_rect(n0 + BLOCK / 2, e0 + ROAD_W / 2, BLOCK, ROAD_W), _jit(rng, ASPHALT, 5)))
+            shapes.append(Shape(_rect(n0 + BLOCK / 2, e0 + ROAD_W / 2, BLOCK, ROAD_W), _jit(rng, ASPHALT, 5),
+                                surface="road"))
             for x in np.arange(n0 + (ROAD_W if road_n else 0.0), n0 + BLOCK, 6.0):
                 shapes.append(Shape(np.array([[x, e0 + ROAD_W / 2], [x + 3.0, e0 + ROAD_W / 2]]),
                                     (220, 220, 220), line=0.15))
             for _ in range(int(rng.integers(0, 4))):
                 x = rng.uniform(n0 + ROAD_W + 3 if road_n else n0 + 3, n0 + BLOCK - 3)
                 shapes.append(Shape(_rect(x, e0 + 1.3, 4.4, 1.8),
-                                    CAR_COLORS[int(rng.integers(len(CAR_COLORS)))]))
+                                    CAR_COLORS[int(rng.integers(len(CAR_COLORS)))], surface="car"))
                 shapes.append(Shape(_rect(x + 0.4, e0 + 1.3, 1.4, 1.5), (60, 55, 50)))
         return tuple(shapes)
+
+    # -- what the ground is -------------------------------------------------------------------
+    def surface_labels(self, n_min: float, n_max: float, e_min: float, e_max: float,
+                       res: float) -> tuple[np.ndarray, np.ndarray]:
+        """What the ground is over a rectangle: a uint8 image of indices into ``SURFACES`` at
+        ``res`` m/px, with the matrix ``A`` of :meth:`view` (``(col, row, 1) ~ A @ (north, east,
+        1)``). Drawn from the same shapes in the same order as the texture, without smoothing,
+        so a pixel says what the last shape drawn over it is (paint only, ``surface`` None,
+        leaves it as it was)."""
+        if not (res > 0 and n_max > n_min and e_max > e_min):
+            raise ValueError(f"surface_labels needs res > 0 and a non-empty rectangle, got "
+                             f"n {n_min}..{n_max}, e {e_min}..{e_max}, res {res}")
+        rows, cols = int(math.ceil((n_max - n_min) / res)), int(math.ceil((e_max - e_min) / res))
+        if rows * cols > 4096 * 4096:
+            raise ValueError(f"surface_labels: {rows}x{cols} pixels is too many; use a coarser res")
+        labels = np.zeros((rows, cols), np.uint8)
+        scale = float(1 << SHIFT) / res
+        for bi in range(math.floor(n_min / BLOCK), math.floor(n_max / BLOCK) + 1):
+            for bj in range(math.floor(e_min / BLOCK), math.floor(e_max / BLOCK) + 1):
+                for s in self._blocks(bi, bj):
+                    if s.surface is None:
+                        continue
+                    value = SURFACES.index(s.surface)
+                    pts = np.round(np.column_stack([(s.pts[:, 1] - e_min), (s.pts[:, 0] - n_min)]) * scale)
+                    pts = pts.astype(np.int32)
+                    if s.line > 0:
+                        cv2.polylines(labels, [pts], False, value, max(1, int(round(s.line / res))),
+                                      cv2.LINE_8, SHIFT)
+                    else:
+                        cv2.fillPoly(labels, [pts], value, cv2.LINE_8, SHIFT)
+        A = np.array([[0.0, 1.0 / res, -e_min / res], [1.0 / res, 0.0, -n_min / res], [0.0, 0.0, 1.0]])
+        return labels, A
+
+    def surfaces_within(self, north: float, east: float, radius: float = 0.0,
+                        res: float = 0.02) -> set[str]:
+        """The surfaces on the disc of ``radius`` m around (north, east) (world NED metres): one
+        surface for a point (``radius`` 0), more where a footprint straddles an edge."""
+        half = max(float(radius), 0.0) + 2 * res
+        labels, _A = self.surface_labels(north - half, north + half, east - half, east + half, res)
+        c = (np.arange(labels.shape[0]) + 0.5) * res - half
+        nn, ee = np.meshgrid(c, (np.arange(labels.shape[1]) + 0.5) * res - half, indexing="ij")
+        d = np.hypot(nn, ee)
+        if radius <= 0:  # a point: the one pixel nearest to it
+            return {SURFACES[int(labels.flat[int(np.argmin(d))])]}
+        return {SURFACES[int(v)] for v in np.unique(labels[d <= radius])}
+
+    def surface_at(self, north: float, east: float) -> str:
+        """What the ground is at one point (world NED metres): one of ``SURFACES``."""
+        (name,) = self.surfaces_within(north, east, 0.0)
+        return name
 
     # -- tiles --------------------------------------------------------------------------------
     def res(self, level: int) -> float:

@@ -350,11 +350,13 @@ def flight_line(row: dict[str, Any]) -> str:
         f"  zones lost over them {row['zone_losses']} ({row.get('zone_losses_r0_free', 0)} with r0 free)"
     baseline = bool(row.get("baseline"))
     outcome = ("STRIKE" if row.get("strike") else "landed") if baseline else row["outcome"]
+    on = "" if not row.get("unlandable_touchdown") else \
+        f"  ON {'/'.join(row.get('touchdown_surfaces') or [])}"
     return (f"{'baseline ' if baseline else ''}seed {row['seed']:>3} {row['flavour']:<9} {row['world']:<9} "
             f"alt {fmt('altitude_m', '{:4.1f}')} m "
             f"-> {outcome:<8} clearance {fmt('clearance_m', '{:.1f} m'):>7}  "
             f"to touchdown {fmt('time_to_touchdown_s', '{:.0f} s'):>5}  climb {fmt('max_climb_m', '{:.1f} m'):>6}  "
-            f"{fmt('processed_fps', '{:.1f} Hz'):>7}  frame p95 {fmt('frame_ms_p95', '{:.0f} ms'):>6}{losses}{starved}")
+            f"{fmt('processed_fps', '{:.1f} Hz'):>7}  frame p95 {fmt('frame_ms_p95', '{:.0f} ms'):>6}{on}{losses}{starved}")
 
 
 def progress_line(done: int, total: int, flown: int, elapsed_s: float, unsafe: int, starved: int) -> str:

@@ -84,6 +84,12 @@ def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys:
     assert fig.world == "free_area" and fig.height_m == 20.0
     assert 0.0 <= fig.circle_pct <= 1.0 and 0.0 <= fig.frame_pct <= 100.0
     assert lawn_false_positives(model, 16, [20.0]) == []  # dense: no free circle
+    # Judged on the ground's truth: seed 18's circle is all lawn; seed 3's holds a tree (about a
+    # fifth of it), which the density model leaves unmarked (it is no person).
+    assert (fig.unlandable_pct, fig.unlandable_left_pct) == (0.0, None) and fig.landable_marked_pct <= 1.0
+    (tree,) = lawn_false_positives(model, 3, [20.0])
+    assert 15.0 < tree.unlandable_pct < 30.0 and tree.unlandable_left_pct > 80.0
+    assert 0.0 <= tree.landable_marked_pct <= 10.0
     assert main(["--seeds", "18", "--heights", "20", "--model", str(MODEL), "--json"]) == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [(r["seed"], r["height_m"]) for r in rows] == [(18, 20.0)] and rows[0]["circle_pct"] == fig.circle_pct

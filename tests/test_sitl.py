@@ -78,6 +78,8 @@ def test_the_search_finds_free_ground_out_of_the_first_view_and_lands_there(mode
     assert r.clearance_m >= r.spec.r0_m, _explain(r)
     n, e, _ = r.free_circle
     assert ((r.touchdown[0] - n) ** 2 + (r.touchdown[1] - e) ** 2) ** 0.5 < 8.0, _explain(r)
+    # What it touched down on is judged apart from people, on the procedural ground's truth.
+    assert r.touchdown_surfaces and isinstance(r.as_dict()["unlandable_touchdown"], bool), _explain(r)
 
 
 # One autopilot (CI's time): noticing the walkers is the pipeline's and the controller's; PX4's

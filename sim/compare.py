@@ -11,8 +11,9 @@ setting (docs/design.md has several such days). So each figure is compared over 
 the comparison says how likely a difference that large would be if the change did nothing:
 
 - per flight yes/no figures (an unsafe landing, a strike, a companion landing with nobody within
-  ``r_0``, a handback, a landing on ground nobody walks into, and with ``--starved`` a starved
-  flight): the pairs where only BEFORE says yes
+  ``r_0``, a handback, a landing on ground nobody walks into, a touchdown on unlandable ground
+  (a tree, a bench, a car, a roof: ``unlandable_touchdown``, whoever landed), and with
+  ``--starved`` a starved flight): the pairs where only BEFORE says yes
   and where only AFTER says yes, and the exact two-sided McNemar p-value (the binomial test of
   those discordant pairs at one half; scipy). Pairs that agree say nothing about the change;
 - time from trigger to touchdown (over the pairs where both landed), the time the vehicle took
@@ -77,6 +78,8 @@ BINARY: dict[str, FlightTest] = {
     "companion landing with nobody within r0": lambda r: r.get("outcome") == "safe",
     "handback": lambda r: r.get("outcome") == "handback",
     "companion landing on ground nobody walks into": _on_free_ground,
+    "touchdown on unlandable ground (a tree, a bench, a car, a roof; whoever landed)":
+        lambda r: r.get("unlandable_touchdown") if isinstance(r.get("unlandable_touchdown"), bool) else None,
     # Only with --starved: without it no compared pair holds a starved flight.
     "starved (the frame p95 over the machine's limit)": lambda r: bool(r.get("starved")),
 }

@@ -57,6 +57,12 @@ def test_pairs_are_compared_seed_by_seed_and_starved_or_unpaired_flights_are_lef
     free = got["companion landing on ground nobody walks into"]
     assert (free.before, free.after, free.pairs) == (1, 8, 9)
     assert [(p.seed, p.before, p.after) for p in c.changed][-1] == (8, "handback 4.0 m", "unsafe 1.0 m")
+    # Touchdowns on unlandable ground: rows without the judge's surfaces (older runs) say nothing.
+    assert got["touchdown on unlandable ground (a tree, a bench, a car, a roof; whoever landed)"].pairs == 0
+    on = compare([{**_row(1, "safe"), "unlandable_touchdown": False}, {**_row(2, "safe"), "unlandable_touchdown": True}],
+                 [{**_row(1, "safe"), "unlandable_touchdown": True}, {**_row(2, "safe"), "unlandable_touchdown": True}])
+    tree = next(b for b in on.binary if b.name.startswith("touchdown on unlandable"))
+    assert (tree.pairs, tree.before, tree.after, tree.only_before, tree.only_after) == (2, 1, 2, 0, 1)
     phases = next(n for n in c.numeric if n.name == "phase changes")
     xs, ys = [20.0] * 8 + [5.0], [9.0] * 8 + [5.0]
     assert (phases.pairs, phases.before_median, phases.after_median, phases.median_difference) == (9, 20.0, 9.0, -11.0)

@@ -22,7 +22,11 @@ the comparison says how likely a difference that large would be if the change di
   losses (``sim.flight.zone_losses``; over the pairs whose rows carry them) and the service's
   frame time at the 95th percentile (what a change in speed moves): the medians of each
   side, the median paired difference and the two-sided Wilcoxon signed-rank p-value (scipy);
-- the pairs whose verdict changed, listed.
+- the pairs whose verdict changed, listed, and their share of the pairs with its exact 95 %
+  interval (``verdicts_changed_ci95``, Clopper-Pearson): two files of the *same* code and settings
+  change some verdicts too (the loop runs on wall-clock time), so this share between two runs of
+  one setting is the yardstick for any other pair of files, parallel runs against sequential ones
+  included (docs/scale.md, issue 17's "identical verdicts").
 
 A pair is compared only when both flights are clean (not starved: ``sim.evidence``); ``--starved``
 takes starved flights too, as the figures of a loaded machine (the rows still say which were).
@@ -49,7 +53,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest, wilcoxon
 
-from sim.evidence import other_crossing_window, other_land_speed, read_rows
+from sim.evidence import binomial_interval, other_crossing_window, other_land_speed, read_rows
 
 #: The level below which a difference is called beyond chance.
 ALPHA = 0.05
@@ -78,7 +82,7 @@ BINARY: dict[str, FlightTest] = {
     "companion landing with nobody within r0": lambda r: r.get("outcome") == "safe",
     "handback": lambda r: r.get("outcome") == "handback",
     "companion landing on ground nobody walks into": _on_free_ground,
-    "touchdown on unlandable ground (a tree, a bench, a car, a roof; whoever landed)":
+    "touchdown on a tree, bench, car or roof (whoever landed)":
         lambda r: r.get("unlandable_touchdown") if isinstance(r.get("unlandable_touchdown"), bool) else None,
     # Only with --starved: without it no compared pair holds a starved flight.
     "starved (the frame p95 over the machine's limit)": lambda r: bool(r.get("starved")),
@@ -190,6 +194,9 @@ class Comparison:
     binary: list[BinaryChange] = field(default_factory=list)
     numeric: list[NumericChange] = field(default_factory=list)
     changed: list[ChangedPair] = field(default_factory=list)
+    #: The share of the pairs whose verdict changed, and its exact 95 % interval (None: no pair).
+    verdicts_changed_rate: float | None = None
+    verdicts_changed_ci95: list[float] | None = None
 
     @property
     def beyond_chance(self) -> list[str]:
@@ -267,6 +274,10 @@ def compare(before: list[dict[str, Any]], after: list[dict[str, Any]], include_s
         if x.get("outcome") != y.get("outcome"):
             result.changed.append(ChangedPair(int(x["seed"]), str(x["flavour"]), str(x.get("world")),
                                               _verdict(x), _verdict(y)))
+    if result.pairs:
+        lo, hi = binomial_interval(len(result.changed), result.pairs)
+        result.verdicts_changed_rate = round(len(result.changed) / result.pairs, 4)
+        result.verdicts_changed_ci95 = [round(lo, 4), round(hi, 4)]
     return result
 
 
@@ -307,8 +318,13 @@ def comparison_text(c: Comparison) -> str:
     for n in c.numeric:
         lines.append(f"{n.name:<56} {_num(n.before_median):>13} {_num(n.after_median):>7} "
                      f"{_num(n.median_difference):>10}  over {n.pairs} pairs, {_p(n.p)}")
-    if c.changed:
+    if c.verdicts_changed_ci95 is not None:
+        lo, hi = c.verdicts_changed_ci95
         lines.append("")
+        lines.append(f"verdicts changed in {len(c.changed)} of {c.pairs} pairs ({100 * (c.verdicts_changed_rate or 0):.1f} %, "
+                     f"95 % exact interval {100 * lo:.1f} to {100 * hi:.1f} %); two runs of one setting change "
+                     "some too: compare with theirs")
+    if c.changed:
         lines.append("verdicts that changed:")
         lines += [f"  seed {p.seed:>4} {p.flavour:<9} {p.world:<12} {p.before} -> {p.after}" for p in c.changed]
     lines.append("")

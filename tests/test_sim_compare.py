@@ -58,10 +58,10 @@ def test_pairs_are_compared_seed_by_seed_and_starved_or_unpaired_flights_are_lef
     assert (free.before, free.after, free.pairs) == (1, 8, 9)
     assert [(p.seed, p.before, p.after) for p in c.changed][-1] == (8, "handback 4.0 m", "unsafe 1.0 m")
     # Touchdowns on unlandable ground: rows without the judge's surfaces (older runs) say nothing.
-    assert got["touchdown on unlandable ground (a tree, a bench, a car, a roof; whoever landed)"].pairs == 0
+    assert got["touchdown on a tree, bench, car or roof (whoever landed)"].pairs == 0
     on = compare([{**_row(1, "safe"), "unlandable_touchdown": False}, {**_row(2, "safe"), "unlandable_touchdown": True}],
                  [{**_row(1, "safe"), "unlandable_touchdown": True}, {**_row(2, "safe"), "unlandable_touchdown": True}])
-    tree = next(b for b in on.binary if b.name.startswith("touchdown on unlandable"))
+    tree = next(b for b in on.binary if b.name.startswith("touchdown on a tree"))
     assert (tree.pairs, tree.before, tree.after, tree.only_before, tree.only_after) == (2, 1, 2, 0, 1)
     phases = next(n for n in c.numeric if n.name == "phase changes")
     xs, ys = [20.0] * 8 + [5.0], [9.0] * 8 + [5.0]
@@ -71,7 +71,11 @@ def test_pairs_are_compared_seed_by_seed_and_starved_or_unpaired_flights_are_lef
     time = next(n for n in c.numeric if n.name.startswith("time"))
     assert time.pairs == 1 and time.p is None
     assert next(n for n in c.numeric if n.name.startswith("zones")).pairs == 0
+    # The share of pairs whose verdict changed, with scipy's exact interval: 8 of 9 here.
+    assert c.verdicts_changed_rate == round(8 / 9, 4)
+    assert c.verdicts_changed_ci95 == [round(v, 4) for v in binomtest(8, 9).proportion_ci(method="exact")]
     text = comparison_text(c)
+    assert "verdicts changed in 8 of 9 pairs" in text
     assert "9 pairs" in text and "handback" in text and "beyond chance at the 0.05 level (*)" in text
     # --starved takes the starved pair too, and then says which were starved.
     loaded = compare(before, after, include_starved=True)

@@ -133,6 +133,22 @@ def handback_reason(result: FlightResult) -> str | None:
     return None
 
 
+def touchdown_lines(result: FlightResult) -> list[str]:
+    """What the demo says of the touchdown, judged on the simulator's truth: where, who landed,
+    the nearest person, what the vehicle came down on, and how long it took; none without one."""
+    td = result.touchdown
+    if td is None:
+        return []
+    who = "the autopilot" if result.handed_back or not result.took_control else "the companion"
+    lines = [f"touchdown (landed by {who}) at north {td[0]:.1f} m, east {td[1]:.1f} m from home",
+             f"nearest person at touchdown: {result.clearance_m:.1f} m (r_0 = {result.spec.r0_m:.1f} m)"]
+    if result.touchdown_surfaces is not None:
+        lines.append(f"touched down on {' and '.join(result.touchdown_surfaces)}"
+                     + (" (NOT landable ground)" if result.unlandable_touchdown else ""))
+    lines.append(f"failsafe to touchdown: {result.time_to_touchdown_s:.1f} s")
+    return lines
+
+
 def labelled_summary(result: FlightResult, r0_m: float) -> dict[str, Any]:
     """The summary with named fields (metres north/east of home) where the flight result has
     tuples; ``touchdown``'s old list form is kept as ``touchdown_ne`` for older readers."""
@@ -229,17 +245,13 @@ def run(args: argparse.Namespace) -> int:
         evidence = evidence_video(recordings[-1], out / "evidence.mp4")
         summary["evidence_video"] = None if evidence is None else str(evidence)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    td = result.touchdown
     line = f"demo: outcome {result.outcome.upper()}"
     reason = summary["handback_reason"]
     if reason is not None:
         line += f"; the companion {reason}"
     print(line)
-    if td is not None:
-        who = "the autopilot" if result.handed_back or not result.took_control else "the companion"
-        print(f"  touchdown (landed by {who}) at north {td[0]:.1f} m, east {td[1]:.1f} m from home")
-        print(f"  nearest person at touchdown: {result.clearance_m:.1f} m (r_0 = {spec.r0_m:.1f} m)")
-        print(f"  failsafe to touchdown: {result.time_to_touchdown_s:.1f} s")
+    for text in touchdown_lines(result):
+        print(f"  {text}")
     print(f"  summary: {out / 'summary.json'}; service log: {out / 'service.log'}"
           + (f"; video: {summary.get('video')}" if summary.get("video") else "")
           + (f"; evidence: {summary.get('evidence_video')}" if summary.get("evidence_video") else ""))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from companion.geometry.camera import Intrinsics, Mount
 from companion.recording import FlightRecorder
-from sim.demo import EventFollower, handback_reason, labelled_summary
+from sim.demo import EventFollower, handback_reason, labelled_summary, touchdown_lines
 from sim.flight import FlightResult, FlightSpec
 
 
@@ -62,3 +62,24 @@ def test_the_summary_is_labelled_and_says_why_it_handed_back() -> None:
     assert s["handback_reason"] == "handed back to the autopilot (LAND): hold budget spent: no zone for 15 s"
     assert json.loads(json.dumps(s)) == s
     assert handback_reason(FlightResult(FlightSpec(), "safe", events=[{"event": "target"}])) is None
+
+
+def test_the_touchdown_is_told_with_what_the_vehicle_came_down_on() -> None:
+    spec = FlightSpec(flavour="px4", r0_m=2.0)
+    landed = FlightResult(spec, "safe", touchdown=(3.25, -4.5), clearance_m=4.04, time_to_touchdown_s=31.0,
+                          phases=["SELECT", "APPROACH", "DESCEND", "LAND", "LANDED"],
+                          touchdown_surfaces=["grass", "path"])
+    assert touchdown_lines(landed) == [
+        "touchdown (landed by the companion) at north 3.2 m, east -4.5 m from home",
+        "nearest person at touchdown: 4.0 m (r_0 = 2.0 m)",
+        "touched down on grass and path",
+        "failsafe to touchdown: 31.0 s"]
+    on_tree = FlightResult(spec, "handback", touchdown=(0.0, 0.0), clearance_m=5.0, time_to_touchdown_s=70.0,
+                           phases=["SELECT", "SEARCH", "HANDBACK"], touchdown_surfaces=["grass", "tree"])
+    lines = touchdown_lines(on_tree)
+    assert lines[0].startswith("touchdown (landed by the autopilot)")
+    assert "touched down on grass and tree (NOT landable ground)" in lines
+    # A ground that does not say (the uniform world), and no touchdown at all.
+    assert not any("touched down on" in x for x in touchdown_lines(FlightResult(
+        spec, "safe", touchdown=(0.0, 0.0), clearance_m=5.0, time_to_touchdown_s=20.0)))
+    assert touchdown_lines(FlightResult(spec, "timeout")) == []

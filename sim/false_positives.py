@@ -47,6 +47,7 @@ from sim.flight import build_world
 from sim.ground import LANDABLE_SURFACES, SURFACES, ProceduralGround
 from sim.render import render_world
 from sim.scenarios import parse_seeds, scenario
+from sim.walkers import Circle
 from sim.world import World
 
 K = Intrinsics.from_fov(640, 480, 70.0)
@@ -111,10 +112,10 @@ def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[flo
 
 
 def _truth_figures(ground: ProceduralGround, pose: Pose, pixels: np.ndarray, marked: np.ndarray,
-                   free: object) -> tuple[float | None, float | None, float | None]:
+                   free: Circle) -> tuple[float | None, float | None, float | None]:
     """``(landable_marked_pct, unlandable_pct, unlandable_left_pct)`` of the free circle, judged
     on the ground's truth at the pixels' ground points (see the module docstring)."""
-    cn, ce, r = free.north, free.east, free.radius  # type: ignore[attr-defined]
+    cn, ce, r = free.north, free.east, free.radius
     xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=0.0).image_to_plane(pixels)
     inside = np.hypot(xy[:, 0] - cn, xy[:, 1] - ce) < r
     if not inside.any():

@@ -21,6 +21,7 @@ from __future__ import annotations
 import functools
 import math
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -98,6 +99,18 @@ def _rect(cn: float, ce: float, ln: float, le: float, angle: float = 0.0) -> np.
 def _disc(cn: float, ce: float, r: float, k: int = 16) -> np.ndarray:
     a = np.linspace(0, 2 * math.pi, k, endpoint=False)
     return np.column_stack([cn + r * np.cos(a), ce + r * np.sin(a)])
+
+
+def _draw(img: np.ndarray, s: Shape, value: tuple[int, int, int] | int, n0: float, e0: float, res: float, line_type: int) -> None:
+    """Draw one shape into ``img`` (rows north from ``n0``, columns east from ``e0``, ``res``
+    m/px) with ``value``: the texture's colour or the truth's class index."""
+    # cv2 point = (x = col, y = row) = ((east - e0) / res, (north - n0) / res), in fixed point.
+    pts = np.round(np.column_stack([(s.pts[:, 1] - e0), (s.pts[:, 0] - n0)]) * (float(1 << SHIFT) / res)
+                   ).astype(np.int32)
+    if s.line > 0:
+        cv2.polylines(img, [pts], False, value, max(1, int(round(s.line / res))), line_type, SHIFT)
+    else:
+        cv2.fillPoly(img, [pts], value, line_type, SHIFT)
 
 
 def _jit(rng: np.random.Generator, color: tuple[int, int, int], amount: int) -> tuple[int, int, int]:
@@ -249,6 +262,12 @@ class ProceduralGround:
                 shapes.append(Shape(_rect(x + 0.4, e0 + 1.3, 1.4, 1.5), (60, 55, 50)))
         return tuple(shapes)
 
+    def _shapes_over(self, n_min: float, n_max: float, e_min: float, e_max: float) -> Iterator[Shape]:
+        """The shapes of every block the rectangle touches, block by block in drawing order."""
+        for bi in range(math.floor(n_min / BLOCK), math.floor(n_max / BLOCK) + 1):
+            for bj in range(math.floor(e_min / BLOCK), math.floor(e_max / BLOCK) + 1):
+                yield from self._blocks(bi, bj)
+
     # -- what the ground is -------------------------------------------------------------------
     def surface_labels(self, n_min: float, n_max: float, e_min: float, e_max: float,
                        res: float) -> tuple[np.ndarray, np.ndarray]:
@@ -264,20 +283,9 @@ class ProceduralGround:
         if rows * cols > 4096 * 4096:
             raise ValueError(f"surface_labels: {rows}x{cols} pixels is too many; use a coarser res")
         labels = np.zeros((rows, cols), np.uint8)
-        scale = float(1 << SHIFT) / res
-        for bi in range(math.floor(n_min / BLOCK), math.floor(n_max / BLOCK) + 1):
-            for bj in range(math.floor(e_min / BLOCK), math.floor(e_max / BLOCK) + 1):
-                for s in self._blocks(bi, bj):
-                    if s.surface is None:
-                        continue
-                    value = SURFACES.index(s.surface)
-                    pts = np.round(np.column_stack([(s.pts[:, 1] - e_min), (s.pts[:, 0] - n_min)]) * scale)
-                    pts = pts.astype(np.int32)
-                    if s.line > 0:
-                        cv2.polylines(labels, [pts], False, value, max(1, int(round(s.line / res))),
-                                      cv2.LINE_8, SHIFT)
-                    else:
-                        cv2.fillPoly(labels, [pts], value, cv2.LINE_8, SHIFT)
+        for s in self._shapes_over(n_min, n_max, e_min, e_max):
+            if s.surface is not None:
+                _draw(labels, s, SURFACES.index(s.surface), n_min, e_min, res, cv2.LINE_8)
         A = np.array([[0.0, 1.0 / res, -e_min / res], [1.0 / res, 0.0, -n_min / res], [0.0, 0.0, 1.0]])
         return labels, A
 
@@ -312,20 +320,10 @@ class ProceduralGround:
         size = px * res
         n0, e0 = ti * size, tj * size
         img = np.zeros((px, px, 3), np.uint8)
-        scale = float(1 << SHIFT) / res
-        for bi in range(math.floor(n0 / BLOCK), math.floor((n0 + size) / BLOCK) + 1):
-            for bj in range(math.floor(e0 / BLOCK), math.floor((e0 + size) / BLOCK) + 1):
-                for s in self._blocks(bi, bj):
-                    # cv2 point = (x = col, y = row) = ((east - e0) / res, (north - n0) / res)
-                    pts = np.round(np.column_stack([(s.pts[:, 1] - e0), (s.pts[:, 0] - n0)]) * scale)
-                    pts = pts.astype(np.int32)
-                    if s.line > 0:
-                        w = max(1, int(round(s.line / res)))
-                        if s.line / res < 0.6:
-                            continue  # thinner than a pixel at this level: invisible anyway
-                        cv2.polylines(img, [pts], False, s.color, w, cv2.LINE_AA, SHIFT)
-                    else:
-                        cv2.fillPoly(img, [pts], s.color, cv2.LINE_AA, SHIFT)
+        for s in self._shapes_over(n0, n0 + size, e0, e0 + size):
+            if 0 < s.line / res < 0.6:
+                continue  # a line thinner than a pixel at this level: invisible anyway
+            _draw(img, s, s.color, n0, e0, res, cv2.LINE_AA)
         # Brightness variation at 6 m and 1.5 m (worn grass, stains), then sensor-like grain.
         c = (np.arange(px) + 0.5) * res
         nn, ee = np.meshgrid(n0 + c, e0 + c, indexing="ij")

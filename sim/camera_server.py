@@ -284,6 +284,11 @@ class CameraServer:
             with contextlib.suppress(Exception):
                 await writer.wait_closed()
 
+    async def next_frame(self, after: int | None) -> Frame:
+        """The newest frame rendered after frame ``after`` (any frame when None), waiting for it:
+        what the stream sends, for a consumer in this process (``sim.lockstep``)."""
+        return await self._next_frame(after)
+
     async def _next_frame(self, after: int | None) -> Frame:
         assert self._cond is not None
         async with self._cond:

@@ -268,7 +268,8 @@ def row_key(row: dict[str, Any]) -> RowKey:
     """What identifies a flight in a results file: its seed and the autopilot it flew with,
     ``"baseline"`` for a baseline flight (so neither kind ever stands for the other on resume),
     the service settings it flew with (``settings``, from ``--set``) when it had any, and the
-    autopilot's LAND speed (``land_speed``) when it was not the scenarios' own."""
+    autopilot's LAND speed (``land_speed``) when it was not the scenarios' own, and ``"lockstep"``
+    for a flight flown on the simulated clock (``sim.lockstep``)."""
     key: tuple[Any, ...] = (int(row["seed"]), str(row["flavour"]))
     if row.get("baseline"):
         key = (*key, BASELINE)
@@ -280,6 +281,8 @@ def row_key(row: dict[str, Any]) -> RowKey:
     window = other_crossing_window(row)
     if window is not None:
         key = (*key, f"cross:{window[0]:g}-{window[1]:g}")
+    if row.get("lockstep"):
+        key = (*key, "lockstep")
     return key
 
 

@@ -48,10 +48,10 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import Protocol, TextIO
 
 import numpy as np
 
@@ -142,6 +142,10 @@ class FlightSpec:
     gcs_port: when set, the simulator also binds ``udpin:127.0.0.1:<gcs_port>`` for a ground
         station to watch the flight, and forwards between it and the companion's link as the
         autopilot does (PX4: both links with forwarding on, ``MAV_X_FORWARD``).
+    lockstep: fly on the simulated clock (``sim.lockstep``): the service runs in the flight's own
+        process, every piece of work takes a fixed simulated time, and the same spec flies the
+        same flight every time, however loaded the machine. Only ``sim.lockstep.fly_lockstep``
+        (which gives the flight its own event loop and clock) flies it.
     """
 
     flavour: str = "ardupilot"
@@ -168,6 +172,7 @@ class FlightSpec:
     service_env: tuple[tuple[str, str], ...] = ()
     companion: bool = True
     gcs_port: int | None = None
+    lockstep: bool = False
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
@@ -249,7 +254,7 @@ class FlightResult:
             "starved": self.starved,
             "frame_ms_p95": None if self.frame_ms_p95 is None else round(self.frame_ms_p95, 1),
             "phases": self.phases, "messages": self.messages,
-            "baseline": not self.spec.companion,
+            "baseline": not self.spec.companion, "lockstep": self.spec.lockstep,
             "world_t_trigger": None if self.world_t_trigger is None else round(self.world_t_trigger, 2),
             "in_free_area": self.in_free_area,
             "touchdown_surfaces": self.touchdown_surfaces,
@@ -483,6 +488,78 @@ class NotifySocket:
         self.sock.close()
 
 
+class FlightService(Protocol):
+    """The service a flight flies with, however it runs: ``start`` it (True once it is ready),
+    watch ``running``, ``stop`` it (its exit status); ``lines`` are its log lines so far."""
+
+    lines: list[str]
+
+    async def start(self, timeout: float) -> bool: ...
+
+    @property
+    def running(self) -> bool: ...
+
+    async def stop(self) -> int | None: ...
+
+
+class ServiceProcess:
+    """``companion run`` in a subprocess, exactly as systemd starts it: ready when it says
+    ``READY=1`` on its ``NOTIFY_SOCKET``, stopped by SIGTERM (killed after 5 s), its stderr
+    kept in ``lines`` (and written to ``sink``)."""
+
+    def __init__(self, spec: FlightSpec, link_port: int, camera_url: str, record_dir: Path,
+                 scratch: Path, sink: TextIO | None) -> None:
+        self.command = service_command(spec, link_port, camera_url, record_dir)
+        self.notify = NotifySocket(scratch)
+        self.env: dict[str, str] = {**os.environ, "PYTHONUNBUFFERED": "1", "NOTIFY_SOCKET": str(self.notify.path),
+                                    **dict(spec.service_env)}
+        self.sink = sink
+        self.lines: list[str] = []
+        self.proc: asyncio.subprocess.Process | None = None
+        self._pump: asyncio.Task[None] | None = None
+
+    async def start(self, timeout: float) -> bool:
+        self.proc = await asyncio.create_subprocess_exec(
+            *self.command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+            stderr=asyncio.subprocess.PIPE, env=self.env, preexec_fn=die_with_parent)
+        assert self.proc.stderr is not None  # asked for with stderr=PIPE
+        self._pump = asyncio.create_task(_pump(self.proc.stderr, self.lines, self.sink))
+        return await self.notify.wait_ready(self.proc, timeout=timeout)
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.returncode is None
+
+    async def stop(self) -> int | None:
+        proc, code = self.proc, None
+        if proc is not None and proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                code = await asyncio.wait_for(proc.wait(), 5.0)
+            except (TimeoutError, asyncio.TimeoutError):
+                proc.kill()
+                code = await proc.wait()
+        elif proc is not None:
+            code = proc.returncode
+        if self._pump is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._pump, 2.0)
+        self.notify.close()
+        return code
+
+
+def start_service(spec: FlightSpec, link_port: int, camera: CameraServer, record_dir: Path,
+                  scratch: Path, sink: TextIO | None) -> FlightService:
+    """The flight's service, not yet started: ``companion run`` in a subprocess (real time), or,
+    for a lockstep flight, the same service in this process on the simulated clock
+    (``sim.lockstep``)."""
+    if spec.lockstep:
+        from sim.lockstep import InProcessService
+
+        return InProcessService(spec, link_port, camera, record_dir, sink)
+    return ServiceProcess(spec, link_port, camera.url, record_dir, scratch, sink)
+
+
 def recorded_events(record_dir: Path, kind: str | None = "controller") -> list[dict]:
     """The events of one ``kind`` (default the landing controller's, "controller"; None: all) of
     the flight recorded in ``record_dir`` (its newest run), in order; empty when nothing was
@@ -576,6 +653,8 @@ async def _pump(stream: asyncio.StreamReader, lines: list[str], sink: TextIO | N
 async def fly(spec: FlightSpec) -> FlightResult:
     """Fly one scenario end to end and judge it (see the module docstring). Its two loopback
     ports are claimed node-wide for the flight (:func:`reserve_port`), so flights may run at once."""
+    if spec.lockstep and not getattr(asyncio.get_running_loop(), "lockstep", False):
+        raise ValueError("a lockstep flight flies on the simulated clock: sim.lockstep.fly_lockstep(spec)")
     with reserve_port() as link, reserve_port(socket.SOCK_STREAM) as cam:
         return await _fly(spec, link.port, cam.port)
 
@@ -646,28 +725,18 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
 
     sim.add_stepper(watch_truth)
     window: dict[str, float] = {}  # READY and the end of the flight, for the processed frame rate
-    lines: list[str] = []
     sink = open(spec.service_log, "w") if spec.service_log is not None else None
-    proc = None
-    pump: asyncio.Task[None] | None = None
     scratch = tempfile.TemporaryDirectory(prefix="companion-flight-")
     record_dir = spec.record_dir if spec.record_dir is not None else Path(scratch.name) / "recording"
-    notify = NotifySocket(Path(scratch.name))
-    env: Mapping[str, str] = {**os.environ, "PYTHONUNBUFFERED": "1", "NOTIFY_SOCKET": str(notify.path),
-                              **dict(spec.service_env)}
+    service: FlightService | None = None
     try:
         await sim.start()
         if spec.companion:  # the baseline flies without camera or service
             await camera.start()
-            proc = await asyncio.create_subprocess_exec(
-                *service_command(spec, link_port, camera.url, record_dir), stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=dict(env),
-                preexec_fn=die_with_parent)
-            assert proc.stderr is not None  # asked for with stderr=PIPE
-            pump = asyncio.create_task(_pump(proc.stderr, lines, sink))
-            if not await notify.wait_ready(proc, timeout=60.0):
+            service = start_service(spec, link_port, camera, record_dir, Path(scratch.name), sink)
+            if not await service.start(timeout=60.0):
                 result.outcome = "timeout"
-                result.log_tail = "\n".join(lines[-30:])
+                result.log_tail = "\n".join(service.lines[-30:])
                 raise RuntimeError("the service did not become ready:\n" + result.log_tail)
             window["ready"] = time.monotonic()
             world.paused = False
@@ -687,7 +756,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
             add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window)
         end = t_trigger + spec.timeout_s
         while not touchdown and time.monotonic() < end:
-            if proc is not None and proc.returncode is not None:
+            if service is not None and not service.running:
                 break
             await asyncio.sleep(0.1)
         window["end"] = touchdown[0].t if touchdown else time.monotonic()
@@ -703,23 +772,12 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
         # the landed state reaches it in EXTENDED_SYS_STATE, which the autopilots send at 1-2 Hz.
         await asyncio.sleep(LANDED_GRACE_S)
     finally:
-        if proc is not None and proc.returncode is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                result.service_exit = await asyncio.wait_for(proc.wait(), 5.0)
-            except (TimeoutError, asyncio.TimeoutError):
-                proc.kill()
-                result.service_exit = await proc.wait()
-        elif proc is not None:
-            result.service_exit = proc.returncode
-        if pump is not None:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(pump, 2.0)
+        if service is not None:
+            result.service_exit = await service.stop()
         await camera.stop()
         await sim.stop()
         if sink is not None:
             sink.close()
-        notify.close()
         # The service has stopped (its recorder closed): its events are all on disk.
         recorded = recorded_events(record_dir, None)
         judge_events(result, [e for e in recorded if e.get("kind") == "controller"])
@@ -729,7 +787,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
         frame_ms = [float(e["timings_ms"]["total"]) for e in zones
                     if isinstance(e.get("timings_ms"), dict) and isinstance(e["timings_ms"].get("total"), (int, float))]
         scratch.cleanup()
-    result.log_tail = "\n".join(lines[-40:])
+    result.log_tail = "" if service is None else "\n".join(service.lines[-40:])
     if "trigger_alt" in climb:
         result.trigger_alt_m = climb["trigger_alt"]
         result.max_climb_m = max(0.0, climb.get("max_alt", climb["trigger_alt"]) - climb["trigger_alt"])
@@ -737,7 +795,8 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
         result.frame_ms_p95 = float(np.percentile(frame_ms, 95))
     if "ready" in window and "end" in window:
         result.processed_fps = processed_rate(frame_times, window["ready"], window["end"])
-    result.starved = starved(result.processed_fps, result.frame_ms_p95, spec.fps)
+    # On the simulated clock no CPU can starve a flight: every piece of work takes its fixed time.
+    result.starved = not spec.lockstep and starved(result.processed_fps, result.frame_ms_p95, spec.fps)
     result.outcome = judge(result, spec.r0_m)
     return result
 

@@ -55,6 +55,13 @@ many more walkers as keep the same rate: landings of different lengths (another 
 last metres by the rangefinder) then meet crossings at any time of their descent, not the ones
 the window was timed for. Rows record it, and resume only from rows flown with the same window.
 
+``--lockstep`` flies every seed on the simulated clock (``sim.lockstep``): the service in the
+flight's own process, every frame costing the same simulated time, so a seed flies the same
+flight every time, one at a time, two at a time or on Ray, and no flight can be starved. It is
+the tool for comparing two versions of the landing logic (every changed verdict is the change's,
+not chance's) and runs 2-5 times faster than real time; the real-time flights stay the test of
+the service as a vehicle runs it. Rows say ``lockstep: true`` and resume only from lockstep rows.
+
 ``--set KEY=VALUE`` (repeatable) flies every seed with that service setting, as ``companion run
 --set`` takes it (``--set model.path=my.onnx`` flies a researcher's own model in closed loop). A bad
 key or value, or a model file that is not there, is exit 2 before anything flies. Rows record the
@@ -196,6 +203,8 @@ class FlightJob:
     #: The crossing world's window (s after the failsafe, ``--crossing-window``; None: the
     #: world's own, ``sim.world.CROSSING_WINDOW_S``); part of its key when it is another.
     crossing_window: tuple[float, float] | None = None
+    #: Fly on the simulated clock (``sim.lockstep``); part of its key.
+    lockstep: bool = False
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
@@ -211,6 +220,8 @@ class FlightJob:
             spec = dataclasses.replace(spec, service_set=(*spec.service_set, *self.service_set))
         if self.threads is not None and not any(s.startswith("model.threads=") for s in spec.service_set):
             spec = dataclasses.replace(spec, service_set=(*spec.service_set, f"model.threads={self.threads}"))
+        if self.lockstep:
+            spec = dataclasses.replace(spec, lockstep=True)
         return spec
 
     def model_threads(self) -> int | None:
@@ -231,7 +242,7 @@ class FlightJob:
         spec = self.spec()
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
-                        "crossing_window": list(spec.crossing_window)})
+                        "crossing_window": list(spec.crossing_window), "lockstep": self.lockstep})
 
 
 def _cpu_s() -> float:
@@ -245,7 +256,12 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     the host it flew on. Module-level, for worker processes and Ray tasks."""
     spec = job.spec()
     t0, cpu0 = time.monotonic(), _cpu_s()
-    result = asyncio.run(fly(spec))
+    if spec.lockstep:
+        from sim.lockstep import fly_in_process
+
+        result = fly_in_process(spec)
+    else:
+        result = asyncio.run(fly(spec))
     row = result.as_dict()
     row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
                wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
@@ -446,6 +462,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                        help=f"CPUs one flight needs (default {CPUS_PER_FLIGHT:g}): sets the default "
                             "--workers, each Ray task's num_cpus and the flight's model.threads (its "
                             "whole CPUs, at least 1)")
+    scale.add_argument("--lockstep", action="store_true",
+                       help="fly on the simulated clock: the same seed flies the same flight every "
+                            "time, at any --workers or on Ray, 2-5 times faster than real time; "
+                            "no flight starves (sim.lockstep)")
     scale.add_argument("--out", type=Path, default=None, metavar="FILE.jsonl",
                        help="append each flight's row here as it ends; seeds already in it are not "
                             "flown again (resume), and the summary is computed from it")
@@ -486,7 +506,7 @@ def run(args: argparse.Namespace) -> int:
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
-                      land_speed=land, crossing_window=window)
+                      land_speed=land, crossing_window=window, lockstep=args.lockstep)
             for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,
@@ -521,7 +541,12 @@ def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None
         except DensityModelError as exc:
             print(f"companion sim-scenarios: {exc}", file=sys.stderr)
             return 2
-        print(machine.text(workers), file=sys.stderr)
+        if first.lockstep:
+            print(f"lockstep: flights fly on the simulated clock, each frame costing the same "
+                  f"simulated time, so none can starve (the pipeline takes {machine.frame_ms_p50:.0f} ms "
+                  "a frame here, which sets only how fast they fly)", file=sys.stderr)
+        else:
+            print(machine.text(workers), file=sys.stderr)
     rows: dict[RowKey, dict[str, Any]] = dict(kept)
     failed: dict[RowKey, str] = {}
     results = ResultsFile(out) if out is not None else None
@@ -571,7 +596,7 @@ def run_jobs(jobs: list[FlightJob], *, workers: int = 1, ray_address: str | None
     summary["could_not_fly"] = sorted({k[0] for k in failed if len(k) == 2})
     summary["run"] = {"flown": len(todo) - len(failed), "wall_s": round(wall, 1),
                       "workers": None if ray_address else workers, "ray": ray_address,
-                      "cpus_per_flight": cpus_per_flight}
+                      "cpus_per_flight": cpus_per_flight, "lockstep": any(job.lockstep for job in jobs)}
     if machine is not None:
         summary["machine_check"] = machine.as_dict()
     summary["flights"] = asked

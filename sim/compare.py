@@ -26,7 +26,9 @@ the comparison says how likely a difference that large would be if the change di
   interval (``verdicts_changed_ci95``, Clopper-Pearson): two files of the *same* code and settings
   change some verdicts too (the loop runs on wall-clock time), so this share between two runs of
   one setting is the yardstick for any other pair of files, parallel runs against sequential ones
-  included (docs/scale.md, issue 17's "identical verdicts").
+  included (docs/scale.md, issue 17's "identical verdicts"). Two files flown with ``--lockstep``
+  need no yardstick: a rerun changes no verdict, so each changed one is the difference's
+  (``lockstep`` in the JSON: every pair was flown that way on both sides).
 
 A pair is compared only when both flights are clean (not starved: ``sim.evidence``); ``--starved``
 takes starved flights too, as the figures of a loaded machine (the rows still say which were).
@@ -197,6 +199,9 @@ class Comparison:
     #: The share of the pairs whose verdict changed, and its exact 95 % interval (None: no pair).
     verdicts_changed_rate: float | None = None
     verdicts_changed_ci95: list[float] | None = None
+    #: Every compared pair was flown in lockstep on both sides (``sim.lockstep``): a rerun of one
+    #: code changes no verdict, so each changed verdict is the difference between the two.
+    lockstep: bool = False
 
     @property
     def beyond_chance(self) -> list[str]:
@@ -224,14 +229,17 @@ def _companion_rows(rows: list[dict[str, Any]], label: str) -> dict[tuple[int, s
 
 def _flown_with(row: dict[str, Any]) -> tuple[str, ...]:
     """What a row was flown with beside the defaults: its service settings (``--set``), the
-    autopilot's LAND speed when it was not the scenarios' own (``--land-speed``), and the
-    crossing world's window when it was not its own (``--crossing-window``)."""
+    autopilot's LAND speed when it was not the scenarios' own (``--land-speed``), the
+    crossing world's window when it was not its own (``--crossing-window``), and ``lockstep``
+    for a flight on the simulated clock (``--lockstep``)."""
     out = tuple(str(x) for x in row.get("settings") or ())
     land = other_land_speed(row)
     if land is not None:
         out = (*out, f"land_speed={land:g}")
     window = other_crossing_window(row)
-    return out if window is None else (*out, f"crossing_window={window[0]:g}-{window[1]:g}")
+    if window is not None:
+        out = (*out, f"crossing_window={window[0]:g}-{window[1]:g}")
+    return (*out, "lockstep") if row.get("lockstep") else out
 
 
 def _verdict(row: dict[str, Any]) -> str:
@@ -256,6 +264,7 @@ def compare(before: list[dict[str, Any]], after: list[dict[str, Any]], include_s
             continue
         pairs.append((a[key], b[key]))
     result.pairs = len(pairs)
+    result.lockstep = bool(pairs) and all(x.get("lockstep") and y.get("lockstep") for x, y in pairs)
     for name, test in BINARY.items():
         asked = [(test(x), test(y)) for x, y in pairs]
         said = [(bool(u), bool(v)) for u, v in asked if u is not None and v is not None]
@@ -322,8 +331,10 @@ def comparison_text(c: Comparison) -> str:
         lo, hi = c.verdicts_changed_ci95
         lines.append("")
         lines.append(f"verdicts changed in {len(c.changed)} of {c.pairs} pairs ({100 * (c.verdicts_changed_rate or 0):.1f} %, "
-                     f"95 % exact interval {100 * lo:.1f} to {100 * hi:.1f} %); two runs of one setting change "
-                     "some too: compare with theirs")
+                     f"95 % exact interval {100 * lo:.1f} to {100 * hi:.1f} %); "
+                     + ("both flown in lockstep, where a rerun of one code changes none: each is the "
+                        "difference's" if c.lockstep else
+                        "two runs of one setting change some too: compare with theirs"))
     if c.changed:
         lines.append("verdicts that changed:")
         lines += [f"  seed {p.seed:>4} {p.flavour:<9} {p.world:<12} {p.before} -> {p.after}" for p in c.changed]

@@ -120,12 +120,13 @@ class VirtualTimeLoop(asyncio.SelectorEventLoop):
     lockstep = True
 
     def __init__(self, compute_s: float = COMPUTE_S, start: float | None = None) -> None:
-        if not compute_s >= 0:
-            raise ValueError(f"compute_s must be >= 0, got {compute_s!r}")
         self._now = time.monotonic() if start is None else float(start)
         self.compute_s = float(compute_s)
         self.work_items = 0  # pieces of work run for worker threads
         super().__init__(selector=_JumpingSelector(self))
+        if not compute_s >= 0:
+            self.close()
+            raise ValueError(f"compute_s must be >= 0, got {compute_s!r}")
 
     def time(self) -> float:
         return self._now

@@ -152,3 +152,18 @@ def test_the_last_metres_are_paired_where_both_rows_carry_them() -> None:
                                             [2.2 + 0.1 * s for s in range(1, 8)]).pvalue, abs=1e-4)
     old = [_row(s, "safe") for s in range(1, 8)]
     assert next(n for n in compare(old, after).numeric if n.name.startswith("time over the last")).pairs == 0
+
+
+def test_lockstep_files_are_named_and_their_changed_verdicts_need_no_yardstick() -> None:
+    # `sim-scenarios --lockstep` rows pair with real-time ones by seed; the settings line says
+    # which side flew on the simulated clock, and only two lockstep sides drop the rerun caveat.
+    real = [_row(s, "safe") for s in (1, 2, 3)]
+    lock = [{**_row(s, "safe" if s != 2 else "handback"), "lockstep": True} for s in (1, 2, 3)]
+    c = compare(real, lock)
+    assert c.pairs == 3 and not c.lockstep and c.settings_after == [["lockstep"]]
+    assert "compare with theirs" in comparison_text(c)
+    lock_after = [{**r, "outcome": "safe"} for r in lock]
+    c = compare(lock, lock_after)
+    assert c.lockstep and len(c.changed) == 1 and c.settings_before == [["lockstep"]]
+    text = comparison_text(c)
+    assert "both flown in lockstep" in text and "compare with theirs" not in text

@@ -137,7 +137,8 @@ class FlightSpec:
     record_dir: where the service records the flight (a temporary folder when None: the judge
         reads the controller's events from the recording either way).
     service_env: extra environment variables for the service process (tests use it to prove the
-        verdict does not depend on the log's wording).
+        verdict does not depend on the log's wording); in lockstep, for the flight's own process,
+        which is the service's.
     companion: False flies the **baseline**: no service, the autopilot's own failsafe alone.
     gcs_port: when set, the simulator also binds ``udpin:127.0.0.1:<gcs_port>`` for a ground
         station to watch the flight, and forwards between it and the companion's link as the

@@ -349,7 +349,8 @@ class LockstepError(RuntimeError):
 def fly_in_process(spec: FlightSpec, timeout_s: float = PROCESS_TIMEOUT_S) -> FlightResult:
     """Fly ``spec`` in lockstep in a fresh process (``python -m sim.lockstep``) and return its
     result; raises LockstepError when that process fails."""
-    env = {**os.environ, "PYTHONHASHSEED": "0"}
+    # The flight's process is also its service's: the spec's service_env applies to it.
+    env = {**os.environ, **dict(spec.service_env), "PYTHONHASHSEED": "0"}
     env.pop("NOTIFY_SOCKET", None)
     env.pop("WATCHDOG_USEC", None)
     try:

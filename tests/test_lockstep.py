@@ -238,3 +238,22 @@ def test_a_lockstep_flight_is_the_real_service_over_real_mavlink(tmp_path: Path,
     heard = recorded_events(rec, None)
     assert any(e.get("kind") == "telemetry" and e.get("msg") == "HEARTBEAT" for e in heard)
     assert sum(e.get("kind") == "zones" for e in heard) > 50
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(600)
+def test_a_local_ray_gives_the_rows_of_one_at_a_time(tmp_path: Path, model_path) -> None:
+    pytest.importorskip("ray", reason="--ray needs the 'scale' extra: pip install '.[scale]'")
+    import subprocess
+    import sys
+
+    common = ["--seeds", "6", "--flavour", "ardupilot", "--lockstep", "--json", "--no-progress",
+              "--no-machine-check"]
+    rows = {}
+    for name, how in (("one", ["--workers", "1"]), ("ray", ["--ray", "auto", "--cpus-per-flight", "2"])):
+        out = tmp_path / f"{name}.jsonl"
+        proc = subprocess.run([sys.executable, "-m", "companion", "sim-scenarios", *common, *how, "--out", str(out)],
+                              capture_output=True, text=True, timeout=560)
+        assert proc.returncode in (0, 1), proc.stderr[-3000:]
+        rows[name] = _flights(out)
+    assert rows["one"] == rows["ray"] and len(rows["one"]) == 1

@@ -269,7 +269,7 @@ class CameraServer:
             elif path == "/stream.mjpg":
                 await self._stream(writer)
             elif path == "/snapshot.jpg":
-                frame = await self._next_frame(None)
+                frame = await self.next_frame(None)
                 writer.write(b"HTTP/1.0 200 OK\r\nContent-Type: image/jpeg\r\n"
                              + f"Content-Length: {len(frame.jpeg)}\r\n\r\n".encode() + frame.jpeg)
             else:
@@ -286,10 +286,7 @@ class CameraServer:
 
     async def next_frame(self, after: int | None) -> Frame:
         """The newest frame rendered after frame ``after`` (any frame when None), waiting for it:
-        what the stream sends, for a consumer in this process (``sim.lockstep``)."""
-        return await self._next_frame(after)
-
-    async def _next_frame(self, after: int | None) -> Frame:
+        what the stream and the snapshot send, and a consumer in this process (``sim.lockstep``)."""
         assert self._cond is not None
         async with self._cond:
             await self._cond.wait_for(
@@ -310,7 +307,7 @@ class CameraServer:
                      + f"Content-Type: multipart/x-mixed-replace; boundary={BOUNDARY}\r\n\r\n".encode())
         last: int | None = None
         while True:
-            frame = await self._next_frame(last)
+            frame = await self.next_frame(last)
             last = frame.index
             writer.write(
                 f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(frame.jpeg)}\r\n"

@@ -36,6 +36,7 @@ worker pool, a Ray task). :func:`fly_in_process` is that, from the parent's side
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
 import dataclasses
@@ -57,10 +58,11 @@ from companion import config as config_mod
 from companion.config import ConfigError
 from companion.parallel import die_with_parent
 from companion.pipeline.density import DensityModelError
-from companion.service.camera import CameraSource, plausible_capture_time
+from companion.service import cli as service_cli
+from companion.service.camera import CameraSource
 from companion.service.notify import Notifier
 from sim.camera_server import CameraServer
-from sim.flight import FlightResult, FlightSpec, fly, service_settings
+from sim.flight import FlightResult, FlightSpec, fly, service_command
 
 log = logging.getLogger("sim.lockstep")
 
@@ -191,11 +193,7 @@ class PushCamera(CameraSource):
         if self._is_repeat(image):
             self.stats.repeated += 1
             return
-        now = time.monotonic()
-        if plausible_capture_time(capture_time, now, self._prev_t):
-            self._publish(image, min(capture_time, now), "header", jpeg)
-        else:
-            self._publish(image, now, "grab", jpeg)
+        self._publish(image, *self._capture_time(capture_time, "header", time.monotonic()), jpeg=jpeg)
 
 
 async def _feed(server: CameraServer, camera: PushCamera) -> None:
@@ -252,15 +250,14 @@ class InProcessService:
         self.service: Any = None
 
     def config(self) -> config_mod.Config:
-        """The settings, as ``companion run --link ... --camera ... --flavour ... --record ...
-        --set ...`` resolves them (``companion.config.load``); raises ConfigError."""
-        overrides: dict[str, Any] = {
-            "link.url": f"udpin:127.0.0.1:{self.link_port}", "camera.source": self.server.url,
-            "link.flavour": self.spec.flavour, "recorder.enabled": True, "recorder.dir": str(self.record_dir)}
-        for item in service_settings(self.spec):
-            key, value = config_mod.parse_assignment(item)
-            overrides[key] = value
-        return config_mod.load(None, overrides)
+        """The settings of the command line a real-time flight starts its service with
+        (``sim.flight.service_command``), read by ``companion run``'s own parser and resolved as
+        it resolves them; raises ConfigError."""
+        argv = service_command(self.spec, self.link_port, self.server.url, self.record_dir)
+        parser = argparse.ArgumentParser(prog="companion run")
+        service_cli.configure(parser)
+        args = parser.parse_args(argv[argv.index("run") + 1:])
+        return config_mod.load(args.config, service_cli.overrides_from_args(args))
 
     async def start(self, timeout: float) -> bool:
         from companion.service.app import Service, load_landability, load_model

@@ -25,6 +25,7 @@ import numpy as np
 
 from companion import config as settings
 from companion.geometry.camera import Intrinsics, Mount, Pose
+from sim.false_positives import HEAD_M
 from sim.flight import scene_centre
 from sim.ground import ProceduralGround
 from sim.render import render
@@ -98,6 +99,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         heights, distances = parse_floats(args.heights), parse_floats(args.distances)
     except ValueError as exc:
         print(f"sim.person_halo: {exc}", file=sys.stderr)
+        return 2
+    if not all(h > HEAD_M for h in heights):
+        print(f"sim.person_halo: heights must lie above the head plane ({HEAD_M} m)", file=sys.stderr)
         return 2
     from companion.config import ConfigError
     from companion.pipeline.density import DensityModelError

@@ -24,6 +24,8 @@ def test_bad_arguments_and_a_missing_model_are_exit_2(tmp_path, capsys) -> None:
     with pytest.raises(ValueError):
         parse_floats("3,-1")
     assert main(["--heights", "ten"]) == 2
+    assert main(["--heights", "1.5", "--distances", "3"]) == 2  # under the head plane: no frame to place
+    assert "head plane" in capsys.readouterr().err
     assert main(["--model", str(tmp_path / "none.onnx"), "--heights", "10", "--distances", "3"]) == 2
     assert "none.onnx" in capsys.readouterr().err
 

@@ -542,18 +542,18 @@ class CameraSource:
         self._prev_key, self._prev_image = key, image
         return False
 
-    def _capture_time(self, reader: _Reader, now: float) -> tuple[float, TimeSource]:
-        """The frame's capture time and its source: the reader's timestamp when plausible."""
-        stamp = reader.stamp
+    def _capture_time(self, stamp: float | None, source: TimeSource, now: float) -> tuple[float, TimeSource]:
+        """The frame's capture time and its source: the source's timestamp ``stamp`` when
+        plausible, else ``now`` (the grab time)."""
         if stamp is None:
             return now, "grab"
         if plausible_capture_time(stamp, now, self._prev_t):
-            return min(stamp, now), reader.stamp_source
+            return min(stamp, now), source
         if not self._warned_stamp:
             self._warned_stamp = True
             log.warning("camera %s: %s timestamp %.6f is not on this machine's monotonic clock "
                         "(now %.6f, previous frame %s); using grab time for such frames (logged once)",
-                        self.source, reader.stamp_source, stamp, now,
+                        self.source, source, stamp, now,
                         "none" if self._prev_t is None else f"{self._prev_t:.6f}")
         return now, "grab"
 
@@ -605,7 +605,7 @@ class CameraSource:
             if status is _Status.OK:
                 assert image is not None
                 if not self._is_repeat(image):
-                    self._publish(image, *self._capture_time(reader, now), jpeg=reader.jpeg)
+                    self._publish(image, *self._capture_time(reader.stamp, reader.stamp_source, now), jpeg=reader.jpeg)
                     last_good = now
                     backoff = 0.5
                     continue

@@ -7,9 +7,11 @@ rendered frame and its own output feeds the rest. ``live_view`` is what the serv
 costs per drawn frame while a client watches (the figure and its JPEG; ``live.max_fps`` at most,
 nothing without a client); it is not part of the pipeline's ``total``, and neither is
 ``search_memory``, the risk map's remembered free ground the service reads once a second while
-the controller searches (``SLZPipeline.remembered_zones``). ``landability`` is the
-landability model (the shipped one unless ``--no-landability``; it runs on the same frame after the
-density model and is counted in ``total``, not in ``post_density``). Figures are printed, never
+the controller searches (``SLZPipeline.remembered_zones``), nor ``landing_spot``, the point of the
+largest zone farthest from where people were seen in the last 30 s, which a frame waits for while
+the vehicle approaches its zone (``controller.place_lookback_s``, ``SLZPipeline.landing_spot``).
+``landability`` is the landability model (the shipped one unless ``--no-landability``; it runs on
+the same frame after the density model and is counted in ``total``, not in ``post_density``). Figures are printed, never
 asserted: this machine is shared and timings are noisy, so compare figures measured in one run.
 
 By default the pipeline is set up as costly as the service can make it (the fused risk map, calm
@@ -38,6 +40,7 @@ from companion import synthetic
 from companion.config import SHIPPED_LANDABILITY, SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.pipeline.people import PeopleParams
+from companion.pipeline.riskmap import SpotRequest
 from companion.pipeline.slz import STAGES, DensityFn, PipelineConfig, SLZPipeline, SurfaceFn
 from companion.replay.live_figure import live_jpeg
 
@@ -127,13 +130,21 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
         t0 = time.perf_counter()
         pipe.remembered_zones(t, 60.0)
         samples.setdefault("search_memory", []).append((time.perf_counter() - t0) * 1e3)
+        # What a frame waits for while the vehicle approaches its zone (controller.place_lookback_s):
+        # the point of the largest zone farthest from where people were seen in the last 30 s.
+        if res.tracks:
+            zone = max(res.tracks, key=lambda tr: tr.r)
+            t0 = time.perf_counter()
+            # Within the part of it that keeps r0 plus radius_margin_m (4 m by default) around.
+            pipe.landing_spot(SpotRequest(zone.x, zone.y, max(0.0, zone.r - 4.0), 30.0, (zone.x, zone.y)), t)
+            samples.setdefault("landing_spot", []).append((time.perf_counter() - t0) * 1e3)
     wanted = list(STAGES if model is not None else STAGES[1:]) + ["post_density"]
     if surface is not None:
         wanted.insert(1 if model is not None else 0, "landability")
     if model is not None or surface is not None:
         wanted.append("total")
-    wanted += ["live_view", "search_memory"]
-    return {name: _stats(samples[name]) for name in wanted}
+    wanted += ["live_view", "search_memory", "landing_spot"]
+    return {name: _stats(samples[name]) for name in wanted if name in samples}
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -358,10 +358,10 @@ class ControllerSettings:
     hold_looks: bool = _f(False, "while holding, fly over free ground glimpsed at the edge of the view (as the "
                                  "search does) so the camera sees it whole, instead of hovering until "
                                  "hold_timeout_s")
-    place_lookback_s: float = _f(0.0, "place the landing point inside the zone where the ground is farthest "
-                                      "from anybody seen within this many seconds, and move it there again "
-                                      "before the zone is judged when that is 0.5 m farther from them (s; 0 = "
-                                      "the zone's centre when chosen; docs/design.md, 'Where people walked')",
+    place_lookback_s: float = _f(30.0, "place the landing point inside the zone where the ground is farthest "
+                                       "from anybody seen within this many seconds, and move it there again "
+                                       "before the zone is judged when that is 0.5 m farther from them (s; 0 = "
+                                       "the zone's centre when chosen; docs/design.md, 'Where people walked')",
                                  min=0.0, max=600.0)
     search_memory_s: float = _f(0.0, "the search flies over ground the risk map remembers free (seen free "
                                      "within this many seconds), nearest first, when none is in view (s; 0 = "

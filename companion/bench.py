@@ -11,8 +11,9 @@ the controller searches (``SLZPipeline.remembered_zones``), nor ``landing_spot``
 largest zone farthest from where people were seen in the last 30 s, which a frame waits for while
 the vehicle approaches its zone (``controller.place_lookback_s``, ``SLZPipeline.landing_spot``).
 ``landability`` is the landability model (the shipped one unless ``--no-landability``; it runs on
-the same frame after the density model and is counted in ``total``, not in ``post_density``). Figures are printed, never
-asserted: this machine is shared and timings are noisy, so compare figures measured in one run.
+the same frame after the density model and is counted in ``total``, not in ``post_density``).
+Figures are printed, never asserted: this machine is shared and timings are noisy, so compare
+figures measured in one run.
 
 By default the pipeline is set up as costly as the service can make it (the fused risk map, calm
 and unwalked ground, and the people followed for the walkers' prediction, whatever the flight

@@ -40,10 +40,11 @@ from typing import Any
 import numpy as np
 
 from sim.evidence import read_rows
-from sim.flight import build_world
+from sim.flight import FlightSpec, build_world
+from sim.person_halo import parse_floats
 from sim.scenarios import scenario
 from sim.walkers import ScriptedWalkers
-from sim.world import CROSSING_WINDOW_S, TICK_S, World, add_crossing_walkers
+from sim.world import TICK_S, World, add_crossing_walkers
 
 #: Worlds rebuilt here (the scenarios' own; DroneCrowd needs ../shared and is not a seed's draw).
 REBUILT = ("free_area", "crossing", "dense", "dense_beyond")
@@ -87,8 +88,9 @@ class Strike:
                 f"walking at {self.walking_mps:.2f} m/s, closing at {self.approach_mps:.2f}; within r0 for the last {self.within_r0_for_s:.1f} s{lawn}")
 
 
-def rebuild(row: dict[str, Any]) -> tuple[World, Any]:
-    """The row's world at its start (crossing walkers are added by ``trace`` at the trigger)."""
+def rebuild(row: dict[str, Any]) -> tuple[World, Any, FlightSpec]:
+    """The row's world at its start, its free circle (None without one) and the row's scenario
+    (with its ``crossing_window``; crossing walkers are added by ``trace`` at the trigger)."""
     spec = scenario(int(row["seed"]), str(row["flavour"]))
     if spec.world != row["world"]:
         raise ValueError(f"seed {row['seed']} draws a {spec.world} world, the row says {row['world']}")
@@ -96,26 +98,21 @@ def rebuild(row: dict[str, Any]) -> tuple[World, Any]:
     if window is not None:
         spec = replace(spec, crossing_window=(float(window[0]), float(window[1])))
     world, free, _ = build_world(spec)
-    return world, free
+    return world, free, spec
 
 
 def _kind(world: World, index: int, name: str) -> str:
     """``crowd``, or for a scripted walker the world's script (``crossing`` in the crossing
-    world): which source person ``index`` belongs to."""
-    start = 0
-    for source in world.sources:
-        n = len(source.positions())
-        if index < start + n:
-            if not isinstance(source, ScriptedWalkers):
-                return "crowd"
-            return "crossing" if name == "crossing" else "scripted"
-        start += n
-    return "crowd"
+    world ``name``): which source person ``index`` belongs to (``World.ids`` names its source)."""
+    source = world.sources[int(world.ids()[index]) // 1_000_000]
+    if not isinstance(source, ScriptedWalkers):
+        return "crowd"
+    return "crossing" if name == "crossing" else "scripted"
 
 
 def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> Strike:
     """Trace one strike row on the truth (see the module docstring)."""
-    world, free = rebuild(row)
+    world, free, spec = rebuild(row)
     t_trigger = float(row["world_t_trigger"])
     t_td = t_trigger + float(row["time_to_touchdown_s"])
     point = np.asarray(row["touchdown"], float)[:2]
@@ -124,9 +121,8 @@ def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> St
     while world.t < t_td - 1e-9:
         if not added and world.t >= t_trigger - 1e-9:
             added = True
-            if row["world"] == "crossing" and free is not None:
-                window = tuple(row.get("crossing_window") or CROSSING_WINDOW_S)
-                add_crossing_walkers(world, free, world.t, int(row["seed"]), window=(window[0], window[1]))
+            if spec.world == "crossing" and free is not None:
+                add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window)
         world.step(TICK_S)
         history.append((world.t, world.positions().copy()))
     if not history:
@@ -136,12 +132,16 @@ def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> St
     k = int(np.argmin(d))
     times = np.array([t for t, _ in history])
 
-    def distance(dt: float) -> float:
+    def position(dt: float) -> np.ndarray:
+        """The striker's position ``dt`` seconds before touchdown (a walker added at the
+        trigger: from their first tick)."""
         i = int(np.argmin(np.abs(times - (t_td - dt))))
         while k >= len(history[i][1]) and i + 1 < len(history):
-            i += 1  # a walker added at the trigger: from their first tick
-        p = history[i][1]
-        return float(np.hypot(*(p[k] - point))) if k < len(p) else math.nan
+            i += 1
+        return history[i][1][k]
+
+    def distance(dt: float) -> float:
+        return float(np.hypot(*(position(dt) - point)))
 
     within = 0.0
     for t, p in reversed(history):
@@ -149,9 +149,7 @@ def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> St
             break
         within = t_td - t
     approach = (distance(SPEED_WINDOW_S) - float(d[k])) / SPEED_WINDOW_S
-    i = int(np.argmin(np.abs(times - (t_td - SPEED_WINDOW_S))))
-    earlier = history[i][1]
-    walking = float(np.hypot(*(final[k] - earlier[k]))) / SPEED_WINDOW_S if k < len(earlier) else math.nan
+    walking = float(np.hypot(*(final[k] - position(SPEED_WINDOW_S)))) / SPEED_WINDOW_S
     lawn_c = lawn_r = None
     on_lawn = None
     if free is not None:
@@ -164,7 +162,7 @@ def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> St
                   outcome=str(row.get("outcome")), baseline=bool(row.get("baseline")),
                   clearance_m=clearance, recomputed_m=round(float(d[k]), 3),
                   mismatch=not (abs(clearance - float(d[k])) <= MISMATCH_M),
-                  striker=_kind(world, k, str(row["world"])), distance_at_trigger_m=round(distance(t_td - t_trigger), 2),
+                  striker=_kind(world, k, spec.world), distance_at_trigger_m=round(distance(t_td - t_trigger), 2),
                   distance_before_m={f"{b:g}": round(distance(b), 2) for b in before},
                   walking_mps=round(walking, 2), approach_mps=round(approach, 2), within_r0_for_s=round(within, 2),
                   lawn_centre_m=None if lawn_c is None else round(lawn_c, 2),
@@ -186,13 +184,6 @@ def strikes(rows: Sequence[dict[str, Any]], before: Sequence[float]) -> tuple[li
     return out, skipped
 
 
-def parse_before(text: str) -> list[float]:
-    values = [float(v) for v in text.split(",") if v.strip()]
-    if not values or not all(math.isfinite(v) and v > 0 for v in values):
-        raise ValueError(f"--before takes positive seconds separated by commas, got {text!r}")
-    return values
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m sim.strikes", description=__doc__.split("\n")[0])
     parser.add_argument("results", type=Path, help="a sim-scenarios results file (--out)")
@@ -200,7 +191,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="one JSON object per strike")
     args = parser.parse_args(argv)
     try:
-        before = parse_before(args.before)
+        before = parse_floats(args.before)
+    except ValueError as exc:
+        print(f"sim.strikes: --before: {exc}", file=sys.stderr)
+        return 2
+    try:
         if not args.results.is_file():
             raise ValueError(f"{args.results}: no such results file")
         rows, bad = read_rows(args.results)

@@ -363,6 +363,11 @@ class ControllerSettings:
                                        "before the zone is judged when that is 0.5 m farther from them (s; 0 = "
                                        "the zone's centre when chosen; docs/design.md, 'Where people walked')",
                                  min=0.0, max=600.0)
+    place_min_clear_m: float = _f(0.0, "the landing point moves (place_lookback_s) only to a point at least this "
+                                       "far from anybody seen within the lookback (m; 0 = to any point 0.5 m "
+                                       "farther from them than the present one)", min=0.0, max=50.0)
+    place_descending: bool = _f(True, "the landing point moves (place_lookback_s) also while the vehicle "
+                                      "descends over the zone to judge it (false: only while it approaches)")
     search_memory_s: float = _f(0.0, "the search flies over ground the risk map remembers free (seen free "
                                      "within this many seconds), nearest first, when none is in view (s; 0 = "
                                      "not at all); the zone is still chosen on what the camera sees there",
@@ -799,6 +804,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         descent=descent_profile(cfg),
         search_s=c.search_s, search_radius_m=c.search_radius_m, search_reserve_s=c.search_reserve_s,
         search_memory_s=c.search_memory_s, hold_looks=c.hold_looks, place_lookback_s=c.place_lookback_s,
+        place_min_clear_m=c.place_min_clear_m, place_descending=c.place_descending,
         view_ratio=min(k.cx / k.fx, k.cy / k.fy),
         trust_height_m=person_trust_height(min(k.fx, k.fy), min_px or None, head_m=cfg.pipeline.head_height_m),
     )

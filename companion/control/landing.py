@@ -238,6 +238,16 @@ class LandingConfig:
     #: crowd beside it has its centre at the lawn's edge, where walkers go round; what the map
     #: saw over the last seconds shows where they go (docs/design.md, "Where people walked").
     place_lookback_s: float = 0.0
+    #: The landing point moves (``place_lookback_s``) only to a point at least this far (m) from
+    #: anybody the map saw within the lookback (0 = to any point ``PLACE_GAIN_M`` farther from
+    #: them). In a gap of a walking crowd every point of the zone was walked on lately; the
+    #: farthest point then jumps metres from frame to frame as people walk, and a vehicle that
+    #: follows it never settles over the zone (docs/design.md, "The chase").
+    place_min_clear_m: float = 0.0
+    #: The landing point moves (``place_lookback_s``) also while the vehicle descends over the
+    #: zone to judge it; False: only while it approaches. Each move farther than
+    #: ``arrive_radius_m`` stops the descent until the vehicle is over the point again.
+    place_descending: bool = True
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
@@ -249,7 +259,8 @@ class LandingConfig:
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
         for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m",
-                     "land_alt_m", "avoid_lost_s", "search_memory_s", "select_empty_s", "place_lookback_s"):
+                     "land_alt_m", "avoid_lost_s", "search_memory_s", "select_empty_s", "place_lookback_s",
+                     "place_min_clear_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
@@ -510,9 +521,9 @@ class LandingController:
 
     def _placing(self, zone_id: int) -> bool:
         """Whether the landing point over zone ``zone_id`` may still move (``place_lookback_s``):
-        approaching it or descending to judge it, not once judged, nor in LAND."""
-        return self.config.place_lookback_s > 0 and self.phase in (Phase.APPROACH, Phase.DESCEND) \
-            and self._judged != zone_id
+        approaching it or (``place_descending``) descending to judge it, not once judged, nor in LAND."""
+        phases = (Phase.APPROACH, Phase.DESCEND) if self.config.place_descending else (Phase.APPROACH,)
+        return self.config.place_lookback_s > 0 and self.phase in phases and self._judged != zone_id
 
     def _room(self, track: Track) -> float:
         """How much of the zone (m) must stay free around its landing point for the point to stay
@@ -536,7 +547,7 @@ class LandingController:
         if spot is None or not self._placing(track.id):
             return aim
         was = spot.aim_clear_m if math.isfinite(spot.aim_clear_m) else 0.0
-        if spot.clear_m < was + PLACE_GAIN_M:
+        if spot.clear_m < max(was + PLACE_GAIN_M, self.config.place_min_clear_m):
             return aim
         if track.r - math.hypot(spot.x - track.x, spot.y - track.y) < self._room(track) - 1e-6:
             return aim  # another frame's zone: not this one's room

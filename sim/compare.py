@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest, wilcoxon
 
-from sim.evidence import binomial_interval, other_crossing_window, other_land_speed, read_rows
+from sim.evidence import binomial_interval, other_crossing_window, other_land_speed, other_watch, read_rows
 
 #: The level below which a difference is called beyond chance.
 ALPHA = 0.05
@@ -230,8 +230,9 @@ def _companion_rows(rows: list[dict[str, Any]], label: str) -> dict[tuple[int, s
 def _flown_with(row: dict[str, Any]) -> tuple[str, ...]:
     """What a row was flown with beside the defaults: its service settings (``--set``), the
     autopilot's LAND speed when it was not the scenarios' own (``--land-speed``), the
-    crossing world's window when it was not its own (``--crossing-window``), and ``lockstep``
-    for a flight on the simulated clock (``--lockstep``)."""
+    crossing world's window when it was not its own (``--crossing-window``), the watch before
+    the failsafe when it was not theirs (``--watch-s``), and ``lockstep`` for a flight on the
+    simulated clock (``--lockstep``)."""
     out = tuple(str(x) for x in row.get("settings") or ())
     land = other_land_speed(row)
     if land is not None:
@@ -239,6 +240,9 @@ def _flown_with(row: dict[str, Any]) -> tuple[str, ...]:
     window = other_crossing_window(row)
     if window is not None:
         out = (*out, f"crossing_window={window[0]:g}-{window[1]:g}")
+    watch = other_watch(row)
+    if watch is not None:
+        out = (*out, f"watch_s={watch:g}")
     return (*out, "lockstep") if row.get("lockstep") else out
 
 

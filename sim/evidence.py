@@ -69,6 +69,9 @@ SCENARIO_LAND_SPEED = 1.0
 #: The crossing world's window (s after the failsafe; ``sim.world.CROSSING_WINDOW_S``): rows flown
 #: with another (``companion sim-scenarios --crossing-window``) are keyed apart.
 SCENARIO_CROSSING_WINDOW_S = (4.0, 24.0)
+#: How long the service watches before the failsafe (s; ``sim.flight.FlightSpec.watch_s``'s
+#: default): rows flown with another (``companion sim-scenarios --watch-s``) are keyed apart.
+SCENARIO_WATCH_S = 4.0
 #: A flight's key in a results file: ``(seed, flavour)``, or ``(seed, flavour, "baseline")``.
 RowKey = tuple[Any, ...]
 #: The unsafe-rate upper bound the runner reports the distance to (further clean flights needed).
@@ -268,8 +271,9 @@ def row_key(row: dict[str, Any]) -> RowKey:
     """What identifies a flight in a results file: its seed and the autopilot it flew with,
     ``"baseline"`` for a baseline flight (so neither kind ever stands for the other on resume),
     the service settings it flew with (``settings``, from ``--set``) when it had any, and the
-    autopilot's LAND speed (``land_speed``) when it was not the scenarios' own, and ``"lockstep"``
-    for a flight flown on the simulated clock (``sim.lockstep``)."""
+    autopilot's LAND speed (``land_speed``) when it was not the scenarios' own, the crossing
+    world's window and the watch before the failsafe (``watch_s``) when they were not theirs, and
+    ``"lockstep"`` for a flight flown on the simulated clock (``sim.lockstep``)."""
     key: tuple[Any, ...] = (int(row["seed"]), str(row["flavour"]))
     if row.get("baseline"):
         key = (*key, BASELINE)
@@ -281,6 +285,9 @@ def row_key(row: dict[str, Any]) -> RowKey:
     window = other_crossing_window(row)
     if window is not None:
         key = (*key, f"cross:{window[0]:g}-{window[1]:g}")
+    watch = other_watch(row)
+    if watch is not None:
+        key = (*key, f"watch:{watch:g}")
     if row.get("lockstep"):
         key = (*key, "lockstep")
     return key
@@ -302,6 +309,14 @@ def other_crossing_window(row: dict[str, Any]) -> tuple[float, float] | None:
         return None
     lo, hi = (float(v) for v in window)
     return None if (lo, hi) == SCENARIO_CROSSING_WINDOW_S else (lo, hi)
+
+
+def other_watch(row: dict[str, Any]) -> float | None:
+    """How long the service watched before the failsafe (s) when it was not the scenarios' own
+    (:data:`SCENARIO_WATCH_S`), else None: what keys a row apart and what a comparison names.
+    Rows written before the field existed watched the scenarios' own."""
+    watch = row.get("watch_s")
+    return None if watch is None or float(watch) == SCENARIO_WATCH_S else float(watch)
 
 
 def read_rows(path: Path) -> tuple[list[dict[str, Any]], int]:

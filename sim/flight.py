@@ -60,7 +60,7 @@ from companion.parallel import die_with_parent  # also the preexec_fn of a fligh
 from companion.recording import RecordingError, RecordingReader
 from sim.autopilot import AutopilotConfig
 from sim.camera_server import CameraServer
-from sim.evidence import SCENARIO_LAND_SPEED, summarise_rows
+from sim.evidence import SCENARIO_LAND_SPEED, SCENARIO_WATCH_S, summarise_rows
 from sim.ground import LANDABLE_SURFACES, FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
@@ -120,7 +120,8 @@ class FlightSpec:
     of one colour: every frame the same, the largest free circle bounded by the edge of the view).
     start_offset_m: where the vehicle hovers relative to the free circle's centre (north, east);
         the scene is laid out around a park lawn of the procedural ground (``scene_centre``).
-    watch_s: seconds the service watches before the failsafe is raised.
+    watch_s: seconds the service watches before the failsafe is raised (the vehicle hovering
+        where it started): what its risk map has seen of the crowd when the failsafe comes.
     failsafe: the simulator failsafe raised (battery_critical, rc_loss, gcs_loss, battery_low).
     packet_loss: share of MAVLink datagrams dropped each way.
     latency_ms: one-way MAVLink latency added each way (ms), from the moment the service is ready.
@@ -155,7 +156,7 @@ class FlightSpec:
     altitude_m: float = 20.0
     start_offset_m: tuple[float, float] = (-5.0, -7.0)
     free_radius_m: float = 7.0
-    watch_s: float = 4.0
+    watch_s: float = SCENARIO_WATCH_S
     failsafe: str = "battery_critical"
     packet_loss: float = 0.0
     latency_ms: float = 0.0

@@ -94,6 +94,7 @@ from companion import config as settings
 from companion.parallel import ParallelError, default_workers, fan_out
 from sim.evidence import (
     SCENARIO_LAND_SPEED,
+    SCENARIO_WATCH_S,
     ResultsFile,
     RowKey,
     baseline_text,
@@ -163,6 +164,10 @@ def scenario(seed: int, flavour: str | None = None) -> FlightSpec:
 #: The fastest LAND ``--land-speed`` takes (m/s). ArduPilot's LAND_SPEED spans 0.3-2 m/s and PX4's
 #: MPC_LAND_SPEED 0.6 m/s up to its MPC_Z_VEL_MAX_DN; 3 m/s leaves room for either.
 MAX_LAND_SPEED = 3.0
+#: ``--watch-s`` bounds (s): the service needs a second of frames before it has seen anything, and
+#: the longest watch keeps one flight within minutes of simulated time.
+MIN_WATCH_S = 1.0
+MAX_WATCH_S = 600.0
 
 #: The share of free-area seeds whose free circle walkers cross during the descent (``crossing``).
 CROSSING_SHARE = 1 / 3
@@ -205,6 +210,9 @@ class FlightJob:
     crossing_window: tuple[float, float] | None = None
     #: Fly on the simulated clock (``sim.lockstep``); part of its key.
     lockstep: bool = False
+    #: How long the service watches before the failsafe (s, ``--watch-s``; None: the scenarios'
+    #: own, ``sim.evidence.SCENARIO_WATCH_S``); part of its key when it is another.
+    watch_s: float | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
@@ -214,6 +222,8 @@ class FlightJob:
             spec = dataclasses.replace(spec, land_speed=self.land_speed)
         if self.crossing_window is not None:
             spec = dataclasses.replace(spec, crossing_window=self.crossing_window)
+        if self.watch_s is not None:
+            spec = dataclasses.replace(spec, watch_s=self.watch_s)
         if self.overrides:
             spec = dataclasses.replace(spec, **dict(self.overrides))
         if self.service_set:
@@ -242,7 +252,8 @@ class FlightJob:
         spec = self.spec()
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
-                        "crossing_window": list(spec.crossing_window), "lockstep": self.lockstep})
+                        "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
+                        "lockstep": self.lockstep})
 
 
 def _cpu_s() -> float:
@@ -266,7 +277,7 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
                wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
                host=socket.gethostname(), model_threads=job.model_threads(), settings=list(job.service_set),
-               land_speed=spec.land_speed, crossing_window=list(spec.crossing_window))
+               land_speed=spec.land_speed, crossing_window=list(spec.crossing_window), watch_s=spec.watch_s)
     return row
 
 
@@ -451,6 +462,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "wider window keeps the rate with more walkers, so that crossings come "
                              "at any time of a landing: to compare landings of different lengths "
                              "fairly; recorded in each row")
+    parser.add_argument("--watch-s", type=float, default=None, metavar="S",
+                        help=f"seconds the service watches the crowd, the vehicle hovering, before the "
+                             f"failsafe (default {SCENARIO_WATCH_S:g}; at most {MAX_WATCH_S:g}): what its "
+                             f"risk map has seen by then; a service that ran the whole flight has seen "
+                             f"more than the default's few seconds; recorded in each row")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -503,10 +519,15 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"companion sim-scenarios: --crossing-window: {exc}", file=sys.stderr)
         return 2
+    watch = args.watch_s
+    if watch is not None and not (math.isfinite(watch) and MIN_WATCH_S <= watch <= MAX_WATCH_S):
+        print(f"companion sim-scenarios: --watch-s must be {MIN_WATCH_S:g}-{MAX_WATCH_S:g} s, not {watch:g}",
+              file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
-                      land_speed=land, crossing_window=window, lockstep=args.lockstep)
+                      land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch)
             for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

@@ -241,6 +241,18 @@ def test_a_lockstep_flight_is_the_real_service_over_real_mavlink(tmp_path: Path,
 
 
 @pytest.mark.sitl
+@pytest.mark.timeout(300)
+def test_a_longer_watch_raises_the_failsafe_later_over_the_same_world(model_path) -> None:
+    # --watch-s: the service watches 12 s, not 4, before the failsafe, on the world's clock; the
+    # flight then goes on as any other (nobody on one-colour ground: it lands under itself).
+    spec = FlightSpec(flavour="ardupilot", world="uniform", seed=6, altitude_m=16.0, watch_s=12.0, lockstep=True)
+    r = fly_in_process(spec)
+    assert r.outcome == "safe" and r.service_exit == 0, r.log_tail
+    assert r.world_t_trigger is not None and 11.5 <= r.world_t_trigger <= 13.0
+    assert r.as_dict()["world_t_trigger"] == pytest.approx(r.world_t_trigger, abs=0.01)
+
+
+@pytest.mark.sitl
 @pytest.mark.timeout(600)
 def test_a_local_ray_gives_the_rows_of_one_at_a_time(tmp_path: Path, model_path) -> None:
     pytest.importorskip("ray", reason="--ray needs the 'scale' extra: pip install '.[scale]'")

@@ -138,6 +138,11 @@ def test_the_settings_line_names_a_land_speed_other_than_the_scenarios() -> None
     own = [{**_row(s, "safe"), "crossing_window": [4.0, 24.0]} for s in (1, 2)]
     c = compare(own, wide)
     assert c.settings_before == [[]] and c.settings_after == [["land_speed=0.5", "crossing_window=4-84"]]
+    # A longer watch before the failsafe (--watch-s) is named; the scenarios' own is not.
+    watched = [{**_row(s, "safe"), "watch_s": 30.0} for s in (1, 2)]
+    c = compare(before, watched)
+    assert c.pairs == 2 and c.settings_after == [["watch_s=30"]]
+    assert compare(before, [{**_row(s, "safe"), "watch_s": 4.0} for s in (1, 2)]).settings_after == [[]]
 
 
 def test_the_last_metres_are_paired_where_both_rows_carry_them() -> None:

@@ -318,6 +318,49 @@ def test_the_land_speed_flies_the_autopilots_land_and_keeps_its_rows_apart(tmp_p
     assert run_jobs(jobs, workers=1, out=out, as_json=True) == 0 and flown == []  # resumed
 
 
+def test_a_longer_watch_is_flown_and_keeps_its_rows_apart(tmp_path, monkeypatch, capsys):
+    # `--watch-s 30` lets the service watch the crowd 30 s before the failsafe (a service that ran
+    # the whole flight has seen more than the scenarios' 4 s); rows of the scenarios' own watch,
+    # and rows written before the field existed, are not resumed from, nor mixed in.
+    from sim.evidence import SCENARIO_WATCH_S
+
+    assert scenario(3).watch_s == SCENARIO_WATCH_S == 4.0
+    job = FlightJob(3, "ardupilot", watch_s=30.0)
+    assert job.spec().watch_s == 30.0 and FlightJob(3, "ardupilot", baseline=True, watch_s=30.0).spec().watch_s == 30.0
+    assert job.key() == (3, "ardupilot", "watch:30")
+    assert FlightJob(3, "ardupilot").key() == (3, "ardupilot") == row_key({**_row(3, "safe"), "watch_s": 4.0})
+    assert FlightJob(3, "ardupilot", watch_s=4.0).key() == (3, "ardupilot") == row_key(_row(3, "safe"))
+
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append(_row(1, "safe"))  # the scenarios' own watch: not this experiment's
+    flown: list[float | None] = []
+
+    def fake(j: FlightJob) -> dict[str, Any]:
+        flown.append(j.watch_s)
+        return {**_row(j.seed, "safe"), "watch_s": j.spec().watch_s}
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    from companion.cli import main
+
+    args = ["sim-scenarios", "--seeds", "1-2", "--flavour", "ardupilot", "--workers", "1", "--no-progress",
+            "--no-machine-check", "--json", "--watch-s", "30", "--out", str(out)]
+    assert main(args) == 0 and flown == [30.0, 30.0]
+    s = json.loads(capsys.readouterr().out)
+    assert [(r["seed"], r["watch_s"]) for r in s["flights"]] == [(1, 30.0), (2, 30.0)]
+    flown.clear()
+    assert main(args) == 0 and flown == []  # resumed
+
+
+@pytest.mark.parametrize("value", ["0", "0.5", "-1", "nan", "inf", "601"])
+def test_a_bad_watch_is_exit_2_before_anything_flies(value, monkeypatch, capsys):
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--watch-s", value]) == 2
+    assert "--watch-s must be 1-600 s" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "3.5"])
 def test_a_bad_land_speed_is_exit_2_before_anything_flies(value, monkeypatch, capsys):
     from companion.cli import main

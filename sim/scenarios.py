@@ -55,6 +55,13 @@ many more walkers as keep the same rate: landings of different lengths (another 
 last metres by the rangefinder) then meet crossings at any time of their descent, not the ones
 the window was timed for. Rows record it, and resume only from rows flown with the same window.
 
+``--watch-s S`` lets the service watch the crowd S seconds, the vehicle hovering where it starts,
+before the failsafe, instead of the scenarios' own 4 s: a service that ran the whole flight has
+seen more of where people walk than that, and its risk map remembers it. The crowd walks on
+meanwhile, so a seed meets its failsafe over the same scene but another moment of its crowd, and
+the battery has spent the hover. Rows record it, and resume only from rows flown with the same
+watch.
+
 ``--lockstep`` flies every seed on the simulated clock (``sim.lockstep``): the service in the
 flight's own process, every frame costing the same simulated time, so a seed flies the same
 flight every time, one at a time, two at a time or on Ray, and no flight can be starved. It is

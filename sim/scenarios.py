@@ -471,7 +471,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "fairly; recorded in each row")
     parser.add_argument("--watch-s", type=float, default=None, metavar="S",
                         help=f"seconds the service watches the crowd, the vehicle hovering, before the "
-                             f"failsafe (default {SCENARIO_WATCH_S:g}; at most {MAX_WATCH_S:g}): what its "
+                             f"failsafe ({MIN_WATCH_S:g}-{MAX_WATCH_S:g}; default {SCENARIO_WATCH_S:g}): what its "
                              f"risk map has seen by then; a service that ran the whole flight has seen "
                              f"more than the default's few seconds; recorded in each row")
     scale = parser.add_argument_group("at scale (docs/scale.md)")

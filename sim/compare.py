@@ -27,8 +27,12 @@ the comparison says how likely a difference that large would be if the change di
   change some verdicts too (the loop runs on wall-clock time), so this share between two runs of
   one setting is the yardstick for any other pair of files, parallel runs against sequential ones
   included (docs/scale.md, issue 17's "identical verdicts"). Two files flown with ``--lockstep``
-  need no yardstick: a rerun changes no verdict, so each changed one is the difference's
-  (``lockstep`` in the JSON: every pair was flown that way on both sides).
+  need one too: a rerun of one code from one clock start changes no verdict, but a flight is
+  chaotic, and any change also moves how its times round in their last bits, which alone changes
+  verdicts (``--clock-start``: the same code from another start). Their yardstick is two files of
+  one code flown from two clock starts; a comparison whose two sides differ in nothing else says
+  it is one (``clock_only`` in the JSON; ``lockstep``: every pair was flown that way on both
+  sides).
 
 A pair is compared only when both flights are clean (not starved: ``sim.evidence``); ``--starved``
 takes starved flights too, as the figures of a loaded machine (the rows still say which were).
@@ -55,7 +59,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest, wilcoxon
 
-from sim.evidence import binomial_interval, other_crossing_window, other_land_speed, other_watch, read_rows
+from sim.evidence import binomial_interval, flown_apart, read_rows
 
 #: The level below which a difference is called beyond chance.
 ALPHA = 0.05
@@ -200,8 +204,15 @@ class Comparison:
     verdicts_changed_rate: float | None = None
     verdicts_changed_ci95: list[float] | None = None
     #: Every compared pair was flown in lockstep on both sides (``sim.lockstep``): a rerun of one
-    #: code changes no verdict, so each changed verdict is the difference between the two.
+    #: code from one clock start changes no verdict, but another start does (the module docstring).
     lockstep: bool = False
+    #: What flew each side (``sim.evidence.software``: Python, the libraries that compute, the
+    #: commit), each distinct record once; rows written before they said are left out.
+    software_before: list[dict[str, str]] = field(default_factory=list)
+    software_after: list[dict[str, str]] = field(default_factory=list)
+    #: Both sides in lockstep, flown with the same settings in everything but the clock's start:
+    #: the comparison is a yardstick (how far these seeds' verdicts are from chance), not a change.
+    clock_only: bool = False
 
     @property
     def beyond_chance(self) -> list[str]:
@@ -228,22 +239,32 @@ def _companion_rows(rows: list[dict[str, Any]], label: str) -> dict[tuple[int, s
 
 
 def _flown_with(row: dict[str, Any]) -> tuple[str, ...]:
-    """What a row was flown with beside the defaults: its service settings (``--set``), the
-    autopilot's LAND speed when it was not the scenarios' own (``--land-speed``), the
-    crossing world's window when it was not its own (``--crossing-window``), the watch before
-    the failsafe when it was not theirs (``--watch-s``), and ``lockstep`` for a flight on the
+    """What a row was flown with beside the defaults: its service settings (``--set``), each way
+    it was flown apart from the scenarios' own (``sim.evidence.flown_apart``: ``--land-speed``,
+    ``--crossing-window``, ``--watch-s``, ``--clock-start``), and ``lockstep`` for a flight on the
     simulated clock (``--lockstep``)."""
     out = tuple(str(x) for x in row.get("settings") or ())
-    land = other_land_speed(row)
-    if land is not None:
-        out = (*out, f"land_speed={land:g}")
-    window = other_crossing_window(row)
-    if window is not None:
-        out = (*out, f"crossing_window={window[0]:g}-{window[1]:g}")
-    watch = other_watch(row)
-    if watch is not None:
-        out = (*out, f"watch_s={watch:g}")
+    out = (*out, *(f"{part.name}={part.value}" for part in flown_apart(row)))
     return (*out, "lockstep") if row.get("lockstep") else out
+
+
+def _software_differs(before: list[dict[str, str]], after: list[dict[str, str]]) -> list[str]:
+    """``name BEFORE -> AFTER`` for each part of what flew the two sides that is not one and the
+    same on both (several values on a side are joined by ``|``); nothing when a side never said."""
+    if not before or not after:
+        return []
+    out = []
+    for name in sorted({k for s in before + after for k in s}):
+        b = sorted({s.get(name, "-") for s in before})
+        a = sorted({s.get(name, "-") for s in after})
+        if b != a or len(b) > 1:
+            out.append(f"{name} {'|'.join(b)} -> {'|'.join(a)}")
+    return out
+
+
+def _but_clock(row: dict[str, Any]) -> tuple[str, ...]:
+    """``_flown_with`` without the lockstep clock's start."""
+    return tuple(x for x in _flown_with(row) if not x.startswith("clock_start_s="))
 
 
 def _verdict(row: dict[str, Any]) -> str:
@@ -261,6 +282,9 @@ def compare(before: list[dict[str, Any]], after: list[dict[str, Any]], include_s
     result = Comparison(only_before=sorted(set(a) - set(b)), only_after=sorted(set(b) - set(a)))
     result.settings_before, result.settings_after = (
         [list(s) for s in sorted({_flown_with(r) for r in rows.values()})] for rows in (a, b))
+    result.software_before, result.software_after = (
+        [dict(s) for s in sorted({tuple(sorted(r["software"].items())) for r in rows.values()
+                                  if isinstance(r.get("software"), dict)})] for rows in (a, b))
     pairs = []
     for key in common:
         if not include_starved and (a[key].get("starved") or b[key].get("starved")):
@@ -269,6 +293,8 @@ def compare(before: list[dict[str, Any]], after: list[dict[str, Any]], include_s
         pairs.append((a[key], b[key]))
     result.pairs = len(pairs)
     result.lockstep = bool(pairs) and all(x.get("lockstep") and y.get("lockstep") for x, y in pairs)
+    result.clock_only = result.lockstep and all(
+        _flown_with(x) != _flown_with(y) and _but_clock(x) == _but_clock(y) for x, y in pairs)
     for name, test in BINARY.items():
         asked = [(test(x), test(y)) for x, y in pairs]
         said = [(bool(u), bool(v)) for u, v in asked if u is not None and v is not None]
@@ -317,6 +343,10 @@ def comparison_text(c: Comparison) -> str:
             more = f" and {len(keys) - LISTED} more" if len(keys) > LISTED else ""
             lines.append(f"{label} (left out): {len(keys)} flight(s): {named}{more}")
     lines.append(f"settings: BEFORE {c.settings_before or [[]]}, AFTER {c.settings_after or [[]]}")
+    differs = _software_differs(c.software_before, c.software_after)
+    if differs:
+        lines.append("software differs (another version rounds differently, as another clock start does): "
+                     + "; ".join(differs))
     if c.pairs == 0:
         lines.append("no pair is clean (every seed starved on one side or both): nothing to compare. Fly on a "
                      "machine that keeps up, or compare the starved flights with --starved")
@@ -336,8 +366,11 @@ def comparison_text(c: Comparison) -> str:
         lines.append("")
         lines.append(f"verdicts changed in {len(c.changed)} of {c.pairs} pairs ({100 * (c.verdicts_changed_rate or 0):.1f} %, "
                      f"95 % exact interval {100 * lo:.1f} to {100 * hi:.1f} %); "
-                     + ("both flown in lockstep, where a rerun of one code changes none: each is the "
-                        "difference's" if c.lockstep else
+                     + ("the two sides' settings differ only in where the lockstep clock started: of one "
+                        "code, this is the yardstick, how far these seeds' verdicts are from chance" if c.clock_only else
+                        "both flown in lockstep, where a rerun from one clock start changes none, but any "
+                        "change also changes how times round: compare with two clock starts of one code "
+                        "(--clock-start)" if c.lockstep else
                         "two runs of one setting change some too: compare with theirs"))
     if c.changed:
         lines.append("verdicts that changed:")

@@ -49,10 +49,12 @@ alone, no companion) have their own key in a results file (``row_key``) and thei
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -72,6 +74,16 @@ SCENARIO_CROSSING_WINDOW_S = (4.0, 24.0)
 #: How long the service watches before the failsafe (s; ``sim.flight.FlightSpec.watch_s``'s
 #: default): rows flown with another (``companion sim-scenarios --watch-s``) are keyed apart.
 SCENARIO_WATCH_S = 4.0
+#: Where a lockstep flight's simulated clock starts (s; ``sim.flight.FlightSpec.clock_start_s``'s
+#: default). A flight is a chaotic system: the same scene flown on a clock that starts elsewhere
+#: rounds its times differently in the last bits and may end in another verdict
+#: (docs/scale.md, "How far one flight is from the next"), so the start is fixed and recorded, and
+#: rows flown from another (``companion sim-scenarios --clock-start``) are keyed apart.
+LOCKSTEP_CLOCK_START_S = 1000.0
+#: The clock start of a lockstep row written before the start was fixed: the real
+#: ``time.monotonic()`` of its moment, which nobody recorded. Such rows are keyed apart from every
+#: row flown since (they cannot be flown again).
+UNKNOWN_CLOCK = "unknown"
 #: A flight's key in a results file: ``(seed, flavour)``, or ``(seed, flavour, "baseline")``.
 RowKey = tuple[Any, ...]
 #: The unsafe-rate upper bound the runner reports the distance to (further clean flights needed).
@@ -270,40 +282,71 @@ def baseline_text(summary: dict[str, Any]) -> str:
 def row_key(row: dict[str, Any]) -> RowKey:
     """What identifies a flight in a results file: its seed and the autopilot it flew with,
     ``"baseline"`` for a baseline flight (so neither kind ever stands for the other on resume),
-    the service settings it flew with (``settings``, from ``--set``) when it had any, and the
-    autopilot's LAND speed (``land_speed``) when it was not the scenarios' own, the crossing
-    world's window and the watch before the failsafe (``watch_s``) when they were not theirs, and
-    ``"lockstep"`` for a flight flown on the simulated clock (``sim.lockstep``)."""
+    the service settings it flew with (``settings``, from ``--set``) when it had any, then each
+    way it was flown apart from the scenarios' own (:func:`flown_apart`: the LAND speed, the
+    crossing window, the watch, a lockstep clock's start), and ``"lockstep"`` for a flight flown
+    on the simulated clock (``sim.lockstep``). The spelling of every part is what results files
+    already hold: a changed one would make old files fly their seeds again."""
     key: tuple[Any, ...] = (int(row["seed"]), str(row["flavour"]))
     if row.get("baseline"):
         key = (*key, BASELINE)
     if row.get("settings"):
         key = (*key, "set:" + ";".join(str(s) for s in row["settings"]))
-    land = other_land_speed(row)
-    if land is not None:
-        key = (*key, f"land:{land:g}")
-    window = other_crossing_window(row)
-    if window is not None:
-        key = (*key, f"cross:{window[0]:g}-{window[1]:g}")
-    watch = other_watch(row)
-    if watch is not None:
-        key = (*key, f"watch:{watch:g}")
+    key = (*key, *(f"{part.key}:{part.value}" for part in flown_apart(row)))
     if row.get("lockstep"):
         key = (*key, "lockstep")
     return key
 
 
+@dataclass(frozen=True)
+class Apart:
+    """One way a row was flown apart from the scenarios' own: its part of the row's key
+    (``key:value``, :func:`row_key`) and of a comparison's settings line (``name=value``,
+    ``sim.compare``)."""
+
+    key: str
+    name: str
+    value: str
+
+
+def flown_apart(row: dict[str, Any]) -> list[Apart]:
+    """How a row was flown apart from the scenarios' own, in key order: the LAND speed, the
+    crossing window, the watch before the failsafe, and a lockstep flight's clock start when
+    it is not :data:`LOCKSTEP_CLOCK_START_S` (``unknown`` for a lockstep row written before the
+    start was fixed). The one walk of those fields for keys and for comparisons."""
+    out: list[Apart] = []
+    land = other_land_speed(row)
+    if land is not None:
+        out.append(Apart("land", "land_speed", f"{land:g}"))
+    window = other_crossing_window(row)
+    if window is not None:
+        out.append(Apart("cross", "crossing_window", f"{window[0]:g}-{window[1]:g}"))
+    watch = other_watch(row)
+    if watch is not None:
+        out.append(Apart("watch", "watch_s", f"{watch:g}"))
+    clock = other_clock_start(row)
+    if clock is not None:
+        out.append(Apart("clock", "clock_start_s", clock if isinstance(clock, str) else _exact(clock)))
+    return out
+
+
+def _exact(value: float) -> str:
+    """``value`` as short as ``:g`` writes it where that reads back the same number, else in
+    full: two clock starts a millisecond apart are two keys."""
+    short = f"{value:g}"
+    return short if float(short) == value else repr(value)
+
+
 def other_land_speed(row: dict[str, Any]) -> float | None:
     """The LAND speed a row was flown at (m/s) when it is not the scenarios' own
-    (:data:`SCENARIO_LAND_SPEED`), else None: what keys it apart and what a comparison names."""
+    (:data:`SCENARIO_LAND_SPEED`), else None."""
     land = row.get("land_speed")
     return None if land is None or float(land) == SCENARIO_LAND_SPEED else float(land)
 
 
 def other_crossing_window(row: dict[str, Any]) -> tuple[float, float] | None:
     """The crossing world's window a row was flown with (seconds after the failsafe) when it is
-    not the scenarios' own (:data:`SCENARIO_CROSSING_WINDOW_S`), else None: what keys it apart
-    and what a comparison names."""
+    not the scenarios' own (:data:`SCENARIO_CROSSING_WINDOW_S`), else None."""
     window = row.get("crossing_window")
     if window is None:
         return None
@@ -313,10 +356,60 @@ def other_crossing_window(row: dict[str, Any]) -> tuple[float, float] | None:
 
 def other_watch(row: dict[str, Any]) -> float | None:
     """How long the service watched before the failsafe (s) when it was not the scenarios' own
-    (:data:`SCENARIO_WATCH_S`), else None: what keys a row apart and what a comparison names.
-    Rows written before the field existed watched the scenarios' own."""
+    (:data:`SCENARIO_WATCH_S`), else None. Rows written before the field existed watched the
+    scenarios' own."""
     watch = row.get("watch_s")
     return None if watch is None or float(watch) == SCENARIO_WATCH_S else float(watch)
+
+
+def other_clock_start(row: dict[str, Any]) -> float | str | None:
+    """Where a lockstep row's simulated clock started (s) when it is not
+    :data:`LOCKSTEP_CLOCK_START_S`; :data:`UNKNOWN_CLOCK` for a lockstep row without the field
+    (written before the start was fixed, on the real clock's reading of its moment); None for the
+    default and for every real-time row (its clock is the machine's)."""
+    if not row.get("lockstep"):
+        return None
+    start = row.get("clock_start_s")
+    if start is None:
+        return UNKNOWN_CLOCK
+    return None if float(start) == LOCKSTEP_CLOCK_START_S else float(start)
+
+
+#: The distributions whose code computes a flight (the model, the vision, the numbers, the link):
+#: another version of any of them rounds differently, which can change a verdict as another
+#: clock start does, so every row says which flew it.
+SOFTWARE = ("companion-slz", "numpy", "onnxruntime", "opencv-python-headless", "scipy", "pymavlink")
+
+
+@functools.lru_cache(maxsize=1)
+def software() -> dict[str, str]:
+    """What flew a row: Python's version, each of :data:`SOFTWARE`'s (``?`` where one is not
+    installed as a distribution), and ``git``, the commit of the checkout the ``companion`` package
+    runs from (``+dirty`` when its tracked files differ from it; absent outside a checkout or
+    without git). Asked once per process."""
+    import platform
+    import subprocess
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for name in SOFTWARE:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = "?"
+    import companion
+
+    here = Path(companion.__file__).resolve().parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, capture_output=True,
+                              text=True, timeout=10)
+        if head.returncode == 0 and head.stdout.strip():
+            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                                   capture_output=True, text=True, timeout=10)
+            out["git"] = head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        pass  # no git here: the versions still say what computed
+    return out
 
 
 def read_rows(path: Path) -> tuple[list[dict[str, Any]], int]:

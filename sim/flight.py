@@ -60,7 +60,7 @@ from companion.parallel import die_with_parent  # also the preexec_fn of a fligh
 from companion.recording import RecordingError, RecordingReader
 from sim.autopilot import AutopilotConfig
 from sim.camera_server import CameraServer
-from sim.evidence import SCENARIO_LAND_SPEED, SCENARIO_WATCH_S, summarise_rows
+from sim.evidence import LOCKSTEP_CLOCK_START_S, SCENARIO_LAND_SPEED, SCENARIO_WATCH_S, summarise_rows
 from sim.ground import LANDABLE_SURFACES, FlatGround, ProceduralGround
 from sim.simulator import SimConfig, Simulator
 from sim.vehicle import VehicleParams
@@ -175,12 +175,15 @@ class FlightSpec:
     companion: bool = True
     gcs_port: int | None = None
     lockstep: bool = False
+    clock_start_s: float = LOCKSTEP_CLOCK_START_S
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
             raise ValueError(f"world must be one of {WORLDS}, got {self.world!r}")
         if self.flavour not in ("ardupilot", "px4"):
             raise ValueError(f"flavour must be ardupilot or px4, got {self.flavour!r}")
+        if not (math.isfinite(self.clock_start_s) and self.clock_start_s > 0):
+            raise ValueError(f"clock_start_s must be a finite number of seconds > 0, got {self.clock_start_s!r}")
 
 
 @dataclass

@@ -26,7 +26,13 @@ A **lockstep** flight is the same flight made repeatable:
 
 What it does not model: the service's real processing time (a flight on a slow CPU) and a starved
 machine; those stay the real-time flights' job. Python's hash seed is fixed in the flight's process
-(``PYTHONHASHSEED=0``) so nothing iterates a set in another order.
+(``PYTHONHASHSEED=0``) so nothing iterates a set in another order, and so is where the clock
+starts (``FlightSpec.clock_start_s``, :data:`sim.evidence.LOCKSTEP_CLOCK_START_S` by default): it
+used to start at the real ``time.monotonic()``, the machine's uptime, and a flight's times then
+rounded differently in their last bits from one hour to the next, which was enough to change
+verdicts (seed 2 on ArduPilot: unsafe at 0.52, 0.74 or 1.33 m, or safe at 5.6 m, by the start
+alone). Another start is the same scene flown again with that rounding changed: how far a
+flight's verdict is from chance (``companion sim-scenarios --clock-start``).
 
 ``python -m sim.lockstep`` flies one pickled :class:`~sim.flight.FlightSpec` read from stdin and
 writes the pickled :class:`~sim.flight.FlightResult` to stdout: each flight gets a fresh process
@@ -62,6 +68,7 @@ from companion.service import cli as service_cli
 from companion.service.camera import CameraSource
 from companion.service.notify import Notifier
 from sim.camera_server import CameraServer
+from sim.evidence import LOCKSTEP_CLOCK_START_S
 from sim.flight import FlightResult, FlightSpec, fly, service_command
 
 log = logging.getLogger("sim.lockstep")
@@ -114,15 +121,16 @@ class _JumpingSelector(selectors.BaseSelector):
 
 
 class VirtualTimeLoop(asyncio.SelectorEventLoop):
-    """An event loop on a simulated clock (seconds, starting at ``start``, by default the real
-    ``time.monotonic()`` now): idle time is skipped, and ``run_in_executor`` (``asyncio.to_thread``)
+    """An event loop on a simulated clock (seconds, starting at ``start``, by default
+    ``sim.evidence.LOCKSTEP_CLOCK_START_S``, never the real ``time.monotonic()``: a flight's
+    verdict can turn on how its times round, docs/scale.md): idle time is skipped, and ``run_in_executor`` (``asyncio.to_thread``)
     runs the function at once on the loop's thread and gives its result ``compute_s`` later."""
 
     #: What ``sim.flight.fly`` checks before it flies a lockstep spec.
     lockstep = True
 
     def __init__(self, compute_s: float = COMPUTE_S, start: float | None = None) -> None:
-        self._now = time.monotonic() if start is None else float(start)
+        self._now = LOCKSTEP_CLOCK_START_S if start is None else float(start)
         self.compute_s = float(compute_s)
         self.work_items = 0  # pieces of work run for worker threads
         super().__init__(selector=_JumpingSelector(self))
@@ -321,7 +329,7 @@ def fly_lockstep(spec: FlightSpec, compute_s: float = COMPUTE_S) -> FlightResult
     flight's while it flies) and judge it as ``sim.flight.fly`` does. Run it in a process of its
     own (:func:`fly_in_process`): the service's threads and clock are the process's."""
     spec = dataclasses.replace(spec, lockstep=True)
-    loop = VirtualTimeLoop(compute_s)
+    loop = VirtualTimeLoop(compute_s, start=spec.clock_start_s)
     try:
         with simulated_clock(loop):
             asyncio.set_event_loop(loop)

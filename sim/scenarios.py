@@ -65,9 +65,16 @@ watch.
 ``--lockstep`` flies every seed on the simulated clock (``sim.lockstep``): the service in the
 flight's own process, every frame costing the same simulated time, so a seed flies the same
 flight every time, one at a time, two at a time or on Ray, and no flight can be starved. It is
-the tool for comparing two versions of the landing logic (every changed verdict is the change's,
-not chance's) and runs 2-5 times faster than real time; the real-time flights stay the test of
-the service as a vehicle runs it. Rows say ``lockstep: true`` and resume only from lockstep rows.
+the tool for comparing two versions of the landing logic and runs 2-5 times faster than real time;
+the real-time flights stay the test of the service as a vehicle runs it. Rows say ``lockstep:
+true`` and resume only from lockstep rows. A flight is chaotic: any change to the code or the
+settings also changes how its times round, and can change a verdict the change has nothing to do
+with. ``--clock-start S[,S...]`` flies each seed on a clock that starts at S (the fixed
+``sim.evidence.LOCKSTEP_CLOCK_START_S`` by default), which perturbs nothing but that rounding:
+the verdicts that change between two starts of one code are how far a seed's verdict is from
+chance, the yardstick for any comparison (docs/scale.md, "How far one flight is from the next").
+Rows record ``clock_start_s`` and resume only from rows flown from the same start; lockstep rows
+written before the start was fixed (it was the machine's uptime) are never resumed from.
 
 ``--set KEY=VALUE`` (repeatable) flies every seed with that service setting, as ``companion run
 --set`` takes it (``--set model.path=my.onnx`` flies a researcher's own model in closed loop). A bad
@@ -100,6 +107,7 @@ from tqdm import tqdm
 from companion import config as settings
 from companion.parallel import ParallelError, default_workers, fan_out
 from sim.evidence import (
+    LOCKSTEP_CLOCK_START_S,
     SCENARIO_LAND_SPEED,
     SCENARIO_WATCH_S,
     ResultsFile,
@@ -107,6 +115,7 @@ from sim.evidence import (
     baseline_text,
     read_rows,
     row_key,
+    software,
     summarise_baseline,
     summarise_rows,
     summary_text,
@@ -176,6 +185,11 @@ MAX_LAND_SPEED = 3.0
 MIN_WATCH_S = 1.0
 MAX_WATCH_S = 600.0
 
+#: ``--clock-start`` bounds (s): above 0, as a machine's ``time.monotonic()`` is (0 stands for "no
+#: time" in places), and below about four months of uptime.
+MIN_CLOCK_START_S = 1.0
+MAX_CLOCK_START_S = 1.0e7
+
 #: The share of free-area seeds whose free circle walkers cross during the descent (``crossing``).
 CROSSING_SHARE = 1 / 3
 #: The share of dense-crowd seeds with one free circle out of the first view (``dense_beyond``).
@@ -220,6 +234,9 @@ class FlightJob:
     #: How long the service watches before the failsafe (s, ``--watch-s``; None: the scenarios'
     #: own, ``sim.evidence.SCENARIO_WATCH_S``); part of its key when it is another.
     watch_s: float | None = None
+    #: Where a lockstep flight's simulated clock starts (s, ``--clock-start``; None: the fixed
+    #: ``sim.evidence.LOCKSTEP_CLOCK_START_S``); part of its key when it is another.
+    clock_start: float | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
@@ -239,6 +256,8 @@ class FlightJob:
             spec = dataclasses.replace(spec, service_set=(*spec.service_set, f"model.threads={self.threads}"))
         if self.lockstep:
             spec = dataclasses.replace(spec, lockstep=True)
+            if self.clock_start is not None:
+                spec = dataclasses.replace(spec, clock_start_s=self.clock_start)
         return spec
 
     def model_threads(self) -> int | None:
@@ -260,7 +279,7 @@ class FlightJob:
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
                         "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
-                        "lockstep": self.lockstep})
+                        "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None})
 
 
 def _cpu_s() -> float:
@@ -284,7 +303,8 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
     row.update(altitude_m=round(spec.altitude_m, 2), failsafe=spec.failsafe,
                wall_s=round(time.monotonic() - t0, 2), cpu_s=round(_cpu_s() - cpu0, 2),
                host=socket.gethostname(), model_threads=job.model_threads(), settings=list(job.service_set),
-               land_speed=spec.land_speed, crossing_window=list(spec.crossing_window), watch_s=spec.watch_s)
+               land_speed=spec.land_speed, crossing_window=list(spec.crossing_window), watch_s=spec.watch_s,
+               clock_start_s=spec.clock_start_s if spec.lockstep else None, software=software())
     return row
 
 
@@ -447,6 +467,23 @@ def parse_window(text: str) -> tuple[float, float]:
     return lo, hi
 
 
+def parse_clock_starts(text: str) -> list[float]:
+    """``1000`` or ``1000,1000.001,2000``: lockstep clock starts (s), each within
+    :data:`MIN_CLOCK_START_S`-:data:`MAX_CLOCK_START_S`, none twice."""
+    starts: list[float] = []
+    for part in text.split(","):
+        try:
+            value = float(part)
+        except ValueError:
+            raise ValueError(f"want seconds, e.g. 1000 or 1000,2000, not {text!r}") from None
+        if not (math.isfinite(value) and MIN_CLOCK_START_S <= value <= MAX_CLOCK_START_S):
+            raise ValueError(f"each start must be {MIN_CLOCK_START_S:g}-{MAX_CLOCK_START_S:g} s, not {part.strip()!r}")
+        if value in starts:
+            raise ValueError(f"{part.strip()!r} is given twice")
+        starts.append(value)
+    return starts
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", default="1-10", help="seeds, e.g. 1-50 or 1,4,9-12 (default 1-10)")
     parser.add_argument("--flavour", choices=("ardupilot", "px4"), default=None,
@@ -489,6 +526,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                        help="fly on the simulated clock: the same seed flies the same flight every "
                             "time, at any --workers or on Ray, 2-5 times faster than real time; "
                             "no flight starves (sim.lockstep)")
+    scale.add_argument("--clock-start", default=None, metavar="S[,S...]",
+                       help=f"with --lockstep: where each flight's simulated clock starts (seconds, "
+                            f"{MIN_CLOCK_START_S:g}-{MAX_CLOCK_START_S:g}; default "
+                            f"{LOCKSTEP_CLOCK_START_S:g}); several fly every seed once from each: the "
+                            "same scene with its times rounded differently, to tell a change's effect "
+                            "from how far each verdict is from chance (docs/scale.md); recorded in each row")
     scale.add_argument("--out", type=Path, default=None, metavar="FILE.jsonl",
                        help="append each flight's row here as it ends; seeds already in it are not "
                             "flown again (resume), and the summary is computed from it")
@@ -531,11 +574,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"companion sim-scenarios: --watch-s must be {MIN_WATCH_S:g}-{MAX_WATCH_S:g} s, not {watch:g}",
               file=sys.stderr)
         return 2
+    try:
+        starts: list[float | None] = [None] if args.clock_start is None else [*parse_clock_starts(args.clock_start)]
+    except ValueError as exc:
+        print(f"companion sim-scenarios: --clock-start: {exc}", file=sys.stderr)
+        return 2
+    if args.clock_start is not None and not args.lockstep:
+        print("companion sim-scenarios: --clock-start needs --lockstep (a real-time flight's clock is the "
+              "machine's)", file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
-                      land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch)
-            for seed in dict.fromkeys(seeds) for baseline in kinds]
+                      land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch,
+                      clock_start=start)
+            for start in starts for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,
                     check_machine=not args.no_machine_check)

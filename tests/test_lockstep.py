@@ -123,6 +123,33 @@ def test_time_monotonic_reads_the_simulated_clock_inside_and_the_real_one_after(
         VirtualTimeLoop(compute_s=-1.0)
 
 
+def test_the_simulated_clock_starts_at_a_fixed_second_not_the_machines_uptime(monkeypatch) -> None:
+    # It used to start at the real time.monotonic(): a flight's times then rounded differently
+    # from one hour to the next, enough to change verdicts (docs/scale.md). A machine that has
+    # been up for a day starts its flights' clocks where a fresh one does.
+    from sim.evidence import LOCKSTEP_CLOCK_START_S
+
+    for uptime in (12.5, 86_400.25):
+        monkeypatch.setattr(time, "monotonic", lambda uptime=uptime: uptime)
+        loop = VirtualTimeLoop()
+        try:
+            assert loop.time() == LOCKSTEP_CLOCK_START_S == 1000.0
+        finally:
+            loop.close()
+    # The steps that follow from one start are the same bits every time: 30 ms of work added
+    # 1000 times from 1000 s is not 1030 s exactly, and another start rounds them otherwise.
+    def after(start: float) -> float:
+        loop = VirtualTimeLoop(start=start)
+        try:
+            for _ in range(1000):
+                loop.advance(COMPUTE_S)
+            return loop.time() - start
+        finally:
+            loop.close()
+
+    assert after(1000.0) == after(1000.0) != after(9000.5)
+
+
 def test_a_loopback_datagram_is_read_before_the_clock_moves() -> None:
     # What makes lockstep exact: a datagram sent now is handled now, not after the next timer.
     async def main(loop: VirtualTimeLoop) -> tuple[float, float]:
@@ -221,7 +248,8 @@ def test_lockstep_flights_repeat_exactly_one_or_two_at_a_time(tmp_path: Path, mo
     assert set(a) == {(6, "ardupilot"), (4, "px4")} and a == b
     assert first["run"]["lockstep"] and first["starved"] == 0
     for row in a.values():
-        assert row["lockstep"] and not row["starved"] and row["outcome"] in ("safe", "unsafe")
+        assert row["lockstep"] and row["clock_start_s"] == 1000.0  # fixed, not the machine's uptime
+        assert not row["starved"] and row["outcome"] in ("safe", "unsafe")
         assert row["processed_fps"] > 8.0 and row["phases"][-1] == "LANDED"
 
 

@@ -159,16 +159,43 @@ def test_the_last_metres_are_paired_where_both_rows_carry_them() -> None:
     assert next(n for n in compare(old, after).numeric if n.name.startswith("time over the last")).pairs == 0
 
 
-def test_lockstep_files_are_named_and_their_changed_verdicts_need_no_yardstick() -> None:
+def test_lockstep_files_are_named_and_need_the_clock_start_yardstick() -> None:
     # `sim-scenarios --lockstep` rows pair with real-time ones by seed; the settings line says
-    # which side flew on the simulated clock, and only two lockstep sides drop the rerun caveat.
+    # which side flew on the simulated clock and from where its clock started. Two lockstep sides
+    # still need a yardstick: a change also changes how a flight's times round.
     real = [_row(s, "safe") for s in (1, 2, 3)]
-    lock = [{**_row(s, "safe" if s != 2 else "handback"), "lockstep": True} for s in (1, 2, 3)]
+    lock = [{**_row(s, "safe" if s != 2 else "handback"), "lockstep": True, "clock_start_s": 1000.0}
+            for s in (1, 2, 3)]
     c = compare(real, lock)
-    assert c.pairs == 3 and not c.lockstep and c.settings_after == [["lockstep"]]
+    assert c.pairs == 3 and not c.lockstep and not c.clock_only and c.settings_after == [["lockstep"]]
     assert "compare with theirs" in comparison_text(c)
-    lock_after = [{**r, "outcome": "safe"} for r in lock]
-    c = compare(lock, lock_after)
-    assert c.lockstep and len(c.changed) == 1 and c.settings_before == [["lockstep"]]
+    setting = [{**r, "outcome": "safe", "settings": ["controller.min_calm_s=3"]} for r in lock]
+    c = compare(lock, setting)
+    assert c.lockstep and not c.clock_only and len(c.changed) == 1 and c.settings_before == [["lockstep"]]
     text = comparison_text(c)
-    assert "both flown in lockstep" in text and "compare with theirs" not in text
+    assert "both flown in lockstep" in text and "--clock-start" in text and "yardstick" not in text
+    # The same settings from another clock start: the comparison is the yardstick, and says so.
+    moved = [{**r, "outcome": "safe", "clock_start_s": 2000.0} for r in lock]
+    c = compare(lock, moved)
+    assert c.lockstep and c.clock_only and c.settings_after == [["clock_start_s=2000", "lockstep"]]
+    assert "this is the yardstick" in comparison_text(c)
+    # Lockstep rows written before the start was fixed started on the machine's uptime.
+    old = [{k: v for k, v in r.items() if k != "clock_start_s"} for r in lock]
+    c = compare(old, lock)
+    assert c.clock_only and c.settings_before == [["clock_start_s=unknown", "lockstep"]]
+
+
+def test_the_software_that_flew_each_side_is_named_where_it_differs() -> None:
+    # Another numpy or onnxruntime rounds differently, which changes verdicts as another clock
+    # start does: a comparison says when its two sides were not flown by the same software.
+    sw = {"python": "3.11.7", "numpy": "2.4.6", "onnxruntime": "1.32.0", "git": "abc"}
+    before = [{**_row(s, "safe"), "software": sw} for s in (1, 2)]
+    same = compare(before, [{**r} for r in before])
+    assert same.software_before == same.software_after == [sw]
+    assert "software differs" not in comparison_text(same)
+    after = [{**_row(s, "safe"), "software": {**sw, "onnxruntime": "1.33.0", "git": "def"}} for s in (1, 2)]
+    text = comparison_text(compare(before, after))
+    assert "software differs" in text and "onnxruntime 1.32.0 -> 1.33.0" in text and "git abc -> def" in text
+    assert "numpy" not in text.split("software differs")[1].split("\n")[0]
+    # Rows written before they said which software flew them: nothing to say.
+    assert "software differs" not in comparison_text(compare([_row(s, "safe") for s in (1, 2)], after))

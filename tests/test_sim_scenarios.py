@@ -424,3 +424,86 @@ def test_a_bad_crossing_window_is_exit_2_before_anything_flies(value, monkeypatc
     assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress",
                  f"--crossing-window={value}"]) == 2
     assert "--crossing-window: want FROM-TO seconds after the failsafe" in capsys.readouterr().err
+
+
+def test_lockstep_clock_starts_are_fixed_recorded_and_keyed_apart(tmp_path, monkeypatch, capsys):
+    # A lockstep flight's clock starts at a fixed second, not at the machine's uptime (a flight's
+    # verdict can turn on how its times round); `--clock-start` flies every seed from each start
+    # given, recorded in its row and keyed apart, so two starts of one code are a yardstick.
+    from sim.evidence import LOCKSTEP_CLOCK_START_S
+
+    assert scenario(3).clock_start_s == LOCKSTEP_CLOCK_START_S == 1000.0
+    lock = FlightJob(3, "ardupilot", lockstep=True)
+    assert lock.spec().clock_start_s == 1000.0 and lock.key() == (3, "ardupilot", "lockstep")
+    moved = FlightJob(3, "ardupilot", lockstep=True, clock_start=2000.5)
+    assert moved.spec().clock_start_s == 2000.5 and moved.key() == (3, "ardupilot", "clock:2000.5", "lockstep")
+    assert FlightJob(3, "ardupilot", lockstep=True, clock_start=1000.0).key() == lock.key()
+    assert FlightJob(3, "ardupilot", lockstep=True, clock_start=1000.001).key()[2] == "clock:1000.001"
+    # A lockstep row without the field started on the machine's uptime: never resumed from. A
+    # real-time row has no clock part, whatever it says.
+    assert row_key({**_row(3, "safe"), "lockstep": True}) == (3, "ardupilot", "clock:unknown", "lockstep")
+    assert row_key({**_row(3, "safe"), "clock_start_s": 5.0}) == (3, "ardupilot")
+
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append({**_row(1, "safe"), "lockstep": True})  # flown before the start was fixed
+    flown: list[tuple[int, float]] = []
+
+    def fake(j: FlightJob) -> dict[str, Any]:
+        spec = j.spec()
+        flown.append((j.seed, spec.clock_start_s))
+        return {**_row(j.seed, "safe"), "lockstep": True, "clock_start_s": spec.clock_start_s}
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    from companion.cli import main
+
+    args = ["sim-scenarios", "--seeds", "1-2", "--flavour", "ardupilot", "--workers", "1", "--no-progress",
+            "--no-machine-check", "--json", "--lockstep", "--clock-start", "1000,2000", "--out", str(out)]
+    assert main(args) == 0
+    assert sorted(flown) == [(1, 1000.0), (1, 2000.0), (2, 1000.0), (2, 2000.0)]
+    s = json.loads(capsys.readouterr().out)
+    assert s["total"] == 4  # the old row of seed 1 is in the file but stood for neither start
+    flown.clear()
+    assert main(args) == 0 and flown == []  # resumed from both starts
+
+
+def test_row_keys_keep_the_spelling_results_files_hold() -> None:
+    # Each way a row is flown apart is one part of its key, spelt as files written since each
+    # option came hold it: a changed spelling would fly their seeds again on resume.
+    row = {**_row(7, "safe"), "settings": ["a=1", "b=2"], "land_speed": 0.5, "crossing_window": [4.0, 84.0],
+           "watch_s": 30.0, "lockstep": True, "clock_start_s": 1000.0}
+    assert row_key(row) == (7, "ardupilot", "set:a=1;b=2", "land:0.5", "cross:4-84", "watch:30", "lockstep")
+    assert row_key({**row, "baseline": True})[2] == "baseline"
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "1e8", "abc", "1000,1000", "1000,"])
+def test_a_bad_clock_start_is_exit_2_before_anything_flies(value, monkeypatch, capsys):
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--lockstep",
+                 "--clock-start", value]) == 2
+    assert "--clock-start" in capsys.readouterr().err
+
+
+def test_a_clock_start_without_lockstep_is_exit_2(monkeypatch, capsys):
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--clock-start", "2000"]) == 2
+    assert "--clock-start needs --lockstep" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="clock_start_s"):
+        FlightSpec(clock_start_s=0.0)
+
+
+def test_a_row_says_which_software_flew_it() -> None:
+    # The libraries that compute a flight and the commit of this checkout: what a comparison needs
+    # to tell another version's rounding from a change (sim-compare names a difference).
+    from importlib import metadata
+
+    from sim.evidence import SOFTWARE, software
+
+    sw = software()
+    assert sw["numpy"] == np.__version__ == metadata.version("numpy")
+    assert set(SOFTWARE) <= set(sw) and sw["python"].count(".") == 2
+    assert "git" not in sw or len(sw["git"].split("+")[0]) == 12

@@ -238,13 +238,13 @@ def _companion_rows(rows: list[dict[str, Any]], label: str) -> dict[tuple[int, s
     return out
 
 
-def _flown_with(row: dict[str, Any]) -> tuple[str, ...]:
+def _flown_with(row: dict[str, Any], clock: bool = True) -> tuple[str, ...]:
     """What a row was flown with beside the defaults: its service settings (``--set``), each way
     it was flown apart from the scenarios' own (``sim.evidence.flown_apart``: ``--land-speed``,
-    ``--crossing-window``, ``--watch-s``, ``--clock-start``), and ``lockstep`` for a flight on the
-    simulated clock (``--lockstep``)."""
+    ``--crossing-window``, ``--watch-s``, and with ``clock`` ``--clock-start``), and ``lockstep``
+    for a flight on the simulated clock (``--lockstep``)."""
     out = tuple(str(x) for x in row.get("settings") or ())
-    out = (*out, *(f"{part.name}={part.value}" for part in flown_apart(row)))
+    out = (*out, *(f"{part.name}={part.value}" for part in flown_apart(row) if clock or part.key != "clock"))
     return (*out, "lockstep") if row.get("lockstep") else out
 
 
@@ -260,11 +260,6 @@ def _software_differs(before: list[dict[str, str]], after: list[dict[str, str]])
         if b != a or len(b) > 1:
             out.append(f"{name} {'|'.join(b)} -> {'|'.join(a)}")
     return out
-
-
-def _but_clock(row: dict[str, Any]) -> tuple[str, ...]:
-    """``_flown_with`` without the lockstep clock's start."""
-    return tuple(x for x in _flown_with(row) if not x.startswith("clock_start_s="))
 
 
 def _verdict(row: dict[str, Any]) -> str:
@@ -294,7 +289,8 @@ def compare(before: list[dict[str, Any]], after: list[dict[str, Any]], include_s
     result.pairs = len(pairs)
     result.lockstep = bool(pairs) and all(x.get("lockstep") and y.get("lockstep") for x, y in pairs)
     result.clock_only = result.lockstep and all(
-        _flown_with(x) != _flown_with(y) and _but_clock(x) == _but_clock(y) for x, y in pairs)
+        _flown_with(x) != _flown_with(y) and _flown_with(x, clock=False) == _flown_with(y, clock=False)
+        for x, y in pairs)
     for name, test in BINARY.items():
         asked = [(test(x), test(y)) for x, y in pairs]
         said = [(bool(u), bool(v)) for u, v in asked if u is not None and v is not None]

@@ -123,8 +123,9 @@ class _JumpingSelector(selectors.BaseSelector):
 class VirtualTimeLoop(asyncio.SelectorEventLoop):
     """An event loop on a simulated clock (seconds, starting at ``start``, by default
     ``sim.evidence.LOCKSTEP_CLOCK_START_S``, never the real ``time.monotonic()``: a flight's
-    verdict can turn on how its times round, docs/scale.md): idle time is skipped, and ``run_in_executor`` (``asyncio.to_thread``)
-    runs the function at once on the loop's thread and gives its result ``compute_s`` later."""
+    verdict can turn on how its times round, docs/scale.md): idle time is skipped, and
+    ``run_in_executor`` (``asyncio.to_thread``) runs the function at once on the loop's thread and
+    gives its result ``compute_s`` later."""
 
     #: What ``sim.flight.fly`` checks before it flies a lockstep spec.
     lockstep = True

@@ -98,6 +98,7 @@ import resource
 import socket
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -575,7 +576,7 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
-        starts: list[float | None] = [None] if args.clock_start is None else [*parse_clock_starts(args.clock_start)]
+        starts: Sequence[float | None] = (None,) if args.clock_start is None else parse_clock_starts(args.clock_start)
     except ValueError as exc:
         print(f"companion sim-scenarios: --clock-start: {exc}", file=sys.stderr)
         return 2

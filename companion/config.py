@@ -284,6 +284,13 @@ class ControllerSettings:
     calm_wait_s: float = _f(15.0, "with min_calm_s, wait at most this long over a zone for it to be calm, then "
                                   "give it up for the takeover (s)", min=0.5, max=300.0)
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen (m); once chosen it is kept, and the LAND commanded, while r0 stays free around the landing point, and its landing point stays put while the zone holds r0 plus this around it", min=0.0)
+    steady_s: float = _f(0.0, "a zone smaller than r0 plus radius_margin_m may still be chosen once every frame for "
+                              "this long has seen r0 plus steady_margin_m free round it: its edge is something that "
+                              "does not walk into it (a tree or a bench on a lawn, a crowd that keeps off it); that "
+                              "steady watch also stands for the calm ground under the vehicle (s; 0 = never; "
+                              "docs/design.md, 'Steady zones')", min=0.0, max=120.0)
+    steady_margin_m: float = _f(1.0, "with steady_s, the free radius beyond r0 a steady zone must keep on every frame (m)",
+                                min=0.0, max=20.0)
     select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: search (search_s), or hand back when "
                                        "searching is off or out of time (s)", min=0.5)
     select_empty_s: float = _f(3.0, "with nothing in view since the trigger that could become a zone (no zone of "
@@ -758,6 +765,7 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         quiet=cfg.controller.min_quiet_s > 0, quiet_margin_m=p.quiet_margin_m,
         unwalked=cfg.controller.prefer_unwalked, unwalked_below=cfg.controller.min_unwalked_s > 0,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
+        steady_margin_m=cfg.controller.steady_margin_m if cfg.controller.steady_s > 0 else None,
         risk=RiskMapConfig(cell_m=p.cell_size_m, half_extent_m=p.map_half_extent_m,
                            walk_speed_mps=p.walk_speed_mps, hold_s=p.occupied_hold_s,
                            memory_s=p.map_memory_s, trail_s=p.occupied_trail_s),
@@ -780,7 +788,8 @@ def planner_config(cfg: Config) -> PlannerConfig:
                          min_track_age_s=c.min_track_age_s, min_track_hits=c.min_track_hits,
                          zone_max_age_s=c.zone_max_age_s, min_calm_s=c.min_calm_s,
                          min_quiet_s=c.min_quiet_s, min_unwalked_s=c.min_unwalked_s,
-                         prefer_unwalked=c.prefer_unwalked)
+                         prefer_unwalked=c.prefer_unwalked, steady_s=c.steady_s,
+                         steady_margin_m=c.steady_margin_m)
 
 
 def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> LandingConfig:

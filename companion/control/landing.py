@@ -907,6 +907,8 @@ class LandingController:
                                                                     ("quiet", self._quiet_here()),
                                                                     ("unwalked", self._unwalked_here()))
                                 if math.isfinite(v)]
+                    if self._over_steady(track):
+                        measured.append(f"steady {track.steady_s:.1f} s")
                     self._event(f"zone {track.id} judged at {s.height:.1f} m"
                                 + (f" ({', '.join(measured)})" if measured else "")
                                 + f": descending over it to {land_at:g} m before the LAND")
@@ -997,6 +999,11 @@ class LandingController:
         Note) and starts that zone's wait."""
         p = self.config.planner
         calm, quiet, unwalked = self._calm_here(), self._quiet_here(), self._unwalked_here()
+        if self._over_steady(track):
+            # A steady zone's watch is the calm of its disc, r0 plus its margin, and the vehicle's
+            # own r0 lies within that disc: the calm disc (r0 plus calm_margin_m round the
+            # vehicle) may not fit inside a zone that small, however long it has been free.
+            calm = max(calm, track.steady_s) if math.isfinite(calm) else track.steady_s
         if p.is_calm(calm) and p.is_quiet(quiet) and p.is_unwalked(unwalked):
             return True
         if self._calm_wait is None or self._calm_wait[0] != track.id:
@@ -1014,6 +1021,14 @@ class LandingController:
                 why = f"ground around the landing point not yet measured for walkers, {p.min_unwalked_s:g} s needed"
             self._event(f"zone {track.id}: {why}: waiting before the LAND")
         return False
+
+    def _over_steady(self, track: Track) -> bool:
+        """Whether ``track`` is a steady zone (``PlannerConfig.is_steady``) and the vehicle within
+        ``steady_margin_m`` of its centre, so that r0 round the vehicle lies inside the disc the
+        zone has kept free."""
+        s, p = self.status, self.config.planner
+        return (s is not None and p.is_steady(track)
+                and math.hypot(s.north - track.x, s.east - track.y) <= p.steady_margin_m)
 
     def _calm_here(self) -> float:
         """The latest frame's calm under the camera (s; NaN when not measured)."""
@@ -1188,7 +1203,7 @@ class LandingController:
             return self._goto(lead.x, lead.y, self._level, None)
         if self._over_lead is None or self._over_lead[0] != lead.id:
             self._over_lead = (lead.id, self.now)
-        elif self.now - self._over_lead[1] >= self._search_dwell_s():
+        elif self.now - self._over_lead[1] >= self._lead_dwell_s(lead):
             self._investigated.add(lead.id)  # looked at long enough: it is no zone
             self._looked_at.append((lead.x, lead.y))
         return []
@@ -1233,6 +1248,15 @@ class LandingController:
             self._looked_at.append((memory.x, memory.y))  # looked at long enough: no zone there now
             self._over_memory = None
         return []
+
+    def _lead_dwell_s(self, lead: Track) -> float:
+        """How long to hover over free ground glimpsed (``_look_at``): the waypoints' dwell, or,
+        for one that keeps r0 plus the steady margin free (a lawn with a tree on it), long enough
+        to become a steady zone (``PlannerConfig.steady_s``) from when the vehicle is over it."""
+        p = self.config.planner
+        if p.steady_s > 0 and lead.r >= p.r0_m + p.steady_margin_m:
+            return max(self._search_dwell_s(), p.steady_s + 1.0)
+        return self._search_dwell_s()
 
     def _search_dwell_s(self) -> float:
         """Seconds to hover at each search waypoint: a zone's track must be born and grow old

@@ -9,10 +9,14 @@ A zone is **eligible** as a new target when it is
 - confirmed: matched by the latest frame (``misses == 0``) and ``hits >= min_track_hits``;
 - old enough: tracked for ``min_track_age_s`` (``last_t - born_t``), so one lucky frame is not enough;
 - fresh: ``now - last_t <= zone_max_age_s``;
-- large: ``r >= r0_m + radius_margin_m``.
+- large: ``r >= r0_m + radius_margin_m``; or, with ``steady_s`` > 0, *steady*: every frame for
+  ``steady_s`` has confirmed it with at least ``r0_m + steady_margin_m`` free (``Track.steady_s``).
+  The margin is there for zones bounded by people, who walk into them; a zone whose edge has not
+  moved for that long is bounded by what does not (a tree or a bench on a lawn, a crowd that keeps
+  off it), and the smaller margin is enough.
 
 The target among eligible zones is the oldest (earliest ``born_t``, then lowest id), as in the paper,
-calm zones first: with ``min_calm_s`` > 0, a zone whose ground (r0 plus a margin around its
+large zones before those only steady, calm zones first: with ``min_calm_s`` > 0, a zone whose ground (r0 plus a margin around its
 centre) has been watched and seen free for ``min_calm_s`` (``Track.calm_s``) comes before one
 that has not (a gap a walker has just left, a lawn's busy edge). With ``prefer_unwalked``, zones
 equally calm are ranked before age by how long nobody has been seen on that ground since the
@@ -75,6 +79,17 @@ class PlannerConfig:
     #: Rank eligible zones by ``Track.unwalked_s`` (whole seconds, longest first) before age (off
     #: here, the paper's rule; on in the service's settings, ``controller.prefer_unwalked``).
     prefer_unwalked: bool = False
+    #: A zone smaller than ``r0_m + radius_margin_m`` is still large enough once every frame for
+    #: this long (s) has confirmed it with ``r0_m + steady_margin_m`` free (``Track.steady_s``; 0:
+    #: never, the radius margin alone decides).
+    steady_s: float = 0.0
+    steady_margin_m: float = 1.0
+
+    def is_steady(self, track: Track) -> bool:
+        """Whether ``track`` is a steady zone: ``steady_s`` on, and confirmed for that long with
+        ``r0_m + steady_margin_m`` free (its ``steady_s``; NaN, not measured, is not)."""
+        return (self.steady_s > 0 and track.r >= self.r0_m + self.steady_margin_m
+                and track.steady_s >= self.steady_s)
 
     def is_calm(self, calm_s: float) -> bool:
         """Whether ground watched and seen free for ``calm_s`` seconds is calm enough (NaN, not
@@ -93,7 +108,7 @@ class PlannerConfig:
 
     def __post_init__(self) -> None:
         for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s", "min_calm_s",
-                     "min_quiet_s", "min_unwalked_s"):
+                     "min_quiet_s", "min_unwalked_s", "steady_s", "steady_margin_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a finite number >= 0, not {value!r}")
@@ -127,7 +142,7 @@ class ZonePlanner:
             return f"young ({track.last_t - track.born_t:.1f} s < {c.min_track_age_s:g} s)"
         if now - track.last_t > c.zone_max_age_s:
             return f"stale ({now - track.last_t:.1f} s old)"
-        if track.r < c.r0_m + c.radius_margin_m:
+        if track.r < c.r0_m + c.radius_margin_m and not c.is_steady(track):
             return f"small (r {track.r:.1f} m < {c.r0_m + c.radius_margin_m:.1f} m)"
         return None
 
@@ -144,11 +159,13 @@ class ZonePlanner:
             return None
         return min(eligible, key=self._rank)
 
-    def _rank(self, t: Track) -> tuple[bool, int, float, int]:
-        """Sort key of an eligible zone, best first: calm, then (``prefer_unwalked``) unwalked
-        for longer in whole seconds (NaN, not measured: 0), then oldest, then lowest id."""
-        unwalked = math.floor(t.unwalked_s) if self.config.prefer_unwalked and math.isfinite(t.unwalked_s) else 0
-        return (not self.config.is_calm(t.calm_s), -unwalked, t.born_t, t.id)
+    def _rank(self, t: Track) -> tuple[bool, bool, int, float, int]:
+        """Sort key of an eligible zone, best first: large (``r0_m + radius_margin_m``) before
+        steady only, then calm, then (``prefer_unwalked``) unwalked for longer in whole seconds
+        (NaN, not measured: 0), then oldest, then lowest id."""
+        c = self.config
+        unwalked = math.floor(t.unwalked_s) if c.prefer_unwalked and math.isfinite(t.unwalked_s) else 0
+        return (t.r < c.r0_m + c.radius_margin_m, not c.is_calm(t.calm_s), -unwalked, t.born_t, t.id)
 
     def near(self, track: Track | Circle, points: Sequence[tuple[float, float]]) -> bool:
         """Whether the centre of ``track`` (a zone, or a remembered free circle) lies within

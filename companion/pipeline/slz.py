@@ -90,8 +90,13 @@ class PipelineConfig:
     #: With ``calm``, the ground below's ``unwalked_s`` too, over the calm disc around the point
     #: under the camera (``controller.min_unwalked_s``); off, it stays NaN.
     unwalked_below: bool = False
+    #: Measure each zone's ``Track.steady_s`` against ``r0_m`` plus this free radius (m), for the
+    #: planner's steady zones (``controller.steady_s``); None: not measured, it stays NaN.
+    steady_margin_m: float | None = None
 
     def __post_init__(self) -> None:
+        if self.steady_margin_m is not None and not (math.isfinite(self.steady_margin_m) and self.steady_margin_m >= 0):
+            raise ValueError(f"steady_margin_m must be >= 0 m or None, got {self.steady_margin_m!r}")
         for name in ("calm_margin_m", "quiet_margin_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -306,7 +311,8 @@ class SLZPipeline:
                 c = max(0.0, risk.clearance_now(x, y, t, c))
             return c, clearance_at(view_dist, grid, x, y)
 
-        tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m)
+        steady_r = None if self.config.steady_margin_m is None else self.config.r0_m + self.config.steady_margin_m
+        tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m, steady_r=steady_r)
         calm_r = self.config.r0_m + self.config.calm_margin_m
         quiet_r = self.config.r0_m + self.config.quiet_margin_m
 

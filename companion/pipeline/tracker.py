@@ -98,6 +98,11 @@ class Track:
     unwalked_s: on the confirming frame, how long nobody had been seen within r0 plus the calm
     margin of the centre since the camera first saw all of it (s, ``GroundRiskMap.unwalked_s``);
     NaN when not measured.
+    steady_s: how long (s, from the first to the latest confirming frame) every frame has
+    confirmed the zone with at least the tracker's steady radius free (``ZoneTracker.update``'s
+    ``steady_r``): a zone bounded by things that do not move into it (a tree, a bench, a crowd
+    that keeps off a lawn) rather than by people walking past. A frame that missed the zone, or
+    saw less free, starts it again at 0; NaN when not measured (no steady radius given).
     """
 
     id: int
@@ -115,6 +120,7 @@ class Track:
     edge: str = ""
     calm_s: float = math.nan
     unwalked_s: float = math.nan
+    steady_s: float = math.nan
 
     @property
     def confirmed(self) -> bool:
@@ -182,6 +188,10 @@ class _ZoneFilter:
         self.last_z = z
         self.clear: float | None = None
         self.view: float = math.inf
+        # Capture time of the first frame of the present run of frames that confirmed the zone
+        # with the steady radius free (None: no such run, or not measured).
+        self.steady_since: float | None = None
+        self.steady_measured = False
 
     def predict(self, dt: float, params: TrackerParams) -> None:
         F, Q = _cp_matrices(dt, params.sigma_v) if self.still else _cv_matrices(dt, params.sigma_a)
@@ -202,18 +212,39 @@ class _ZoneFilter:
             self.kf.x[2] = 0.0
             self.kf.x[5] = max(self.kf.x[5], 0.0)
 
+    def mark_steady(self, steady_r: float | None) -> None:
+        """After a confirming frame: go on with the steady run while the zone's free radius (the
+        snapshot's) is at least ``steady_r``, else end it (None: not measured)."""
+        if steady_r is None:
+            self.steady_measured, self.steady_since = False, None
+            return
+        self.steady_measured = True
+        if self._safe_radius() >= steady_r:
+            if self.steady_since is None:
+                self.steady_since = self.last_t
+        else:
+            self.steady_since = None
+
+    def _safe_radius(self) -> float:
+        x, y, r = (float(v) for v in self.kf.x[:3])
+        z = self.last_z
+        bound = self.clear if self.clear is not None else z.r - math.hypot(x - z.x, y - z.y)
+        return max(0.0, min(r, bound))
+
     def circle(self) -> np.ndarray:
         x: np.ndarray = self.kf.x  # filterpy is untyped
         return np.array(x[:3], copy=True)  # not .copy(): typed ndarray for mypy at Python 3.10
 
     def snapshot(self) -> Track:
         x, y, r = (float(v) for v in self.kf.x[:3])
-        z = self.last_z
-        bound = self.clear if self.clear is not None else z.r - math.hypot(x - z.x, y - z.y)
-        safe = max(0.0, min(r, bound))
+        safe = self._safe_radius()
         limited = self.clear is not None and self.clear >= self.view - 1e-6
+        if not self.steady_measured:
+            steady = math.nan
+        else:
+            steady = 0.0 if self.steady_since is None else self.last_t - self.steady_since
         return Track(self.id, x, y, safe, r, self.age, self.hits, self.misses,
-                     self.born_t, self.last_t, limited, self.view)
+                     self.born_t, self.last_t, limited, self.view, steady_s=steady)
 
 
 @dataclass
@@ -257,7 +288,7 @@ class ZoneTracker:
 
     def update(self, proposals: list[Circle], t: float,
                clearance: Callable[[float, float], tuple[float, float]] | None = None,
-               r_min: float | None = None) -> list[Track]:
+               r_min: float | None = None, steady_r: float | None = None) -> list[Track]:
         """Advance to capture time ``t`` (s) with this frame's proposals; returns the tracks.
 
         clearance: for a plane point, (free radius, view radius) in metres on this frame: how far
@@ -267,6 +298,9 @@ class ZoneTracker:
         least ``r_min`` metres (or, when the view is smaller than that, for all the view shows).
         Proposals are the largest circles, which jump about as people move and as the footprint
         changes; the ground under a zone is what decides whether it still holds.
+
+        steady_r: measure each track's ``steady_s`` against this free radius (m; None: not
+        measured, NaN).
         """
         if not math.isfinite(t):
             raise ValueError(f"frame time must be finite, got {t!r}")
@@ -285,6 +319,7 @@ class ZoneTracker:
             f.update(proposals[pi], t)
             if clearance is not None:
                 f.clear, f.view = clearance(float(f.kf.x[0]), float(f.kf.x[1]))
+            f.mark_steady(steady_r)
         for fi in missed:
             f = self._filters[fi]
             if clearance is not None and r_min is not None:
@@ -293,16 +328,18 @@ class ZoneTracker:
                 if clear >= r_min or (clear >= view - 1e-6 and view >= _MIN_VIEW):
                     f.update(Circle(x, y, clear), t)
                     f.clear, f.view = clear, view
+                    f.mark_steady(steady_r)
                     continue
             f.misses += 1
+            f.steady_since = None
         alive = [f for f in self._filters if f.misses <= p.mu_1]
         self.ended += len(self._filters) - len(alive)
         self._filters = alive
 
-        self._births([proposals[i] for i in unmatched], t)
+        self._births([proposals[i] for i in unmatched], t, steady_r)
         return self.tracks()
 
-    def _births(self, unmatched: list[Circle], t: float) -> None:
+    def _births(self, unmatched: list[Circle], t: float, steady_r: float | None = None) -> None:
         p = self.params
         cand = np.array([c.circle.as_array() for c in self._candidates]).reshape(-1, 3)
         new = np.array([c.as_array() for c in unmatched]).reshape(-1, 3)
@@ -316,7 +353,9 @@ class ZoneTracker:
         self._candidates = []
         for c in kept:
             if c.count >= p.mu_2 and len(self._filters) < p.max_tracks:
-                self._filters.append(_ZoneFilter(next(self._ids), c.circle, t, p, hits=c.count))
+                born = _ZoneFilter(next(self._ids), c.circle, t, p, hits=c.count)
+                born.mark_steady(steady_r)
+                self._filters.append(born)
                 self.born += 1
             else:
                 self._candidates.append(c)

@@ -1,0 +1,177 @@
+"""Steady zones (``controller.steady_s``): a zone smaller than r0 plus the radius margin, whose
+edge has not moved into it for a long watch (a tree or a bench on a lawn that a crowd keeps off),
+may be chosen, and that watch stands for the calm under the vehicle. The tracker measures it, the
+planner decides with it, the controller flies it; docs/design.md, "Steady zones"."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from companion.config import Config, landing_config, pipeline_config
+from companion.control.events import Phase
+from companion.control.landing import Goto, Land, LandingController
+from companion.control.planner import PlannerConfig, ZonePlanner
+from companion.pipeline.circles import Circle, GroundBelow
+from companion.pipeline.tracker import TrackerParams, ZoneTracker
+from tests.test_landing_controller import CALM, CFG, pose, status, texts, trigger, zone
+from tests.test_landing_search import SEARCH, _to_search
+
+STEADY_PLAN = dataclasses.replace(CFG.planner, radius_margin_m=2.0, steady_s=8.0, steady_margin_m=0.5)
+
+
+def _tracker_run(radii: list[float | None], steady_r: float | None = 2.5, dt: float = 0.1):
+    """One zone at (0, 0) measured on each frame with the given free radius (None: no proposal and
+    nothing free under it, a missed frame); the tracks after each frame."""
+    tr = ZoneTracker(TrackerParams(mu_2=1, mu_1=5, motion="position"))
+    out = []
+    for k, r in enumerate(radii):
+        props = [] if r is None else [Circle(0.0, 0.0, r)]
+        free = 0.0 if r is None else r
+        out.append(tr.update(props, k * dt, lambda x, y, f=free: (f, 20.0), r_min=2.0, steady_r=steady_r))
+    return out
+
+
+def test_the_tracker_measures_how_long_a_zone_has_kept_the_steady_radius_and_restarts_on_a_break():
+    runs = _tracker_run([3.0] * 30)
+    assert runs[0][0].steady_s == 0.0  # born on that frame: watched for no time yet
+    assert runs[-1][0].steady_s == pytest.approx(2.9)
+    # One frame with less free (a walker came within the steady radius) starts it again.
+    runs = _tracker_run([3.0] * 10 + [2.3] + [3.0] * 10)
+    assert runs[9][0].steady_s == pytest.approx(0.9)
+    assert runs[10][0].steady_s == 0.0
+    assert runs[-1][0].steady_s == pytest.approx(0.9)
+    # So does a frame that did not confirm the zone.
+    runs = _tracker_run([3.0] * 10 + [None] + [3.0] * 5)
+    assert runs[10][0].misses == 1 and runs[10][0].steady_s == 0.0
+    assert runs[-1][0].steady_s == pytest.approx(0.4)
+    # Not asked for: not measured (NaN), never steady.
+    assert math.isnan(_tracker_run([3.0] * 5, steady_r=None)[-1][0].steady_s)
+
+
+def _small(steady_s: float, r: float = 2.8, id: int = 1, born: float = 0.0):
+    return dataclasses.replace(zone(id, 10, 0, 20.0, r=r, born=born), steady_s=steady_s)
+
+
+def test_a_small_zone_is_chosen_only_once_steady_for_steady_s_and_only_with_the_steady_margin_free():
+    off = ZonePlanner(dataclasses.replace(STEADY_PLAN, steady_s=0.0))
+    on = ZonePlanner(STEADY_PLAN)
+    assert off.choose([_small(30.0)], 20.0) is None  # off: r0 + radius_margin alone decides
+    assert "small" in on.why_not_eligible(_small(7.9), 20.0)
+    assert on.choose([_small(8.0)], 20.0).id == 1
+    assert on.choose([_small(math.nan)], 20.0) is None  # not measured: never steady
+    # Steady, but its free radius now below r0 + steady_margin_m: not chosen.
+    assert on.choose([_small(9.0, r=2.4)], 20.0) is None
+    with pytest.raises(ValueError, match="steady_s"):
+        PlannerConfig(steady_s=-1.0)
+    with pytest.raises(ValueError, match="steady_margin_m"):
+        PlannerConfig(steady_margin_m=math.nan)
+
+
+def test_a_large_zone_comes_before_an_older_calmer_steady_one():
+    plan = dataclasses.replace(STEADY_PLAN, min_calm_s=5.0)
+    old_steady = dataclasses.replace(_small(20.0, id=1, born=0.0), calm_s=20.0)
+    young_large = dataclasses.replace(zone(2, -10, 0, 20.0, r=4.5, born=15.0), calm_s=0.0)
+    assert ZonePlanner(plan).choose([old_steady, young_large], 20.0).id == 2
+    assert ZonePlanner(plan).choose([old_steady], 20.0).id == 1
+
+
+STEADY = dataclasses.replace(CALM, planner=dataclasses.replace(STEADY_PLAN, min_calm_s=6.0), calm_wait_s=3.0)
+
+
+def _fly_to_small(ctl: LandingController, steady, off_m: float = 0.0, until: float = 6.0) -> tuple[float, list]:
+    """Trigger over a 2.8 m zone at (10, 0) whose steady watch at time t is ``steady(t)``, the
+    ground below reading calm 0, and follow the controller's targets down (the vehicle reaches
+    each, ``off_m`` north of it) until a LAND or ``until``; returns the time and every command."""
+    ctl.on_state(status(0.0, 0, 0, 12.0))
+    ctl.on_trigger(trigger(0.0))
+    t, north, alt, sent = 0.0, 0.0, 12.0, []
+    while t < until and ctl.phase != Phase.LAND:
+        t += 0.1
+        ctl.on_state(status(t, north, 0, alt, mode="GUIDED"))
+        z = dataclasses.replace(zone(1, 10, 0, t, r=2.8, born=-20.0), steady_s=steady(t))
+        cmds = ctl.on_frame(t, [z], pose(t, north, 0, alt), GroundBelow(north, 0, 2.8, 6.0, calm_s=0.0))
+        sent += cmds
+        for c in cmds:
+            if isinstance(c, Goto):
+                north, alt = c.north + off_m, c.target.rel_alt_m
+    return t, sent
+
+
+def test_a_steady_zone_is_flown_to_and_its_watch_stands_for_the_calm_disc_that_does_not_fit_in_it():
+    """The calm disc (r0 + 1 m = 3 m round the vehicle) cannot be all free inside a 2.8 m zone,
+    so the ground below reads calm 0 however long it has been free; the zone's steady watch (8 s
+    and more with 2.5 m free round its centre, the vehicle within 0.5 m of it) is that calm."""
+    ctl = LandingController(STEADY)
+    _, sent = _fly_to_small(ctl, lambda t: 8.0 + t)
+    assert Land() in sent and ctl.phase == Phase.LAND
+    assert any("LAND over zone 1" in x for x in texts(ctl))
+
+
+def test_a_steady_zone_whose_watch_broke_waits_for_calm_and_the_vehicle_off_its_centre_does_too():
+    # Chosen steady; then a walker came within 2.5 m of its centre: the watch starts again at 0
+    # and the LAND waits, as for any zone whose ground is not calm.
+    ctl = LandingController(STEADY)
+    _, sent = _fly_to_small(ctl, lambda t: 8.0 + t if t < 0.15 else 0.0, until=2.5)
+    assert ctl.target is not None and ctl.target.id == 1 and ctl.phase == Phase.DESCEND
+    assert not any(isinstance(c, Land) for c in sent)
+    assert any("waiting before the LAND" in x for x in texts(ctl))
+    # Steady all along, but the vehicle 0.8 m off the zone's centre: its r0 is not inside the
+    # disc the zone kept free.
+    ctl = LandingController(STEADY)
+    _, sent = _fly_to_small(ctl, lambda t: 8.0 + t, off_m=0.8, until=2.5)
+    assert ctl.phase == Phase.DESCEND and not any(isinstance(c, Land) for c in sent)
+
+
+def test_a_small_zone_not_yet_steady_is_not_chosen():
+    ctl = LandingController(STEADY)
+    ctl.on_state(status(0.0, 0, 0, 12.0))
+    ctl.on_trigger(trigger(0.0))
+    for k in range(1, 20):
+        t = k * 0.1
+        ctl.on_state(status(t, 0, 0, 12.0))
+        z = dataclasses.replace(zone(1, 10, 0, t, r=2.8, born=-20.0), steady_s=5.0 + t)
+        assert ctl.on_frame(t, [z], pose(t, 0, 0, 12.0)) == []
+    assert ctl.phase == Phase.SELECT and ctl.target is None
+
+
+def test_the_search_hovers_over_a_glimpse_long_enough_for_it_to_become_steady_then_takes_it():
+    """A lawn with a tree on it: 2.8 m free, never r0 + the radius margin (4 m). The search
+    flies over it and, instead of the waypoints' 2 s, waits there steady_s plus a second."""
+    cfg = dataclasses.replace(SEARCH, planner=dataclasses.replace(SEARCH.planner, radius_margin_m=2.0,
+                                                                   steady_s=8.0, steady_margin_m=0.5))
+    ctl = LandingController(cfg)
+    t = _to_search(ctl)
+    north = east = 0.0
+    since = None
+    chosen_at = None
+    while t < 20.0:
+        t += 0.1
+        ctl.on_state(status(t, north, east, 24.0, mode="GUIDED"))
+        over = math.hypot(north + 9.0, east - 6.0) < 1.0
+        if over and since is None:
+            since = t
+        z = dataclasses.replace(zone(5, -9.0, 6.0, t, r=2.8, born=-10.0), steady_s=0.0 if since is None else t - since)
+        for c in ctl.on_frame(t, [z], pose(t, north, east, 24.0)):
+            if isinstance(c, Goto):
+                north, east = c.north, c.east
+        ctl.tick(t)
+        if ctl.phase == Phase.APPROACH:
+            chosen_at = t
+            break
+        assert ctl.phase == Phase.SEARCH and (since is None or (north, east) == (-9.0, 6.0))
+    assert chosen_at is not None and since is not None and chosen_at - since == pytest.approx(8.0, abs=0.15)
+    assert ctl.target is not None and ctl.target.id == 5
+
+
+def test_the_settings_reach_the_planner_and_the_pipeline_and_off_measures_nothing():
+    cfg = Config()
+    assert landing_config(cfg).planner.steady_s == cfg.controller.steady_s
+    assert pipeline_config(cfg).steady_margin_m is None if cfg.controller.steady_s == 0 else True
+    on = dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, steady_s=8.0, steady_margin_m=0.5))
+    assert landing_config(on).planner.steady_s == 8.0 and landing_config(on).planner.steady_margin_m == 0.5
+    assert pipeline_config(on).steady_margin_m == 0.5
+    off = dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, steady_s=0.0))
+    assert pipeline_config(off).steady_margin_m is None

@@ -175,3 +175,23 @@ def test_the_settings_reach_the_planner_and_the_pipeline_and_off_measures_nothin
     assert pipeline_config(on).steady_margin_m == 0.5
     off = dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, steady_s=0.0))
     assert pipeline_config(off).steady_margin_m is None
+
+
+def test_a_large_zone_is_judged_by_calm_whatever_its_steady_watch():
+    """The steady watch stands for calm only in a zone too small for the calm disc: a 4.5 m zone,
+    steady for 20 s, whose ground below is not calm, waits as any zone does."""
+    ctl = LandingController(STEADY)
+    ctl.on_state(status(0.0, 0, 0, 12.0))
+    ctl.on_trigger(trigger(0.0))
+    t, north, alt, sent = 0.0, 0.0, 12.0, []
+    while t < 2.5:
+        t += 0.1
+        ctl.on_state(status(t, north, 0, alt, mode="GUIDED"))
+        z = dataclasses.replace(zone(1, 10, 0, t, r=4.5, born=-20.0), steady_s=20.0 + t)
+        cmds = ctl.on_frame(t, [z], pose(t, north, 0, alt), GroundBelow(north, 0, 4.5, 6.0, calm_s=0.0))
+        sent += cmds
+        for c in cmds:
+            if isinstance(c, Goto):
+                north, alt = c.north, c.target.rel_alt_m
+    assert ctl.phase == Phase.DESCEND and not any(isinstance(c, Land) for c in sent)
+    assert any("waiting before the LAND" in x for x in texts(ctl))

@@ -1023,11 +1023,12 @@ class LandingController:
         return False
 
     def _over_steady(self, track: Track) -> bool:
-        """Whether ``track`` is a steady zone (``PlannerConfig.is_steady``) and the vehicle within
+        """Whether ``track`` is a zone too small to be chosen but for its steadiness (under
+        ``r0_m + radius_margin_m``, ``PlannerConfig.is_steady``) and the vehicle within
         ``steady_margin_m`` of its centre, so that r0 round the vehicle lies inside the disc the
-        zone has kept free."""
+        zone has kept free. A larger zone has room for the calm disc, and calm judges it."""
         s, p = self.status, self.config.planner
-        return (s is not None and p.is_steady(track)
+        return (s is not None and track.r < p.r0_m + p.radius_margin_m and p.is_steady(track)
                 and math.hypot(s.north - track.x, s.east - track.y) <= p.steady_margin_m)
 
     def _calm_here(self) -> float:

@@ -385,6 +385,8 @@ class LandingController:
         # under the companion's control, to land_alt_m: below the judging height the calm disc no
         # longer fits in the view, so the judgement is kept, not asked again.
         self._judged: int | None = None
+        # The target chosen as a steady zone (``_approach``), or None.
+        self._steady_target: int | None = None
         self._over_lead: tuple[int, float] | None = None  # (zone id, since when) the search hovers over
         #: Free circles the risk map remembers (latest frame's ``remembered``), plane metres.
         self.remembered: list[Circle] = []
@@ -755,6 +757,10 @@ class LandingController:
         self.target = zone
         self._failing = 0
         self._aim = (zone.x, zone.y)
+        # Chosen too small for the radius margin, so for its steadiness: its steady watch will
+        # stand for the calm disc that does not fit in it (``_over_steady``).
+        p = c.planner
+        self._steady_target = zone.id if zone.r < p.r0_m + p.radius_margin_m else None
         if s.alt < self._level - c.alt_tolerance_m:
             self._level = s.alt  # it came down before we took over: do not climb back for nothing
         # Above the height where people look as large as the model reliably sees them, what it
@@ -1023,12 +1029,13 @@ class LandingController:
         return False
 
     def _over_steady(self, track: Track) -> bool:
-        """Whether ``track`` is a zone too small to be chosen but for its steadiness (under
-        ``r0_m + radius_margin_m``, ``PlannerConfig.is_steady``) and the vehicle within
-        ``steady_margin_m`` of its centre, so that r0 round the vehicle lies inside the disc the
-        zone has kept free. A larger zone has room for the calm disc, and calm judges it."""
+        """Whether ``track`` was chosen as a steady zone (too small, when chosen, for
+        ``r0_m + radius_margin_m``), is steady still (``PlannerConfig.is_steady``) and the vehicle
+        within ``steady_margin_m`` of its centre, so that r0 round the vehicle lies inside the
+        disc the zone has kept free. A zone chosen larger has room for the calm disc, and calm
+        judges it, also once the view at the judging height bounds it under that size."""
         s, p = self.status, self.config.planner
-        return (s is not None and track.r < p.r0_m + p.radius_margin_m and p.is_steady(track)
+        return (s is not None and self._steady_target == track.id and p.is_steady(track)
                 and math.hypot(s.north - track.x, s.east - track.y) <= p.steady_margin_m)
 
     def _calm_here(self) -> float:

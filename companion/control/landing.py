@@ -759,8 +759,7 @@ class LandingController:
         self._aim = (zone.x, zone.y)
         # Chosen too small for the radius margin, so for its steadiness: its steady watch will
         # stand for the calm disc that does not fit in it (``_over_steady``).
-        p = c.planner
-        self._steady_target = zone.id if zone.r < p.r0_m + p.radius_margin_m else None
+        self._steady_target = zone.id if zone.r < c.planner.large_r_m else None
         if s.alt < self._level - c.alt_tolerance_m:
             self._level = s.alt  # it came down before we took over: do not climb back for nothing
         # Above the height where people look as large as the model reliably sees them, what it
@@ -1262,7 +1261,7 @@ class LandingController:
         for one that keeps r0 plus the steady margin free (a lawn with a tree on it), long enough
         to become a steady zone (``PlannerConfig.steady_s``) from when the vehicle is over it."""
         p = self.config.planner
-        if p.steady_s > 0 and lead.r >= p.r0_m + p.steady_margin_m:
+        if p.steady_s > 0 and lead.r >= p.steady_r_m:
             return max(self._search_dwell_s(), p.steady_s + 1.0)
         return self._search_dwell_s()
 

@@ -85,11 +85,20 @@ class PlannerConfig:
     steady_s: float = 0.0
     steady_margin_m: float = 1.0
 
+    @property
+    def large_r_m(self) -> float:
+        """The radius (m) a zone must have to be chosen on its size alone: r0 plus the margin."""
+        return self.r0_m + self.radius_margin_m
+
+    @property
+    def steady_r_m(self) -> float:
+        """The radius (m) a steady zone must keep free on every frame: r0 plus the steady margin."""
+        return self.r0_m + self.steady_margin_m
+
     def is_steady(self, track: Track) -> bool:
         """Whether ``track`` is a steady zone: ``steady_s`` on, and confirmed for that long with
         ``r0_m + steady_margin_m`` free (its ``steady_s``; NaN, not measured, is not)."""
-        return (self.steady_s > 0 and track.r >= self.r0_m + self.steady_margin_m
-                and track.steady_s >= self.steady_s)
+        return self.steady_s > 0 and track.r >= self.steady_r_m and track.steady_s >= self.steady_s
 
     def is_calm(self, calm_s: float) -> bool:
         """Whether ground watched and seen free for ``calm_s`` seconds is calm enough (NaN, not
@@ -142,8 +151,8 @@ class ZonePlanner:
             return f"young ({track.last_t - track.born_t:.1f} s < {c.min_track_age_s:g} s)"
         if now - track.last_t > c.zone_max_age_s:
             return f"stale ({now - track.last_t:.1f} s old)"
-        if track.r < c.r0_m + c.radius_margin_m and not c.is_steady(track):
-            return f"small (r {track.r:.1f} m < {c.r0_m + c.radius_margin_m:.1f} m)"
+        if track.r < c.large_r_m and not c.is_steady(track):
+            return f"small (r {track.r:.1f} m < {c.large_r_m:.1f} m)"
         return None
 
     def choose(self, tracks: Iterable[Track], now: float, exclude: Sequence[int] = (),
@@ -165,7 +174,7 @@ class ZonePlanner:
         (NaN, not measured: 0), then oldest, then lowest id."""
         c = self.config
         unwalked = math.floor(t.unwalked_s) if c.prefer_unwalked and math.isfinite(t.unwalked_s) else 0
-        return (t.r < c.r0_m + c.radius_margin_m, not c.is_calm(t.calm_s), -unwalked, t.born_t, t.id)
+        return (t.r < c.large_r_m, not c.is_calm(t.calm_s), -unwalked, t.born_t, t.id)
 
     def near(self, track: Track | Circle, points: Sequence[tuple[float, float]]) -> bool:
         """Whether the centre of ``track`` (a zone, or a remembered free circle) lies within

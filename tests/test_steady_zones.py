@@ -218,3 +218,17 @@ def test_the_search_lands_on_a_lawn_with_a_bench_on_it_as_a_steady_zone(model_pa
     n, e, radius = r.free_circle
     assert math.hypot(r.touchdown[0] - n, r.touchdown[1] - e) < radius
     assert any("steady" in m for m in r.messages), r.messages
+
+
+@pytest.mark.parametrize("text", ["steady_s = -1.0", "steady_s = 500.0", "steady_margin_m = -0.5",
+                                  "steady_margin_m = 50.0", 'steady_s = "long"'])
+def test_bad_steady_settings_are_refused_at_start_up_naming_the_key(tmp_path, text):
+    from companion import config
+
+    f = tmp_path / "c.toml"
+    f.write_text(f"[controller]\n{text}\n")
+    with pytest.raises(config.ConfigError, match="controller.steady_"):
+        config.load(f)
+    with pytest.raises(ValueError, match="steady_margin_m"):
+        from companion.pipeline.slz import PipelineConfig
+        PipelineConfig(steady_margin_m=-1.0)

@@ -99,10 +99,12 @@ class Track:
     margin of the centre since the camera first saw all of it (s, ``GroundRiskMap.unwalked_s``);
     NaN when not measured.
     steady_s: how long (s, from the first to the latest confirming frame) every frame has
-    confirmed the zone with at least the tracker's steady radius free (``ZoneTracker.update``'s
-    ``steady_r``): a zone bounded by things that do not move into it (a tree, a bench, a crowd
-    that keeps off a lawn) rather than by people walking past. A frame that missed the zone, or
-    saw less free, starts it again at 0; NaN when not measured (no steady radius given).
+    confirmed the zone with the same ground free: the tracker's steady radius
+    (``ZoneTracker.update``'s ``steady_r``) round where that run of frames began, inside the
+    zone's free circle. A zone bounded by things that do not move into it (a tree, a bench, a
+    crowd that keeps off a lawn) rather than by people walking past. A frame that missed the
+    zone, saw less free, or a centre that drifted off that ground (a gap travelling with its
+    crowd) starts it again at 0; NaN when not measured (no steady radius given).
     """
 
     id: int
@@ -191,6 +193,8 @@ class _ZoneFilter:
         # Capture time of the first frame of the present run of frames that confirmed the zone
         # with the steady radius free (None: no such run, or not measured).
         self.steady_since: float | None = None
+        # Where that run began (filtered centre, m): the ground it must keep free.
+        self.steady_at: tuple[float, float] | None = None
         self.steady_measured = False
 
     def predict(self, dt: float, params: TrackerParams) -> None:
@@ -213,17 +217,29 @@ class _ZoneFilter:
             self.kf.x[5] = max(self.kf.x[5], 0.0)
 
     def mark_steady(self, steady_r: float | None) -> None:
-        """After a confirming frame: go on with the steady run while the zone's free radius (the
-        snapshot's) is at least ``steady_r``, else end it (None: not measured)."""
+        """After a confirming frame: go on with the steady run while the disc of ``steady_r``
+        round where the run began is still inside the zone's free circle (the snapshot's centre
+        and radius), else end it, and begin another here if the zone has ``steady_r`` free (None:
+        not measured).
+
+        The same ground, not a free circle of that size: a gap in a walking crowd travels with
+        the crowd and keeps its size while the people round it move, and a free circle that is
+        always somewhere else says nothing of what walks into any one place of it. A zone bounded
+        by a tree or a bench stays where it is."""
         if steady_r is None:
-            self.steady_measured, self.steady_since = False, None
+            self.steady_measured, self.steady_since, self.steady_at = False, None, None
             return
         self.steady_measured = True
-        if self._safe_radius() >= steady_r:
-            if self.steady_since is None:
-                self.steady_since = self.last_t
+        x, y = float(self.kf.x[0]), float(self.kf.x[1])
+        safe = self._safe_radius()
+        if self.steady_since is not None and self.steady_at is not None:
+            ax, ay = self.steady_at
+            if safe - math.hypot(x - ax, y - ay) >= steady_r:
+                return
+        if safe >= steady_r:
+            self.steady_since, self.steady_at = self.last_t, (x, y)
         else:
-            self.steady_since = None
+            self.steady_since, self.steady_at = None, None
 
     def _safe_radius(self) -> float:
         x, y, r = (float(v) for v in self.kf.x[:3])
@@ -331,7 +347,7 @@ class ZoneTracker:
                     f.mark_steady(steady_r)
                     continue
             f.misses += 1
-            f.steady_since = None
+            f.steady_since, f.steady_at = None, None
         alive = [f for f in self._filters if f.misses <= p.mu_1]
         self.ended += len(self._filters) - len(alive)
         self._filters = alive

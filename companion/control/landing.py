@@ -534,7 +534,7 @@ class LandingController:
         """How much of the zone (m) must stay free around its landing point for the point to stay
         put: r0 plus the margin, or ``MIN_VIEW_M`` for a zone bounded by the view (see ``_follow``)."""
         p = self.config.planner
-        return MIN_VIEW_M if seen_all_free(track) else p.r0_m + p.radius_margin_m
+        return MIN_VIEW_M if seen_all_free(track) else p.large_r_m
 
     def _aim_for(self, track: Track) -> tuple[float, float]:
         """The landing point over ``track`` now: the present one while the zone holds ``_room``
@@ -1224,7 +1224,7 @@ class LandingController:
             return None
         avoid = [*self._avoided(), *self._looked_at]
         sn, se = self._search_from
-        fits = [m for m in self.remembered if m.r >= c.planner.r0_m + c.planner.radius_margin_m
+        fits = [m for m in self.remembered if m.r >= c.planner.large_r_m
                 and math.hypot(m.x - sn, m.y - se) <= c.search_radius_m and not self.planner.near(m, avoid)]
         over = self._over_memory
         if over is not None:

@@ -179,7 +179,7 @@ class ZonePlanner:
     def near(self, track: Track | Circle, points: Sequence[tuple[float, float]]) -> bool:
         """Whether the centre of ``track`` (a zone, or a remembered free circle) lies within
         ``r0_m + radius_margin_m`` of any of ``points``."""
-        reach = self.config.r0_m + self.config.radius_margin_m
+        reach = self.config.large_r_m
         return any(math.hypot(track.x - n, track.y - e) < reach for n, e in points)
 
     def check_target(self, target_id: int, tracks: Iterable[Track], now: float) -> tuple[ZoneCheck, Track | None, str]:

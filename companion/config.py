@@ -285,7 +285,8 @@ class ControllerSettings:
                                   "give it up for the takeover (s)", min=0.5, max=300.0)
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen (m); once chosen it is kept, and the LAND commanded, while r0 stays free around the landing point, and its landing point stays put while the zone holds r0 plus this around it", min=0.0)
     steady_s: float = _f(0.0, "a zone smaller than r0 plus radius_margin_m may still be chosen once every frame for "
-                              "this long has seen r0 plus steady_margin_m free round it: its edge is something that "
+                              "this long has seen r0 plus steady_margin_m free round the same point (a gap that "
+                              "travels with its crowd starts again): its edge is something that "
                               "does not walk into it (a tree or a bench on a lawn, a crowd that keeps off it); in such "
                               "a zone, too small for the calm disc, that steady watch stands for the calm ground "
                               "under the vehicle (s; 0 = never; docs/design.md, 'Steady zones')", min=0.0, max=120.0)

@@ -357,7 +357,8 @@ class ControllerSettings:
     handback_action: str = _f("LAND", "what the autopilot is asked to do on handback", choices=("LAND", "RTL"))
     search_s: float = _f(45.0, "with no zone in view at the SELECT or HOLD timeout, search this long (s) "
                          "before handing back: climb to the ceiling, then fly an expanding square; 0 = "
-                         "hand back at once, as before", min=0.0, max=600.0)
+                         "hand back at once, as before (with steady_s, a look at a glimpse whose steady "
+                         "watch runs is finished, at most steady_s more)", min=0.0, max=600.0)
     search_radius_m: float = _f(40.0, "the search goes no further than this from where it starts (m)",
                                 min=0.0, max=500.0)
     search_reserve_s: float = _f(30.0, "stop searching (hand back) when the battery's time left, as the "

@@ -195,6 +195,65 @@ def test_the_search_hovers_over_a_glimpse_long_enough_for_it_to_become_steady_th
     assert ctl.target is not None and ctl.target.id == 5
 
 
+def _look_at_lawn(settle_s: float = 0.0, search_s: float = 30.0, watch: bool = True, until: float = 40.0,
+                  breaks_at: float | None = None):
+    """Search until a 2.8 m glimpse at (-9, 6) is flown over; its steady watch starts ``settle_s``
+    after the vehicle arrives (the zone's centre settling as the view comes to hold it all), or
+    never (``watch`` False), and (``breaks_at``, s after arriving) starts again once. Returns the
+    controller, the time it left SEARCH (or ``until``) and the arrival time."""
+    cfg = dataclasses.replace(SEARCH, search_s=search_s, planner=dataclasses.replace(
+        SEARCH.planner, radius_margin_m=2.0, steady_s=8.0, steady_margin_m=0.5))
+    ctl = LandingController(cfg)
+    t = _to_search(ctl)
+    north = east = 0.0
+    arrived = None
+    while t < until:
+        t += 0.1
+        ctl.on_state(status(t, north, east, 24.0, mode="GUIDED"))
+        if arrived is None and math.hypot(north + 9.0, east - 6.0) < 1.0:
+            arrived = t
+        start = None if arrived is None or not watch else arrived + settle_s
+        if start is not None and breaks_at is not None and t >= arrived + breaks_at - 1e-6:
+            start = arrived + breaks_at
+        z = dataclasses.replace(zone(5, -9.0, 6.0, t, r=2.8, born=-10.0),
+                                steady_s=0.0 if start is None or t < start else t - start)
+        for c in ctl.on_frame(t, [z], pose(t, north, east, 24.0)):
+            if isinstance(c, Goto):
+                north, east = c.north, c.east
+        ctl.tick(t)
+        if ctl.phase != Phase.SEARCH:
+            break
+    return ctl, t, arrived
+
+
+def test_the_search_keeps_looking_while_a_glimpse_steady_watch_runs_though_it_began_late():
+    """Dense-beyond seed 43: the lawn zone's centre settled 1.4 m over the 4.5 s after the vehicle
+    arrived, and the steady watch (the same ground) began then; the search, which used to give
+    up steady_s plus a second after arriving, waits for the watch and takes the zone."""
+    ctl, t, arrived = _look_at_lawn(settle_s=4.5)
+    assert ctl.phase == Phase.APPROACH and ctl.target is not None and ctl.target.id == 5
+    assert t - arrived == pytest.approx(4.5 + 8.0, abs=0.15)
+    # A watch that never starts is given up as before, steady_s plus a second after arriving.
+    ctl, t, arrived = _look_at_lawn(watch=False, until=2.2 + 9.0 - 0.2)
+    assert ctl.phase == Phase.SEARCH and 5 not in ctl._investigated
+    ctl, t, arrived = _look_at_lawn(watch=False, until=2.2 + 9.0 + 0.3)
+    assert ctl.target is None and 5 in ctl._investigated
+
+
+def test_a_steady_look_under_way_when_the_search_time_ends_is_finished_within_steady_s_more():
+    # The search's 5 s end in the middle of the watch: the look is finished and the zone taken.
+    ctl, t, arrived = _look_at_lawn(search_s=5.0)
+    assert ctl.phase == Phase.APPROACH and t - arrived == pytest.approx(8.0, abs=0.15)
+    assert t - ctl._search_t > 5.0
+    # No watch running: the search ends on its time, as before.
+    ctl, t, _ = _look_at_lawn(search_s=5.0, watch=False)
+    assert ctl.phase == Phase.HANDBACK and t - ctl._search_t == pytest.approx(5.0, abs=0.15)
+    assert any("searched 5 s without a safe zone" in x for x in texts(ctl))
+    # A watch that breaks once the search's time is over: handed back there and then.
+    ctl, t, arrived = _look_at_lawn(search_s=5.0, breaks_at=6.0)
+    assert ctl.phase == Phase.HANDBACK and t - arrived == pytest.approx(6.0, abs=0.15)
+
+
 def test_the_settings_reach_the_planner_and_the_pipeline_and_off_measures_nothing():
     cfg = Config()
     assert landing_config(cfg).planner.steady_s == cfg.controller.steady_s

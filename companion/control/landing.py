@@ -1148,7 +1148,7 @@ class LandingController:
     def _search_over(self) -> str | None:
         """Why the search must stop now, or None: its time, or the battery's."""
         c, s = self.config, self.status
-        if self.now - self._search_t > c.search_s:
+        if self.now - self._search_t > c.search_s and not self._finishing_steady_look():
             return f"searched {c.search_s:g} s without a safe zone"
         if s is not None and s.battery_s is not None and math.isfinite(s.battery_s):
             need = self._descent_now().time_to_touchdown(s.height) + c.search_reserve_s
@@ -1210,10 +1210,43 @@ class LandingController:
             return self._goto(lead.x, lead.y, self._level, None)
         if self._over_lead is None or self._over_lead[0] != lead.id:
             self._over_lead = (lead.id, self.now)
-        elif self.now - self._over_lead[1] >= self._lead_dwell_s(lead):
+        elif self._looked_long_enough(lead, self.now - self._over_lead[1]):
             self._investigated.add(lead.id)  # looked at long enough: it is no zone
             self._looked_at.append((lead.x, lead.y))
         return []
+
+    def _looked_long_enough(self, lead: Track, over_s: float) -> bool:
+        """Whether free ground hovered over for ``over_s`` seconds without becoming a zone is to
+        be given up: after the waypoints' dwell; or, for a glimpse that keeps r0 plus the steady
+        margin free (``PlannerConfig.steady_r_m``), once the time over it not covered by its
+        present steady watch (``Track.steady_s``) passes ``steady_s`` plus a second. The watch
+        counts the same ground, so it starts once the zone's centre stops moving as the view
+        comes to hold all of it (dense-beyond seed 43: 4.5 s after the vehicle arrived); a
+        watch that keeps breaking, or never starts, is given up as soon as before, and none is
+        looked at for longer than twice ``steady_s`` plus a second (one steady the planner
+        still refuses, near a point to avoid, must not hold the search)."""
+        p = self.config.planner
+        if p.steady_s > 0 and lead.r >= p.steady_r_m:
+            watched = lead.steady_s if math.isfinite(lead.steady_s) else 0.0
+            dwell = max(self._search_dwell_s(), p.steady_s + 1.0)
+            return over_s - watched >= dwell or over_s >= dwell + p.steady_s
+        return over_s >= self._search_dwell_s()
+
+    def _finishing_steady_look(self) -> bool:
+        """Whether the search is over a steady-sized glimpse (``_looked_long_enough``) whose
+        steady watch runs and has not yet reached ``steady_s``, with at most ``steady_s`` past
+        the search's time: that look is finished rather than the vehicle handed back over the
+        crowd a few seconds before the zone could be chosen. ``max_takeover_s`` and the battery
+        still bound it."""
+        p, c = self.config.planner, self.config
+        if p.steady_s <= 0 or self._over_lead is None or self.now - self._search_t > c.search_s + p.steady_s:
+            return False
+        lead = next((t for t in self.tracks if t.id == self._over_lead[0] and t.misses == 0
+                     and t.id not in self._investigated), None)
+        s = self.status
+        return (lead is not None and s is not None and lead.r >= p.steady_r_m and math.isfinite(lead.steady_s)
+                and 0.0 < lead.steady_s < p.steady_s
+                and math.hypot(lead.x - s.north, lead.y - s.east) <= 2 * c.arrive_radius_m)
 
     def _memory_lead(self) -> Circle | None:
         """The nearest circle of remembered free ground (``remembered``) large enough to be
@@ -1255,15 +1288,6 @@ class LandingController:
             self._looked_at.append((memory.x, memory.y))  # looked at long enough: no zone there now
             self._over_memory = None
         return []
-
-    def _lead_dwell_s(self, lead: Track) -> float:
-        """How long to hover over free ground glimpsed (``_look_at``): the waypoints' dwell, or,
-        for one that keeps r0 plus the steady margin free (a lawn with a tree on it), long enough
-        to become a steady zone (``PlannerConfig.steady_s``) from when the vehicle is over it."""
-        p = self.config.planner
-        if p.steady_s > 0 and lead.r >= p.steady_r_m:
-            return max(self._search_dwell_s(), p.steady_s + 1.0)
-        return self._search_dwell_s()
 
     def _search_dwell_s(self) -> float:
         """Seconds to hover at each search waypoint: a zone's track must be born and grow old

@@ -1202,7 +1202,8 @@ class LandingController:
     def _look_at(self, lead: Track) -> list[Command]:
         """Free ground seen, too little of it to choose (cut by the edge of the view, or too
         young): fly over it at the planned level so the camera sees it whole, and let the tracker
-        confirm it; looked at for ``_search_dwell_s`` without becoming a zone, it is given up."""
+        confirm it; looked at without becoming a zone for as long as ``_looked_long_enough``
+        allows, it is given up."""
         s, c = self.status, self.config
         assert s is not None
         if math.hypot(lead.x - s.north, lead.y - s.east) > 2 * c.arrive_radius_m:

@@ -294,9 +294,9 @@ def test_the_search_lands_on_a_lawn_with_a_bench_on_it_as_a_steady_zone(model_pa
     beyond the view, a lawn where the pipeline measures 2.9-3.4 m free at any height (a tree or a
     bench on it), never the 4 m a zone needs: the defaults search, hover over it and hand back,
     and the autopilot's LAND comes down where it happens to be. Steady, the lawn is chosen and
-    landed on. (Seed 43, this test's first seed, now hands back at the search's 45 s: its zone's
-    centre settled 1.4 m over the seconds the vehicle arrived over it, and the steady watch counts
-    the same ground, so it starts once the centre stops, 2 s too late.)"""
+    landed on. (Seed 43, this test's first seed, lands too since the search waits for the watch
+    of the same ground, which began 4.5 s after arriving as its zone's centre settled; seed 23
+    lands without that wait, so it tests the steady zone alone.)"""
     from sim.lockstep import fly_in_process
     from sim.scenarios import FlightJob
 

@@ -93,6 +93,10 @@ def test_a_small_zone_is_chosen_only_once_steady_for_steady_s_and_only_with_the_
     assert on.choose([_small(math.nan)], 20.0) is None  # not measured: never steady
     # Steady, but its free radius now below r0 + steady_margin_m: not chosen.
     assert on.choose([_small(9.0, r=2.4)], 20.0) is None
+    # Steady-sized (worth waiting over) is the radius alone; steady is that and the watch.
+    assert STEADY_PLAN.is_steady_sized(_small(0.0)) and not STEADY_PLAN.is_steady(_small(0.0))
+    assert not STEADY_PLAN.is_steady_sized(_small(9.0, r=2.4)) and not STEADY_PLAN.is_steady(_small(9.0, r=2.4))
+    assert not off.config.is_steady_sized(_small(30.0))
     with pytest.raises(ValueError, match="steady_s"):
         PlannerConfig(steady_s=-1.0)
     with pytest.raises(ValueError, match="steady_margin_m"):

@@ -1227,7 +1227,7 @@ class LandingController:
         looked at for longer than twice ``steady_s`` plus a second (one steady the planner
         still refuses, near a point to avoid, must not hold the search)."""
         p = self.config.planner
-        if p.steady_s > 0 and lead.r >= p.steady_r_m:
+        if p.is_steady_sized(lead):
             watched = lead.steady_s if math.isfinite(lead.steady_s) else 0.0
             dwell = max(self._search_dwell_s(), p.steady_s + 1.0)
             return over_s - watched >= dwell or over_s >= dwell + p.steady_s
@@ -1245,7 +1245,7 @@ class LandingController:
         lead = next((t for t in self.tracks if t.id == self._over_lead[0] and t.misses == 0
                      and t.id not in self._investigated), None)
         s = self.status
-        return (lead is not None and s is not None and lead.r >= p.steady_r_m and math.isfinite(lead.steady_s)
+        return (lead is not None and s is not None and p.is_steady_sized(lead) and math.isfinite(lead.steady_s)
                 and 0.0 < lead.steady_s < p.steady_s
                 and math.hypot(lead.x - s.north, lead.y - s.east) <= 2 * c.arrive_radius_m)
 

@@ -95,10 +95,15 @@ class PlannerConfig:
         """The radius (m) a steady zone must keep free on every frame: r0 plus the steady margin."""
         return self.r0_m + self.steady_margin_m
 
+    def is_steady_sized(self, track: Track) -> bool:
+        """Whether ``track`` could become a steady zone by waiting: ``steady_s`` on, and
+        ``r0_m + steady_margin_m`` free now (its watch, ``Track.steady_s``, aside)."""
+        return self.steady_s > 0 and track.r >= self.steady_r_m
+
     def is_steady(self, track: Track) -> bool:
-        """Whether ``track`` is a steady zone: ``steady_s`` on, and confirmed for that long with
-        ``r0_m + steady_margin_m`` free (its ``steady_s``; NaN, not measured, is not)."""
-        return self.steady_s > 0 and track.r >= self.steady_r_m and track.steady_s >= self.steady_s
+        """Whether ``track`` is a steady zone: steady-sized (``is_steady_sized``) and confirmed
+        for ``steady_s`` with that much free (its ``steady_s``; NaN, not measured, is not)."""
+        return self.is_steady_sized(track) and track.steady_s >= self.steady_s
 
     def is_calm(self, calm_s: float) -> bool:
         """Whether ground watched and seen free for ``calm_s`` seconds is calm enough (NaN, not

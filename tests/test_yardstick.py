@@ -3,7 +3,8 @@ file the README's tables name is there, is what the table says it is (the defaul
 from the table's clock start, seeds 1-75 on one autopilot; or the baseline's flights, the
 autopilot's own failsafe alone), and its unsafe landings, strikes and handbacks (the baseline's
 strikes) are the table's figures, counted from the rows by the summary the command prints; and
-``sim-compare`` pairs it with itself with no verdict changed."""
+``sim-compare`` pairs each companion file with itself with no verdict changed (it pairs the
+companion's flights; a baseline's are its own)."""
 
 from __future__ import annotations
 

@@ -284,13 +284,13 @@ class ControllerSettings:
     calm_wait_s: float = _f(15.0, "with min_calm_s, wait at most this long over a zone for it to be calm, then "
                                   "give it up for the takeover (s)", min=0.5, max=300.0)
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen (m); once chosen it is kept, and the LAND commanded, while r0 stays free around the landing point, and its landing point stays put while the zone holds r0 plus this around it", min=0.0)
-    steady_s: float = _f(0.0, "a zone smaller than r0 plus radius_margin_m may still be chosen once every frame for "
+    steady_s: float = _f(8.0, "a zone smaller than r0 plus radius_margin_m may still be chosen once every frame for "
                               "this long has seen r0 plus steady_margin_m free round the same point (a gap that "
                               "travels with its crowd starts again): its edge is something that "
                               "does not walk into it (a tree or a bench on a lawn, a crowd that keeps off it); in such "
                               "a zone, too small for the calm disc, that steady watch stands for the calm ground "
                               "under the vehicle (s; 0 = never; docs/design.md, 'Steady zones')", min=0.0, max=120.0)
-    steady_margin_m: float = _f(1.0, "with steady_s, the free radius beyond r0 a steady zone must keep on every frame (m)",
+    steady_margin_m: float = _f(0.5, "with steady_s, the free radius beyond r0 a steady zone must keep on every frame (m)",
                                 min=0.0, max=20.0)
     select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: search (search_s), or hand back when "
                                        "searching is off or out of time (s)", min=0.5)

@@ -81,9 +81,10 @@ class PlannerConfig:
     prefer_unwalked: bool = False
     #: A zone smaller than ``r0_m + radius_margin_m`` is still large enough once every frame for
     #: this long (s) has confirmed it with ``r0_m + steady_margin_m`` free (``Track.steady_s``; 0:
-    #: never, the radius margin alone decides).
+    #: never, the radius margin alone decides; off here, the paper's rule; 8 s with 0.5 m in the
+    #: service's settings, ``controller.steady_s``).
     steady_s: float = 0.0
-    steady_margin_m: float = 1.0
+    steady_margin_m: float = 0.5
 
     @property
     def large_r_m(self) -> float:

@@ -215,8 +215,8 @@ class PipelineSettings:
     max_pose_age_s: float = _f(0.25, "a frame whose pose is further than this from its capture time "
                                      "is not used for decisions (s)", min=0.0, max=5.0, min_exclusive=True)
     fusion: str = _f("frame", "proposals from each frame alone, as in the paper (frame), or from the ground "
-                              "risk map fused over frames (map; docs/design.md: it costs landings until the "
-                              "controller judges zones at touchdown)", choices=FUSIONS)
+                              "risk map fused over frames (map: a person missed in a few frames stays occupied; in the "
+                              "simulator it hands back far more often, docs/design.md, 'Step 3b')", choices=FUSIONS)
     walk_speed_mps: float = _f(1.5, "how fast a person may walk (m/s): risk grows this fast from where "
                                     "someone was seen (1.34 m/s is the mean, Weidmann 1993)",
                                min=0.1, max=15.0)

@@ -60,12 +60,13 @@ async def test_opencv_ffmpeg_reads_the_newest_frame_of_the_stream() -> None:
     ref = render_world(srv.world, POSE, K, Mount(), srv.ground)
     diff = np.abs(img[16:].astype(int) - ref[16:].astype(int))
     assert np.median(diff) <= 4
-    # Reading continuously, each frame read is the newest one rendered, or the one before it: no
-    # queue builds up between the server and OpenCV. Counted in frames, not seconds, so that a
-    # loaded machine (lockstep flights beside the suite) does not fail it as a millisecond bound
-    # did; a buffering reader falls behind by more frames with every read.
+    # Reading continuously, the frame read is the newest one rendered (the old bound, "well under
+    # a frame period", said the same in seconds): nothing is queued between the server and
+    # OpenCV, where one buffered frame already puts the reader a frame behind. Counted in frames,
+    # not milliseconds, so that a loaded machine does not fail it (with five busy loops on two
+    # cores every read was 0 behind; the 50 ms bound failed at 127 ms beside two flights).
     behind = [max(k for k, rt in srv.render_times.items() if rt <= t) - i for i, t, _ in frames[2:]]
-    assert np.median(behind) <= 1, f"frames behind the newest rendered: {behind}"
+    assert np.median(behind) == 0, f"frames behind the newest rendered: {behind}"
 
 
 async def test_own_reader_gets_frames_and_headers() -> None:

@@ -4,19 +4,19 @@ Frames are synthetic crowds seen from a posed camera (20 m up, 70 deg horizontal
 straight down, slowly drifting) so the geometry stages do real work. The post-density stages run
 on the scene's ideal density map unless a model is given, in which case the model runs on the
 rendered frame and its own output feeds the rest. ``live_view`` is what the service's live view
-costs per drawn frame while a client watches (the figure and its JPEG; ``live.max_fps`` at most,
+costs per drawn frame while a client watches (the figure and its JPEG; ``LIVE_MAX_FPS`` at most,
 nothing without a client); it is not part of the pipeline's ``total``, and neither is
 ``search_memory``, the risk map's remembered free ground the service reads once a second while
 the controller searches (``SLZPipeline.remembered_zones``), nor ``landing_spot``, the point of the
 largest zone farthest from where people were seen in the last 30 s, which a frame waits for while
-the vehicle approaches its zone (``controller.place_lookback_s``, ``SLZPipeline.landing_spot``).
+the vehicle approaches its zone (``PLACE_LOOKBACK_S``, ``SLZPipeline.landing_spot``).
 ``landability`` is the landability model (the shipped one unless ``--no-landability``; it runs on
 the same frame after the density model and is counted in ``total``, not in ``post_density``).
 Figures are printed, never asserted: this machine is shared and timings are noisy, so compare
 figures measured in one run.
 
-By default the pipeline is set up as costly as the service can make it (the fused risk map, calm
-and unwalked ground, and the people followed for the walkers' prediction, whatever the flight
+By default the pipeline is set up as costly as the service can make it (the risk map measuring
+calm and unwalked ground, and the people followed for the walkers' prediction, whatever the flight
 defaults are). ``--configured`` (implied by ``--config FILE`` or ``--set KEY=VALUE``) times it as
 the service's settings build it instead: their model and landability model (``--model``,
 ``--landability`` and the ``--no-`` options still win), ``model.threads`` (unless ``--threads``),
@@ -92,9 +92,9 @@ def paced_frame_ms(pipe: SLZPipeline, frame: np.ndarray, fps: float, frames: int
     return out
 
 
-#: The costliest set-up (see the module docstring): the fused risk map, calm and unwalked ground
-#: (in the tracking stage) and the people stage, whatever the flight defaults are.
-COSTLIEST = PipelineConfig(fusion="map", calm=True, unwalked=True, people=PeopleParams())
+#: The costliest set-up (see the module docstring): the risk map measuring calm and unwalked
+#: ground (in the tracking stage) and the people stage, whatever the flight defaults are.
+COSTLIEST = PipelineConfig(calm=True, unwalked=True, people=PeopleParams())
 
 
 def bench_resolution(width: int, height: int, frames: int, model: DensityFn | None = None, warmup: int = 5,
@@ -126,12 +126,12 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
         t0 = time.perf_counter()
         live_jpeg(frame, res, res.tracks[0].id if res.tracks else None, "MONITOR  zones 0  no target  00:00:00")
         samples.setdefault("live_view", []).append((time.perf_counter() - t0) * 1e3)
-        # What the search reads once a second (controller.search_memory_s): the ground the risk
+        # What the search would read once a second (the controller's search_memory_s): the ground the risk
         # map remembers free, over the map the drifting views have filled so far.
         t0 = time.perf_counter()
         pipe.remembered_zones(t, 60.0)
         samples.setdefault("search_memory", []).append((time.perf_counter() - t0) * 1e3)
-        # What a frame waits for while the vehicle approaches its zone (controller.place_lookback_s):
+        # What a frame waits for while the vehicle approaches its zone (PLACE_LOOKBACK_S):
         # the point of the largest zone farthest from where people were seen in the last 30 s.
         if res.tracks:
             zone = max(res.tracks, key=lambda tr: tr.r)
@@ -160,7 +160,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="onnxruntime threads (default 2; with --configured, model.threads)")
     parser.add_argument("--spinning", action="store_true",
-                        help="let onnxruntime's threads busy-wait between runs (model.allow_spinning; off by default)")
+                        help="let onnxruntime's threads busy-wait between runs (off in the service)")
     parser.add_argument("--pause-ms", type=float, default=0.0,
                         help="sleep this long before each frame (default 0: frames back to back). The "
                              "stages run about 1.4 times slower once per frame period than back to back, "
@@ -194,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"companion bench: {exc}", file=sys.stderr)
             return 2
     threads = args.threads if args.threads is not None else (cfg.model.threads if cfg is not None else 2)
-    spinning = args.spinning or (cfg is not None and cfg.model.allow_spinning)
+    spinning = args.spinning
     model = None
     if not args.no_model:
         path = args.model or (Path(cfg.model.path) if cfg is not None else SHIPPED_MODEL)
@@ -240,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
           + (f", {args.pause_ms:g} ms pause before each frame" if args.pause_ms > 0 else "")
           + (f"; set up as configured ({args.config or 'the defaults'}"
              + (f" with {len(args.set_)} --set" if args.set_ else "") + ")" if cfg is not None
-             else "; the costliest set-up (fused map, calm, unwalked, people)"))
+             else "; the costliest set-up (calm, unwalked, people)"))
     for res_name, stages in result.items():
         print(f"\n{res_name}")
         print(f"  {'stage':<14}{'median ms':>11}{'p99 ms':>10}")

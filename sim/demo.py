@@ -177,14 +177,14 @@ def _write_zones(recording: Path, path: Path) -> int:
 
 
 def evidence_video(recording: Path, out: Path) -> Path | None:
-    """``companion replay`` of ``recording`` with the ground risk map (``pipeline.fusion = "map"``,
-    whatever the flight used: the map is what is drawn) into the video ``out``: the evidence
-    behind the decisions, beside the decision video. None when the replay failed (said on stderr)."""
+    """``companion replay`` of ``recording`` with the settings it was flown with into the video
+    ``out`` (each frame beside its head-plane view): the evidence behind the decisions, beside the
+    decision video. None when the replay failed (said on stderr)."""
     from companion.cli import main as companion_main
 
     # Its summary goes to the JSON file; the demo's own lines stay the ones on the terminal.
     with contextlib.redirect_stdout(io.StringIO()):
-        code = companion_main(["replay", str(recording), "--set", "pipeline.fusion=map", "--video-out", str(out),
+        code = companion_main(["replay", str(recording), "--video-out", str(out),
                                "--summary-json", str(out.with_suffix(".json")), "--no-progress"])
     return out if code == 0 and out.is_file() else None
 

@@ -47,22 +47,24 @@ def test_bench_refuses_a_bad_pause(capsys):
 
 def test_bench_times_the_pipeline_as_configured_at_the_cameras_resolution(capsys, tmp_path):
     """--configured builds the pipeline from the service's settings: one resolution, the camera's;
-    the people stage runs only where the settings ask for it (controller.predict_people)."""
+    the people stage, which no setting asks for any more, does not run."""
     assert main(["bench", "--json", "--frames", "3", "--no-model", "--set", "camera.width=320",
                  "--set", "camera.height=240"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) == {"320x240"}
-    assert out["320x240"]["people"]["median_ms"] < 0.05  # off by default: not run
+    assert out["320x240"]["people"]["median_ms"] < 0.05  # not run
     cfg = tmp_path / "c.toml"
-    cfg.write_text("[controller]\npredict_people = true\n[camera]\nwidth = 320\nheight = 240\n")
+    cfg.write_text("[camera]\nwidth = 320\nheight = 240\n")
     assert main(["bench", "--json", "--frames", "3", "--no-model", "--config", str(cfg)]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out) == {"320x240"} and out["320x240"]["people"]["median_ms"] > 0.05
+    assert set(out) == {"320x240"} and out["320x240"]["people"]["median_ms"] < 0.05
 
 
 def test_bench_refuses_a_bad_configuration_with_exit_2(capsys, tmp_path):
-    assert main(["bench", "--frames", "1", "--no-model", "--set", "pipeline.fusion=bogus"]) == 2
-    assert "pipeline.fusion" in capsys.readouterr().err
+    assert main(["bench", "--frames", "1", "--no-model", "--set", "pipeline.r0_m=bogus"]) == 2
+    assert "pipeline.r0_m" in capsys.readouterr().err
+    assert main(["bench", "--frames", "1", "--no-model", "--set", "pipeline.fusion=map"]) == 2
+    assert "pipeline.fusion was removed" in capsys.readouterr().err
     assert main(["bench", "--frames", "1", "--no-model", "--config", str(tmp_path / "none.toml")]) == 2
     assert "none.toml" in capsys.readouterr().err
     assert main(["bench", "--frames", "1", "--set", f"model.path={tmp_path / 'gone.onnx'}"]) == 2

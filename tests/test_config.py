@@ -82,31 +82,12 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[link]\nflavour = 'inav'\n", r"link\.flavour must be one of 'auto', 'ardupilot', 'px4'"),
         ("[recorder]\nenabled = 'yes'\n", r"recorder\.enabled must be true or false"),
         ("[camera]\nmount_offset_m = [0, 0]\n", r"camera\.mount_offset_m must hold exactly 3 numbers"),
-        ("[pipeline.tracker]\nsigma_a = 0\n", r"pipeline\.tracker\.sigma_a must be > 0"),
-        ("[pipeline.tracker]\nmotion = 'constant'\n", r"pipeline\.tracker\.motion must be one of 'velocity', 'position'"),
-        ("[pipeline.tracker]\nsigma_v = 0\n", r"pipeline\.tracker\.sigma_v must be > 0"),
-        ("[controller]\nmin_quiet_s = -1\n", r"controller\.min_quiet_s must be >= 0"),
-        ("[controller]\nmin_unwalked_s = -1\n", r"controller\.min_unwalked_s must be >= 0"),
-        ("[controller]\navoid_lost_s = -1\n", r"controller\.avoid_lost_s must be >= 0"),
-        ("[controller]\nprefer_unwalked = 1\n", r"controller\.prefer_unwalked must be true or false"),
-        ("[controller]\nselect_empty_s = -1\n", r"controller\.select_empty_s must be >= 0"),
-        ("[controller]\nsearch_memory_s = 601\n", r"controller\.search_memory_s must be >= 0\.0 and <= 600\.0"),
-        ("[controller]\nhold_looks = 'yes'\n", r"controller\.hold_looks must be true or false"),
-        ("[controller]\npredict_rejudge = 'yes'\n", r"controller\.predict_rejudge must be true or false"),
-        ("[pipeline]\nquiet_margin_m = -1\n", r"pipeline\.quiet_margin_m must be >= 0"),
-        ("[pipeline]\ndilate_kernel = 4\n", r"pipeline\.dilate_kernel must be odd"),
         ("[link]\nsigning_key = 'abc'\n", r"link\.signing_key must be 64 hexadecimal"),
         ("[link]\nurl = 'http://x'\n", r"link\.url must start with udpin:"),
         ("camera = 3\n", r"camera must be a table"),
         ("[camera]\nfps = nan\n", r"camera\.fps must be a finite number"),
         ("[controller]\nmin_person_px = -3\n", r"controller\.min_person_px must be >= 0"),
-        ("[controller]\nlose_after_frames = 0\n", r"controller\.lose_after_frames must be >= 1"),
-        ("[pipeline]\nproposal_tie_m = -0.1\n", r"pipeline\.proposal_tie_m must be >= 0"),
-        ("[controller]\npredict_lead_s = 0\n", r"controller\.predict_lead_s must be >= 0\.1"),
-        ("[controller]\npredict_min_height_m = -1\n", r"controller\.predict_min_height_m must be >= 0"),
         ("[controller]\nmin_calm_s = -1\n", r"controller\.min_calm_s must be >= 0"),
-        ("[controller]\ncalm_wait_s = 0\n", r"controller\.calm_wait_s must be >= 0\.5"),
-        ("[controller]\nrecentre_m = -1\n", r"controller\.recentre_m must be >= 0"),
         ("[controller]\nland_alt_m = -1\n", r"controller\.land_alt_m must be >= 0"),
         ("[controller]\nland_alt_m = 12\n", r"controller\.land_alt_m \(12 m\) must not be above "
                                              r"controller\.descend_alt_m \(10 m\)"),
@@ -117,9 +98,6 @@ def test_unknown_section(tmp_path: Path) -> None:
                                               r"\(controller\.land_alt_m, 4 m\)"),
         ("[controller]\nland_alt_m = 0\nland_agl_m = 10\n", r"controller\.land_alt_m, 10 m"),
         ("[pipeline]\ncalm_margin_m = -1\n", r"pipeline\.calm_margin_m must be >= 0"),
-        ("[pipeline]\noccupied_trail_s = 20\n", r"pipeline\.occupied_trail_s \(20\.0 s\) must not exceed "
-                                                r"pipeline\.map_memory_s"),
-        ("[pipeline]\noccupied_hold_s = 20\n", r"pipeline\.occupied_hold_s \(20\.0 s\) must not exceed"),
     ],
 )
 def test_bad_values_name_the_key(tmp_path: Path, text: str, pattern: str) -> None:
@@ -197,31 +175,59 @@ def test_the_trust_height_comes_from_the_setting_or_else_the_model() -> None:
         pytest.approx(1.7 + fx * 0.4 / 8.0)
 
 
-def test_prefer_unwalked_reaches_the_planner_and_has_the_pipeline_measure_it() -> None:
-    on = config.load(None)  # the default since 2026-11-26 (docs/design.md, "Unwalked ground")
-    assert config.planner_config(on).prefer_unwalked
-    assert config.pipeline_config(on).unwalked
-    off = config.load(None, {"controller.prefer_unwalked": False})
-    assert not config.planner_config(off).prefer_unwalked
-    assert not config.pipeline_config(off).unwalked
+def test_unwalked_ground_is_preferred_and_the_pipeline_measures_it() -> None:
+    # A constant since issue 58 (compose.PREFER_UNWALKED; docs/design.md, "Unwalked ground").
+    cfg = config.load(None)
+    assert config.planner_config(cfg).prefer_unwalked and config.pipeline_config(cfg).unwalked
+    off = config.load(None, {"controller.min_calm_s": 0.0})
+    assert not config.pipeline_config(off).calm and config.pipeline_config(off).unwalked
 
 
-def test_min_unwalked_reaches_the_planner_and_has_the_pipeline_measure_the_ground_below() -> None:
-    off = config.load(None)  # off by default (docs/design.md, "Ground nobody walks on")
-    assert config.planner_config(off).min_unwalked_s == 0.0 and not config.pipeline_config(off).unwalked_below
-    on = config.load(None, {"controller.min_unwalked_s": 12.0, "controller.min_calm_s": 0.0})
-    assert config.planner_config(on).min_unwalked_s == 12.0
-    assert config.pipeline_config(on).unwalked_below and config.pipeline_config(on).calm  # the map runs
-
-
-def test_the_search_settings_reach_the_controller() -> None:
-    """select_empty_s (3 s by default), search_memory_s and hold_looks (off by default) arrive in
-    the controller's LandingConfig as set."""
+def test_the_search_starts_early_over_an_empty_view() -> None:
     c = config.landing_config(config.load(None))
-    assert (c.select_empty_s, c.search_memory_s, c.hold_looks) == (3.0, 0.0, False)
-    c = config.landing_config(config.load(None, {"controller.select_empty_s": 0.0, "controller.search_memory_s": 60.0,
-                                                 "controller.hold_looks": True}))
-    assert (c.select_empty_s, c.search_memory_s, c.hold_looks) == (0.0, 60.0, True)
+    assert c.select_empty_s == config.SELECT_EMPTY_S == 3.0
+
+
+@pytest.mark.parametrize("key", ["controller.hold_looks", "pipeline.fusion", "pipeline.tracker.motion",
+                                 "controller.predict_people"])
+def test_a_removed_switch_says_so_and_where_it_was_measured(tmp_path: Path, key: str) -> None:
+    section, name = key.rsplit(".", 1)
+    value = config.REMOVED[key].value
+    f = tmp_path / "c.toml"
+    f.write_text(f"[{section}]\n{name} = {'true' if value is True else 'false' if value is False else repr(value)}\n")
+    with pytest.raises(ConfigError) as e:
+        config.load(f)
+    msg = str(e.value)
+    assert msg.startswith(f"{key} was removed") and "docs/measurements.md" in msg and "unknown key" not in msg
+    with pytest.raises(ConfigError, match=rf"^{re.escape(key)} was removed"):
+        config.load(None, {key: value})  # --set too
+
+
+def test_a_key_that_became_a_constant_says_where_it_went() -> None:
+    with pytest.raises(ConfigError, match=r"^pipeline\.tracker\.mu_1 was removed: internal tuning, now "
+                                          r"companion\.pipeline\.tracker\.TrackerParams\.mu_1 = 3"):
+        config.load(None, {"pipeline.tracker.mu_1": 3})
+    with pytest.raises(ConfigError, match=r"^controller\.hold_timeout_s was removed"):
+        config.from_dict({"controller": {"hold_timeout_s": 20.0}})
+    with pytest.raises(ConfigError, match=r"\[pipeline\.tracker\] was removed"):
+        config.from_dict({"pipeline": {"tracker": {}}})
+
+
+def test_removed_keys_are_no_keys_and_the_count_stays_lean() -> None:
+    keys = {key for key, _default, _doc in config.all_keys()}
+    assert not keys & set(config.REMOVED)
+    assert len(keys) <= 80  # issue 58: settings that earn their place
+
+
+def test_a_recording_with_removed_keys_at_the_values_flown_now_replays() -> None:
+    flown = config.load(None).to_dict()
+    flown["controller"].update(hold_looks=False, recentre_m=0.0, place_lookback_s=30.0)
+    flown["pipeline"].update(fusion="frame", tracker={"mu_1": 3, "motion": "position"})
+    flown["live"]["max_fps"] = 2.0  # the live view does not change what a replay computes
+    assert config.from_recording(flown) == config.load(None)
+    flown["controller"]["hold_looks"] = True
+    with pytest.raises(ConfigError, match=r"flown with controller\.hold_looks = True, which was removed"):
+        config.from_recording(flown)
 
 
 def test_a_recording_flown_before_land_agl_m_existed_is_read_with_it_off() -> None:

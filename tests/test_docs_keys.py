@@ -1,10 +1,13 @@
 """Every configuration key the documentation names exists, and every link it makes resolves.
 
-The settings schema is ``companion/config.py`` (``config.all_keys()``). The documents are the
+The settings schema is ``companion/config/schema.py`` (``config.all_keys()``). The documents are the
 README, CONTRIBUTING, ``docs/*.md``, the model card and ``companion.example.toml``. A key is
 "named" when it is written as ``section.key`` in backticks (``pipeline.r0_m``, ``--set
 camera.fps=15``), as a line of a TOML code block (checked under its ``[section]``, and the block
-must validate), or as a commented-out ``key =`` line in the example file.
+must validate), or as a commented-out ``key =`` line in the example file. A key the schema lists as
+removed (``config.REMOVED``: a switch whose measurement lost, or tuning that became a constant)
+may be named too, and only those: docs/measurements.md keeps their history. The example file
+names live keys only.
 """
 
 from __future__ import annotations
@@ -30,12 +33,18 @@ EXAMPLE = REPO / "companion.example.toml"
 KEYS = {key for key, _default, _doc in config.all_keys()}
 TABLE_KEYS = {key for key, default, _doc in config.all_keys() if isinstance(default, dict)}  # free-form tables
 SECTIONS = {key.rsplit(".", 1)[0] for key in KEYS if "." in key}
-TOP = sorted({key.split(".")[0] for key in KEYS})
+REMOVED = set(config.REMOVED) | set(config.REMOVED_TABLES)
+TOP = sorted({key.split(".")[0] for key in KEYS | REMOVED})
 DOTTED = re.compile(r"(?<![\w./-])((?:" + "|".join(TOP) + r")(?:\.[a-z_0-9]+)+)(?![\w/-]|\.[a-z])")
 
 
-def _known(dotted: str) -> bool:
+def _live(dotted: str) -> bool:
     return dotted in KEYS or dotted in SECTIONS or any(dotted.startswith(t + ".") for t in TABLE_KEYS)
+
+
+def _known(dotted: str) -> bool:
+    """A live key or section, or one the schema lists as removed."""
+    return _live(dotted) or dotted in REMOVED
 
 
 def _backticked_keys(text: str) -> list[str]:
@@ -69,7 +78,18 @@ def test_every_key_a_document_names_exists(doc: Path) -> None:
         raw = tomllib.loads(block)
         unknown = sorted(k for k in _flatten(raw) if not _known(k))
         assert not unknown, f"{doc.name}: a TOML example sets keys the settings do not have: {unknown}"
-        config.from_dict(raw)  # and the values are valid
+        config.from_dict(_without_removed(raw))  # and the values are valid
+
+
+def _without_removed(raw: dict[str, object], prefix: str = "") -> dict[str, object]:
+    out: dict[str, object] = {}
+    for key, value in raw.items():
+        dotted = prefix + key
+        if dotted in REMOVED:
+            continue
+        out[key] = _without_removed(value, dotted + ".") if isinstance(value, dict) and dotted not in TABLE_KEYS \
+            else value
+    return out
 
 
 def test_the_examples_commented_out_keys_exist() -> None:
@@ -79,8 +99,8 @@ def test_the_examples_commented_out_keys_exist() -> None:
             section = m.group(1)
             assert section in SECTIONS, f"[{section}] is not a section"
         elif m := re.match(r"^#\s*([a-z_0-9]+) = ", line):
-            assert _known(f"{section}.{m.group(1)}"), f"commented-out key {section}.{m.group(1)} does not exist"
-    assert _backticked_keys(EXAMPLE.read_text()) == [k for k in _backticked_keys(EXAMPLE.read_text()) if _known(k)]
+            assert _live(f"{section}.{m.group(1)}"), f"commented-out key {section}.{m.group(1)} does not exist"
+    assert _backticked_keys(EXAMPLE.read_text()) == [k for k in _backticked_keys(EXAMPLE.read_text()) if _live(k)]
 
 
 def test_the_checker_catches_a_wrong_key() -> None:
@@ -88,6 +108,9 @@ def test_the_checker_catches_a_wrong_key() -> None:
     assert _backticked_keys("set `failsafe.gcs_sysids` or `--set camera.fps=15`; see `camera.py`") == [
         "failsafe.gcs_sysids", "camera.fps"]
     assert not _known("failsafe.gcs_sysids") and _known("camera.fps") and _known("model.overrides.color")
+    # A removed key may be named (its history), a misspelt removed key may not.
+    assert _known("controller.hold_looks") and not _live("controller.hold_looks")
+    assert _known("pipeline.tracker.mu_1") and not _known("controller.hold_lookz")
     assert sum(len(_backticked_keys(d.read_text())) for d in DOCS) > 30  # the documents do name keys
 
 

@@ -203,8 +203,7 @@ async def test_the_service_answers_camera_and_video_requests(tmp_path: Path, mod
     port = (await peer.listen_udp())[1]  # the companion's link sends to the "autopilot"
     cfg = config.load(None, {"link.url": f"udpout:127.0.0.1:{port}", "model.path": str(model_path),
                              "camera.source": str(frames), "camera.loop": True, "camera.width": 640,
-                             "camera.height": 480, "camera.hfov_deg": 70.0, "camera.sensor_width_mm": 6.17,
-                             "camera.model_name": "bench camera"})
+                             "camera.height": 480, "camera.hfov_deg": 70.0, "camera.sensor_width_mm": 6.17})
     svc = Service(cfg, load_model(cfg), video_stream=lambda: STREAM)
     task = asyncio.create_task(svc.run())
     try:
@@ -218,7 +217,7 @@ async def test_the_service_answers_camera_and_video_requests(tmp_path: Path, mod
         assert (info.resolution_h, info.resolution_v) == (640, 480)
         assert info.focal_length == pytest.approx(fx * 6.17 / 640, rel=1e-5)
         assert info.sensor_size_v == pytest.approx(6.17 * 480 / 640, rel=1e-5)
-        assert bytes(info.model_name).rstrip(b"\0") == b"bench camera"
+        assert bytes(info.model_name).rstrip(b"\0") == b"SLZ downward camera"
         ack, start = await gcs.command(m.MAV_CMD_USER_1)
         assert ack.result == m.MAV_RESULT_DENIED
         await peer.wait_for("STATUSTEXT", lambda s: s.text == "SLZ: trigger refused: no autopilot yet",
@@ -245,8 +244,8 @@ async def test_the_service_answers_camera_and_video_requests(tmp_path: Path, mod
 
 
 def test_camera_information_settings_are_checked_and_unknowns_stay_nan():
-    with pytest.raises(config.ConfigError, match="camera.vendor_name must be at most 32 bytes"):
-        config.load(None, {"camera.vendor_name": "x" * 33})
+    with pytest.raises(config.ConfigError, match="camera.vendor_name was removed"):
+        config.load(None, {"camera.vendor_name": "bench"})
     with pytest.raises(config.ConfigError, match="camera.sensor_width_mm"):
         config.load(None, {"camera.sensor_width_mm": -1.0})
     info = config.camera_info(config.load(None, {}))

@@ -105,6 +105,7 @@ BAD_CONFIGS = [
     ("[camera]\nfps = -3\n", "camera.fps"),                # a wrong value
     ("[link]\nurl = \"udpin:127.0.0.1:99999\"\n", "link.url"),
     ("[model]\npath = \"no-such-model.onnx\"\n", "model.path"),  # the model is loaded, not just named
+    ("[controller]\nhold_looks = false\n", "controller.hold_looks was removed"),  # issue 58: says so
 ]
 
 

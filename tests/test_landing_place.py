@@ -254,8 +254,8 @@ def test_the_pipeline_answers_with_its_map_and_without_one_says_none():
     base = np.zeros((240, 320), np.float32)
     image = np.zeros((240, 320, 3), np.uint8)
     K = Intrinsics.from_fov(320, 240, 70.0)
-    with_map = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True), intrinsics=K, mount=Mount())
-    without = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
+    with_map = SLZPipeline(lambda _f: base, PipelineConfig(calm=True), intrinsics=K, mount=Mount())
+    without = SLZPipeline(lambda _f: base, PipelineConfig(), intrinsics=K, mount=Mount())
     request = SpotRequest(0.0, 0.0, 1.0, 30.0, (0.0, 0.0))
     assert with_map.landing_spot(request, 0.0) is None  # no frame yet
     for k in range(10):

@@ -179,17 +179,6 @@ def test_plane_view_is_north_up() -> None:
     assert not white[52:150, 50:150].any()
 
 
-def test_plane_view_shows_ground_the_risk_map_still_holds_occupied() -> None:
-    grid = GridSpec(x0=0.0, y0=0.0, cell=1.0, rows=100, cols=100)
-    free = np.full(grid.shape, 255, np.uint8)
-    fused = free.copy()
-    fused[40:60, 40:60] = 0  # seen free now, but somebody stood there within the hold
-    view = draw.draw_plane_view(free, grid, [], [], None, size=200, fused_grid=fused)
-    held = (view == np.array(draw.PLANE_HELD, np.uint8)).all(axis=2)
-    assert held[82:118, 82:118].all() and not held[:60].any()
-    assert (view[20, 20] == 255).all()  # free elsewhere
-
-
 def test_figure_adds_the_plane_panel_only_with_a_grid() -> None:
     frame = np.zeros((120, 160, 3), np.uint8)
     free = np.full((120, 160), 255, np.uint8)

@@ -9,7 +9,7 @@ import pytest
 
 from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.headplane import GridSpec
-from companion.pipeline.proposals import clearance_at, distance_cells, propose
+from companion.pipeline.proposals import propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 
@@ -30,52 +30,12 @@ def frame_grids(people: list[tuple[float, float]], grid: GridSpec = GRID, radius
     return free, seen_grid
 
 
-def test_a_person_missed_for_k_frames_stays_occupied_until_the_hold_runs_out():
-    risk = GroundRiskMap(RiskMapConfig(hold_s=1.0))
-    free, seen = frame_grids([(2.0, 3.0)])
-    risk.update(GRID, free, seen, 0.0)
-    empty, _ = frame_grids([])
-    for k in range(1, 10):  # the network misses the person in 9 frames at 10 fps
-        t = 0.1 * k
-        risk.update(GRID, empty, seen, t)
-        fused = risk.fused_free(GRID, empty, t)
-        assert fused[130, 120] == 0, f"frame {k}: the missed person must stay occupied"
-        assert fused[0, 0] == 255
-    t = 1.2
-    risk.update(GRID, empty, seen, t)
-    assert risk.fused_free(GRID, empty, t)[130, 120] == 255  # seen free for longer than the hold
-
-
-def test_a_walkers_risk_reaches_a_point_no_later_than_walking_could():
-    """A person seen 1.0 m from p and then not any more: the clearance now shrinks by the walking
-    speed for the time since, and at a later time by the walking speed times that time too."""
-    v = 1.5
-    risk = GroundRiskMap(RiskMapConfig(walk_speed_mps=v, hold_s=1.0))
-    person, p = (3.0, 0.0), (0.0, 0.0)
-    free, seen = frame_grids([person], radius=0.05)
-    risk.update(GRID, free, seen, 10.0)
-    empty, _ = frame_grids([])
-    for t in (10.0, 10.3, 10.6, 10.9):
-        if t > 10.0:
-            risk.update(GRID, empty, seen, t)
-        fused = risk.fused_free(GRID, empty if t > 10.0 else free, t)
-        bound = clearance_at(distance_cells(fused), GRID, *p)
-        c0 = risk.clearance_now(*p, t, bound)
-        where_could_be = 3.0 - v * (t - 10.0)  # the nearest the person can be to p now
-        assert c0 <= where_could_be + 1e-9
-        assert c0 >= where_could_be - 0.2  # and not far more conservative than the physics
-        for tau in (0.5, 2.0):  # at touchdown tau seconds later
-            assert c0 - v * tau <= 3.0 - v * (t - 10.0 + tau) + 1e-9
-
-
 def test_ground_never_seen_or_not_seen_for_longer_than_the_memory_is_never_free():
     risk = GroundRiskMap(RiskMapConfig(memory_s=5.0, hold_s=1.0))
     half_seen = np.zeros(GRID.shape, np.uint8)
     half_seen[:, :100] = 255  # the camera sees only the west half
     free, seen = frame_grids([], seen=half_seen)
     risk.update(GRID, free, seen, 0.0)
-    fused = risk.fused_free(GRID, free, 0.0)
-    assert (fused[:, 100:] == 0).all() and (fused[:, :100] == 255).all()
     assert (risk.known_free(GRID, 2.0)[:, 100:] == 0).all()  # never seen: unknown
     assert (risk.known_free(GRID, 2.0)[:, :100] == 255).all()  # seen free 2 s ago
     assert (risk.known_free(GRID, 6.0) == 0).all()  # not seen for longer than the memory
@@ -122,56 +82,12 @@ def test_the_map_is_bounded_and_follows_the_vehicle():
     assert risk.size == n and risk.last_seen.shape == (n, n)
     assert risk.stats.recentred >= 1
     far = GridSpec(GRID.x0 + 12, GRID.y0, CELL, GRID.rows, GRID.cols)
-    assert risk.fused_free(far, frame_grids([], grid=far)[0], 1.2).any()
+    assert risk.known_free(far, 1.2).any()
     # A grid larger than the whole map is clipped to it, counted, and never an exception.
     huge = GridSpec(-40.0, -40.0, CELL, 801, 801)
     f, s = frame_grids([], grid=huge)
     risk.update(huge, f, s, 2.0, camera_xy=(12.0, 0.0))
     assert risk.stats.clipped == 1
-
-
-def _pipeline(fusion: str, density):
-    K = Intrinsics.from_fov(320, 240, 70.0)
-    return SLZPipeline(density, PipelineConfig(fusion=fusion), intrinsics=K, mount=Mount())
-
-
-def test_fused_proposals_never_cover_a_person_the_network_missed_in_a_few_frames():
-    """The paper's per-frame rule puts a landing circle on a person the network misses once; the
-    fused map keeps that person occupied."""
-    base = np.zeros((240, 320), np.float32)
-    seen_person = base.copy()
-    seen_person[100:110, 150:160] = 1.0  # a person under the camera
-
-    def density_for(k: int):
-        return lambda _f: seen_person if k < 5 else base  # missed from frame 5 on
-
-    frame = np.zeros((240, 320, 3), np.uint8)
-    results = {}
-    for fusion in ("frame", "map"):
-        pipe = _pipeline(fusion, density_for(0))
-        for k in range(8):
-            pipe.density = density_for(k)
-            t = 0.1 * k
-            results[fusion] = pipe.process(frame, t, Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
-    person_xy = results["map"].projection.image_to_plane(np.array([[155.0, 105.0]]))[0]
-
-    def covers(res) -> bool:
-        return any(math.hypot(c.x - person_xy[0], c.y - person_xy[1]) < c.r for c in res.proposals)
-
-    assert covers(results["frame"])  # the memory-less rule would land on them
-    assert not covers(results["map"])
-    assert results["map"].fused_grid is not None and results["frame"].fused_grid is None
-    assert "fusion" in results["map"].timings_ms
-
-
-def test_fused_free_grid_feeds_the_same_proposal_rule():
-    risk = GroundRiskMap()
-    free, seen = frame_grids([(0.0, 0.0), (5.0, 5.0)])
-    risk.update(GRID, free, seen, 0.0)
-    fused = risk.fused_free(GRID, free, 0.0)
-    assert np.array_equal(fused, free)  # nothing older than this frame: the frame's own grid
-    circles = propose(fused, GRID, 3, 2.0)
-    assert circles and all(math.hypot(c.x, c.y) >= c.r for c in circles)
 
 
 def test_calm_is_how_long_the_disc_has_been_watched_free_and_restarts_on_a_sighting():
@@ -254,8 +170,8 @@ def test_the_frame_pipeline_measures_unwalked_only_when_asked():
     base = np.zeros((240, 320), np.float32)
     frame = np.zeros((240, 320, 3), np.uint8)
     K = Intrinsics.from_fov(320, 240, 70.0)
-    pipe = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", unwalked=True), intrinsics=K, mount=Mount())
-    plain = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
+    pipe = SLZPipeline(lambda _f: base, PipelineConfig(unwalked=True), intrinsics=K, mount=Mount())
+    plain = SLZPipeline(lambda _f: base, PipelineConfig(), intrinsics=K, mount=Mount())
     assert pipe.risk is not None and plain.risk is None
     for k in range(30):
         t = 0.1 * k
@@ -266,130 +182,40 @@ def test_the_frame_pipeline_measures_unwalked_only_when_asked():
     assert centre and centre[0].unwalked_s == pytest.approx(2.9, abs=1e-3)
     assert all(math.isnan(tr.calm_s) for tr in res.tracks)  # calm not asked
     assert ref.tracks and all(math.isnan(tr.unwalked_s) for tr in ref.tracks)
-    # The ground below's unwalked time only with calm and unwalked_below (controller.min_unwalked_s).
+    # Zones only: the ground below is not measured for it.
     assert res.below is not None and math.isnan(res.below.unwalked_s)
-    below = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True, unwalked_below=True),
-                        intrinsics=K, mount=Mount())
-    for k in range(30):
-        t = 0.1 * k
-        out = below.process(frame, t, Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
-    assert out.below is not None and out.below.unwalked_s == pytest.approx(2.9, abs=1e-3)
-    assert math.isnan(out.below.quiet_s)  # quiet not asked
 
 
 def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones():
-    """Under the paper's per-frame fusion the map only measures calm (when asked): the proposals
+    """The map only measures calm (when asked): the proposals
     are the frame's own, and each posed frame's tracks and ground below carry calm_s. Not asked,
     the map does not run and nothing is measured (NaN)."""
     base = np.zeros((240, 320), np.float32)
     frame = np.zeros((240, 320, 3), np.uint8)
     K = Intrinsics.from_fov(320, 240, 70.0)
-    pipe = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True, quiet=True), intrinsics=K,
-                       mount=Mount())
-    ref = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
+    pipe = SLZPipeline(lambda _f: base, PipelineConfig(calm=True), intrinsics=K, mount=Mount())
+    ref = SLZPipeline(lambda _f: base, PipelineConfig(), intrinsics=K, mount=Mount())
     for k in range(30):
         t = 0.1 * k
         pose = Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
         res = pipe.process(frame, t, pose)
         plain = ref.process(frame, t, pose)
         assert res.proposals == plain.proposals
-        assert res.fused_grid is None
     assert res.below is not None and res.below.calm_s == pytest.approx(2.9, abs=1e-3)
-    assert res.below.quiet_s == pytest.approx(2.9, abs=1e-3)  # nobody seen since the first frame
     centre = [tr for tr in res.tracks if math.hypot(tr.x, tr.y) < 0.5]
     assert centre and centre[0].calm_s == pytest.approx(2.9, abs=1e-3)
     # Zones whose disc reaches past the edge of the view are not calm: part of it is unwatched.
     assert all(tr.calm_s == 0.0 for tr in res.tracks if math.hypot(tr.x, tr.y) > 4.0)
     # Without a pose (a fixed projection) nothing is measured: NaN, never "calm".
     assert ref.risk is None and plain.tracks and all(math.isnan(tr.calm_s) for tr in plain.tracks)
-    assert plain.below is not None and math.isnan(plain.below.calm_s) and math.isnan(plain.below.quiet_s)
-    calm_only = SLZPipeline(lambda _f: base, PipelineConfig(fusion="frame", calm=True), intrinsics=K, mount=Mount())
+    assert plain.below is not None and math.isnan(plain.below.calm_s)
+    calm_only = SLZPipeline(lambda _f: base, PipelineConfig(calm=True), intrinsics=K, mount=Mount())
     out = calm_only.process(frame, 0.0, Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
-    assert out.below is not None and out.below.calm_s == 0.0 and math.isnan(out.below.quiet_s)  # not asked
+    assert out.below is not None and out.below.calm_s == 0.0
     fixed = SLZPipeline(lambda _f: base, PipelineConfig(calm=True), projection=PlaneProjection.nadir(0.05))
     for k in range(5):
         out = fixed.process(frame, 0.1 * k)
     assert out.tracks and all(math.isnan(tr.calm_s) for tr in out.tracks)
-
-
-def test_a_trail_keeps_ground_walked_over_recently_out_of_where_zones_are_placed():
-    """With trail_s a gap a walker crossed 5 s ago is not free on the trail grid (a path, not a
-    lawn), ground nobody entered is; the fused grid and the clearance are the hold's alone."""
-    risk = GroundRiskMap(RiskMapConfig(hold_s=1.0, trail_s=8.0))
-    empty, seen = frame_grids([])
-    walker, _ = frame_grids([(3.0, 0.0)], radius=0.3)
-    risk.update(GRID, walker, seen, 0.0)
-    for k in range(1, 51):
-        risk.update(GRID, empty, seen, 0.1 * k)
-    t = 5.0
-    trail = risk.trail_free(GRID, empty, t)
-    assert trail[100, 130] == 0  # (x 3, y 0): walked over 5 s ago
-    assert trail[100, 60] == 255  # nobody ever there
-    assert risk.fused_free(GRID, empty, t)[100, 130] == 255  # the hold alone forgot it
-    assert risk.clearance_now(-4.0, 0.0, t, 5.0) == 5.0  # no growth from a 5 s old sighting
-    assert risk.trail_free(GRID, empty, 9.0)[100, 130] == 255  # 9 s later: off the trail
-    with pytest.raises(ValueError, match="trail_s"):
-        RiskMapConfig(trail_s=20.0, memory_s=10.0)
-
-
-def test_the_trail_moves_proposals_off_a_path_but_not_the_zones_measure():
-    """Per-frame fusion with a trail: a person crossing under the camera and gone leaves no
-    proposal on their path for trail_s, while the frame's own grid still measures the zones."""
-    person = np.zeros((240, 320), np.float32)
-    person[115:125, 155:165] = 1.0  # under the camera
-    base = np.zeros((240, 320), np.float32)
-    frame = np.zeros((240, 320, 3), np.uint8)
-    K = Intrinsics.from_fov(320, 240, 70.0)
-    results = {}
-    for trail in (0.0, 8.0):
-        cfg = PipelineConfig(fusion="frame", risk=RiskMapConfig(trail_s=trail))
-        pipe = SLZPipeline(lambda _f: base, cfg, intrinsics=K, mount=Mount())
-        for k in range(20):
-            pipe.density = (lambda _f: person) if k < 3 else (lambda _f: base)
-            t = 0.1 * k
-            results[trail] = pipe.process(frame, t, Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
-    on_path = results[8.0].projection.image_to_plane(np.array([[160.0, 120.0]]))[0]
-
-    def covers(res) -> bool:
-        return any(math.hypot(c.x - on_path[0], c.y - on_path[1]) < c.r for c in res.proposals)
-
-    assert covers(results[0.0])  # 1.7 s after they left, the frame's rule proposes over their path
-    assert results[8.0].proposals and not covers(results[8.0])
-    assert np.array_equal(results[8.0].free_grid, results[0.0].free_grid)
-
-
-def test_quiet_is_the_time_since_anybody_was_seen_on_the_remembered_disc():
-    """A gap in a crowd: a walker 3.5 m from the point 3 s ago is outside the 3 m calm disc but
-    inside the 4 m quiet one. The disc need not be in view now (low down it is wider than the
-    view): what the map remembers of it counts, as long as 80 % of it is remembered."""
-    risk = GroundRiskMap(RiskMapConfig(memory_s=10.0))
-    empty, seen = frame_grids([])
-    assert risk.quiet_s(0.0, 0.0, 4.0, 0.0) == 0.0  # no frame yet
-    walker, _ = frame_grids([(3.5, 0.0)], radius=0.2)
-    risk.update(GRID, empty, seen, 0.0)
-    risk.update(GRID, walker, seen, 2.0)
-    for k in range(21, 51):
-        risk.update(GRID, empty, seen, 0.1 * k)
-    assert risk.quiet_s(0.0, 0.0, 4.0, 5.0) == pytest.approx(3.0, abs=1e-3)
-    assert risk.quiet_s(0.0, 0.0, 3.0, 5.0) == pytest.approx(5.0, abs=1e-3)  # the walker was outside 3 m
-    # The view narrows to |y| < 3.5 m for 12 s (the vehicle low over the point): the disc's rim
-    # (y beyond 3.5 m, under 10 % of it) is forgotten; the rest still measures.
-    narrow = np.zeros(GRID.shape, np.uint8)
-    ys = GRID.y0 + GRID.cell * np.arange(GRID.rows)
-    narrow[np.abs(ys) < 3.5, :] = 255
-    free_n, seen_n = frame_grids([], seen=narrow)
-    for k in range(51, 171):
-        risk.update(GRID, free_n, seen_n, 0.1 * k)
-    assert risk.quiet_s(0.0, 0.0, 4.0, 17.0) == pytest.approx(15.0, abs=1e-3)
-    # Narrower still (|y| < 2 m): most of the disc unknown, no quiet at all.
-    narrow[:] = 0
-    narrow[np.abs(ys) < 2.0, :] = 255
-    free_n, seen_n = frame_grids([], seen=narrow)
-    for k in range(171, 291):
-        risk.update(GRID, free_n, seen_n, 0.1 * k)
-    assert risk.quiet_s(0.0, 0.0, 4.0, 29.0) == 0.0
-    assert GroundRiskMap(RiskMapConfig(half_extent_m=3.0)).quiet_s(0.0, 0.0, 4.0, 0.0) == 0.0
-    assert risk.quiet_s(math.nan, 0.0, 4.0, 29.0) == 0.0
 
 
 def test_remembered_free_ground_is_what_the_last_look_saw_free_within_the_horizon():
@@ -459,7 +285,7 @@ def test_the_pipeline_gives_the_remembered_zones_after_the_view_has_left_them():
     crowd = np.zeros((240, 320), np.float32)
     crowd[::12, ::12] = 1.0  # people everywhere in this view
     frame = np.zeros((240, 320, 3), np.uint8)
-    pipe = SLZPipeline(lambda _f: lawn, PipelineConfig(fusion="frame", unwalked=True), intrinsics=K, mount=Mount())
+    pipe = SLZPipeline(lambda _f: lawn, PipelineConfig(unwalked=True), intrinsics=K, mount=Mount())
     for k in range(5):
         t = 0.1 * k
         pipe.process(frame, t, Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
@@ -474,6 +300,6 @@ def test_the_pipeline_gives_the_remembered_zones_after_the_view_has_left_them():
     assert near and near[0].r > 5.0  # the lawn: about 11 x 7 m seen from 20 m, remembered
     assert not any(math.hypot(z.x - 40.0, z.y) < 3.0 for z in zones)  # not the crowd
     assert not any(math.hypot(z.x, z.y) < 5.0 for z in pipe.remembered_zones(3.9, 1.0))  # forgotten
-    plain = SLZPipeline(lambda _f: lawn, PipelineConfig(fusion="frame"), intrinsics=K, mount=Mount())
+    plain = SLZPipeline(lambda _f: lawn, PipelineConfig(), intrinsics=K, mount=Mount())
     plain.process(frame, 0.0, Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
     assert plain.risk is None and plain.remembered_zones(0.0, 60.0) == []

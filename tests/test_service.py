@@ -187,6 +187,11 @@ def test_bad_config_exits_non_zero_and_names_the_key(tmp_path: Path) -> None:
     assert r.returncode == 2 and "pipeline.r0_m must be >= 0.1" in r.stderr
     r = _run_quick(["--set", "camera.fps"], tmp_path)
     assert r.returncode == 2 and "key=value" in r.stderr
+    # A key that was removed (issue 58) says so, and where its measurement is.
+    cfg.write_text("[pipeline]\nfusion = \"map\"\n")
+    r = _run_quick(["--config", str(cfg)], tmp_path)
+    assert r.returncode == 2 and "pipeline.fusion was removed" in r.stderr
+    assert "docs/measurements.md" in r.stderr and "unknown key" not in r.stderr
 
 
 def test_missing_or_corrupt_model_exits_non_zero_and_names_the_file(tmp_path: Path) -> None:

@@ -26,8 +26,7 @@ async def stop_during_select(tmp_path, shadow: bool) -> MavPeer:
     peer = MavPeer(custom_mode=5)  # ArduPilot, LOITER
     host, port = await peer.listen_udp()
     cfg = config.load(None, {"link.url": f"udpout:{host}:{port}", "link.flavour": "ardupilot",
-                             "camera.source": str(frames), "camera.loop": True, "controller.shadow": shadow,
-                             "link.timesync_period_s": 0.0})
+                             "camera.source": str(frames), "camera.loop": True, "controller.shadow": shadow})
     svc = Service(cfg, load_model(cfg), link=MavLink(config.link_config(cfg)))
     task = asyncio.create_task(svc.run())
     try:

@@ -244,8 +244,8 @@ def test_service_settings_fly_with_every_seed_and_keep_their_rows_apart(tmp_path
     own = tmp_path / "own.onnx"
     own.write_bytes(model_path.read_bytes())
     monkeypatch.chdir(tmp_path)
-    ss = scenarios.service_settings(["model.path=own.onnx", "controller.predict_people=true"])
-    assert ss == ("controller.predict_people=true", f"model.path={own}")  # sorted, the path absolute
+    ss = scenarios.service_settings(["model.path=own.onnx", "controller.min_calm_s=6"])
+    assert ss == ("controller.min_calm_s=6", f"model.path={own}")  # sorted, the path absolute
     job = FlightJob(1, "ardupilot", service_set=ss, threads=1)
     assert set(ss) <= set(job.spec().service_set) and "model.threads=1" in job.spec().service_set
     assert job.key() != FlightJob(1, "ardupilot").key()

@@ -192,7 +192,7 @@ async def test_the_stream_is_announced_only_while_served(model_path):
 @pytest.mark.parametrize("key, value, says", [
     ("live.port", 70000, "live.port must be >= 1 and <= 65535"),
     ("live.enabled", "maybe", "live.enabled must be true or false"),
-    ("live.max_fps", 0, "live.max_fps must be >= 0.1"),
+    ("live.max_fps", 5, "live.max_fps was removed"),
     ("live.address", "", "live.address must be"),
     ("live.colour", 1, "unknown key 'live.colour'"),
     ("gcs.values_hz", 50, "gcs.values_hz must be >= 0.0 and <= 10.0"),

@@ -67,6 +67,12 @@ class ClockStats:
     timesync_ignored: int = 0
 
 
+#: Pose telemetry arriving later than this after the autopilot sampled it (its time_boot_ms) is
+#: dropped, and a frame waits this long for the sample after its capture (s): a companion wired to
+#: its autopilot hears it within milliseconds; half a second is a link in trouble.
+MAX_TELEMETRY_LAG_S = 0.5
+
+
 class AutopilotClock:
     """Offset between the autopilot's boot clock and ``time.monotonic()``, and sample verdicts.
 

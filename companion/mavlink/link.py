@@ -75,7 +75,13 @@ DEFAULT_MESSAGE_RATES_HZ: Mapping[str, float] = MappingProxyType(
     }
 )
 
-def message_rates(telemetry_rate_hz: float) -> dict[str, float]:
+#: The rate the service asks for the pose messages (ATTITUDE, GLOBAL_POSITION_INT), Hz: twice the
+#: camera's 10 frames a second, so that a frame's capture time always lies between two samples
+#: and its pose is interpolated, not held.
+POSE_RATE_HZ = 20.0
+
+
+def message_rates(telemetry_rate_hz: float = POSE_RATE_HZ) -> dict[str, float]:
     """The default rates with the pose messages (ATTITUDE, GLOBAL_POSITION_INT) at ``telemetry_rate_hz``."""
     rates = dict(DEFAULT_MESSAGE_RATES_HZ)
     rates["ATTITUDE"] = rates["GLOBAL_POSITION_INT"] = float(telemetry_rate_hz)

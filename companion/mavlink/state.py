@@ -190,6 +190,13 @@ def R_body_from_gimbal(gimbal: GimbalAttitude, roll: float, pitch: float, yaw: f
     return R_world_from_body.T @ R_world_from_cam
 
 
+#: The service's limit (s) on how far a frame's pose may be from its capture time and still be
+#: used for decisions: the telemetry comes at 20 Hz (``link.POSE_RATE_HZ``), so a quarter of a
+#: second is several samples missed; the landing controller refuses older poses, and the pose
+#: held past the newest sample is given no longer than this.
+MAX_POSE_AGE_S = 0.25
+
+
 class VehicleState:
     """The latest telemetry of one vehicle and a short history of its pose for interpolation.
 

@@ -16,8 +16,12 @@ from typing import Any
 from companion.mavlink.clock import AutopilotClock
 from companion.mavlink.link import MavLink
 
+#: TIMESYNC request period (s): once a second measures the link's latency and the autopilot's
+#: clock drift well within the telemetry's lag limit (``clock.MAX_TELEMETRY_LAG_S``).
+TIMESYNC_PERIOD_S = 1.0
 
-async def run_timesync(link: MavLink, clock: AutopilotClock, period_s: float = 1.0) -> None:
+
+async def run_timesync(link: MavLink, clock: AutopilotClock, period_s: float = TIMESYNC_PERIOD_S) -> None:
     """Request TIMESYNC every ``period_s`` while the autopilot is heard, and answer its requests.
     Runs until cancelled."""
 

@@ -34,12 +34,10 @@ class GroundBelow:
     r_view: how far the camera's view reaches around it (m).
     calm_s: how long the ground around it (r0 plus a margin) has been watched and seen free (s,
         ``riskmap.GroundRiskMap.calm_s``); NaN when not measured (a frame without a pose).
-    quiet_s: how long nobody has been seen within a wider disc around it (r0 plus the quiet
-        margin), on what the map remembers of it (s, ``riskmap.GroundRiskMap.quiet_s``); NaN when
-        not measured.
-    unwalked_s: how long nobody has been seen within the calm disc around it since the camera first
-        saw all of that disc, whatever it looked at meanwhile (s,
-        ``riskmap.GroundRiskMap.unwalked_s``); NaN when not measured.
+    quiet_s, unwalked_s: NaN. The pipeline no longer measures them under the vehicle: the
+        controller's switches that read them (``min_quiet_s``, ``min_unwalked_s``) lost their
+        measurement and were removed from the settings (docs/measurements.md); the fields go
+        when the controller stops reading them.
     """
 
     x: float

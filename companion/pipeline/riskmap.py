@@ -9,21 +9,6 @@ outlives the frame it came from. Per cell the map keeps
 
 in seconds on the capture-time clock. From these, for a frame:
 
-- **fused free grid** (what proposals are made on): a cell is free only if the camera sees it
-  free now *and* it was not seen occupied within ``hold_s``. A person the network misses in a few
-  frames (up to ``hold_s`` of them) stays occupied, and a gap a walker has just left is not free.
-  Cells the camera does not see now are not free (unknown), as in the per-frame pipeline.
-- **trail grid** (``trail_free``; where zones are *proposed*, under either fusion): the frame's
-  free grid less every cell seen occupied within ``trail_s``: somebody walked there a moment ago,
-  so it is a path, not a lawn (a gap a walker crossed 5 s ago is otherwise as free as ground
-  nobody enters, and the largest circle of a frame may reach from a lawn into a sparse crowd).
-  It does not grow, and it only places zones: whether a zone still holds is measured on the
-  frame's (or the fused) grid, where a path walked 8 s ago 1.9 m away is no reason to abort.
-- **clearance now** at a point, ``C0``: the distance to the nearest place a person may be *now*,
-  where a person last seen ``a`` seconds ago (``a <= hold_s``) may have walked ``walk_speed * a``
-  metres since, and anybody outside the view may be at its edge. At a later time ``now + tau``
-  (touchdown, say) the clearance is ``C0 - walk_speed * tau``: nobody reaches a point sooner than
-  walking lets them. That subtraction is the controller's: it knows ``tau``.
 - **unknown**: a cell never seen, or not seen for longer than ``memory_s``, is unknown and never
   free (``known_free`` answers for ground outside the current view).
 - **remembered free** (``remembered_free``, for the search): over the whole map, the ground whose
@@ -41,7 +26,7 @@ in seconds on the capture-time clock. From these, for a frame:
   calm it survives the vehicle looking away, down low or climbing back, so after a lost zone it
   still tells the lawn that nobody entered since the trigger from the gap walkers crossed 10 s
   ago. It is no proof that nobody came while the camera looked away: it ranks zones
-  (``controller.prefer_unwalked``), calm still judges the one under the vehicle.
+  (the planner's ``prefer_unwalked``), calm still judges the one under the vehicle.
 
 Walking speed: 1.5 m/s by default, above the 1.34 m/s mean free walking speed of pedestrians
 (Weidmann, "Transporttechnik der Fussgaenger", ETH Zurich, 1993), so that brisk walkers are
@@ -65,8 +50,6 @@ from companion.geometry.camera import GeometryError
 from companion.pipeline.headplane import GridSpec
 
 NEVER = -np.inf
-#: ``quiet_s`` needs at least this share of its disc remembered (seen within ``memory_s``).
-QUIET_KNOWN = 0.8
 #: At most this many cells from the centre to an edge: 2,049 cells a side, 32 MiB of float32 times.
 MAX_HALF_CELLS = 1024
 
@@ -94,9 +77,6 @@ class RiskMapConfig:
     max_jump_s: float = 0.5
     #: A cell not seen for longer than this (s) starts a new watch: its calm starts again at 0.
     watch_gap_s: float = 1.0
-    #: Ground seen occupied within this (s) is not free on the trail grid where zones are proposed
-    #: (see the module docstring); 0: no trail.
-    trail_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("cell_m", "half_extent_m", "walk_speed_mps", "memory_s", "max_jump_m", "max_jump_s",
@@ -104,8 +84,6 @@ class RiskMapConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"risk map {name} must be a positive number, got {v!r}")
-        if not (math.isfinite(self.trail_s) and 0 <= self.trail_s <= self.memory_s):
-            raise ValueError(f"risk map trail_s must be in [0, memory_s], got {self.trail_s!r}")
         if not (math.isfinite(self.hold_s) and 0 <= self.hold_s <= self.memory_s):
             raise ValueError(f"risk map hold_s must be in [0, memory_s], got {self.hold_s!r}")
         if self.half_extent_m / self.cell_m > MAX_HALF_CELLS:
@@ -165,7 +143,7 @@ class _Window:
 
 
 class GroundRiskMap:
-    """See the module docstring. ``update`` a frame, then ``fused_free`` and ``clearance_now``."""
+    """See the module docstring. ``update`` a frame, then ask it (``calm_s``, ``unwalked_s``, ``farthest_from_walkers``, ...)."""
 
     def __init__(self, config: RiskMapConfig | None = None) -> None:
         self.config = config or RiskMapConfig()
@@ -291,56 +269,6 @@ class GroundRiskMap:
         """``t`` in the arrays' time base (seconds since the first frame)."""
         return t - (self.epoch if self.epoch is not None else t)
 
-    def fused_free(self, grid: GridSpec, free_grid: np.ndarray, t: float) -> np.ndarray:
-        """This frame's free grid less every cell seen occupied within ``hold_s`` of ``t``
-        (uint8, 255 free, 0 not free). Call after ``update`` with the same frame."""
-        return self._less_recent(grid, free_grid, t, self.config.hold_s)
-
-    def trail_free(self, grid: GridSpec, free_grid: np.ndarray, t: float) -> np.ndarray:
-        """``free_grid`` (the frame's or the fused one) less every cell seen occupied within
-        ``trail_s`` of ``t``: where zones are proposed (see the module docstring)."""
-        return self._less_recent(grid, free_grid, t, self.config.trail_s)
-
-    def _less_recent(self, grid: GridSpec, free_grid: np.ndarray, t: float, keep_s: float) -> np.ndarray:
-        out = np.zeros(grid.shape, np.uint8)
-        w = self._window(grid)
-        if w is None:
-            return out
-        recent = self.last_occ[w.map_rows, w.map_cols] >= np.float32(self._rel(t) - keep_s)
-        view = out[w.grid_rows, w.grid_cols]
-        np.copyto(view, free_grid[w.grid_rows, w.grid_cols])
-        np.copyto(view, 0, where=recent)
-        return out
-
-    def clearance_now(self, x: float, y: float, t: float, bound_m: float) -> float:
-        """``C0`` at plane point (x, y) at time ``t`` (m): the least ``|p - c| - v * (t - last_occ)``
-        over cells seen occupied within ``hold_s``, and never more than ``bound_m`` (the clearance
-        on the fused free grid, which already counts the edge of the view and the cells seen
-        occupied as if now). Negative when a person seen a moment ago may already be at (x, y)."""
-        cfg = self.config
-        if self._origin is None or not math.isfinite(bound_m) or bound_m <= 0:
-            return min(bound_m, 0.0) if math.isfinite(bound_m) else 0.0
-        v, c = cfg.walk_speed_mps, cfg.cell_m
-        reach = bound_m + v * cfg.hold_s + c
-        row = int(round(y / c)) - self._origin[0]
-        col = int(round(x / c)) - self._origin[1]
-        k = int(math.ceil(reach / c))
-        r0, r1 = max(0, row - k), min(self.size, row + k + 1)
-        c0, c1 = max(0, col - k), min(self.size, col + k + 1)
-        if r0 >= r1 or c0 >= c1:
-            return bound_m
-        occ = self.last_occ[r0:r1, c0:c1]
-        now = self._rel(t)
-        ii, jj = np.nonzero(occ >= now - cfg.hold_s)
-        if ii.size == 0:
-            return bound_m
-        ages = np.maximum(now - occ[ii, jj].astype(np.float64), 0.0)
-        cy = (ii + r0 + self._origin[0]) * c
-        cx = (jj + c0 + self._origin[1]) * c
-        # A cell is a square: its nearest point may be half a diagonal closer than its centre.
-        d = np.hypot(cx - x, cy - y) - c * math.sqrt(0.5)
-        return float(min(bound_m, float(np.min(d - v * ages))))
-
     def known_free(self, grid: GridSpec, t: float) -> np.ndarray:
         """uint8 over ``grid``: 255 where the map's last look at the ground, within ``memory_s``,
         saw it free and nobody stood there within ``hold_s``; else 0 (unknown or occupied). For
@@ -439,28 +367,6 @@ class GroundRiskMap:
         now = self._rel(t)
         return self._calm_in(*found, now), self._unwalked_in(*found, now)
 
-    def quiet_s(self, x: float, y: float, radius_m: float, t: float) -> float:
-        """How long (s, at time ``t``) nobody has been seen within ``radius_m`` of plane point
-        (x, y): the time since a person was last seen on a cell of that disc that the map still
-        remembers (seen within ``memory_s``). Unlike ``calm_s`` the disc need not be in view now:
-        it may be wider than the view low down, and what was seen of it from higher up counts. A
-        measure of how busy the ground around a point is, not a guarantee: 0 where less than
-        ``QUIET_KNOWN`` of the disc is remembered (a vehicle hovering at 10 m sees a 4 m disc
-        whole only when right above it, and forgets its rim after ``memory_s``), where any of it
-        lies outside the map, or on a map with no frame; never more than the time since the
-        map's first frame."""
-        found = self._disc_at(x, y, radius_m, t)
-        if found is None:
-            return 0.0  # no frame yet, not finite, or part of the disc outside the map: unknown
-        rows, cols, disc = found
-        now = self._rel(t)
-        inside = disc.view(np.bool_)
-        known = self.last_seen[rows, cols][inside] >= np.float32(now - self.config.memory_s)
-        if np.count_nonzero(known) < QUIET_KNOWN * known.size:
-            return 0.0
-        last = max(float(np.max(self.last_occ[rows, cols][inside][known])), 0.0)
-        return max(0.0, now - last)
-
     def farthest_from_walkers(self, x: float, y: float, radius_m: float, t: float, lookback_s: float,
                               reach_m: float, aim: tuple[float, float] | None = None,
                               factor: int = 3) -> Spot | None:
@@ -529,7 +435,7 @@ class GroundRiskMap:
 
     def _disc_at(self, x: float, y: float, radius_m: float, t: float) -> tuple[slice, slice, np.ndarray] | None:
         """The map's window around plane point (x, y) and the mask of its cells within
-        ``radius_m`` (``_disc``): what ``calm_s`` and ``quiet_s`` read. None on a map with no
+        ``radius_m`` (``_disc``): what ``calm_s`` and ``unwalked_s`` read. None on a map with no
         frame, for a non-finite point, radius or time, or when part of the disc lies outside
         the map."""
         if self._origin is None or self.t is None or not all(math.isfinite(v) for v in (x, y, radius_m, t)):

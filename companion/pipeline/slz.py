@@ -39,9 +39,6 @@ SurfaceFn = Callable[[np.ndarray], np.ndarray]
 
 STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking", "people")
 
-#: Where proposals come from: the paper's single frame (the default until the controller judges
-#: zones at touchdown), or the ground risk map fused over frames.
-FUSIONS = ("map", "frame")
 #: ``remembered_zones``: the risk map's cells are coarsened this many times (0.3 m at the default
 #: 0.1 m: a free circle loses at most half a coarse diagonal, 0.2 m) and this many circles given.
 MEMORY_FACTOR = 3
@@ -56,8 +53,9 @@ class PipelineConfig:
     """head_height_m: h_h, metres of the head plane above the ground. r0_m: smallest landing
     radius in metres (proposals below it are not made). Which zone is the target is not the
     pipeline's to say: ``companion.control.planner`` decides that, in flight and in replay.
-    fusion: "map" (proposals on the ground risk map's fused grid, ``riskmap``; frames with a pose
-    only) or "frame" (on each frame alone, as in the paper, and every frame without a pose). risk: the risk map's settings (its cell is the grid's).
+    Proposals come from each frame alone, as in the paper; the ground risk map (``risk``: its
+    settings, its cell the grid's) measures what frames remember (calm, unwalked ground, where
+    people walked).
     surface_threshold: a cell is unlandable where the surface model's probability exceeds this;
     None = the model's own (``threshold`` of the callable), else 0.5. Unused without one."""
 
@@ -68,7 +66,6 @@ class PipelineConfig:
     r0_m: float = 2.0
     #: Near-ties of the largest circle go to the ground under the camera (``proposals.propose``).
     proposal_tie_m: float = TIE_M
-    fusion: str = "frame"
     risk: RiskMapConfig = field(default_factory=RiskMapConfig)
     #: People followed on the ground over posed frames, for the controller's prediction
     #: (``controller.predict_people``); None: not followed, and not paid for.
@@ -76,20 +73,13 @@ class PipelineConfig:
     surface_threshold: float | None = None
     #: Measure each posed frame's zones' and ground-below's ``calm_s`` over ``r0_m`` plus
     #: ``calm_margin_m`` (m) around their centre (``riskmap.GroundRiskMap.calm_s``); off, they
-    #: stay NaN and, under fusion "frame" without a trail, the map is not run at all (its update
-    #: is the bench's ``fusion`` stage, about 0.3 ms a frame at 640x480, nobody would read it).
+    #: stay NaN and, without ``unwalked`` either, the map is not run at all (its update is the
+    #: bench's ``fusion`` stage, about 0.3 ms a frame at 640x480, nobody would read it).
     calm: bool = False
     calm_margin_m: float = 1.0
-    #: With ``calm`` and ``quiet``, the ground below's ``quiet_s`` is measured over ``r0_m`` plus
-    #: ``quiet_margin_m`` (m) around the point under the camera (``riskmap.GroundRiskMap.quiet_s``).
-    quiet: bool = False
-    quiet_margin_m: float = 2.0
     #: Measure each posed frame's confirmed zones' ``unwalked_s`` over the calm disc
-    #: (``riskmap.GroundRiskMap.unwalked_s``), for ``controller.prefer_unwalked``; off, it stays NaN.
+    #: (``riskmap.GroundRiskMap.unwalked_s``), for the planner's ``prefer_unwalked``; off, it stays NaN.
     unwalked: bool = False
-    #: With ``calm``, the ground below's ``unwalked_s`` too, over the calm disc around the point
-    #: under the camera (``controller.min_unwalked_s``); off, it stays NaN.
-    unwalked_below: bool = False
     #: Measure each zone's ``Track.steady_s`` against ``r0_m`` plus this free radius (m), for the
     #: planner's steady zones (``controller.steady_s``); None: not measured, it stays NaN.
     steady_margin_m: float | None = None
@@ -97,15 +87,11 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.steady_margin_m is not None and not (math.isfinite(self.steady_margin_m) and self.steady_margin_m >= 0):
             raise ValueError(f"steady_margin_m must be >= 0 m or None, got {self.steady_margin_m!r}")
-        for name in ("calm_margin_m", "quiet_margin_m"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be >= 0 m, got {v!r}")
+        if not (math.isfinite(self.calm_margin_m) and self.calm_margin_m >= 0):
+            raise ValueError(f"calm_margin_m must be >= 0 m, got {self.calm_margin_m!r}")
         if self.surface_threshold is not None and not (
                 math.isfinite(self.surface_threshold) and 0.0 <= self.surface_threshold < 1.0):
             raise ValueError(f"surface_threshold must be in [0, 1), got {self.surface_threshold!r}")
-        if self.fusion not in FUSIONS:
-            raise ValueError(f"fusion must be one of {FUSIONS}, got {self.fusion!r}")
         if abs(self.risk.cell_m - self.grid.cell) > 1e-9:
             raise ValueError(f"the risk map's cell ({self.risk.cell_m} m) must be the grid's ({self.grid.cell} m)")
         if not (math.isfinite(self.head_height_m) and 0 <= self.head_height_m < 5):
@@ -124,8 +110,7 @@ class PipelineConfig:
 class FrameResult:
     """What one frame produced. Circles and tracks are in head-plane metres; ``occupancy`` is the
     image-sized free map (255 free, 0 occupied); ``free_grid`` the head-plane grid described by
-    ``grid``; ``fused_grid`` the risk map's fused free grid over the same cells (fusion "map");
-    ``timings_ms`` per stage plus ``post_density`` and ``total`` (and ``landability`` when a
+    ``grid``; ``timings_ms`` per stage plus ``post_density`` and ``total`` (and ``landability`` when a
     surface model runs; it is counted in ``total``, not in ``post_density``).
 
     With a surface model: ``people_free`` and ``surface`` are the image-sized free maps of each alone
@@ -142,7 +127,6 @@ class FrameResult:
     grid: GridSpec
     free_grid: np.ndarray
     density: np.ndarray
-    fused_grid: np.ndarray | None = None  # the grid proposals were made on, with fusion "map"
     #: The ground under the camera (posed frames and fixed projections that know where the
     #: camera is), measured like a track's radius: what the controller checks under the vehicle.
     below: GroundBelow | None = None
@@ -182,9 +166,9 @@ class SLZPipeline:
         self.mount = mount or Mount()
         self.fixed_projection = projection
         self.tracker = ZoneTracker(config.tracker)
-        # Under fusion "frame" the map runs only to measure calm (``calm_s``) or keep the trail
-        # (``risk.trail_s``); the zones are still measured on the frame alone.
-        needed = config.fusion == "map" or config.calm or config.unwalked or config.risk.trail_s > 0
+        # The map runs only to measure calm (``calm_s``) or unwalked ground; the zones are
+        # measured on the frame alone.
+        needed = config.calm or config.unwalked
         self.risk = GroundRiskMap(config.risk) if needed else None
         self.people = PeopleTracker(config.people) if config.people is not None else None
         self._undistort = (intrinsics.undistort_maps()
@@ -277,50 +261,29 @@ class SLZPipeline:
         # Only posed frames are in the world frame: under a fixed projection (a video without
         # poses) plane coordinates move with the camera, and a map would smear people across it.
         calm_map = self.risk if pose is not None else None
-        risk = calm_map if self.config.fusion == "map" else None
-        fused = free_grid
-        if risk is not None:
-            # Raises RiskMapError (a GeometryError: the frame is counted and dropped) on a pose
-            # jump or time going back, before any zone is made from the frame.
-            risk.update(grid, free_grid, seen[0], t, proj.camera_xy)
-            fused = risk.fused_free(grid, free_grid, t)
-        elif calm_map is not None:
+        if calm_map is not None:
             try:
                 calm_map.update(grid, free_grid, seen[0], t, proj.camera_xy)
             except RiskMapError:
                 calm_map = None  # counted by the map; this frame's zones are not calm (0 s)
-        place = fused
-        if calm_map is not None and calm_map.config.trail_s > 0:
-            # Zones are placed away from where people walked lately (the trail), and measured,
-            # kept and lost on the grid above (``riskmap``, "trail grid").
-            place = calm_map.trail_free(grid, fused, t)
         t4 = time.perf_counter()
-        dist = distance_cells(fused)
+        dist = distance_cells(free_grid)
         # Near-ties go to the ground under the camera: proposals stay put as the view moves.
-        proposals = propose(place, grid, self.config.n_proposals, self.config.r0_m,
-                            dist if place is fused else distance_cells(place),
+        proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r0_m, dist,
                             prefer=proj.camera_xy, tie_m=self.config.proposal_tie_m)
         t5 = time.perf_counter()
         # How far the view reaches is asked at a few points only (the zones' centres).
         view_dist = PointDistance(seen[0])
 
         def clearance(x: float, y: float) -> tuple[float, float]:
-            c = clearance_at(dist, grid, x, y)
-            if risk is not None and c > 0:
-                # Walkers seen a moment ago may have moved since: the clearance now.
-                c = max(0.0, risk.clearance_now(x, y, t, c))
-            return c, clearance_at(view_dist, grid, x, y)
+            return clearance_at(dist, grid, x, y), clearance_at(view_dist, grid, x, y)
 
         steady_r = None if self.config.steady_margin_m is None else self.config.r0_m + self.config.steady_margin_m
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m, steady_r=steady_r)
         calm_r = self.config.r0_m + self.config.calm_margin_m
-        quiet_r = self.config.r0_m + self.config.quiet_margin_m
 
         def calm(x: float, y: float) -> float:
             return 0.0 if calm_map is None else calm_map.calm_s(x, y, calm_r, t)
-
-        def quiet(x: float, y: float) -> float:
-            return 0.0 if calm_map is None else calm_map.quiet_s(x, y, quiet_r, t)
 
         def unwalked(x: float, y: float) -> float:
             return 0.0 if calm_map is None else calm_map.unwalked_s(x, y, calm_r, t)
@@ -342,7 +305,7 @@ class SLZPipeline:
             # Only with a surface model: without one every edge is people or the view, and the
             # people-only pipeline keeps its cost to the microsecond.
             def edge(x: float, y: float) -> str:
-                return edge_reason(x, y, grid, dist, fused, seen[0], people_grid, surface_grid)
+                return edge_reason(x, y, grid, dist, free_grid, seen[0], people_grid, surface_grid)
 
             edges = [edge(c.x, c.y) for c in proposals]
             tracks = [replace(tr, edge=edge(tr.x, tr.y)) for tr in tracks]
@@ -351,10 +314,7 @@ class SLZPipeline:
             bx, by = (float(v) for v in proj.camera_xy)
             if math.isfinite(bx) and math.isfinite(by):
                 below = GroundBelow(bx, by, *clearance(bx, by),
-                                    calm_s=calm(bx, by) if measure else math.nan,
-                                    quiet_s=quiet(bx, by) if measure and self.config.quiet else math.nan,
-                                    unwalked_s=unwalked(bx, by) if measure and self.config.unwalked_below
-                                    else math.nan)
+                                    calm_s=calm(bx, by) if measure else math.nan)
         t6 = time.perf_counter()
         followed: list[Person] = []
         if self.people is not None and pose is not None:
@@ -377,5 +337,5 @@ class SLZPipeline:
         timings["post_density"] = (t7 - t_surface) * 1e3
         timings["total"] = (t7 - t0) * 1e3
         return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
-                           density, fused if risk is not None else None, below, followed, edges, people_free,
+                           density, below, followed, edges, people_free,
                            surface, unlandable)

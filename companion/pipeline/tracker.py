@@ -31,6 +31,12 @@ MIN_DT = 1e-3
 _MIN_VIEW = 0.75
 #: The zones' motion models (``TrackerParams.motion``).
 MOTIONS = ("velocity", "position")
+#: The service's zones, on posed frames in the world frame, are ground: no velocity, and a centre
+#: and radius that wander ``GROUND_SIGMA_V`` m per square-root second (about 1 s of lag at 10
+#: frames a second; docs/design.md, "Zones are ground"). The velocity model, the paper's, lost in
+#: flight (docs/measurements.md) and stays for frames without a pose (the evaluation).
+GROUND_MOTION = "position"
+GROUND_SIGMA_V = 0.1
 
 
 @dataclass(frozen=True)

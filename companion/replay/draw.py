@@ -145,25 +145,20 @@ def plane_to_north_up_px(grid: GridSpec, x: ArrayLike, y: ArrayLike, scale: floa
 
 #: Plane-view colours (BGR): free, occupied or unseen, and held by the risk map (seen free now,
 #: but somebody stood there within the hold: not free for landing).
-PLANE_FREE, PLANE_OCCUPIED, PLANE_HELD = WHITE, (40, 40, 120), (0, 140, 255)
+PLANE_FREE, PLANE_OCCUPIED = WHITE, (40, 40, 120)
 
 
 def draw_plane_view(free_grid: np.ndarray, grid: GridSpec, proposals: Sequence[Circle],
-                    tracks: Sequence[Track], target_id: int | None, size: int,
-                    fused_grid: np.ndarray | None = None) -> np.ndarray:
+                    tracks: Sequence[Track], target_id: int | None, size: int) -> np.ndarray:
     """A ``size`` x ``size`` north-up BGR view of the head-plane free grid (white free, dark red
     occupied or unseen), fitted and centred, with the same circles as the image view, a north
     arrow and a scale bar. Square and fixed-size so a video keeps one frame size while the grid's
-    shape changes with the pose. With the risk map's ``fused_grid``, cells this frame saw free but
-    the map still holds occupied are orange."""
+    shape changes with the pose."""
     g = grid_north_up(free_grid)
     scale = min(size / g.shape[0], size / g.shape[1])
     gh, gw = max(1, int(round(g.shape[0] * scale))), max(1, int(round(g.shape[1] * scale)))
     off = ((size - gw) // 2, (size - gh) // 2)
     small = np.where(g[..., None] > 0, np.array(PLANE_FREE, np.uint8), np.array(PLANE_OCCUPIED, np.uint8))
-    if fused_grid is not None and fused_grid.shape == free_grid.shape:
-        held = grid_north_up(((free_grid > 0) & (fused_grid == 0)).astype(np.uint8))
-        small[held > 0] = PLANE_HELD
     img = np.full((size, size, 3), 90, np.uint8)
     img[off[1]:off[1] + gh, off[0]:off[0] + gw] = cv2.resize(
         small.astype(np.uint8), (gw, gh), interpolation=cv2.INTER_NEAREST)
@@ -211,14 +206,13 @@ def compose(image_view: np.ndarray, plane_view: np.ndarray | None) -> np.ndarray
 def figure(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,
            proposals: Sequence[Circle], tracks: Sequence[Track], target_id: int | None,
            free_grid: np.ndarray | None = None, grid: GridSpec | None = None,
-           fused_grid: np.ndarray | None = None, surface_free: np.ndarray | None = None,
+           surface_free: np.ndarray | None = None,
            people_free: np.ndarray | None = None, clearances: Mapping[int, float] | None = None) -> np.ndarray:
     """The full figure of one frame; the plane view is added when ``free_grid`` and ``grid`` are
-    given (the replay passes them when the pose is known, so north is meaningful), with the risk
-    map's held cells when ``fused_grid`` is given."""
+    given (the replay passes them when the pose is known, so north is meaningful)."""
     view = draw_image_view(frame, occupancy_free, proj, proposals, tracks, target_id, surface_free, people_free,
                            clearances)
     plane = None
     if free_grid is not None and grid is not None and free_grid.size:
-        plane = draw_plane_view(free_grid, grid, proposals, tracks, target_id, frame.shape[0], fused_grid)
+        plane = draw_plane_view(free_grid, grid, proposals, tracks, target_id, frame.shape[0])
     return compose(view, plane)

@@ -187,7 +187,7 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
                     frame.image, result.occupancy, result.projection, result.proposals,
                     result.tracks, target_id,
                     result.free_grid if posed else None, result.grid if posed else None,
-                    result.fused_grid if posed else None, result.surface, result.people_free, clearances))
+                    result.surface, result.people_free, clearances))
             if on_result is not None:
                 on_result(frame, result)
         if source.skipped_upstream is not None:

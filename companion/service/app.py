@@ -5,8 +5,8 @@ start the camera, wait for the first autopilot heartbeat, then tell systemd READ
 
 - the frame loop takes the newest camera frame (older ones are dropped and counted, never
   queued), pairs it with the pose at its capture time (placed on the autopilot's clock, and
-  waiting up to ``link.max_telemetry_lag_s`` for the telemetry sampled after it rather than
-  holding an older pose), records it, runs the pipeline in a worker
+  waiting up to ``MAX_TELEMETRY_LAG_S`` (``companion.mavlink.clock``) for the telemetry sampled
+  after it rather than holding an older pose), records it, runs the pipeline in a worker
   thread (onnxruntime and OpenCV release the GIL) and hands the zones to the landing controller.
   A frame without a fresh pose is recorded but never used for decisions;
 - the failsafe monitor turns telemetry into a trigger for the controller; SIGUSR1 is a local
@@ -57,7 +57,7 @@ from companion.mavlink.failsafe import TRIGGER_COMMAND, FailsafeMonitor
 from companion.mavlink.flavours import select_flavour
 from companion.mavlink.gcs_commands import CommandServer, Reply, VideoStream, VideoStreamProvider
 from companion.mavlink.link import MavLink
-from companion.mavlink.state import VehicleState
+from companion.mavlink.state import MAX_POSE_AGE_S, VehicleState
 from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
 from companion.mavlink.timesync import run_timesync
 from companion.pipeline.circles import Circle
@@ -94,8 +94,7 @@ MEMORY_PERIOD_S = 1.0
 
 def load_model(cfg: Config) -> DensityModel:
     """The density model; raises DensityModelError naming the file."""
-    return DensityModel(cfg.model.path, threads=cfg.model.threads, overrides=cfg.model.overrides,
-                        allow_spinning=cfg.model.allow_spinning)
+    return DensityModel(cfg.model.path, threads=cfg.model.threads, overrides=cfg.model.overrides)
 
 
 def load_landability(cfg: Config) -> UnlandableMap | None:
@@ -104,8 +103,7 @@ def load_landability(cfg: Config) -> UnlandableMap | None:
     file, or the key for a level the model does not have."""
     if not cfg.model.landability:
         return None
-    model = LandabilityModel(cfg.model.landability_path, threads=cfg.model.threads,
-                             allow_spinning=cfg.model.allow_spinning)
+    model = LandabilityModel(cfg.model.landability_path, threads=cfg.model.threads)
     levels = cfg.pipeline.unlandable_levels or None
     try:
         return model.unlandable(levels)
@@ -155,7 +153,7 @@ class Service:
         self.commands.register(TRIGGER_COMMAND, self._trigger_before_wiring)
         # Telemetry placed in time by the autopilot's clock; a frame may still be paired with a
         # held pose up to max_pose_age_s old, which then carries its true age to the controller.
-        self.state = VehicleState(max_extrapolation_s=cfg.pipeline.max_pose_age_s,
+        self.state = VehicleState(max_extrapolation_s=MAX_POSE_AGE_S,
                                   clock=settings.autopilot_clock(cfg))
         self.camera = camera or build_camera(cfg)
         self.timings = StageTimings()
@@ -169,9 +167,8 @@ class Service:
         self.recorder: FlightRecorder | None = None
         self.events: list[Event] = []  # every controller event of this run, in order
         self.shadow = cfg.controller.shadow
-        budget = cfg.gcs.frame_budget_ms or 1000.0 / cfg.camera.fps
-        self.gcs = GroundStation(self.link, frame_budget_ms=budget)
-        self.live = LiveView(cfg.live.max_fps, cfg.live.jpeg_quality) if cfg.live.enabled else None
+        self.gcs = GroundStation(self.link, frame_budget_ms=settings.frame_budget_ms(cfg))
+        self.live = LiveView() if cfg.live.enabled else None
         self.web: WebServer | None = None
         self.web_error: str | None = None
         self.decisions: deque[tuple[float, int, str]] = deque(maxlen=DECISIONS_KEPT)  # (t, severity, text)
@@ -258,9 +255,7 @@ class Service:
                 asyncio.create_task(self._frame_loop(), name="frames"),
                 asyncio.create_task(self._health_loop(), name="health"),
             ]
-            if c.link.timesync_period_s > 0:
-                tasks.append(asyncio.create_task(
-                    run_timesync(self.link, self.state.clock, c.link.timesync_period_s), name="timesync"))
+            tasks.append(asyncio.create_task(run_timesync(self.link, self.state.clock), name="timesync"))
             if self.runner is not None:
                 tasks.append(asyncio.create_task(self.runner.run(), name="controller"))
             if c.gcs.values_hz > 0:
@@ -376,7 +371,7 @@ class Service:
     def _start_recorder(self) -> None:
         c = self.cfg
         self.recorder = FlightRecorder(
-            c.recorder.dir, segment_s=c.recorder.segment_s, max_mb=c.recorder.max_mb, codec=c.recorder.codec,
+            c.recorder.dir, max_mb=c.recorder.max_mb,
             fps=c.camera.fps, intrinsics=self.intrinsics, mount=self.mount,
             meta={"model": {"path": str(c.model.path), "spec": self.model.spec}, "config": c.to_dict(),
                   "autopilot": self.autopilot.name if self.autopilot else None, "shadow": self.shadow},
@@ -473,14 +468,14 @@ class Service:
 
     async def _next_paired_frame(self, pending: deque[Frame]) -> Frame | None:
         """The newest frame whose pose can be judged: the telemetry sampled after its capture
-        has arrived (so the pose is interpolated, not held), or it waited ``max_telemetry_lag_s``
+        has arrived (so the pose is interpolated, not held), or it waited ``MAX_TELEMETRY_LAG_S``
         for it. Frames wait in ``pending`` meanwhile; older ready ones are superseded (counted).
         With a 200 ms link the frames are used 200 ms late rather than paired with old poses."""
         frame = await self.camera.next_frame(timeout=POSE_POLL_S if pending else 0.5)
         if frame is not None:
             pending.append(frame)
         now = time.monotonic()
-        wait = self.cfg.link.max_telemetry_lag_s
+        wait = self.state.clock.max_lag_s
         ready: Frame | None = None
         while pending and (self.state.covers(pending[0].t) or now - pending[0].t > wait):
             if ready is not None:
@@ -491,12 +486,13 @@ class Service:
     async def _remembered(self, t: float) -> list[Circle]:
         """The free circles the risk map remembers (``SLZPipeline.remembered_zones``, for the
         search), read again at most every ``MEMORY_PERIOD_S``: they only say where to look."""
+        assert self.runner is not None
         now = time.monotonic()
         if now - self._memory_at >= MEMORY_PERIOD_S:
             self._memory_at = now
             try:
                 self._memory = await asyncio.to_thread(self.pipeline.remembered_zones, t,
-                                                       self.cfg.controller.search_memory_s)
+                                                       self.runner.controller.config.search_memory_s)
             except ValueError as exc:  # a bug, not the vehicle's fault: search on without it
                 self.counters.errors += 1
                 log.warning("remembered ground not read: %s", exc)

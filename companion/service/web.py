@@ -9,7 +9,7 @@
 
 Standard library asyncio only. Off by default (``live.enabled``) and on loopback by default
 (``live.address``). The figure is drawn only while a stream client is connected, at most
-``live.max_fps`` times a second, in a worker thread; with nobody watching a frame costs one
+``LIVE_MAX_FPS`` times a second, in a worker thread; with nobody watching a frame costs one
 comparison. Each client has a queue of ``CLIENT_QUEUE`` frames: a client that reads slowly loses
 frames (counted), one that stops reading for ``SEND_TIMEOUT_S`` is dropped, and neither ever
 holds up the pipeline or another client.
@@ -57,6 +57,11 @@ class Snapshot:
     caption: str
 
 
+#: Most frames a second drawn for the live view (drawn only while a client watches): enough to
+#: follow the decision, at one JPEG encode each on the CPU the pipeline needs.
+LIVE_MAX_FPS = 5.0
+
+
 @dataclass
 class LiveStats:
     drawn: int = 0  # frames drawn and encoded
@@ -68,7 +73,7 @@ class LiveStats:
 class LiveView:
     """Draws the newest offered frame for the connected stream clients (see the module docstring)."""
 
-    def __init__(self, max_fps: float, jpeg_quality: int = 80) -> None:
+    def __init__(self, max_fps: float = LIVE_MAX_FPS, jpeg_quality: int = 80) -> None:
         self.period_s = 1.0 / max_fps
         self.quality = jpeg_quality
         self.stats = LiveStats()
@@ -152,7 +157,7 @@ def live_video_stream(settings: LiveSettings, width: int, height: int) -> VideoS
     announcement; a browser, VLC or MAVProxy opens the URI). ``width`` x ``height``: the figure's
     size (the frame and its head-plane view side by side, under the caption)."""
     return VideoStream(uri=stream_uri(settings)[:160], width=width, height=height,
-                       framerate_hz=float(settings.max_fps), stream_type=m.VIDEO_STREAM_TYPE_TCP_MPEG,
+                       framerate_hz=LIVE_MAX_FPS, stream_type=m.VIDEO_STREAM_TYPE_TCP_MPEG,
                        encoding=m.VIDEO_STREAM_ENCODING_UNKNOWN)
 
 

@@ -1,0 +1,196 @@
+"""The composition: the one place where validated settings (``companion.config.schema.Config``)
+become each part's own configuration objects. The service, replay and the simulator call these,
+so a setting has one name and one meaning everywhere.
+
+A part's tuning that is no setting keeps its value here or in the part's own dataclass default:
+the core's dataclasses default to the paper's rules (tests and the evaluation use them), and the
+service's choices where they differ are the named constants below.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import cast
+
+from companion.config.schema import Config, ConfigError
+from companion.control.landing import LandingConfig, person_trust_height
+from companion.control.obedience import ObedienceConfig
+from companion.control.planner import PlannerConfig
+from companion.control.touchdown import DescentProfile
+from companion.geometry.camera import Intrinsics, Mount
+from companion.mavlink.clock import MAX_TELEMETRY_LAG_S, AutopilotClock
+from companion.mavlink.failsafe import FailsafeConfig
+from companion.mavlink.gcs_commands import CameraInfo
+from companion.mavlink.link import POSE_RATE_HZ, LinkConfig, message_rates
+from companion.mavlink.state import MAX_POSE_AGE_S
+from companion.pipeline.density import DensitySpec, resolve_threshold
+from companion.pipeline.occupancy import OccupancyParams
+from companion.pipeline.riskmap import RiskMapConfig
+from companion.pipeline.slz import PipelineConfig
+from companion.pipeline.tracker import GROUND_MOTION, GROUND_SIGMA_V, TrackerParams
+
+#: Among calm zones the planner chooses first the one whose ground has gone longest without
+#: anybody seen on it since the camera first saw it, then the oldest (docs/design.md, "Unwalked
+#: ground"; the core's ``PlannerConfig`` keeps the paper's age order by default).
+PREFER_UNWALKED = True
+#: With nothing in view since the trigger that could become a zone (none of r0 or more), the
+#: search starts this long after the trigger (s) instead of at ``select_timeout_s``: each second
+#: of waiting over a crowd costs about a metre of height and of view.
+SELECT_EMPTY_S = 3.0
+#: The landing point goes where the risk map saw people farthest away within this many seconds,
+#: and moves there again before the zone is judged when that is ``PLACE_GAIN_M`` farther from
+#: them (docs/design.md, "Where people walked").
+PLACE_LOOKBACK_S = 30.0
+
+
+def threshold_setting(cfg: Config) -> float | None:
+    """``pipeline.occupancy_threshold`` with TOML's stand-in for "not set" (-1) turned into None,
+    for ``companion.pipeline.density.resolve_threshold``."""
+    value = cfg.pipeline.occupancy_threshold
+    return None if value < 0 else value
+
+
+def intrinsics(cfg: Config) -> Intrinsics:
+    """Pinhole intrinsics (``geometry.camera.Intrinsics``) for ``camera.width x camera.height``."""
+    c = cfg.camera
+    base = Intrinsics.from_fov(c.width, c.height, c.hfov_deg)
+    fx = c.fx or base.fx
+    fy = c.fy or fx
+    cx = base.cx if c.cx < 0 else c.cx
+    cy = base.cy if c.cy < 0 else c.cy
+    return Intrinsics(fx, fy, cx, cy, c.width, c.height, tuple(c.distortion))
+
+
+def mount(cfg: Config) -> Mount:
+    """The camera mount (``geometry.camera.Mount``) from ``camera.mount_*``."""
+    c = cfg.camera
+    offset = cast("tuple[float, float, float]", tuple(c.mount_offset_m))  # length 3: validated
+    return Mount.from_degrees(c.mount_roll_deg, c.mount_pitch_deg, c.mount_yaw_deg, offset)
+
+
+def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> PipelineConfig:
+    """The pipeline's ``PipelineConfig``; the occupancy threshold resolved against the model's
+    ``DensitySpec`` (``resolve_threshold``: the setting, else the model's, else 0). Posed frames
+    in the world frame: zones are ground (the tracker's ``GROUND_MOTION``)."""
+    p = cfg.pipeline
+    planner = planner_config(cfg)
+    return PipelineConfig(
+        occupancy=OccupancyParams(threshold=resolve_threshold(threshold_setting(cfg), model_spec)),
+        tracker=TrackerParams(motion=GROUND_MOTION, sigma_v=GROUND_SIGMA_V),
+        head_height_m=p.head_height_m,
+        r0_m=p.r0_m,
+        proposal_tie_m=p.proposal_tie_m,
+        calm=cfg.controller.min_calm_s > 0,
+        calm_margin_m=p.calm_margin_m,
+        unwalked=planner.prefer_unwalked,
+        surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
+        steady_margin_m=planner.steady_margin_m if planner.steady_s > 0 else None,
+        risk=RiskMapConfig(walk_speed_mps=p.walk_speed_mps),
+    )
+
+
+def descent_profile(cfg: Config) -> DescentProfile:
+    """How long a descent from a height takes, and how far a walker gets meanwhile."""
+    c = cfg.controller
+    return DescentProfile(descend_speed_mps=c.descend_speed_mps, land_alt_m=c.land_alt_m or c.descend_alt_m,
+                          land_speed_mps=c.land_speed_mps, walk_speed_mps=cfg.pipeline.walk_speed_mps)
+
+
+def planner_config(cfg: Config) -> PlannerConfig:
+    """The ``PlannerConfig``: the one rule for which zone is the target (flight and replay)."""
+    c = cfg.controller
+    return PlannerConfig(r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
+                         min_track_age_s=c.min_track_age_s, min_calm_s=c.min_calm_s,
+                         prefer_unwalked=PREFER_UNWALKED, steady_s=c.steady_s)
+
+
+def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> LandingConfig:
+    """The landing controller's ``LandingConfig``; ``model_spec`` gives the model's smallest
+    reliably seen person (``min_person_px``) when ``controller.min_person_px`` is 0."""
+    c = cfg.controller
+    min_px = c.min_person_px or (model_spec.min_person_px if model_spec is not None else None)
+    k = intrinsics(cfg)
+    return LandingConfig(
+        planner=planner_config(cfg),
+        select_empty_s=SELECT_EMPTY_S, descend_alt_m=c.descend_alt_m,
+        land_abort_above_m=c.land_abort_above_m, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
+        land_alt_m=c.land_alt_m, land_agl_m=c.land_agl_m, max_pose_age_s=MAX_POSE_AGE_S,
+        handback_action=c.handback_action, search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
+        obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
+        descent=descent_profile(cfg),
+        search_s=c.search_s, search_radius_m=c.search_radius_m, search_reserve_s=c.search_reserve_s,
+        place_lookback_s=PLACE_LOOKBACK_S,
+        view_ratio=min(k.cx / k.fx, k.cy / k.fy),
+        trust_height_m=person_trust_height(min(k.fx, k.fy), min_px or None, head_m=cfg.pipeline.head_height_m),
+    )
+
+
+def signing_key(cfg: Config) -> bytes | None:
+    """The 32-byte MAVLink signing secret from ``link.signing_key_file`` or ``link.signing_key``;
+    ConfigError naming the file when it cannot be read or holds no key."""
+    text = cfg.link.signing_key
+    if cfg.link.signing_key_file:
+        try:
+            text = Path(cfg.link.signing_key_file).read_text().strip()
+        except OSError as exc:
+            raise ConfigError(f"link.signing_key_file {cfg.link.signing_key_file}: {exc.strerror}") from None
+        if len(text) != 64 or any(ch not in "0123456789abcdefABCDEF" for ch in text):
+            raise ConfigError(f"link.signing_key_file {cfg.link.signing_key_file} must hold 64 "
+                              "hexadecimal characters")
+    return bytes.fromhex(text) if text else None
+
+
+def camera_info(cfg: Config) -> CameraInfo:
+    """What CAMERA_INFORMATION tells a ground station of the camera: the calibrated resolution,
+    and, when ``camera.sensor_width_mm`` is set, the focal length and sensor size in millimetres
+    from the intrinsics (pixel pitch = sensor width / width; fy sets the vertical pitch)."""
+    c = cfg.camera
+    k = intrinsics(cfg)
+    focal = sensor_w = sensor_h = math.nan
+    if c.sensor_width_mm > 0:
+        pitch_x = c.sensor_width_mm / k.width
+        focal = k.fx * pitch_x
+        sensor_w = c.sensor_width_mm
+        sensor_h = k.height * focal / k.fy
+    return CameraInfo(width=k.width, height=k.height, focal_length_mm=focal, sensor_width_mm=sensor_w,
+                      sensor_height_mm=sensor_h)
+
+
+def link_config(cfg: Config) -> LinkConfig:
+    """The MAVLink link's ``LinkConfig`` (reads the signing key file)."""
+    c = cfg.link
+    return LinkConfig(
+        url=c.url, system_id=c.system_id, component_id=c.component_id,
+        target_system=c.target_system or None, signing_key=signing_key(cfg),
+        message_rates_hz=message_rates(POSE_RATE_HZ), peers=tuple(c.peers),
+    )
+
+
+def autopilot_clock(cfg: Config) -> AutopilotClock:
+    """The clock that places telemetry in time, with the lag limit ``MAX_TELEMETRY_LAG_S``."""
+    # A TIMESYNC round trip is two one-way trips: one slower than twice the lag allowed would
+    # only say that every sample is late.
+    return AutopilotClock(max_lag_s=MAX_TELEMETRY_LAG_S, max_rtt_s=2.0 * MAX_TELEMETRY_LAG_S)
+
+
+def frame_budget_ms(cfg: Config) -> float:
+    """A median pipeline time per frame above this reports 'model slow': the camera's frame
+    period (ms), the time one frame has before the next arrives."""
+    return 1000.0 / cfg.camera.fps
+
+
+def failsafe_config(cfg: Config) -> FailsafeConfig:
+    """The failsafe monitor's ``FailsafeConfig``."""
+    f = cfg.failsafe
+    return FailsafeConfig(battery=f.battery, battery_level=f.battery_level, system_status=f.system_status,
+                          autopilot_land=f.autopilot_land, gcs_command=f.gcs_command,
+                          local_trigger=f.local_trigger, gcs_system_ids=tuple(f.gcs_system_ids),
+                          local_socket=f.local_socket or None)
+
+
+__all__ = [
+    "PREFER_UNWALKED", "SELECT_EMPTY_S", "PLACE_LOOKBACK_S", "threshold_setting", "intrinsics", "mount",
+    "pipeline_config", "descent_profile", "planner_config", "landing_config", "signing_key", "camera_info",
+    "link_config", "autopilot_clock", "frame_budget_ms", "failsafe_config",
+]

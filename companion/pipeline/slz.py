@@ -67,8 +67,9 @@ class PipelineConfig:
     #: Near-ties of the largest circle go to the ground under the camera (``proposals.propose``).
     proposal_tie_m: float = TIE_M
     risk: RiskMapConfig = field(default_factory=RiskMapConfig)
-    #: People followed on the ground over posed frames, for the controller's prediction
-    #: (``controller.predict_people``); None: not followed, and not paid for.
+    #: People followed on the ground over posed frames (the people stage: the bench and the
+    #: walkers' analysis; the service's settings no longer ask for it); None: not followed, and
+    #: not paid for.
     people: PeopleParams | None = None
     surface_threshold: float | None = None
     #: Measure each posed frame's zones' and ground-below's ``calm_s`` over ``r0_m`` plus
@@ -201,7 +202,7 @@ class SLZPipeline:
         return propose(free, grid, n_max, self.config.r0_m)
 
     def landing_spot(self, request: SpotRequest, t: float) -> Spot | None:
-        """Where to land inside a zone (the controller's ``SpotRequest``, ``controller.place_lookback_s``):
+        """Where to land inside a zone (the controller's ``SpotRequest``, its ``place_lookback_s``):
         the point within ``request.radius_m`` of its centre farthest from the ground people were
         seen on within ``request.lookback_s`` of ``t`` (``GroundRiskMap.farthest_from_walkers``,
         distances up to ``PLACE_REACH_M``), with that distance at the present landing point.

@@ -501,7 +501,7 @@ class Service:
 
     def _spot(self, tracks: list[Track], t: float) -> Spot | None:
         """Where the risk map would put the landing point on this frame, when the controller asks
-        (``controller.place_lookback_s``; 0.1-0.5 ms, in the loop: the frame's decision waits for it)."""
+        (its ``place_lookback_s``; 0.1-0.5 ms, in the loop: the frame's decision waits for it)."""
         assert self.runner is not None
         request = self.runner.controller.spot_request(tracks)
         if request is None:

@@ -24,9 +24,9 @@ from companion.mavlink.link import LinkConfig, MavLink
 from companion.mavlink.params import read_params
 from companion.mavlink.state import VehicleState
 from companion.service.landing_runner import LandingRunner
-from sim.flight import free_port
-from sim.simulator import SimConfig, Simulator
-from sim.vehicle import VehicleParams
+from sim.flights.flight import free_port
+from sim.vehicle.kinematics import VehicleParams
+from sim.vehicle.simulator import SimConfig, Simulator
 from tests.mavpeer import MavPeer
 
 FAST = dict(heartbeat_period_s=0.1, heartbeat_timeout_s=0.5, command_timeout_s=0.1, command_retries=1)

@@ -11,8 +11,8 @@ from pathlib import Path
 
 from companion.geometry.camera import Intrinsics, Mount
 from companion.recording import FlightRecorder
-from sim.demo import EventFollower, handback_reason, labelled_summary, touchdown_lines
-from sim.flight import FlightResult, FlightSpec
+from sim.flights.demo import EventFollower, handback_reason, labelled_summary, touchdown_lines
+from sim.flights.flight import FlightResult, FlightSpec
 
 
 def test_events_are_printed_while_the_recording_grows(tmp_path: Path) -> None:

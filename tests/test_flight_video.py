@@ -117,7 +117,7 @@ def test_the_demo_evidence_video_replays_the_recording_with_the_risk_map(tmp_pat
     # re-run by `companion replay` from the recording with the shipped model.
     import cv2
 
-    from sim.demo import evidence_video
+    from sim.flights.demo import evidence_video
 
     path = _recording(tmp_path / "rec", n=6)
     out = evidence_video(path, tmp_path / "evidence.mp4")

@@ -28,7 +28,7 @@ from companion.mavlink.link import MavLink
 from companion.recording import RecordingReader
 from companion.service.app import Service, load_model
 from companion.service.gcs import CONDITIONS, PHASE_CODES
-from sim.flight import FlightSpec, build_scene, reserve_port
+from sim.flights.flight import FlightSpec, build_scene, reserve_port
 from tests.mavpeer import join_statustexts
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]

@@ -1,6 +1,6 @@
 """Never fly away: the landing controller in closed loop with the simulator's kinematic vehicle.
 
-The controller is pure, so these tests fly it against ``sim.vehicle.Vehicle`` (the simulator's
+The controller is pure, so these tests fly it against ``sim.vehicle.kinematics.Vehicle`` (the simulator's
 multicopter model, no I/O) stepped in simulated time: the vehicle follows each Goto as an autopilot
 would, or, to reproduce the real PX4's fly-away (issue 19), reads the targets wrongly from some
 instant on. Frames come from a function of the vehicle's state.
@@ -31,7 +31,7 @@ from companion.control.trigger import Trigger, TriggerSource
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint
 from companion.pipeline.tracker import Track
-from sim.vehicle import Vehicle
+from sim.vehicle.kinematics import Vehicle
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)
 CFG = LandingConfig(planner=PlannerConfig(r0_m=2.0, radius_margin_m=2.0))

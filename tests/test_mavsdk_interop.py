@@ -13,9 +13,9 @@ import socket
 
 import pytest
 
-from sim.autopilot import AutopilotConfig
-from sim.simulator import SimConfig, Simulator
-from sim.vehicle import VehicleParams
+from sim.vehicle.autopilot import AutopilotConfig
+from sim.vehicle.kinematics import VehicleParams
+from sim.vehicle.simulator import SimConfig, Simulator
 
 mavsdk_asyncio = pytest.importorskip("mavsdk.asyncio", reason="mavsdk 4.x is not installed")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402

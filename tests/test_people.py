@@ -131,11 +131,11 @@ def test_a_walker_heading_for_the_zone_is_seen_coming_before_the_zone_is_seen_oc
     12 s horizon drops under r0 seconds before the ground there is seen occupied."""
     from companion.pipeline.density import DensityModel
     from companion.pipeline.slz import PipelineConfig, SLZPipeline
-    from sim.flight import build_world
-    from sim.ground import ProceduralGround
-    from sim.render import render_world
-    from sim.scenarios import scenario
-    from sim.world import add_crossing_walkers
+    from sim.flights.flight import build_world
+    from sim.flights.scenarios import scenario
+    from sim.world.crowd import add_crossing_walkers
+    from sim.world.ground import ProceduralGround
+    from sim.world.render import render_world
 
     spec = scenario(2, "ardupilot")
     assert spec.world == "crossing"
@@ -231,14 +231,14 @@ def test_merging_keeps_the_stronger_of_every_close_pair_as_a_greedy_pass_would(s
 
 def test_on_rendered_frames_the_view_border_makes_no_walkers(model_path):
     """Real frames (the simulator's renderer, crossing scenario 9's world) and the shipped model,
-    the camera coming down over the free circle with a little sway (``sim.walker_alarms``):
+    the camera coming down over the free circle with a little sway (``sim.evidence.walker_alarms``):
     walkers followed with nobody within 1 m of where they are predicted to be. Without the
     border margin most of them are peaks at the image's edge sliding with the view; with it, far
     fewer (measured on 17 seeds' worlds, docs/design.md "Walkers at the edge of the view"). That
     the walker heading for the zone is still seen coming is the test above, with the default
     margin."""
     from companion.pipeline.density import DensityModel
-    from sim.walker_alarms import fly_over_circle, score
+    from sim.evidence.walker_alarms import fly_over_circle, score
 
     # Version 1 (the default until 2026-11-27), on which the margin was measured. Version 4 follows
     # far more walkers here (343 walker frames, 113 of them phantoms with the margin, against 15

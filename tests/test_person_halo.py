@@ -1,4 +1,4 @@
-"""`python -m sim.person_halo`: how far around one standing person the pipeline marks occupied."""
+"""`python -m sim.evidence.person_halo`: how far around one standing person the pipeline marks occupied."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from sim.person_halo import main, measure, parse_floats
+from sim.evidence.person_halo import main, measure, parse_floats
 
 
 def test_a_person_is_marked_nearer_than_they_stand_by_about_a_metre(model_path) -> None:

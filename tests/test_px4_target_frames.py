@@ -26,9 +26,9 @@ from companion.mavlink.px4 import PX4
 from companion.mavlink.state import VehicleState
 from companion.pipeline.tracker import Track
 from companion.service.landing_runner import LandingRunner
-from sim.autopilot import AutopilotConfig
-from sim.flight import free_port
-from sim.simulator import SimConfig, Simulator
+from sim.flights.flight import free_port
+from sim.vehicle.autopilot import AutopilotConfig
+from sim.vehicle.simulator import SimConfig, Simulator
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(120)]
 

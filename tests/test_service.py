@@ -126,10 +126,10 @@ async def simulated_vehicle(port: int, *, altitude: float = 25.0, fps: float = 8
     seed's procedural ground (as the scenarios place theirs): elsewhere the circle may lie on
     ground the model marks (seed 3's first circle, on paving at (8.5, 8.5), was measured 3 m
     wide whether it was 5 or 7 m, 2026-11-26), and the only zones were gaps in the crowd."""
-    from sim.camera_server import CameraServer
-    from sim.ground import ProceduralGround
-    from sim.simulator import SimConfig, Simulator
-    from sim.world import Circle, crowd_with_free_area
+    from sim.vehicle.simulator import SimConfig, Simulator
+    from sim.world.camera_server import CameraServer
+    from sim.world.crowd import Circle, crowd_with_free_area
+    from sim.world.ground import ProceduralGround
 
     cn, ce = ProceduralGround(seed).lawn_near(0.0, 0.0)
     start = (cn - 8.5, ce - 8.5)

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from companion.geometry.camera import Intrinsics, Mount, Pose
-from sim.camera_server import CameraServer, LatestFrameReader, read_mjpeg, read_stamp, stamp_index
-from sim.ground import ProceduralGround
-from sim.render import render_world
-from sim.world import default_world
+from sim.world.camera_server import CameraServer, LatestFrameReader, read_mjpeg, read_stamp, stamp_index
+from sim.world.crowd import default_world
+from sim.world.ground import ProceduralGround
+from sim.world.render import render_world
 
 K = Intrinsics.from_fov(640, 480, 70.0)
 POSE = Pose(0.0, 0.0, 0.0, -25.0, 0.0, 0.0, 0.2)

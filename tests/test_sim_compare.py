@@ -1,4 +1,4 @@
-"""`companion sim-compare`: two results files paired seed by seed, with exact tests (sim/compare.py)."""
+"""`companion sim-compare`: two results files paired seed by seed, with exact tests (sim/evidence/compare.py)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 from scipy.stats import binomtest, wilcoxon
 
-from sim.compare import MIN_DISCORDANT, CompareError, compare, comparison_text, main, mcnemar_p
+from sim.evidence.compare import MIN_DISCORDANT, CompareError, compare, comparison_text, main, mcnemar_p
 
 
 def _row(seed: int, outcome: str, *, flavour: str = "px4", t: float = 30.0, phases: int = 5,

@@ -22,7 +22,7 @@ import pytest
 
 from companion.pipeline.slz import SLZPipeline
 from companion.recording import RecordingReader
-from sim.flight import FlightSpec, fly
+from sim.flights.flight import FlightSpec, fly
 from tests.patched_service import patched_env
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(300)]
@@ -99,8 +99,8 @@ def test_the_baseline_lands_where_the_autopilot_is_and_is_judged_the_same_way(tm
     # autopilot's own failsafe alone. No service starts; the same failsafe comes watch_s after the
     # start and ArduPilot's LAND brings the vehicle down where it hovered; the touchdown is judged
     # on the simulator's truth exactly as a companion flight's.
-    from sim.flight import build_world
-    from sim.scenarios import FlightJob
+    from sim.flights.flight import build_world
+    from sim.flights.scenarios import FlightJob
 
     job = FlightJob(6, "ardupilot", baseline=True)
     spec = job.spec()

@@ -14,13 +14,13 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
-from sim.camera_server import CameraServer, read_mjpeg
-from sim.cli import run as sim_run
-from sim.flight import free_port
-from sim.ground import ProceduralGround
-from sim.pose_follow import ExternalPose, NoPose
-from sim.render import render_world
-from sim.world import default_world
+from sim.flights.flight import free_port
+from sim.flights.standalone import run as sim_run
+from sim.world.camera_server import CameraServer, read_mjpeg
+from sim.world.crowd import default_world
+from sim.world.ground import ProceduralGround
+from sim.world.pose_follow import ExternalPose, NoPose
+from sim.world.render import render_world
 from tests.mavpeer import MavPeer
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)  # PX4's SITL home

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from sim.autopilot import AutopilotConfig
-from sim.faults import Failsafe
-from sim.px4 import AUTO_LAND, AUTO_LOITER, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD, POSCTL, HomeWander
+from sim.vehicle.autopilot import AutopilotConfig
+from sim.vehicle.faults import Failsafe
+from sim.vehicle.px4 import AUTO_LAND, AUTO_LOITER, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD, POSCTL, HomeWander
 from tests.test_sim_vehicle_mavlink import HOME, MavClient, fly
 
 pytestmark = pytest.mark.sitl
@@ -120,7 +120,7 @@ async def test_px4_converts_frame_6_with_its_wrong_formula_and_5_11_local_correc
 
 
 async def test_ardupilot_converts_frame_6_correctly_whatever_the_offset() -> None:
-    from sim.ardupilot import GUIDED
+    from sim.vehicle.ardupilot import GUIDED
     sim, c = await fly("ardupilot", start=(0.0, 0.0, -10.0),
                        autopilot=AutopilotConfig(origin_alt_offset_m=OFFSET))
     try:

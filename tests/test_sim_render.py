@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
-from sim.ground import FlatGround, ProceduralGround
-from sim.render import SKY, Looks, plane_homography, render, render_ground
+from sim.world.ground import FlatGround, ProceduralGround
+from sim.world.render import SKY, Looks, plane_homography, render, render_ground
 
 K = Intrinsics.from_fov(640, 480, 70.0)
 

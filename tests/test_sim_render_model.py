@@ -16,10 +16,10 @@ import pytest
 
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.occupancy import FREE, OCCUPIED, OccupancyParams, occupancy_map
-from sim.ground import ProceduralGround
-from sim.render import render_world
-from sim.walkers import CrowdParams
-from sim.world import default_world
+from sim.world.crowd import default_world
+from sim.world.ground import ProceduralGround
+from sim.world.render import render_world
+from sim.world.walkers import CrowdParams
 
 MODEL = Path(__file__).resolve().parents[1] / "companion" / "models" / "slz-density-v4.onnx"  # the default
 V1 = MODEL.with_name("slz-density.onnx")  # the first default, beside it now: held to the same figures
@@ -73,10 +73,10 @@ def test_model_finds_rendered_people_and_leaves_free_space(model, altitude: floa
 
 
 def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys: pytest.CaptureFixture[str]) -> None:
-    """``python -m sim.false_positives``: seed 18's lawn (grass, no path across it) seen from 20 m
+    """``python -m sim.evidence.false_positives``: seed 18's lawn (grass, no path across it) seen from 20 m
     with nobody in the world is left free by the shipped model; a dense world has no lawn to
     measure; the command prints one JSON row per seed and height, and refuses bad input."""
-    from sim.false_positives import lawn_false_positives, main
+    from sim.evidence.false_positives import lawn_false_positives, main
 
     figures = lawn_false_positives(model, 18, [20.0])
     assert len(figures) == 1
@@ -100,12 +100,12 @@ def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys:
 
 
 def test_lawn_false_positives_of_a_landability_model(capsys: pytest.CaptureFixture[str]) -> None:
-    """``python -m sim.false_positives --landability``: the same lawn measured for unlandable
+    """``python -m sim.evidence.false_positives --landability``: the same lawn measured for unlandable
     marks by the shipped landability model, through the service's surface step at the model's
     threshold; a density model given as a landability model is a clear error."""
     from companion.config import SHIPPED_LANDABILITY
     from companion.pipeline.landability import LandabilityModel
-    from sim.false_positives import lawn_false_positives, main
+    from sim.evidence.false_positives import lawn_false_positives, main
 
     land = LandabilityModel(SHIPPED_LANDABILITY, threads=1)
     (fig,) = lawn_false_positives(land, 18, [20.0])
@@ -118,10 +118,10 @@ def test_lawn_false_positives_of_a_landability_model(capsys: pytest.CaptureFixtu
 
 
 def test_walker_alarms_command_scores_each_seed_and_refuses_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
-    """``python -m sim.walker_alarms``: a short descent over crossing seed 9's circle gives one
+    """``python -m sim.evidence.walker_alarms``: a short descent over crossing seed 9's circle gives one
     JSON row per margin and the totals; a dense world has no circle and is skipped, said on
     stderr; bad arguments are exit 2."""
-    from sim.walker_alarms import main
+    from sim.evidence.walker_alarms import main
 
     assert main(["--seeds", "9,16", "--edge-px", "0,16", "--seconds", "4", "--horizon", "3",
                  "--blind-from", "1", "--model", str(MODEL), "--json"]) == 0

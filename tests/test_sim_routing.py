@@ -4,7 +4,7 @@ Loopback UDP in one process, seconds per test, nothing flown: the simulator (Ard
 flavour) with the companion's real link, command server and failsafe monitor on its first link
 (``udpout``, sysid 1 / compid 191) and a pymavlink ground station (255/190) on its second
 (``udpin``, the ground station "connects"). The routing rules under test are ArduPilot's
-``MAVLink_routing.cpp`` and PX4's ``Mavlink::forward_message`` (``sim/routing.py``).
+``MAVLink_routing.cpp`` and PX4's ``Mavlink::forward_message`` (``sim/vehicle/routing.py``).
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ from companion.mavlink.failsafe import FailsafeConfig, FailsafeMonitor
 from companion.mavlink.gcs_commands import CameraInfo, CommandServer
 from companion.mavlink.link import LinkConfig, MavLink
 from companion.mavlink.statustext import send_statustext
-from sim.demo import ground_station_line
-from sim.endpoint import parse_link
-from sim.flight import FlightSpec, build_scene, reserve_port
-from sim.simulator import SimConfig, Simulator
+from sim.flights.demo import ground_station_line
+from sim.flights.flight import FlightSpec, build_scene, reserve_port
+from sim.vehicle.endpoint import parse_link
+from sim.vehicle.simulator import SimConfig, Simulator
 from tests.mavpeer import MavPeer
 
 pytestmark = pytest.mark.timeout(60)

@@ -20,8 +20,7 @@ from typing import Any
 import pytest
 from scipy.stats import binomtest
 
-from sim import scenarios
-from sim.evidence import (
+from sim.evidence.results import (
     ResultsFile,
     binomial_interval,
     further_clean_flights,
@@ -29,8 +28,18 @@ from sim.evidence import (
     summarise_rows,
     summary_text,
 )
-from sim.flight import STARVED_SHARE, FlightResult, FlightSpec, claim_port, fly, reserve_port, starved, summarise
-from sim.scenarios import FlightJob, plan, run_jobs
+from sim.flights import scenarios
+from sim.flights.flight import (
+    STARVED_SHARE,
+    FlightResult,
+    FlightSpec,
+    claim_port,
+    fly,
+    reserve_port,
+    starved,
+    summarise,
+)
+from sim.flights.scenarios import FlightJob, plan, run_jobs
 from tests.patched_service import patched_env
 from tests.port_holder import reserve_and_hold
 
@@ -58,7 +67,7 @@ def test_concurrent_reservations_never_get_the_same_port(tmp_path: Path) -> None
     assert len(held) == 16 * 15 and len(set(held)) == len(held)
 
     # ... and processes reserving at once, while this one still holds all of the threads' claims.
-    # Forked by a fork server that has imported sim.flight once: spawned, each imported it
+    # Forked by a fork server that has imported sim.flights.flight once: spawned, each imported it
     # itself (a second each, one after another on two cores) before it could reserve anything.
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["tests.port_holder"])
@@ -155,7 +164,7 @@ def test_starvation_is_a_rate_below_70_percent_or_frames_over_half_a_period() ->
 
 
 def test_summarise_keeps_its_figures_for_flight_results() -> None:
-    from sim.flight import FlightResult
+    from sim.flights.flight import FlightResult
 
     r = FlightResult(FlightSpec(), "safe", touchdown=(0.0, 0.0), clearance_m=1.0, time_to_touchdown_s=20.0,
                      processed_fps=3.0, starved=True)
@@ -165,9 +174,9 @@ def test_summarise_keeps_its_figures_for_flight_results() -> None:
 
 
 def test_landings_on_ground_nobody_walks_into_are_counted_apart_from_gaps_in_the_crowd() -> None:
-    from sim.flight import FlightResult
-    from sim.walkers import Circle as WCircle
-    from sim.world import crowd_with_free_area, dense_crowd
+    from sim.flights.flight import FlightResult
+    from sim.world.crowd import crowd_with_free_area, dense_crowd
+    from sim.world.walkers import Circle as WCircle
 
     world = crowd_with_free_area(seed=3, free=WCircle(10.0, 20.0, 6.0), half_size=40.0)
     assert world.nobody_walks_at((14.0, 23.0)) is True  # on the lawn
@@ -266,7 +275,7 @@ def test_the_machine_check_times_the_flights_own_pipeline_at_the_camera_rate(mod
     # The real model and the flight's settings: a job with one model thread is timed on one.
     check = scenarios.machine_check(FlightJob(3, "ardupilot", threads=1), frames=3)
     assert check.threads == 1 and check.fps == 10.0
-    assert check.limit_ms == pytest.approx(50.0)  # sim.flight.starved's limit at 10 Hz
+    assert check.limit_ms == pytest.approx(50.0)  # sim.flights.flight.starved's limit at 10 Hz
     assert 0 < check.frame_ms_p50 <= check.frame_ms_p95
     assert check.as_dict()["starves"] == (check.frame_ms_p95 > 50.0)
     slow = scenarios.MachineCheck(70.0, 95.0, 50.0, 10.0, 2)
@@ -430,11 +439,11 @@ def test_a_killed_runner_leaves_no_service_running(tmp_path):
     import time
 
     import companion.parallel
-    import sim.flight
+    import sim.flights.flight
 
-    # The flight's service is started with sim.flight's die_with_parent, which is this one:
-    # imported from companion.parallel, the parent does not spend a second importing sim.flight.
-    assert sim.flight.die_with_parent is companion.parallel.die_with_parent
+    # The flight's service is started with sim.flights.flight's die_with_parent, which is this one:
+    # imported from companion.parallel, the parent does not spend a second importing sim.flights.flight.
+    assert sim.flights.flight.die_with_parent is companion.parallel.die_with_parent
     code = ("import subprocess, sys, time\n"
             "from companion.parallel import die_with_parent\n"
             "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], preexec_fn=die_with_parent)\n"
@@ -500,7 +509,7 @@ def test_a_killed_runner_leaves_no_worker_flying(tmp_path):
 
 
 def test_zones_given_up_over_them_are_judged_on_the_truth_under_the_vehicle() -> None:
-    from sim.flight import FlightResult, zone_losses
+    from sim.flights.flight import FlightResult, zone_losses
 
     truth = [(9.9, 5.0), (10.0, 1.5), (10.1, 4.0), (20.0, 3.5)]  # (monotonic s, nearest person m)
     events = [

@@ -11,8 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sim import scenarios
-from sim.evidence import (
+from sim.evidence.results import (
     ResultsFile,
     baseline_text,
     phase_changes,
@@ -22,8 +21,9 @@ from sim.evidence import (
     summarise_rows,
     summary_text,
 )
-from sim.flight import FlightResult, FlightSpec, summarise
-from sim.scenarios import FlightJob, parse_seeds, plan, run_jobs, scenario
+from sim.flights import scenarios
+from sim.flights.flight import FlightResult, FlightSpec, summarise
+from sim.flights.scenarios import FlightJob, parse_seeds, plan, run_jobs, scenario
 
 
 def test_a_seed_is_the_same_scene_whatever_the_flavour():
@@ -103,8 +103,8 @@ def test_every_seed_keeps_its_scene_and_some_free_areas_gain_crossing_walkers():
 
 
 def test_crossing_walkers_cross_the_zone_during_the_descent_at_walking_speed():
-    from sim.walkers import Circle, Crossing
-    from sim.world import CROSSING_WINDOW_S, World, add_crossing_walkers
+    from sim.world.crowd import CROSSING_WINDOW_S, World, add_crossing_walkers
+    from sim.world.walkers import Circle, Crossing
 
     circle = Circle(10.0, -4.0, 6.0)
     for seed in range(1, 30):
@@ -136,7 +136,7 @@ def test_crossing_walkers_cross_the_zone_during_the_descent_at_walking_speed():
 
 
 def test_a_crossing_flight_is_a_free_area_scene_and_a_baseline_has_no_companion():
-    from sim.flight import build_world
+    from sim.flights.flight import build_world
 
     spec = scenario(2)
     assert spec.world == "crossing" and spec.companion
@@ -288,8 +288,8 @@ def test_a_bad_setting_is_exit_2_before_anything_flies(item, says, monkeypatch, 
 def test_the_land_speed_flies_the_autopilots_land_and_keeps_its_rows_apart(tmp_path, monkeypatch, capsys):
     # `--land-speed 0.5` flies the simulated autopilot's LAND as a vehicle left at ArduPilot's
     # default; rows flown at the scenarios' own speed are not resumed from, nor mixed in.
-    from sim.evidence import SCENARIO_LAND_SPEED
-    from sim.flight import build_scene
+    from sim.evidence.results import SCENARIO_LAND_SPEED
+    from sim.flights.flight import build_scene
 
     assert scenario(3).land_speed == SCENARIO_LAND_SPEED == 1.0
     job = FlightJob(3, "ardupilot", land_speed=0.5)
@@ -322,7 +322,7 @@ def test_a_longer_watch_is_flown_and_keeps_its_rows_apart(tmp_path, monkeypatch,
     # `--watch-s 30` lets the service watch the crowd 30 s before the failsafe (a service that ran
     # the whole flight has seen more than the scenarios' 4 s); rows of the scenarios' own watch,
     # and rows written before the field existed, are not resumed from, nor mixed in.
-    from sim.evidence import SCENARIO_WATCH_S
+    from sim.evidence.results import SCENARIO_WATCH_S
 
     assert scenario(3).watch_s == SCENARIO_WATCH_S == 4.0
     job = FlightJob(3, "ardupilot", watch_s=30.0)
@@ -374,9 +374,9 @@ def test_a_crossing_window_draws_crossings_over_it_at_the_same_rate_and_keeps_it
                                                                                               capsys):
     # `--crossing-window 4-84`: the crossing world's walkers cross over 80 s after the failsafe, as
     # many more of them as keep the rate of its own 4-24 s; rows are keyed apart.
-    from sim.evidence import SCENARIO_CROSSING_WINDOW_S
-    from sim.flight import build_world
-    from sim.world import CROSSING_WINDOW_S, Circle, World, add_crossing_walkers
+    from sim.evidence.results import SCENARIO_CROSSING_WINDOW_S
+    from sim.flights.flight import build_world
+    from sim.world.crowd import CROSSING_WINDOW_S, Circle, World, add_crossing_walkers
 
     assert SCENARIO_CROSSING_WINDOW_S == CROSSING_WINDOW_S == scenario(3).crossing_window
     circle = Circle(0.0, 0.0, 6.0)
@@ -430,7 +430,7 @@ def test_lockstep_clock_starts_are_fixed_recorded_and_keyed_apart(tmp_path, monk
     # A lockstep flight's clock starts at a fixed second, not at the machine's uptime (a flight's
     # verdict can turn on how its times round); `--clock-start` flies every seed from each start
     # given, recorded in its row and keyed apart, so two starts of one code are a yardstick.
-    from sim.evidence import LOCKSTEP_CLOCK_START_S
+    from sim.evidence.results import LOCKSTEP_CLOCK_START_S
 
     assert scenario(3).clock_start_s == LOCKSTEP_CLOCK_START_S == 1000.0
     lock = FlightJob(3, "ardupilot", lockstep=True)
@@ -501,7 +501,7 @@ def test_a_row_says_which_software_flew_it() -> None:
     # to tell another version's rounding from a change (sim-compare names a difference).
     from importlib import metadata
 
-    from sim.evidence import SOFTWARE, software
+    from sim.evidence.results import SOFTWARE, software
 
     sw = software()
     assert sw["numpy"] == np.__version__ == metadata.version("numpy")

@@ -1,4 +1,4 @@
-"""What the simulator's ground is (``sim.ground.SURFACES``), and touchdowns judged on it: a landing
+"""What the simulator's ground is (``sim.world.ground.SURFACES``), and touchdowns judged on it: a landing
 on a tree or a bench is counted apart, whoever stood near."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from sim.evidence import summarise_baseline, summarise_rows, summary_text
-from sim.flight import FOOTPRINT_M, FlightResult, FlightSpec, touchdown_surfaces
-from sim.ground import BLOCK, LANDABLE_SURFACES, SURFACE_LEVEL, SURFACES, FlatGround, ProceduralGround
+from sim.evidence.results import summarise_baseline, summarise_rows, summary_text
+from sim.flights.flight import FOOTPRINT_M, FlightResult, FlightSpec, touchdown_surfaces
+from sim.world.ground import BLOCK, LANDABLE_SURFACES, SURFACE_LEVEL, SURFACES, FlatGround, ProceduralGround
 
 
 def _shapes(ground: ProceduralGround, surface: str, blocks: int = 12):

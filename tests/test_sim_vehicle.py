@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from sim.ardupilot import GUIDED, LAND, LOITER, RTL, ArduPilotCopter
-from sim.autopilot import AutopilotConfig, GeoFrame, StreamSchedule
-from sim.faults import Failsafe, LinkFaults
-from sim.px4 import AUTO_LAND, AUTO_LOITER, OFFBOARD, Px4Multicopter, px4_mode, px4_split
-from sim.vehicle import Vehicle, VehicleParams
+from sim.vehicle.ardupilot import GUIDED, LAND, LOITER, RTL, ArduPilotCopter
+from sim.vehicle.autopilot import AutopilotConfig, GeoFrame, StreamSchedule
+from sim.vehicle.faults import Failsafe, LinkFaults
+from sim.vehicle.kinematics import Vehicle, VehicleParams
+from sim.vehicle.px4 import AUTO_LAND, AUTO_LOITER, OFFBOARD, Px4Multicopter, px4_mode, px4_split
 
 DT = 0.02
 
@@ -168,7 +168,7 @@ def test_px4_offboard_needs_a_prior_stream() -> None:
     ap = Px4Multicopter(v)
     assert ap.custom_mode == AUTO_LOITER
     assert ap.request_mode(OFFBOARD) == 1  # MAV_RESULT_TEMPORARILY_REJECTED, as Commander acks
-    from sim.autopilot import Setpoint
+    from sim.vehicle.autopilot import Setpoint
     t = 0.0
     for _ in range(5):  # 0.4 s of 10 Hz setpoints: not yet "a while"
         t += 0.1
@@ -210,8 +210,8 @@ def test_geoframe_round_trip_through_geographiclib() -> None:
 def test_cli_builds_the_configuration_and_rejects_bad_links() -> None:
     import argparse
 
-    from sim import cli
-    from sim.endpoint import parse_url
+    from sim.flights import standalone as cli
+    from sim.vehicle.endpoint import parse_url
 
     parser = argparse.ArgumentParser()
     cli.configure(parser)
@@ -233,7 +233,7 @@ def test_cli_builds_the_configuration_and_rejects_bad_links() -> None:
 def test_ardupilot_velocity_target_times_out_and_gcs_failsafe_fires_on_silence() -> None:
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-    from sim.autopilot import Setpoint
+    from sim.vehicle.autopilot import Setpoint
     v = Vehicle(position=(0.0, 0.0, -10.0))
     ap = ArduPilotCopter(v, AutopilotConfig(gcs_timeout_s=4.0))
     ap.set_mode(GUIDED)

@@ -14,12 +14,12 @@ import random
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from sim.ardupilot import GUIDED, LAND, LOITER, RTL
-from sim.autopilot import AutopilotConfig
-from sim.faults import Failsafe
-from sim.px4 import AUTO_LAND, AUTO_LOITER, MAIN_AUTO, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD, POSCTL, SUB_LAND
-from sim.simulator import SimConfig, Simulator
-from sim.vehicle import VehicleParams
+from sim.vehicle.ardupilot import GUIDED, LAND, LOITER, RTL
+from sim.vehicle.autopilot import AutopilotConfig
+from sim.vehicle.faults import Failsafe
+from sim.vehicle.kinematics import VehicleParams
+from sim.vehicle.px4 import AUTO_LAND, AUTO_LOITER, MAIN_AUTO, MAIN_OFFBOARD, MAIN_POSCTL, OFFBOARD, POSCTL, SUB_LAND
+from sim.vehicle.simulator import SimConfig, Simulator
 
 pytestmark = pytest.mark.sitl
 
@@ -214,7 +214,7 @@ async def test_request_message_sends_home_position(ardupilot) -> None:
 
 async def test_ardupilot_guided_position_target_flies_there_within_limits(ardupilot) -> None:
     sim, c = ardupilot
-    from sim.autopilot import GeoFrame
+    from sim.vehicle.autopilot import GeoFrame
     lat, lon, _ = GeoFrame(*HOME).to_global(12.0, -6.0, 0.0)
     mask = 0b110111111000  # position only
     target = mav.MAVLink_set_position_target_global_int_message(
@@ -455,7 +455,7 @@ async def test_udpin_link_answers_whoever_sends_to_it() -> None:
 
 async def test_ardupilot_reposition_needs_guided_or_the_change_mode_flag(ardupilot) -> None:
     sim, c = ardupilot
-    from sim.autopilot import GeoFrame
+    from sim.vehicle.autopilot import GeoFrame
     lat, lon, _ = GeoFrame(*HOME).to_global(-3.0, 2.0, 0.0)
     args = (-1, 0, 0, float("nan"), lat * 1e7, lon * 1e7, 5.0)
     frame = mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT

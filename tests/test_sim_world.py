@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from sim.walkers import WALK_SPEED_RANGE, Bounds, Circle, CrowdParams, GeneratedCrowd
-from sim.world import World, crowd_with_free_area, default_world, dense_crowd, largest_free_circle
+from sim.world.crowd import World, crowd_with_free_area, default_world, dense_crowd, largest_free_circle
+from sim.world.walkers import WALK_SPEED_RANGE, Bounds, Circle, CrowdParams, GeneratedCrowd
 
 DT = 0.1
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from companion.geometry.camera import Intrinsics, Mount, Pose
-from sim.dronecrowd import (
+from sim.world.crowd import dronecrowd_world
+from sim.world.dronecrowd import (
     DroneCrowdMotion,
     DroneCrowdUnavailable,
     cleaned,
@@ -15,9 +16,8 @@ from sim.dronecrowd import (
     stabilised,
     track_speeds,
 )
-from sim.ground import ProceduralGround
-from sim.render import render_world
-from sim.world import dronecrowd_world
+from sim.world.ground import ProceduralGround
+from sim.world.render import render_world
 
 
 def test_absent_data_gives_a_clear_error(tmp_path) -> None:

@@ -9,7 +9,7 @@ import math
 
 import pytest
 
-from sim.flight import OVER_ZONE, FlightSpec, fly
+from sim.flights.flight import OVER_ZONE, FlightSpec, fly
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 

@@ -305,8 +305,8 @@ def test_the_search_lands_on_a_lawn_with_a_bench_on_it_as_a_steady_zone(model_pa
     the lawn is chosen and landed on. (Seed 43, this test's first seed, lands too since the search waits for the watch
     of the same ground, which began 4.5 s after arriving as its zone's centre settled; seed 23
     lands without that wait, so it tests the steady zone alone.)"""
-    from sim.lockstep import fly_in_process
-    from sim.scenarios import FlightJob
+    from sim.flights.lockstep import fly_in_process
+    from sim.flights.scenarios import FlightJob
 
     spec = FlightJob(23, "ardupilot", lockstep=True, threads=1).spec()
     assert spec.world == "dense_beyond"

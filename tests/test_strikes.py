@@ -1,4 +1,4 @@
-"""``python -m sim.strikes``: each strike of a results file traced on the world's truth."""
+"""``python -m sim.evidence.strikes``: each strike of a results file traced on the world's truth."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from sim import strikes
-from sim.flight import build_world
-from sim.scenarios import scenario
-from sim.world import TICK_S, add_crossing_walkers
+from sim.evidence import strikes
+from sim.flights.flight import build_world
+from sim.flights.scenarios import scenario
+from sim.world.crowd import TICK_S, add_crossing_walkers
 
 T_TRIGGER = 4.0
 TO_TOUCHDOWN = 8.0

@@ -16,9 +16,9 @@ from companion import config  # noqa: E402
 from companion.geometry.camera import Intrinsics, Mount, Pose  # noqa: E402
 from companion.pipeline.density import DensityModel  # noqa: E402
 from companion.training.layout import TOLERANCE, align_concats, main, max_difference  # noqa: E402
-from sim.ground import ProceduralGround  # noqa: E402
-from sim.render import render_world  # noqa: E402
-from sim.world import default_world  # noqa: E402
+from sim.world.crowd import default_world  # noqa: E402
+from sim.world.ground import ProceduralGround  # noqa: E402
+from sim.world.render import render_world  # noqa: E402
 
 
 def _branchy(widths: tuple[int, ...] = (3, 5, 8), shared_weight: bool = False,

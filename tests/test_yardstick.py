@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from sim.compare import compare
-from sim.evidence import read_rows, summarise_baseline, summarise_rows
+from sim.evidence.compare import compare
+from sim.evidence.results import read_rows, summarise_baseline, summarise_rows
 
 YARDSTICK = Path(__file__).resolve().parent.parent / "docs" / "yardstick"
 

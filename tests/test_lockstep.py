@@ -18,16 +18,16 @@ import cv2
 import numpy as np
 import pytest
 
-from sim.evidence.results import read_rows, row_key
 from sim.flights.flight import FlightSpec, fly, recorded_events
+from sim.flights.inprocess import PushCamera
 from sim.flights.lockstep import (
     COMPUTE_S,
     LockstepError,
-    PushCamera,
     VirtualTimeLoop,
     fly_in_process,
     simulated_clock,
 )
+from sim.flights.results import read_rows, row_key
 from sim.flights.scenarios import FlightJob, run_jobs
 
 #: What two runs of one lockstep flight may differ in: the real machine's time and CPU, not the flight.
@@ -127,7 +127,7 @@ def test_the_simulated_clock_starts_at_a_fixed_second_not_the_machines_uptime(mo
     # It used to start at the real time.monotonic(): a flight's times then rounded differently
     # from one hour to the next, enough to change verdicts (docs/scale.md). A machine that has
     # been up for a day starts its flights' clocks where a fresh one does.
-    from sim.evidence.results import LOCKSTEP_CLOCK_START_S
+    from sim.flights.results import LOCKSTEP_CLOCK_START_S
 
     for uptime in (12.5, 86_400.25):
         monkeypatch.setattr(time, "monotonic", lambda uptime=uptime: uptime)

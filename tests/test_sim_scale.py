@@ -20,14 +20,6 @@ from typing import Any
 import pytest
 from scipy.stats import binomtest
 
-from sim.evidence.results import (
-    ResultsFile,
-    binomial_interval,
-    further_clean_flights,
-    read_rows,
-    summarise_rows,
-    summary_text,
-)
 from sim.flights import scenarios
 from sim.flights.flight import (
     STARVED_SHARE,
@@ -38,6 +30,14 @@ from sim.flights.flight import (
     reserve_port,
     starved,
     summarise,
+)
+from sim.flights.results import (
+    ResultsFile,
+    binomial_interval,
+    further_clean_flights,
+    read_rows,
+    summarise_rows,
+    summary_text,
 )
 from sim.flights.scenarios import FlightJob, plan, run_jobs
 from tests.patched_service import patched_env

@@ -11,7 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sim.evidence.results import (
+from sim.flights import scenarios
+from sim.flights.flight import FlightResult, FlightSpec, summarise
+from sim.flights.results import (
     ResultsFile,
     baseline_text,
     phase_changes,
@@ -21,8 +23,6 @@ from sim.evidence.results import (
     summarise_rows,
     summary_text,
 )
-from sim.flights import scenarios
-from sim.flights.flight import FlightResult, FlightSpec, summarise
 from sim.flights.scenarios import FlightJob, parse_seeds, plan, run_jobs, scenario
 
 
@@ -288,8 +288,8 @@ def test_a_bad_setting_is_exit_2_before_anything_flies(item, says, monkeypatch, 
 def test_the_land_speed_flies_the_autopilots_land_and_keeps_its_rows_apart(tmp_path, monkeypatch, capsys):
     # `--land-speed 0.5` flies the simulated autopilot's LAND as a vehicle left at ArduPilot's
     # default; rows flown at the scenarios' own speed are not resumed from, nor mixed in.
-    from sim.evidence.results import SCENARIO_LAND_SPEED
     from sim.flights.flight import build_scene
+    from sim.flights.results import SCENARIO_LAND_SPEED
 
     assert scenario(3).land_speed == SCENARIO_LAND_SPEED == 1.0
     job = FlightJob(3, "ardupilot", land_speed=0.5)
@@ -322,7 +322,7 @@ def test_a_longer_watch_is_flown_and_keeps_its_rows_apart(tmp_path, monkeypatch,
     # `--watch-s 30` lets the service watch the crowd 30 s before the failsafe (a service that ran
     # the whole flight has seen more than the scenarios' 4 s); rows of the scenarios' own watch,
     # and rows written before the field existed, are not resumed from, nor mixed in.
-    from sim.evidence.results import SCENARIO_WATCH_S
+    from sim.flights.results import SCENARIO_WATCH_S
 
     assert scenario(3).watch_s == SCENARIO_WATCH_S == 4.0
     job = FlightJob(3, "ardupilot", watch_s=30.0)
@@ -374,8 +374,8 @@ def test_a_crossing_window_draws_crossings_over_it_at_the_same_rate_and_keeps_it
                                                                                               capsys):
     # `--crossing-window 4-84`: the crossing world's walkers cross over 80 s after the failsafe, as
     # many more of them as keep the rate of its own 4-24 s; rows are keyed apart.
-    from sim.evidence.results import SCENARIO_CROSSING_WINDOW_S
     from sim.flights.flight import build_world
+    from sim.flights.results import SCENARIO_CROSSING_WINDOW_S
     from sim.world.crowd import CROSSING_WINDOW_S, Circle, World, add_crossing_walkers
 
     assert SCENARIO_CROSSING_WINDOW_S == CROSSING_WINDOW_S == scenario(3).crossing_window
@@ -430,7 +430,7 @@ def test_lockstep_clock_starts_are_fixed_recorded_and_keyed_apart(tmp_path, monk
     # A lockstep flight's clock starts at a fixed second, not at the machine's uptime (a flight's
     # verdict can turn on how its times round); `--clock-start` flies every seed from each start
     # given, recorded in its row and keyed apart, so two starts of one code are a yardstick.
-    from sim.evidence.results import LOCKSTEP_CLOCK_START_S
+    from sim.flights.results import LOCKSTEP_CLOCK_START_S
 
     assert scenario(3).clock_start_s == LOCKSTEP_CLOCK_START_S == 1000.0
     lock = FlightJob(3, "ardupilot", lockstep=True)
@@ -501,7 +501,7 @@ def test_a_row_says_which_software_flew_it() -> None:
     # to tell another version's rounding from a change (sim-compare names a difference).
     from importlib import metadata
 
-    from sim.evidence.results import SOFTWARE, software
+    from sim.flights.results import SOFTWARE, software
 
     sw = software()
     assert sw["numpy"] == np.__version__ == metadata.version("numpy")

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from sim.evidence.results import summarise_baseline, summarise_rows, summary_text
 from sim.flights.flight import FOOTPRINT_M, FlightResult, FlightSpec, touchdown_surfaces
+from sim.flights.results import summarise_baseline, summarise_rows, summary_text
 from sim.world.ground import BLOCK, LANDABLE_SURFACES, SURFACE_LEVEL, SURFACES, FlatGround, ProceduralGround
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from sim.evidence.compare import compare
-from sim.evidence.results import read_rows, summarise_baseline, summarise_rows
+from sim.flights.results import read_rows, summarise_baseline, summarise_rows
 
 YARDSTICK = Path(__file__).resolve().parent.parent / "docs" / "yardstick"
 

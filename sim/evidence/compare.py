@@ -34,7 +34,7 @@ the comparison says how likely a difference that large would be if the change di
   it is one (``clock_only`` in the JSON; ``lockstep``: every pair was flown that way on both
   sides).
 
-A pair is compared only when both flights are clean (not starved: ``sim.evidence.results``); ``--starved``
+A pair is compared only when both flights are clean (not starved: ``sim.flights.results``); ``--starved``
 takes starved flights too, as the figures of a loaded machine (the rows still say which were).
 Seeds flown in one file only are named and left out. Baseline rows (the autopilot alone) are left
 out: they do not change with the companion's settings. A file that holds two rows of one seed and
@@ -59,7 +59,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest, wilcoxon
 
-from sim.evidence.results import binomial_interval, flown_apart, read_rows
+from sim.flights.results import binomial_interval, flown_apart, read_rows
 
 #: The level below which a difference is called beyond chance.
 ALPHA = 0.05
@@ -206,7 +206,7 @@ class Comparison:
     #: Every compared pair was flown in lockstep on both sides (``sim.flights.lockstep``): a rerun of one
     #: code from one clock start changes no verdict, but another start does (the module docstring).
     lockstep: bool = False
-    #: What flew each side (``sim.evidence.results.software``: Python, the libraries that compute, the
+    #: What flew each side (``sim.flights.results.software``: Python, the libraries that compute, the
     #: commit), each distinct record once; rows written before they said are left out.
     software_before: list[dict[str, str]] = field(default_factory=list)
     software_after: list[dict[str, str]] = field(default_factory=list)
@@ -240,7 +240,7 @@ def _companion_rows(rows: list[dict[str, Any]], label: str) -> dict[tuple[int, s
 
 def _flown_with(row: dict[str, Any], clock: bool = True) -> tuple[str, ...]:
     """What a row was flown with beside the defaults: its service settings (``--set``), each way
-    it was flown apart from the scenarios' own (``sim.evidence.results.flown_apart``: ``--land-speed``,
+    it was flown apart from the scenarios' own (``sim.flights.results.flown_apart``: ``--land-speed``,
     ``--crossing-window``, ``--watch-s``, and with ``clock`` ``--clock-start``), and ``lockstep``
     for a flight on the simulated clock (``--lockstep``)."""
     out = tuple(str(x) for x in row.get("settings") or ())

@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 
 from sim.evidence.person_halo import parse_floats
-from sim.evidence.results import read_rows
 from sim.flights.flight import FlightSpec, build_world
+from sim.flights.results import read_rows
 from sim.flights.scenarios import scenario
 from sim.world.crowd import TICK_S, World, add_crossing_walkers
 from sim.world.walkers import ScriptedWalkers

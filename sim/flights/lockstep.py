@@ -21,28 +21,27 @@ A **lockstep** flight is the same flight made repeatable:
   every frame costs the same time however long the CPU took, so no flight is starved and the
   ordering of everything is fixed;
 - frames go from the simulated camera to the service's camera source on the loop
-  (:class:`PushCamera`), JPEG-encoded and decoded as over MJPEG, with the capture time the MJPEG
+  (``sim.flights.inprocess.PushCamera``), JPEG-encoded and decoded as over MJPEG, with the capture time the MJPEG
   stream's ``X-Timestamp`` carries.
 
 What it does not model: the service's real processing time (a flight on a slow CPU) and a starved
 machine; those stay the real-time flights' job. Python's hash seed is fixed in the flight's process
 (``PYTHONHASHSEED=0``) so nothing iterates a set in another order, and so is where the clock
-starts (``FlightSpec.clock_start_s``, :data:`sim.evidence.results.LOCKSTEP_CLOCK_START_S` by default): it
+starts (``FlightSpec.clock_start_s``, :data:`sim.flights.results.LOCKSTEP_CLOCK_START_S` by default): it
 used to start at the real ``time.monotonic()``, the machine's uptime, and a flight's times then
 rounded differently in their last bits from one hour to the next, which was enough to change
 verdicts (seed 2 on ArduPilot: unsafe at 0.52, 0.74 or 1.33 m, or safe at 5.6 m, by the start
 alone). Another start is the same scene flown again with that rounding changed: how far a
 flight's verdict is from chance (``companion sim-scenarios --clock-start``).
 
-``python -m sim.flights.lockstep`` flies one pickled :class:`~sim.flights.flight.FlightSpec` read from stdin and
-writes the pickled :class:`~sim.flights.flight.FlightResult` to stdout: each flight gets a fresh process
+``python -m sim.flights.lockstep`` flies one pickled :class:`~sim.flights.spec.FlightSpec` read from stdin and
+writes the pickled :class:`~sim.flights.spec.FlightResult` to stdout: each flight gets a fresh process
 (its clock and ``time.monotonic`` are the process's), whatever runs it (one after another, a
 worker pool, a Ray task). :func:`fly_in_process` is that, from the parent's side.
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import dataclasses
@@ -54,22 +53,12 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
-import cv2
-import numpy as np
-
-from companion import config as config_mod
-from companion.config import ConfigError
 from companion.parallel import die_with_parent
-from companion.pipeline.density import DensityModelError
-from companion.service import cli as service_cli
-from companion.service.camera import CameraSource
-from companion.service.notify import Notifier
-from sim.evidence.results import LOCKSTEP_CLOCK_START_S
-from sim.flights.flight import FlightResult, FlightSpec, fly, service_command
-from sim.world.camera_server import CameraServer
+from sim.flights.flight import fly
+from sim.flights.results import LOCKSTEP_CLOCK_START_S
+from sim.flights.spec import FlightResult, FlightSpec
 
 log = logging.getLogger("sim.flights.lockstep")
 
@@ -122,7 +111,7 @@ class _JumpingSelector(selectors.BaseSelector):
 
 class VirtualTimeLoop(asyncio.SelectorEventLoop):
     """An event loop on a simulated clock (seconds, starting at ``start``, by default
-    ``sim.evidence.results.LOCKSTEP_CLOCK_START_S``, never the real ``time.monotonic()``: a flight's
+    ``sim.flights.results.LOCKSTEP_CLOCK_START_S``, never the real ``time.monotonic()``: a flight's
     verdict can turn on how its times round, docs/scale.md): idle time is skipped, and
     ``run_in_executor`` (``asyncio.to_thread``) runs the function at once on the loop's thread and
     gives its result ``compute_s`` later."""
@@ -181,148 +170,6 @@ def simulated_clock(loop: VirtualTimeLoop) -> Iterator[None]:
         yield
     finally:
         time.monotonic, time.monotonic_ns = saved
-
-
-class PushCamera(CameraSource):
-    """The service's camera source in a lockstep flight: no reader thread; each frame is handed
-    over on the loop (:meth:`push`) as the MJPEG stream would deliver it, decoded from its JPEG,
-    stamped with its capture time when that is plausible (else the time it arrived)."""
-
-    def start(self) -> PushCamera:
-        return self
-
-    def stop(self, timeout: float = 2.0) -> None:
-        self._stop.set()
-
-    def push(self, jpeg: bytes, capture_time: float) -> None:
-        image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR) if jpeg else None
-        if image is None:
-            self.stats.corrupt += 1
-            return
-        if self._is_repeat(image):
-            self.stats.repeated += 1
-            return
-        self._publish(image, *self._capture_time(capture_time, "header", time.monotonic()), jpeg=jpeg)
-
-
-async def _feed(server: CameraServer, camera: PushCamera) -> None:
-    """Every frame the simulated camera renders, to the service's camera, as it is rendered."""
-    last: int | None = None
-    while True:
-        frame = await server.next_frame(last)
-        last = frame.index
-        camera.push(frame.jpeg, frame.capture_time)
-
-
-class _QuietNotifier(Notifier):
-    """No systemd here: readiness is read from ``ready_sent``, nothing is sent anywhere."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.enabled, self._sd = False, None
-
-    @property
-    def watchdog_interval(self) -> float | None:
-        return None
-
-
-class _Lines(logging.Handler):
-    """The service's log lines, kept (and written to ``sink``) as ``companion run`` writes them."""
-
-    def __init__(self, lines: list[str], sink: TextIO | None) -> None:
-        super().__init__(logging.INFO)
-        self.lines, self.sink = lines, sink
-        self.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-
-    def emit(self, record: logging.LogRecord) -> None:
-        text = self.format(record)
-        self.lines.append(text)
-        if self.sink is not None:
-            self.sink.write(text + "\n")
-            self.sink.flush()
-
-
-class InProcessService:
-    """The flight's service in this process (the ``sim.flights.flight.FlightService`` of a lockstep
-    flight): ``companion.service.app.Service`` built from the settings ``companion run`` would be
-    given (``sim.flights.flight.service_command``), its camera fed by the simulated camera on the loop. A
-    bad setting or model is a service that never becomes ready, its error in ``lines``."""
-
-    def __init__(self, spec: FlightSpec, link_port: int, camera: CameraServer, record_dir: Path,
-                 sink: TextIO | None) -> None:
-        self.spec, self.link_port, self.server, self.record_dir = spec, link_port, camera, record_dir
-        self.lines: list[str] = []
-        self._handler = _Lines(self.lines, sink)
-        self._logger = logging.getLogger("companion")
-        self._task: asyncio.Task[int] | None = None
-        self._feed: asyncio.Task[None] | None = None
-        self.service: Any = None
-
-    def config(self) -> config_mod.Config:
-        """The settings of the command line a real-time flight starts its service with
-        (``sim.flights.flight.service_command``), read by ``companion run``'s own parser and resolved as
-        it resolves them; raises ConfigError."""
-        argv = service_command(self.spec, self.link_port, self.server.url, self.record_dir)
-        parser = argparse.ArgumentParser(prog="companion run")
-        service_cli.configure(parser)
-        args = parser.parse_args(argv[argv.index("run") + 1:])
-        return config_mod.load(args.config, service_cli.overrides_from_args(args))
-
-    async def start(self, timeout: float) -> bool:
-        from companion.service.app import Service, load_landability, load_model
-
-        self._logger.addHandler(self._handler)
-        self._logger.setLevel(logging.INFO)
-        try:
-            cfg = self.config()
-            model = load_model(cfg)
-            surface = load_landability(cfg)
-        except (ConfigError, DensityModelError) as exc:
-            self.lines.append(f"ERROR companion: {exc}")
-            return False
-        c = cfg.camera
-        camera = PushCamera(c.source, width=c.width, height=c.height, fps=c.fps,
-                            stall_timeout_s=c.stall_timeout_s, max_backoff_s=c.reopen_max_backoff_s)
-        self.service = Service(cfg, model, _QuietNotifier(), camera=camera, surface=surface)
-        self._task = asyncio.create_task(self.service.run(), name="service")
-        self._feed = asyncio.create_task(_feed(self.server, camera), name="camera feed")
-        loop = asyncio.get_running_loop()
-        end = loop.time() + timeout
-        while loop.time() < end:
-            if self.service.notifier.ready_sent:
-                return True
-            if self._task.done():
-                return False
-            await asyncio.sleep(0.05)
-        return False
-
-    @property
-    def running(self) -> bool:
-        return self._task is not None and not self._task.done()
-
-    async def stop(self) -> int | None:
-        code: int | None = None
-        try:
-            if self._task is not None:
-                if not self._task.done():
-                    self.service.request_stop("the flight is over")
-                try:
-                    code = await asyncio.wait_for(asyncio.shield(self._task), 5.0)
-                except (TimeoutError, asyncio.TimeoutError):
-                    self._task.cancel()
-                    with contextlib.suppress(BaseException):
-                        await self._task
-                    code = None
-                except Exception as exc:  # the service's own failure: its exit status would be 1
-                    self.lines.append(f"ERROR companion: service failed: {exc!r}")
-                    code = 1
-            if self._feed is not None:
-                self._feed.cancel()
-                with contextlib.suppress(BaseException):
-                    await self._feed
-        finally:
-            self._logger.removeHandler(self._handler)
-        return code
 
 
 def fly_lockstep(spec: FlightSpec, compute_s: float = COMPUTE_S) -> FlightResult:

@@ -25,7 +25,7 @@ touchdown and the handbacks; ``--json`` prints one JSON object with ``total, saf
 unsafe, min_clearance_m, median_time_to_touchdown_s, max_climb_m`` (and more; ``max_climb_m`` is
 the most any flight rose above its altitude at the trigger, on the truth; ``strikes``, touchdowns
 with somebody within r_0 whoever landed; ``median_phase_changes``, ``max_phase_changes``), with
-the rates and their exact 95 % bounds of ``sim.evidence.results``.
+the rates and their exact 95 % bounds of ``sim.flights.results``.
 
 ``--baseline`` flies every seed twice: with the companion, and with the autopilot's own failsafe
 alone (no service: ``FlightSpec.companion = False``), judged the same way. The JSON then adds
@@ -70,7 +70,7 @@ the real-time flights stay the test of the service as a vehicle runs it. Rows sa
 true`` and resume only from lockstep rows. A flight is chaotic: any change to the code or the
 settings also changes how its times round, and can change a verdict the change has nothing to do
 with. ``--clock-start S[,S...]`` flies each seed on a clock that starts at S (the fixed
-``sim.evidence.results.LOCKSTEP_CLOCK_START_S`` by default), which perturbs nothing but that rounding:
+``sim.flights.results.LOCKSTEP_CLOCK_START_S`` by default), which perturbs nothing but that rounding:
 the verdicts that change between two starts of one code are how far a seed's verdict is from
 chance, the yardstick for any comparison (docs/scale.md, "How far one flight is from the next").
 Rows record ``clock_start_s`` and resume only from rows flown from the same start; lockstep rows
@@ -107,7 +107,8 @@ from tqdm import tqdm
 
 from companion import config as settings
 from companion.parallel import ParallelError, default_workers, fan_out
-from sim.evidence.results import (
+from sim.flights.flight import STARVED_FRAME_SHARE, FlightSpec, fly
+from sim.flights.results import (
     LOCKSTEP_CLOCK_START_S,
     SCENARIO_LAND_SPEED,
     SCENARIO_WATCH_S,
@@ -121,8 +122,7 @@ from sim.evidence.results import (
     summarise_rows,
     summary_text,
 )
-from sim.flights.flight import STARVED_FRAME_SHARE, FlightSpec, fly
-from sim.flights.flight import service_settings as flight_settings
+from sim.flights.spec import service_settings as flight_settings
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -225,7 +225,7 @@ class FlightJob:
     #: ``KEY=VALUE`` service settings (``--set``) the flight flies with; part of its key.
     service_set: tuple[str, ...] = ()
     #: The simulated autopilot's LAND speed (m/s, ``--land-speed``; None: the scenario's own,
-    #: ``sim.evidence.results.SCENARIO_LAND_SPEED``); part of its key when it is another.
+    #: ``sim.flights.results.SCENARIO_LAND_SPEED``); part of its key when it is another.
     land_speed: float | None = None
     #: The crossing world's window (s after the failsafe, ``--crossing-window``; None: the
     #: world's own, ``sim.world.crowd.CROSSING_WINDOW_S``); part of its key when it is another.
@@ -233,10 +233,10 @@ class FlightJob:
     #: Fly on the simulated clock (``sim.flights.lockstep``); part of its key.
     lockstep: bool = False
     #: How long the service watches before the failsafe (s, ``--watch-s``; None: the scenarios'
-    #: own, ``sim.evidence.results.SCENARIO_WATCH_S``); part of its key when it is another.
+    #: own, ``sim.flights.results.SCENARIO_WATCH_S``); part of its key when it is another.
     watch_s: float | None = None
     #: Where a lockstep flight's simulated clock starts (s, ``--clock-start``; None: the fixed
-    #: ``sim.evidence.results.LOCKSTEP_CLOCK_START_S``); part of its key when it is another.
+    #: ``sim.flights.results.LOCKSTEP_CLOCK_START_S``); part of its key when it is another.
     clock_start: float | None = None
 
     def spec(self) -> FlightSpec:
@@ -274,7 +274,7 @@ class FlightJob:
             return None
 
     def key(self) -> RowKey:
-        """Its key in a results file (``sim.evidence.results.row_key``): a baseline flight's is its own,
+        """Its key in a results file (``sim.flights.results.row_key``): a baseline flight's is its own,
         and so is one flown with other settings or another LAND speed."""
         spec = self.spec()
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,

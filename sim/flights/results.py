@@ -64,17 +64,17 @@ from scipy.stats import beta
 CONFIDENCE = 0.95
 #: The last element of a baseline flight's key in a results file.
 BASELINE = "baseline"
-#: The scenarios' LAND descent speed (m/s; ``sim.flights.flight.FlightSpec.land_speed``'s default): the
+#: The scenarios' LAND descent speed (m/s; ``sim.flights.spec.FlightSpec.land_speed``'s default): the
 #: simulated autopilot's ``LAND_SPEED`` / ``MPC_LAND_SPEED``. Rows flown at another speed
 #: (``companion sim-scenarios --land-speed``) are keyed apart.
 SCENARIO_LAND_SPEED = 1.0
 #: The crossing world's window (s after the failsafe; ``sim.world.crowd.CROSSING_WINDOW_S``): rows flown
 #: with another (``companion sim-scenarios --crossing-window``) are keyed apart.
 SCENARIO_CROSSING_WINDOW_S = (4.0, 24.0)
-#: How long the service watches before the failsafe (s; ``sim.flights.flight.FlightSpec.watch_s``'s
+#: How long the service watches before the failsafe (s; ``sim.flights.spec.FlightSpec.watch_s``'s
 #: default): rows flown with another (``companion sim-scenarios --watch-s``) are keyed apart.
 SCENARIO_WATCH_S = 4.0
-#: Where a lockstep flight's simulated clock starts (s; ``sim.flights.flight.FlightSpec.clock_start_s``'s
+#: Where a lockstep flight's simulated clock starts (s; ``sim.flights.spec.FlightSpec.clock_start_s``'s
 #: default). A flight is a chaotic system: the same scene flown on a clock that starts elsewhere
 #: rounds its times differently in the last bits and may end in another verdict
 #: (docs/scale.md, "How far one flight is from the next"), so the start is fixed and recorded, and

@@ -1,4 +1,4 @@
-"""The body of a process that reserves ports and holds them (tests/test_sim_scale.py).
+"""The body of a process that reserves ports and holds them (tests/flights/test_sim_scale.py).
 
 Its own module, so that the fork server the processes running it come from preloads
 ``sim.flights.flight`` and no more than that (not the test module and all it imports).

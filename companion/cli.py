@@ -179,8 +179,10 @@ def build_parser(chosen: str | None, found: dict[str, Route] | None = None
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    found = routes()
-    chosen = next((a for a in argv if a in COMMANDS or a in found), None)
+    routed = {ep.name for ep in entry_points(group=ROUTE_GROUP)}  # names only: nothing imported
+    chosen = next((a for a in argv if a in COMMANDS or a in routed), None)
+    # One of the service's own commands (the daemon above all) loads nothing another package declares.
+    found = {} if chosen in COMMANDS else routes()
     parser, module = build_parser(chosen, found)
     if chosen is not None and module is None:
         # The command's own arguments are unknown without its module: say what to install.

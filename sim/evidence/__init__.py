@@ -1,7 +1,7 @@
-"""What flights are evidence of.
+"""What flights are evidence of: analyses over flights and their results files.
 
-``results``: the rows a flight writes, the results file, their summary and confidence bounds (the
-bottom of ``sim``: flights write it). Above the flights: ``compare`` (``companion sim-compare``),
+``compare`` (``companion sim-compare``: two results files seed by seed, with exact tests),
 ``strikes`` and ``person_halo`` (``python -m sim.evidence.strikes`` / ``.person_halo``),
-``false_positives`` and ``walker_alarms``.
+``false_positives`` and ``walker_alarms``. The rows themselves, their summary and bounds are
+``sim.flights.results``, below: flights write them.
 """

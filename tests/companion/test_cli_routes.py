@@ -7,6 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from importlib.metadata import EntryPoint
+from pathlib import Path
 
 import pytest
 
@@ -74,3 +75,13 @@ def test_a_broken_route_is_listed_as_unavailable_and_says_why(monkeypatch: pytes
     err = capsys.readouterr().err
     assert "'sim-broken' is declared (sim.commands:NO_SUCH_COMMAND) but cannot be loaded" in err, err
     assert "pip install -e ." in err
+
+
+def test_the_services_own_commands_load_nothing_of_the_simulator(tmp_path: Path) -> None:
+    # `companion run` (the daemon on the vehicle) and the other own commands never import sim.
+    check = ("import atexit, sys; atexit.register(lambda: print(sorted(m for m in sys.modules "
+             "if m == 'sim' or m.startswith('sim.')), file=sys.stderr)); "
+             "from companion.cli import main; main(['check-config', '--help'])")
+    r = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == "[]", r.stderr

@@ -12,6 +12,9 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+#: Every test that flies the simulator (marked ``sitl``, or starting a simulator or a flight) is in
+#: this folder: the second lane of the test command (.ci/tests), after the fast lane.
+FLIGHTS = Path(__file__).resolve().parent / "flights"
 SHARED = Path(os.environ.get("COMPANION_SHARED", REPO.parent / "shared"))
 MODEL = REPO / "companion" / "models" / "slz-density-v4.onnx"  # the default (companion.config.SHIPPED_MODEL)
 
@@ -67,3 +70,13 @@ def few_photos_shared(shared_dir: Path, tmp_path_factory: pytest.TempPathFactory
         label = src / "labels" / f"{photo.stem}.png"
         (dst / "labels" / label.name).symlink_to(label)
     return root
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """A test marked ``sitl`` outside tests/flights would run in the fast lane (.ci/tests runs
+    ``tests --ignore=tests/flights`` first): refuse it, naming where it belongs."""
+    stray = [item.nodeid for item in items
+             if item.get_closest_marker("sitl") is not None and not item.path.resolve().is_relative_to(FLIGHTS)]
+    if stray:
+        raise pytest.UsageError("tests marked sitl fly the simulator and belong in tests/flights/: "
+                                + ", ".join(stray))

@@ -1,7 +1,7 @@
-"""The body of a process that reserves ports and holds them (tests/test_sim_scale.py).
+"""The body of a process that reserves ports and holds them (tests/flights/test_sim_scale.py).
 
 Its own module, so that the fork server the processes running it come from preloads
-``sim.flight`` and no more than that (not the test module and all it imports).
+``sim.flights.flight`` and no more than that (not the test module and all it imports).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import socket
 from pathlib import Path
 from typing import Any
 
-from sim.flight import reserve_port
+from sim.flights.flight import reserve_port
 
 
 def reserve_and_hold(folder: str, count: int, barrier: Any, queue: Any) -> None:

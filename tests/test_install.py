@@ -27,7 +27,7 @@ import pytest
 
 from companion import __version__
 from companion import config as config_mod
-from companion.cli import COMMANDS, build_parser
+from companion.cli import build_parser, command_names
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "companion.example.toml"
@@ -164,7 +164,7 @@ def test_version_is_the_packages() -> None:
     assert r.returncode == 0 and r.stdout.strip() == f"companion {__version__}"
 
 
-@pytest.mark.parametrize("command", [None, *COMMANDS])
+@pytest.mark.parametrize("command", [None, *command_names()])
 def test_help_shows_no_restructuredtext(command: str | None) -> None:
     parser, _module = build_parser(command)
     if command is not None:

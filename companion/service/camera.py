@@ -20,7 +20,7 @@ of the vehicle state, so ``state.pose_at(frame.t)`` pairs the frame with the pos
   set ``V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC``, i.e. nearly all of them in recent kernels; OpenCV does
   not expose the flag, hence the plausibility check below);
 * ``"header"``: an MJPEG part's ``X-Timestamp`` header (seconds), which mjpg-streamer-like servers
-  and the simulator's camera (``sim.camera_server``) send; it is on our clock only when the server
+  and the simulator's camera (``sim.world.camera_server``) send; it is on our clock only when the server
   runs on this machine and stamps with CLOCK_MONOTONIC;
 * ``"grab"``: ``time.monotonic()`` right after the grab returned, for every other source (files,
   folders, RTSP/FFmpeg and GStreamer, whose positions are media time) and as the fallback.

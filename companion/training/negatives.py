@@ -11,7 +11,7 @@ loudly). ``road-marking`` is not a class there: it is the brightest 2 % of an im
 pixels (painted lines and symbols are brighter than the asphalt or paving around them). Nor is
 ``path-edge``: the band ``EDGE_PX`` pixels either side of where paved area meets grass. The shipped
 model marks one edge of a paved path across a lawn as people (docs/design.md, "Why landing points
-sit at a lawn's edge"; ``python -m sim.false_positives``).
+sit at a lawn's edge"; ``python -m sim.evidence.false_positives``).
 """
 
 from __future__ import annotations

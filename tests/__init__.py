@@ -1,0 +1,1 @@
+"""The test suite: folders mirror companion/ and sim/; every flight is in tests/flights."""

@@ -1,0 +1,1 @@
+"""Tests of the companion service, one folder per package of companion/."""

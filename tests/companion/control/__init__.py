@@ -1,0 +1,1 @@
+"""Tests of companion.control: the landing decision."""

@@ -1,0 +1,1 @@
+"""Tests of companion.geometry: the camera model."""

@@ -1,0 +1,1 @@
+"""Tests of companion.mavlink: the link, the autopilot adapters, the vehicle state."""

@@ -1,0 +1,1 @@
+"""Tests of companion.pipeline: density, occupancy, proposals, tracks, the risk map."""

@@ -1,0 +1,1 @@
+"""Tests of companion.replay: the pipeline offline over recordings."""

@@ -1,0 +1,165 @@
+"""The demo's video: what the service decided, drawn from a real flight recording, as H.264 that
+browsers play (yuv420p in MP4), decoded back with PyAV to check what it shows."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
+from companion.pipeline.tracker import Track
+from companion.recording import FlightRecorder
+from companion.replay import flight_video
+
+av = pytest.importorskip("av", reason="PyAV is in the tools extra (pip install -e '.[tools]')")
+
+K = Intrinsics.from_fov(320, 240, 70)
+
+
+def _track(tid: int, x: float, y: float, r: float) -> Track:
+    return Track(id=tid, x=x, y=y, r=r, r_filtered=r, age=20, hits=20, misses=0, view_limited=False,
+                 r_view=20.0, born_t=100.0, last_t=101.0)
+
+
+def _recording(root: Path, n: int = 30, ranges: tuple[tuple[float, int], ...] = ()) -> Path:
+    """``ranges``: recorded downward DISTANCE_SENSOR readings (time s, distance cm)."""
+    rec = FlightRecorder(root, fps=10, queue_size=n + 1, intrinsics=K, mount=Mount(),
+                         meta={"config": {"pipeline": {"head_height_m": 1.7}, "controller": {"land_agl_m": 1.0}}})
+    path = rec.start()
+    for t, cm in ranges:
+        rec.add_event("telemetry", t, msg="DISTANCE_SENSOR", orientation=25, current_distance=cm,
+                      min_distance=20, max_distance=4000)
+    grey = np.full((240, 320, 3), 90, np.uint8)  # plain ground: every colour on it is the drawing's
+    target = _track(3, 2.0, 1.0, 4.0)
+    rec.add_event("trigger", 100.5, reason="battery critical", source="battery")
+    for i in range(n):
+        t = 100.0 + 0.1 * i
+        assert rec.add_frame(i, t, grey, Pose(t, 0.0, 0.0, -20.0 + 0.2 * i, 0.0, 0.0, 0.0))
+        rec.add_event("zones", t, frame=i, tracks=[asdict(target), asdict(_track(5, -6.0, -6.0, 2.5))],
+                      target=3 if t >= 100.6 else None, timings_ms={"total": 30.0})
+        if i == 6:
+            rec.add_event("controller", t, event="target", old="SELECT", phase="APPROACH",
+                          text="SLZ: landing at zone 3, 2.2 m away, radius 4.0 m", zone_id=3)
+    rec.close()
+    return path
+
+
+def test_the_video_is_h264_a_browser_plays_and_shows_the_decision(tmp_path: Path) -> None:
+    path = _recording(tmp_path / "rec")
+    seen: list[tuple[int, int]] = []
+    summary = flight_video.write_h264(path, tmp_path / "demo.mp4", progress=lambda d, t: seen.append((d, t)))
+    assert summary.frames == 30 and summary.frames_without_pose == 0 and seen[-1] == (30, 30)
+    with av.open(str(summary.path)) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "h264" and stream.codec_context.pix_fmt == "yuv420p"
+        decoded = [f.to_ndarray(format="bgr24") for f in container.decode(stream)]
+    assert len(decoded) == 30
+    h = flight_video.HEADER_PX
+    assert decoded[0].shape == (240 + h + flight_video.FOOTER_PX, 320, 3)
+
+    def yellow_on_circle(img: np.ndarray, i: int) -> int:
+        # Pixels on the target's outline (the head plane seen from frame i's pose) that are yellow.
+        pose = Pose(0.0, 0.0, 0.0, -20.0 + 0.2 * i, 0.0, 0.0, 0.0)
+        proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)
+        uv = proj.plane_to_image(np.array([[2.0 + 4.0 * np.cos(a), 1.0 + 4.0 * np.sin(a)]
+                                           for a in np.linspace(0, 2 * np.pi, 36, endpoint=False)]))
+        hits = 0
+        for u, v in uv:
+            px = img[h + int(round(v)), int(round(u))].astype(int)
+            hits += px[2] > 150 and px[1] > 150 and px[0] < 120
+        return hits
+
+    # Before the target is chosen (t < 100.6) the zone is drawn blue; from then on yellow.
+    assert yellow_on_circle(decoded[2], 2) == 0
+    assert yellow_on_circle(decoded[20], 20) >= 18
+    # The status line changes with the phase: MONITOR before the controller's event, then APPROACH.
+    footer_before = decoded[2][h + 240:]
+    footer_after = decoded[20][h + 240:]
+    assert np.abs(footer_before.astype(int) - footer_after.astype(int)).sum() > 0
+
+
+def test_zones_carry_their_clearance_at_touchdown_from_the_flights_own_descent(tmp_path: Path) -> None:
+    # The label says what the controller judges: the zone's radius less what a walker covers
+    # while the vehicle comes down from this frame's height, with the recording's settings.
+    path = _recording(tmp_path / "rec")
+    frames = list(flight_video.frames(path))
+    assert len(frames) == 30
+    from companion import config as settings
+    from companion.replay import draw
+    profile = settings.descent_profile(settings.from_recording({"pipeline": {"head_height_m": 1.7}}))
+    c = profile.clearance_at_touchdown(4.0, 20.0)
+    tr = _track(3, 2.0, 1.0, 4.0)
+    assert draw._track_text(tr, c).endswith(f"4.0 / {c:+.1f} m")
+    # Drawn without the settings the label is shorter: the frames differ right of the label.
+    pose = Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)
+    proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)
+    grey = np.full((240, 320, 3), 90, np.uint8)
+    with_c = flight_video.annotate(grey, [tr], 3, proj, "APPROACH", "", 20.0, 1.0, profile)
+    without = flight_video.annotate(grey, [tr], 3, proj, "APPROACH", "", 20.0, 1.0, None)
+    assert np.abs(with_c.astype(int) - without.astype(int)).sum() > 0
+
+
+def test_a_frame_without_a_pose_is_drawn_without_zones(tmp_path: Path) -> None:
+    rec = FlightRecorder(tmp_path / "rec", fps=10, queue_size=4, intrinsics=K, mount=Mount())
+    path = rec.start()
+    for i in range(3):
+        rec.add_frame(i, 100.0 + 0.1 * i, np.full((240, 320, 3), 90, np.uint8), None)
+    rec.close()
+    summary = flight_video.write_h264(path, tmp_path / "v.mp4")
+    assert summary.frames == 3 and summary.frames_without_pose == 3
+
+
+def test_the_demo_evidence_video_replays_the_recording_as_flown(tmp_path: Path) -> None:
+    # Issue 11, item 6: the demo also shows the evidence, the head-plane panel beside each frame,
+    # re-run by `companion replay` from the recording with the shipped model.
+    import cv2
+
+    from sim.flights.demo import evidence_video
+
+    path = _recording(tmp_path / "rec", n=6)
+    out = evidence_video(path, tmp_path / "evidence.mp4")
+    assert out == tmp_path / "evidence.mp4"
+    cap = cv2.VideoCapture(str(out))
+    n, first = 0, None
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        first = img if first is None else first
+        n += 1
+    assert n == 6 and first is not None
+    assert first.shape[0] == 240 and first.shape[1] > 320 + 200  # the head-plane panel beside
+    import json
+    summary = json.loads((tmp_path / "evidence.json").read_text())
+    assert summary["frames"] == 6 and summary["settings"].startswith("the recording")  # as flown
+    # A recording that cannot be replayed gives None and the demo goes on.
+    assert evidence_video(tmp_path / "nothing-here", tmp_path / "x.mp4") is None
+
+
+def test_the_video_figures_clearance_from_the_recorded_rangefinder_as_the_controller_did(tmp_path: Path) -> None:
+    # Live, a fresh downward rangefinder gives the height the controller figures touchdown from
+    # and, with controller.land_agl_m, the shorter LAND: the video's labels follow it on the
+    # frames it was fresh for (a reading at 100.15 s: frames 2-6, at most 0.5 s old), only there.
+    from companion import config as settings
+    from companion.control.touchdown import by_rangefinder
+    from companion.recording import RecordingReader
+
+    plain = list(flight_video.frames(_recording(tmp_path / "plain", n=10)))
+    path = _recording(tmp_path / "ranged", n=10, ranges=((100.15, 1500),))
+    ranged = list(flight_video.frames(path))
+    differ = [i for i, (a, b) in enumerate(zip(plain, ranged)) if np.abs(a.astype(int) - b.astype(int)).sum() > 0]
+    assert differ == [2, 3, 4, 5, 6]
+    # Frame 4 drawn by hand as the controller figured it: 15 m by the rangefinder, the LAND from
+    # 1 m; the status line keeps the height above home.
+    fr = next(f for f in RecordingReader(path).frames() if f.index == 4)
+    assert fr.pose is not None
+    flown = settings.from_recording({"pipeline": {"head_height_m": 1.7}, "controller": {"land_agl_m": 1.0}})
+    profile = by_rangefinder(settings.descent_profile(flown), 1.0)
+    proj = PlaneProjection.from_pose(K, Mount(), fr.pose, 1.7)
+    tracks = [_track(3, 2.0, 1.0, 4.0), _track(5, -6.0, -6.0, 2.5)]
+    expect = flight_video.annotate(fr.frame_bgr, tracks, None, proj, "MONITOR", "", -fr.pose.down, None,
+                                   profile, 15.0)
+    assert np.array_equal(expect, ranged[4])

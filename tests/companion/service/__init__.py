@@ -1,0 +1,1 @@
+"""Tests of companion.service: the daemon's parts (runner, camera sources, status page, health)."""

@@ -1,0 +1,1 @@
+"""Tests of companion.training: the models' training, distillation and export."""

@@ -1,0 +1,1 @@
+"""Tests of sim.evidence: comparisons, strikes and the other analyses."""

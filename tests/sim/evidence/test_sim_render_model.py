@@ -1,0 +1,138 @@
+"""Closed loop on pixels: the shipped density model must find the people the simulator draws.
+
+Runs the real ONNX models (``companion/models/slz-density-v4.onnx``, the default, and versions 1,
+3 and 5 beside it) on rendered frames and checks, through the service's occupancy step with the
+model's own threshold, that (a) the heads of >= 95 % of the people in view fall on occupied
+pixels at 20-40 m, and (b) a sparse scene still leaves > 20 % of the frame free. Skips, naming the file, until the trained model is committed.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
+from companion.pipeline.occupancy import FREE, OCCUPIED, OccupancyParams, occupancy_map
+from sim.world.crowd import default_world
+from sim.world.ground import ProceduralGround
+from sim.world.render import render_world
+from sim.world.walkers import CrowdParams
+
+MODEL = Path(__file__).resolve().parents[3] / "companion" / "models" / "slz-density-v4.onnx"  # the default
+V1 = MODEL.with_name("slz-density.onnx")  # the first default, beside it now: held to the same figures
+V3 = MODEL.with_name("slz-density-v3.onnx")  # beside the default: held to the same closed-loop figures
+V5 = MODEL.with_name("slz-density-v5.onnx")  # beside the default: the fast model, held to the same figures
+K = Intrinsics.from_fov(640, 480, 70.0)
+
+pytestmark = pytest.mark.skipif(not MODEL.is_file(), reason=f"the shipped density model {MODEL} is not there yet")
+
+
+@pytest.fixture(scope="module", params=[MODEL, V1, V3, V5], ids=["default", "v1", "v3", "v5"])
+def model(request):
+    from companion.pipeline.density import DensityModel
+
+    if not request.param.is_file():
+        pytest.skip(f"no {request.param.name} shipped")
+    return DensityModel(request.param, threads=2)
+
+
+def occupancy_figures(model, world, pose: Pose, mount: Mount, ground) -> tuple[float, float, int]:
+    """(share of in-view people whose head pixel is occupied, share of free pixels, people in view)."""
+    img = render_world(world, pose, K, mount, ground)
+    threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
+    occ = occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold))
+    uv = PlaneProjection.from_pose(K, mount, pose, head_height=1.7).plane_to_image(world.positions())
+    ok = np.isfinite(uv).all(axis=1)
+    ok[ok] = (uv[ok, 0] >= 0) & (uv[ok, 0] <= K.width - 1) & (uv[ok, 1] >= 0) & (uv[ok, 1] <= K.height - 1)
+    px = np.round(uv[ok]).astype(int)
+    covered = float(np.mean(occ[px[:, 1], px[:, 0]] == OCCUPIED)) if len(px) else 1.0
+    return covered, float(np.mean(occ == FREE)), int(len(px))
+
+
+@pytest.mark.parametrize("altitude", [20.0, 30.0, 40.0])
+def test_model_finds_rendered_people_and_leaves_free_space(model, altitude: float) -> None:
+    world = default_world(seed=11, half_size=35.0,
+                          params=CrowdParams(n_walkers=60, n_groups=10, n_standing=20))
+    ground = ProceduralGround(11)
+    hits = views = 0
+    free = []
+    for k, (yaw, mount) in enumerate([(0.3, Mount()), (2.0, Mount()), (-1.0, Mount.from_degrees(pitch_deg=-75))]):
+        world.step(4.0)
+        pose = Pose(world.t, 2.0 * k, -3.0 * k, -altitude, 0.02, -0.03, yaw)
+        covered, free_share, n = occupancy_figures(model, world, pose, mount, ground)
+        hits += covered * n
+        views += n
+        free.append(free_share)
+    assert views >= 15, f"only {views} people in view: the scene does not test anything"
+    recall = hits / views
+    assert recall >= 0.95, f"{altitude} m: heads on occupied pixels {recall:.3f} (free {np.mean(free):.3f})"
+    assert np.mean(free) > 0.20, f"{altitude} m: free share {np.mean(free):.3f} (recall {recall:.3f})"
+
+
+def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m sim.evidence.false_positives``: seed 18's lawn (grass, no path across it) seen from 20 m
+    with nobody in the world is left free by the shipped model; a dense world has no lawn to
+    measure; the command prints one JSON row per seed and height, and refuses bad input."""
+    from sim.evidence.false_positives import lawn_false_positives, main
+
+    figures = lawn_false_positives(model, 18, [20.0])
+    assert len(figures) == 1
+    fig = figures[0]
+    assert fig.world == "free_area" and fig.height_m == 20.0
+    assert 0.0 <= fig.circle_pct <= 1.0 and 0.0 <= fig.frame_pct <= 100.0
+    assert lawn_false_positives(model, 16, [20.0]) == []  # dense: no free circle
+    # Judged on the ground's truth: seed 18's circle is all lawn; seed 3's holds a tree (about a
+    # fifth of it), which the density model leaves unmarked (it is no person).
+    assert (fig.unlandable_pct, fig.unlandable_left_pct) == (0.0, None) and fig.landable_marked_pct <= 1.0
+    (tree,) = lawn_false_positives(model, 3, [20.0])
+    assert 15.0 < tree.unlandable_pct < 30.0 and tree.unlandable_left_pct > 80.0
+    assert 0.0 <= tree.landable_marked_pct <= 10.0
+    assert main(["--seeds", "18", "--heights", "20", "--model", str(MODEL), "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [(r["seed"], r["height_m"]) for r in rows] == [(18, 20.0)] and rows[0]["circle_pct"] == fig.circle_pct
+    assert main(["--seeds", "5-1"]) == 2
+    assert main(["--heights", "1.0"]) == 2  # below the head plane
+    assert main(["--model", "/nonexistent.onnx"]) == 2
+    assert "error" in capsys.readouterr().err
+
+
+def test_lawn_false_positives_of_a_landability_model(capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m sim.evidence.false_positives --landability``: the same lawn measured for unlandable
+    marks by the shipped landability model, through the service's surface step at the model's
+    threshold; a density model given as a landability model is a clear error."""
+    from companion.config import SHIPPED_LANDABILITY
+    from companion.pipeline.landability import LandabilityModel
+    from sim.evidence.false_positives import lawn_false_positives, main
+
+    land = LandabilityModel(SHIPPED_LANDABILITY, threads=1)
+    (fig,) = lawn_false_positives(land, 18, [20.0])
+    assert 0.0 <= fig.circle_pct <= 100.0 and 0.0 <= fig.frame_pct <= 100.0
+    assert main(["--seeds", "18", "--heights", "20", "--landability", str(SHIPPED_LANDABILITY), "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert len(rows) == 1 and rows[0]["circle_pct"] == fig.circle_pct
+    assert main(["--seeds", "18", "--landability", str(MODEL)]) == 2  # one channel: not a landability model
+    assert "error" in capsys.readouterr().err
+
+
+def test_walker_alarms_command_scores_each_seed_and_refuses_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m sim.evidence.walker_alarms``: a short descent over crossing seed 9's circle gives one
+    JSON row per margin and the totals; a dense world has no circle and is skipped, said on
+    stderr; bad arguments are exit 2."""
+    from sim.evidence.walker_alarms import main
+
+    assert main(["--seeds", "9,16", "--edge-px", "0,16", "--seconds", "4", "--horizon", "3",
+                 "--blind-from", "1", "--model", str(MODEL), "--json"]) == 0
+    captured = capsys.readouterr()
+    rows = [json.loads(line) for line in captured.out.splitlines()]
+    assert [(r["seed"], r["edge_px"]) for r in rows] == [(9, 0.0), (9, 16.0), (None, 0.0), (None, 16.0)]
+    assert all(0 <= r["speed_frames"] <= r["walker_frames"] - r["phantom_walker_frames"] for r in rows)
+    assert rows[0]["safe_frames"] + rows[0]["danger_frames"] > 0 and rows[2]["world"] == "all"
+    assert "seed 16: dense has no free circle" in captured.err
+    assert main(["--edge-px", "-1"]) == 2
+    assert main(["--seconds", "2"]) == 2
+    assert main(["--blind-from", "9", "--horizon", "8"]) == 2
+    assert main(["--model", "/nonexistent.onnx"]) == 2
+    assert "error" in capsys.readouterr().err

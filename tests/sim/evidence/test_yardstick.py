@@ -1,0 +1,69 @@
+"""The defaults' rows kept in docs/yardstick/ (docs/scale.md, "The defaults' rows, kept"): each
+file the README's tables name is there, is what the table says it is (the defaults in lockstep
+from the table's clock start, seeds 1-75 on one autopilot; or the baseline's flights, the
+autopilot's own failsafe alone), and its unsafe landings, strikes and handbacks (the baseline's
+strikes) are the table's figures, counted from the rows by the summary the command prints; and
+``sim-compare`` pairs each companion file with itself with no verdict changed (it pairs the
+companion's flights; a baseline's are its own)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from sim.evidence.compare import compare
+from sim.flights.results import read_rows, summarise_baseline, summarise_rows
+
+YARDSTICK = Path(__file__).resolve().parents[3] / "docs" / "yardstick"
+
+
+COMPANION = ("file", "autopilot", "clock start", "flown", "software", "unsafe", "strikes", "handbacks")
+BASELINE = ("file", "autopilot", "clock start", "flown", "software", "strikes")
+
+
+def _table(columns: tuple[str, ...]) -> list[dict[str, str]]:
+    """The rows of the README's table with these columns (the companion's, or the baseline's)."""
+    rows = []
+    for line in (YARDSTICK / "README.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == len(columns) and cells[0].startswith("`") and cells[0].endswith(".jsonl`"):
+            rows.append(dict(zip(columns, cells)))
+    return rows
+
+
+def _rows(entry: dict[str, str], baseline: bool) -> list[dict]:
+    """The file's rows, checked to be what the table says: seeds 1-75, one autopilot, the
+    defaults in lockstep from the table's clock start; the baseline's flights or the companion's."""
+    rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
+    assert bad == 0 and sorted(r["seed"] for r in rows) == list(range(1, 76))
+    flavour = {"PX4": "px4", "ArduPilot": "ardupilot"}[entry["autopilot"]]
+    start = float(entry["clock start"].removesuffix(" s"))
+    for r in rows:
+        assert r["flavour"] == flavour and r["lockstep"] and r["clock_start_s"] == start
+        assert r["settings"] == [] and r["baseline"] is baseline and r["land_speed"] == 1.0
+        assert r["watch_s"] == 4.0 and r["crossing_window"] == [4.0, 24.0]
+        assert re.match(r"^[0-9a-f]{12}", r["software"]["git"])
+    if not baseline:  # sim-compare pairs the companion's flights; a baseline's are its own
+        same = compare(rows, rows)
+        assert same.pairs == 75 and same.changed == [] and same.lockstep
+    return rows
+
+
+def test_the_readme_names_both_autopilots_files_from_both_clock_starts_and_their_baselines():
+    assert {(r["autopilot"], r["clock start"]) for r in _table(COMPANION)} == {
+        (a, s) for a in ("PX4", "ArduPilot") for s in ("1000 s", "2000 s")}
+    assert {r["autopilot"] for r in _table(BASELINE)} == {"PX4", "ArduPilot"}
+
+
+@pytest.mark.parametrize("entry", _table(COMPANION), ids=lambda e: e["file"])
+def test_each_file_is_the_defaults_and_its_figures_are_the_tables(entry):
+    summary = summarise_rows(_rows(entry, baseline=False))
+    assert (summary["unsafe"], summary["strikes"], summary["handbacks"]) == (
+        int(entry["unsafe"]), int(entry["strikes"]), int(entry["handbacks"]))
+
+
+@pytest.mark.parametrize("entry", _table(BASELINE), ids=lambda e: e["file"])
+def test_each_baseline_file_is_the_autopilots_failsafe_alone_and_its_strikes_are_the_tables(entry):
+    assert summarise_baseline(_rows(entry, baseline=True))["strikes"] == int(entry["strikes"])

@@ -1,0 +1,85 @@
+"""What the demo shows a person: its decisions live from the flight recording, a labelled
+summary, and one line saying why it handed back (without flying: the flight itself is covered by
+tests/flights/test_sitl.py)."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from pathlib import Path
+
+from companion.geometry.camera import Intrinsics, Mount
+from companion.recording import FlightRecorder
+from sim.flights.demo import EventFollower, handback_reason, labelled_summary, touchdown_lines
+from sim.flights.flight import FlightResult, FlightSpec
+
+
+def test_events_are_printed_while_the_recording_grows(tmp_path: Path) -> None:
+    rec = FlightRecorder(tmp_path, fps=10, intrinsics=Intrinsics.from_fov(64, 48, 70), mount=Mount())
+    rec.start()
+    out = io.StringIO()
+    follower = EventFollower(tmp_path, since=time.time(), out=out)
+    rec.add_event("zones", 10.0, frame=1, tracks=[], target=None)
+    rec.add_event("trigger", 10.0, reason="battery critical", source="battery")
+    follower.poll()
+    assert out.getvalue().split() == "+0.0 s failsafe trigger: battery critical (from battery)".split()
+    rec.add_event("controller", 12.5, event="target", old="SELECT", phase="APPROACH",
+                  text="SLZ: landing at zone 3, 12.4 m away, radius 4.1 m")
+    follower.poll()  # only what is new since the last poll, zones and telemetry left out
+    assert [line.strip() for line in out.getvalue().splitlines()[1:]] == [
+        "+2.5 s SLZ: landing at zone 3, 12.4 m away, radius 4.1 m"]
+    rec.close()
+    assert follower.printed == 2
+
+
+def test_a_half_written_line_waits_for_its_end(tmp_path: Path) -> None:
+    run = tmp_path / "20260101T000000Z"
+    run.mkdir()
+    (run / "meta.json").write_text("{}")
+    line = json.dumps({"t": 1.0, "kind": "trigger", "reason": "rc lost", "source": "heartbeat"})
+    with open(run / "events-00000.jsonl", "w") as fh:
+        fh.write(line[:20])
+    out = io.StringIO()
+    follower = EventFollower(tmp_path, since=time.time(), out=out)
+    follower.poll()
+    assert out.getvalue() == ""
+    with open(run / "events-00000.jsonl", "a") as fh:
+        fh.write(line[20:] + "\n")
+    follower.poll()
+    assert "failsafe trigger: rc lost" in out.getvalue()
+
+
+def test_the_summary_is_labelled_and_says_why_it_handed_back() -> None:
+    result = FlightResult(FlightSpec(flavour="px4"), "handback", touchdown=(3.25, -4.5), clearance_m=0.4,
+                          time_to_touchdown_s=40.0, free_circle=(1.0, 2.0, 7.0), phases=["SELECT", "HANDBACK"],
+                          events=[{"event": "target", "text": "SLZ: landing at zone 3"},
+                                  {"event": "handback", "action": "LAND", "text": "SLZ: handing back",
+                                   "reason": "hold budget spent: no zone for 15 s"}])
+    s = labelled_summary(result, 2.0)
+    assert s["touchdown"] == {"north_m": 3.25, "east_m": -4.5} and s["touchdown_ne"] == [3.25, -4.5]
+    assert s["free_circle"] == {"north_m": 1.0, "east_m": 2.0, "radius_m": 7.0}
+    assert s["handback_reason"] == "handed back to the autopilot (LAND): hold budget spent: no zone for 15 s"
+    assert json.loads(json.dumps(s)) == s
+    assert handback_reason(FlightResult(FlightSpec(), "safe", events=[{"event": "target"}])) is None
+
+
+def test_the_touchdown_is_told_with_what_the_vehicle_came_down_on() -> None:
+    spec = FlightSpec(flavour="px4", r0_m=2.0)
+    landed = FlightResult(spec, "safe", touchdown=(3.25, -4.5), clearance_m=4.04, time_to_touchdown_s=31.0,
+                          phases=["SELECT", "APPROACH", "DESCEND", "LAND", "LANDED"],
+                          touchdown_surfaces=["grass", "path"])
+    assert touchdown_lines(landed) == [
+        "touchdown (landed by the companion) at north 3.2 m, east -4.5 m from home",
+        "nearest person at touchdown: 4.0 m (r_0 = 2.0 m)",
+        "touched down on grass and path",
+        "failsafe to touchdown: 31.0 s"]
+    on_tree = FlightResult(spec, "handback", touchdown=(0.0, 0.0), clearance_m=5.0, time_to_touchdown_s=70.0,
+                           phases=["SELECT", "SEARCH", "HANDBACK"], touchdown_surfaces=["grass", "tree"])
+    lines = touchdown_lines(on_tree)
+    assert lines[0].startswith("touchdown (landed by the autopilot)")
+    assert "touched down on grass and tree (NOT landable ground)" in lines
+    # A ground that does not say (the uniform world), and no touchdown at all.
+    assert not any("touched down on" in x for x in touchdown_lines(FlightResult(
+        spec, "safe", touchdown=(0.0, 0.0), clearance_m=5.0, time_to_touchdown_s=20.0)))
+    assert touchdown_lines(FlightResult(spec, "timeout")) == []

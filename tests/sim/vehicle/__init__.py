@@ -1,0 +1,1 @@
+"""Tests of sim.vehicle: kinematics and the autopilot, without MAVLink."""

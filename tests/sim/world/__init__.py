@@ -1,0 +1,1 @@
+"""Tests of sim.world: people, ground, render, the camera server."""

@@ -789,7 +789,6 @@ def planner_config(cfg: Config) -> PlannerConfig:
     return PlannerConfig(r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
                          min_track_age_s=c.min_track_age_s, min_track_hits=c.min_track_hits,
                          zone_max_age_s=c.zone_max_age_s, min_calm_s=c.min_calm_s,
-                         min_quiet_s=c.min_quiet_s, min_unwalked_s=c.min_unwalked_s,
                          prefer_unwalked=c.prefer_unwalked, steady_s=c.steady_s,
                          steady_margin_m=c.steady_margin_m)
 
@@ -806,16 +805,12 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         arrive_radius_m=c.arrive_radius_m, descend_alt_m=c.descend_alt_m,
         descend_step_m=c.descend_step_m, land_abort_above_m=c.land_abort_above_m,
         lose_after_frames=c.lose_after_frames, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
-        predict_people=c.predict_people, pose_uncertainty_m=c.pose_uncertainty_m,
-        predict_lead_s=c.predict_lead_s, predict_min_height_m=c.predict_min_height_m,
-        predict_rejudge=c.predict_rejudge,
-        calm_wait_s=c.calm_wait_s, avoid_lost_s=c.avoid_lost_s, recentre_m=c.recentre_m, land_alt_m=c.land_alt_m, land_agl_m=c.land_agl_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
+        calm_wait_s=c.calm_wait_s, land_alt_m=c.land_alt_m, land_agl_m=c.land_agl_m, max_pose_age_s=cfg.pipeline.max_pose_age_s, handback_action=c.handback_action,
         search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
         obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),
         search_s=c.search_s, search_radius_m=c.search_radius_m, search_reserve_s=c.search_reserve_s,
-        search_memory_s=c.search_memory_s, hold_looks=c.hold_looks, place_lookback_s=c.place_lookback_s,
-        place_min_clear_m=c.place_min_clear_m, place_descending=c.place_descending,
+        place_lookback_s=c.place_lookback_s,
         view_ratio=min(k.cx / k.fx, k.cy / k.fy),
         trust_height_m=person_trust_height(min(k.fx, k.fy), min_px or None, head_m=cfg.pipeline.head_height_m),
     )

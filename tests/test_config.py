@@ -206,22 +206,12 @@ def test_prefer_unwalked_reaches_the_planner_and_has_the_pipeline_measure_it() -
     assert not config.pipeline_config(off).unwalked
 
 
-def test_min_unwalked_reaches_the_planner_and_has_the_pipeline_measure_the_ground_below() -> None:
-    off = config.load(None)  # off by default (docs/design.md, "Ground nobody walks on")
-    assert config.planner_config(off).min_unwalked_s == 0.0 and not config.pipeline_config(off).unwalked_below
-    on = config.load(None, {"controller.min_unwalked_s": 12.0, "controller.min_calm_s": 0.0})
-    assert config.planner_config(on).min_unwalked_s == 12.0
-    assert config.pipeline_config(on).unwalked_below and config.pipeline_config(on).calm  # the map runs
-
-
 def test_the_search_settings_reach_the_controller() -> None:
-    """select_empty_s (3 s by default), search_memory_s and hold_looks (off by default) arrive in
-    the controller's LandingConfig as set."""
+    """select_empty_s (3 s by default) arrives in the controller's LandingConfig as set."""
     c = config.landing_config(config.load(None))
-    assert (c.select_empty_s, c.search_memory_s, c.hold_looks) == (3.0, 0.0, False)
-    c = config.landing_config(config.load(None, {"controller.select_empty_s": 0.0, "controller.search_memory_s": 60.0,
-                                                 "controller.hold_looks": True}))
-    assert (c.select_empty_s, c.search_memory_s, c.hold_looks) == (0.0, 60.0, True)
+    assert c.select_empty_s == 3.0
+    c = config.landing_config(config.load(None, {"controller.select_empty_s": 0.0}))
+    assert c.select_empty_s == 0.0
 
 
 def test_a_recording_flown_before_land_agl_m_existed_is_read_with_it_off() -> None:

@@ -195,47 +195,23 @@ def test_once_judged_or_in_land_the_point_stays_and_nothing_is_asked():
     assert ctl.placements == 0 and ctl._aim == (10.0, 0.0)
 
 
-def test_a_minimum_clearance_keeps_the_point_out_of_ground_walked_on_lately():
-    """``place_min_clear_m``: in a gap of a walking crowd the farthest point is still close to
-    where people were seen; a point clearly farther than the present one but nearer to them than
-    the minimum is no place to move to (the chase), one beyond it is."""
-    ctl = fly_to_zone(dataclasses.replace(PLACE, place_min_clear_m=2.0))
-    frame(ctl, 0.1, Spot(10.0, -2.5, 1.5, 0.0))  # 1.5 m farther, but walked within 1.5 m of
-    assert ctl.placements == 0 and ctl._aim == (10.0, 0.0)
-    cmds = frame(ctl, 0.2, Spot(10.0, -2.5, 2.5, 0.0))
-    gotos = [c for c in cmds if isinstance(c, Goto)]
-    assert ctl.placements == 1 and gotos and goto_ned(gotos[-1]) == pytest.approx((10.0, -2.5), abs=1e-3)
-    # Above the minimum the gain rule still holds: 0.3 m farther is not worth a move.
-    frame(ctl, 0.3, Spot(10.0, 2.0, 2.8, 2.5))
-    assert ctl.placements == 1 and ctl._aim == (10.0, -2.5)
-
-
-def test_with_place_descending_off_the_point_stays_once_over_the_zone():
-    """``place_descending=False``: the point moves while the vehicle approaches, and no more once
-    it is over the zone and descending to judge it (nothing is asked of the map then)."""
+def test_the_point_moves_while_approaching_and_while_descending_to_judge_the_zone():
+    """The point moves while the vehicle approaches, and also once it is over the zone and
+    descending to judge it (the moves that carry the point into the lawn)."""
 
     def over(ctl: LandingController, t: float, spot: Spot | None = None) -> None:
         ctl.on_state(status(t, 10.0, -2.5, 20.0, mode="GUIDED"))
         ctl.on_frame(t, [track(t)], pose(t, 10.0, -2.5, 20.0), spot=spot)
 
-    for descending in (False, True):
-        ctl = fly_to_zone(dataclasses.replace(PLACE, place_descending=descending))
-        frame(ctl, 0.1, Spot(10.0, -2.5, 6.0, 4.0))
-        assert ctl.placements == 1 and ctl._aim == (10.0, -2.5)
-        over(ctl, 0.2)
-        assert ctl.phase == Phase.DESCEND
-        assert (ctl.spot_request([track(0.3)]) is not None) == descending
-        over(ctl, 0.3, Spot(10.0, -1.5, 8.0, 3.0))
-        assert ctl.phase == Phase.DESCEND  # still flying it, not handed back
-        assert ctl.placements == (2 if descending else 1)
-        assert ctl._aim == ((10.0, -1.5) if descending else (10.0, -2.5))
-
-
-def test_a_negative_minimum_clearance_is_refused():
-    with pytest.raises(ValueError, match="place_min_clear_m"):
-        LandingConfig(place_min_clear_m=-1.0)
-    with pytest.raises(ValueError, match="place_min_clear_m"):
-        LandingConfig(place_min_clear_m=math.nan)
+    ctl = fly_to_zone()
+    frame(ctl, 0.1, Spot(10.0, -2.5, 6.0, 4.0))
+    assert ctl.placements == 1 and ctl._aim == (10.0, -2.5)
+    over(ctl, 0.2)
+    assert ctl.phase == Phase.DESCEND
+    assert ctl.spot_request([track(0.3)]) is not None
+    over(ctl, 0.3, Spot(10.0, -1.5, 8.0, 3.0))
+    assert ctl.phase == Phase.DESCEND  # still flying it, not handed back
+    assert ctl.placements == 2 and ctl._aim == (10.0, -1.5)
 
 
 def test_off_by_default_no_request_and_spots_change_nothing():

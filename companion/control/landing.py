@@ -14,10 +14,10 @@ Phases::
 Inputs (times are monotonic seconds):
 
 - ``on_trigger(trigger)``: a failsafe ``Trigger``; the only way out of MONITOR.
-- ``on_frame(t, tracks, pose, below, people, remembered)``: the zone tracks after the frame
-  captured at ``t``, the pose the pipeline used for it, and optionally the ground it saw under the
-  camera (``GroundBelow``), the people followed (``Person``) and, while ``wants_memory()``, the
-  free circles the risk map remembers (``SLZPipeline.remembered_zones``). A frame whose pose is missing, not finite or further than
+- ``on_frame(t, tracks, pose, below, spot)``: the zone tracks after the frame captured at ``t``,
+  the pose the pipeline used for it, and optionally the ground it saw under the camera
+  (``GroundBelow``) and where the risk map puts the landing point (``spot_request``). A frame
+  whose pose is missing, not finite or further than
   ``max_pose_age_s`` from ``t``, or a frame older than ``zone_max_age_s``, is ignored: no decision
   is ever made on a zone that was not seen with a fresh pose.
 - ``on_state(status)``: where the vehicle is now (``VehicleStatus``), its mode, armed, on ground.
@@ -38,10 +38,8 @@ it over the zone, re-checking the zone at every frame, so a lost zone stops the 
 step. The landing point (the *aim*) is the zone's centre when chosen, and it stays put while the
 zone still holds ``r0_m + radius_margin_m`` around it (a zone bounded by the view: while the view
 still shows ``MIN_VIEW_M`` around it): such a zone moves with the camera, and following its centre
-would chase it across uniform free ground for ever. With ``recentre_m`` > 0, a zone bounded by
-people (not by the view) moves the aim to its centre, the point farthest from them, once the aim
-is more than that far from it (APPROACH and DESCEND; never in LAND). At ``descend_alt_m`` above home over the zone
-the zone is judged (calm ground, the walkers' prediction) and, with ``land_alt_m`` set below it,
+would chase it across uniform free ground for ever. At ``descend_alt_m`` above home over the zone
+the zone is judged (calm ground) and, with ``land_alt_m`` set below it,
 the same stepped descent goes on over the judged zone to ``land_alt_m``, every frame re-checking
 the ground under the vehicle as above (a lost zone: HOLD). There it
 commands the autopilot's LAND (Copter's LAND and PX4's AUTO.LAND both descend vertically where the vehicle is). The same
@@ -60,9 +58,8 @@ stale, it is lost at once.
 
 Search: with no zone in view at the SELECT/HOLD timeout, the vehicle climbs to the ceiling over
 where it is and flies an ``expanding_square`` (legs 1.5 view radii apart, hovering at each corner
-while the tracker looks), flying first over free ground glimpsed at the edge of the view, then (with
-``search_memory_s``) over the nearest ground the risk map remembers free, out of view now, large
-enough to be chosen; any zone that becomes eligible is flown to. It hands back after ``search_s``, at ``search_radius_m``, or
+while the tracker looks), flying first over free ground glimpsed at the edge of the view; any zone that becomes eligible is
+flown to. It hands back after ``search_s``, at ``search_radius_m``, or
 when the battery's time left (``VehicleStatus.battery_s``) no longer covers the landing plus
 ``search_reserve_s``.
 
@@ -88,8 +85,7 @@ from companion.control.touchdown import DescentProfile, by_rangefinder
 from companion.control.trigger import Trigger
 from companion.geometry.camera import Pose
 from companion.geometry.geodesy import GeoPoint, geo_from_ned
-from companion.pipeline.circles import Circle, GroundBelow
-from companion.pipeline.people import Person, predicted_clearance
+from companion.pipeline.circles import GroundBelow
 from companion.pipeline.riskmap import Spot, SpotRequest
 from companion.pipeline.tracker import Track
 
@@ -161,27 +157,6 @@ class LandingConfig:
     #: Ground radius the camera sees per metre of height above the head plane (the tangent of half
     #: its narrower field of view): the search's legs are spaced so that their views overlap.
     view_ratio: float = 0.5
-    #: Judge the landing point at touchdown against the people seen walking (``Person``s from the
-    #: pipeline): the LAND is commanded, and goes on above ``land_abort_above_m``, only while
-    #: nobody seen is predicted within r0 of it before touchdown; otherwise the descent pauses.
-    predict_people: bool = False
-    #: The vehicle's horizontal position error (m), taken off every predicted clearance.
-    pose_uncertainty_m: float = 0.5
-    #: Judge the prediction only this long (s) before the landing is committed: until then the
-    #: camera still watches the zone every frame, and a straight line drawn further ahead sends
-    #: people who turn (most do) through the landing point.
-    predict_lead_s: float = 2.0
-    #: No new prediction below this height (m) unless a pause is on: low down the view is barely
-    #: r0 wide, the people in it are at its edge, partly seen, and their apparent motion is the
-    #: view's (density peaks moving over a body entering the frame), not theirs.
-    predict_min_height_m: float = 0.0
-    #: A walker predicted in the way once the zone is judged (the companion's low descent, or a
-    #: LAND above ``land_abort_above_m``) sends the vehicle back up to ``descend_alt_m`` to judge
-    #: the zone again (calm, the walkers), instead of waiting low beside them: low down the view
-    #: no longer shows where they go, and the descent went on as soon as a straight line said
-    #: they would miss the point (ArduPilot seed 15 landed 0.92 m from one, docs/design.md,
-    #: "People followed to touchdown"). False: wait where it is, as before.
-    predict_rejudge: bool = True
     #: With ``planner.min_calm_s`` > 0: over the zone, low enough to LAND, the vehicle waits at
     #: most this long (s) for the ground under it to be calm; then the zone is given up for the
     #: rest of the takeover (people keep passing near it) and another is chosen.
@@ -203,33 +178,6 @@ class LandingConfig:
     #: (docs/design.md, "The last metres by the rangefinder"). Without a fresh rangefinder, or
     #: when it goes stale or out of range on the way, the LAND is commanded at once.
     land_agl_m: float = 0.0
-    #: Over a zone bounded by people or unlandable ground (not by the view), in APPROACH and
-    #: DESCEND, the landing point moves to the zone's centre once it is more than this far from
-    #: it (m; 0 = only when the zone no longer holds r0 plus the margin around the point). The
-    #: centre of a circle bounded by what was seen is the point farthest from it: a point kept
-    #: where the zone was first seen, at its side, came down near the lawn's edge, where walkers
-    #: going round it pass (docs/design.md, "Where the landing point goes").
-    recentre_m: float = 0.0
-    #: A landing point lost because people came within r0 of it (a zone seen too small over it,
-    #: or never calm) is avoided this long (s; 0 = not at all): no zone whose centre lies within
-    #: ``r0_m + radius_margin_m`` of it is chosen meanwhile, nor flown over by the search. A gap in
-    #: a crowd that walkers cross is otherwise chosen again the moment they have passed (the
-    #: simulator's free-area seed 18 lost the same gap four times in 90 s, and PX4 seed 28 landed
-    #: in it 1.4 m from a walker on the second try).
-    avoid_lost_s: float = 0.0
-    #: The search flies over ground the risk map remembers free (its last look within this many
-    #: seconds saw it free; 0 = not at all), when no free ground is in view: the nearest such
-    #: circle within ``search_radius_m`` large enough to be chosen (``r0_m + radius_margin_m``),
-    #: before the expanding square goes on. A lawn seen from the trigger's height and lost from
-    #: view low down is otherwise found again only if the square happens to pass over it. It only
-    #: says where to look: the zone is chosen by the planner's rules on what the camera sees there.
-    search_memory_s: float = 0.0
-    #: HOLD flies over free ground glimpsed in view, as the search does (a zone of at least r0 that
-    #: may not be chosen yet, most often one cut by the edge of the view), so the camera sees it
-    #: whole, instead of hovering until ``hold_timeout_s``. Held at 15 m beside a lawn, the camera
-    #: sees only its rim, a zone too small to choose; the search that follows then takes the first
-    #: gap of the crowd it confirms (PX4 seed 47).
-    hold_looks: bool = False
     #: Place the landing point inside the zone where the ground is farthest from anybody the
     #: risk map saw within this many seconds (0 = off: the zone's centre when chosen), and move it
     #: there again while approaching and before the zone is judged, whenever the farthest point
@@ -238,32 +186,18 @@ class LandingConfig:
     #: crowd beside it has its centre at the lawn's edge, where walkers go round; what the map
     #: saw over the last seconds shows where they go (docs/design.md, "Where people walked").
     place_lookback_s: float = 0.0
-    #: The landing point moves (``place_lookback_s``) only to a point at least this far (m) from
-    #: anybody the map saw within the lookback (0 = to any point ``PLACE_GAIN_M`` farther from
-    #: them). In a gap of a walking crowd every point of the zone was walked on lately; the
-    #: farthest point then jumps metres from frame to frame as people walk, and a vehicle that
-    #: follows it never settles over the zone. Measured at 2 m on seeds 1-150 in lockstep: as
-    #: many landings lost as won (docs/design.md, "The chase, measured"), so off.
-    place_min_clear_m: float = 0.0
-    #: The landing point moves (``place_lookback_s``) also while the vehicle descends over the
-    #: zone to judge it; False: only while it approaches. Each move farther than
-    #: ``arrive_radius_m`` stops the descent until the vehicle is over the point again; but the
-    #: moves made while descending are the ones that carry the point into the lawn (False gave
-    #: 3 more unsafe landings of 57 on ArduPilot; docs/design.md, "The chase, measured").
-    place_descending: bool = True
 
     def __post_init__(self) -> None:
         if self.handback_action not in ("LAND", "RTL"):
             raise ValueError(f"controller handback_action must be LAND or RTL, not {self.handback_action!r}")
         for name in ("select_timeout_s", "hold_timeout_s", "arrive_radius_m", "descend_alt_m", "descend_step_m",
-                     "hold_height_m", "max_takeover_s", "max_alt_m", "predict_lead_s", "calm_wait_s",
+                     "hold_height_m", "max_takeover_s", "max_alt_m", "calm_wait_s",
                      "max_pose_age_s", "state_timeout_s", "pose_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"controller {name} must be a positive number, not {value!r}")
-        for name in ("search_s", "search_radius_m", "search_reserve_s", "predict_min_height_m", "recentre_m",
-                     "land_alt_m", "avoid_lost_s", "search_memory_s", "select_empty_s", "place_lookback_s",
-                     "place_min_clear_m"):
+        for name in ("search_s", "search_radius_m", "search_reserve_s", "land_alt_m", "select_empty_s",
+                     "place_lookback_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
@@ -282,8 +216,6 @@ class LandingConfig:
             raise ValueError(f"controller trust_height_m must be > 0 m (inf: no limit), not {self.trust_height_m!r}")
         if self.max_refusals < 1:
             raise ValueError("controller max_refusals must be >= 1")
-        if not (math.isfinite(self.pose_uncertainty_m) and self.pose_uncertainty_m >= 0):
-            raise ValueError(f"controller pose_uncertainty_m must be >= 0 m, not {self.pose_uncertainty_m!r}")
         if self.lose_after_frames < 1:
             raise ValueError(f"controller lose_after_frames must be >= 1, not {self.lose_after_frames!r}")
         if not (math.isfinite(self.ceiling_margin_m) and self.ceiling_margin_m >= 0):
@@ -352,11 +284,6 @@ class LandingController:
         self.tracks: list[Track] = []
         #: The ground under the camera on the latest usable frame (None: the frame did not say).
         self.below: GroundBelow | None = None
-        #: The people seen on the ground after the latest usable frame (world frame).
-        self.people: list[Person] = []
-        self._paused_for: int | None = None  # the person a paused landing waits for
-        self.pauses = 0  # landings paused for a person predicted at the landing point
-        self.rejudges = 0  # judged zones sent back up to be judged again (predict_rejudge)
         self.last_valid_frame_t: float | None = None
         self.frames_ignored = 0
         self.refusals = 0
@@ -379,7 +306,6 @@ class LandingController:
         self._dwell_until = -math.inf  # hovering at a reached search waypoint until then
         self._investigated: set[int] = set()  # zones the search flew over that never qualified
         self._restless: set[int] = set()  # zones given up because they never became calm
-        self._avoid: list[tuple[float, float, float]] = []  # (north, east, until): see avoid_lost_s
         self._calm_wait: tuple[int, float] | None = None  # (zone id, since when) waiting for calm
         # The zone judged at the judging height (calm, walkers) whose descent goes on below it,
         # under the companion's control, to land_alt_m: below the judging height the calm disc no
@@ -388,13 +314,6 @@ class LandingController:
         # The target chosen as a steady zone (``_approach``), or None.
         self._steady_target: int | None = None
         self._over_lead: tuple[int, float] | None = None  # (zone id, since when) the search hovers over
-        #: Free circles the risk map remembers (latest frame's ``remembered``), plane metres.
-        self.remembered: list[Circle] = []
-        self._search_from: tuple[float, float] | None = None  # where the search started (north, east)
-        # (north, east, since when) of the remembered ground the search hovers over; and the points
-        # it looked at (remembered or glimpsed) that never gave a zone: not flown to again.
-        self._over_memory: tuple[float, float, float] | None = None
-        self._looked_at: list[tuple[float, float]] = []
         self._failing = 0  # consecutive frames on which the target failed its check (see _follow)
         #: Where the risk map would put the landing point (latest frame's ``spot``; ``place_lookback_s``).
         self.spot: Spot | None = None
@@ -469,17 +388,13 @@ class LandingController:
         return []
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
-                 below: GroundBelow | None = None, people: Sequence[Person] | None = None,
-                 remembered: Sequence[Circle] | None = None, spot: Spot | None = None) -> list[Command]:
+                 below: GroundBelow | None = None, spot: Spot | None = None) -> list[Command]:
         self._advance(t)
         if not self._frame_usable(t, pose):
             self.frames_ignored += 1
             return []
         self.last_valid_frame_t = t
         self.tracks = list(tracks)
-        self.remembered = [m for m in (remembered or ()) if all(math.isfinite(v) for v in (m.x, m.y, m.r))]
-        self.people = [q for q in (people or ()) if all(math.isfinite(v) for v in
-                                                          (q.x, q.y, q.vx, q.vy, q.pos_std_m, q.last_t))]
         ok = below is not None and all(math.isfinite(v) for v in (below.x, below.y, below.r, below.r_view))
         self.below = below if ok else None
         ok = spot is not None and all(math.isfinite(v) for v in (spot.x, spot.y, spot.clear_m))
@@ -491,7 +406,7 @@ class LandingController:
             if found or self.phase == Phase.SELECT:
                 return found
             if self.phase == Phase.HOLD:
-                return self._hold_step()
+                return []  # hover where the hold began until a zone or the timeout
             return self._search_step()
         if self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.LAND):
             return self._follow()
@@ -502,11 +417,6 @@ class LandingController:
         something that may still become a landing zone, worth the SELECT's wait."""
         r0 = self.config.planner.r0_m
         return any(t.misses == 0 and math.isfinite(t.r) and t.r >= r0 for t in tracks)
-
-    def wants_memory(self) -> bool:
-        """Whether the frames should bring the ground the risk map remembers free (``on_frame``'s
-        ``remembered``): while searching, with ``search_memory_s`` on."""
-        return self.phase == Phase.SEARCH and self.config.search_memory_s > 0
 
     def spot_request(self, tracks: Sequence[Track]) -> SpotRequest | None:
         """Where the landing point may go on this frame (``place_lookback_s``), for the pipeline's
@@ -526,9 +436,9 @@ class LandingController:
 
     def _placing(self, zone_id: int) -> bool:
         """Whether the landing point over zone ``zone_id`` may still move (``place_lookback_s``):
-        approaching it or (``place_descending``) descending to judge it, not once judged, nor in LAND."""
-        phases = (Phase.APPROACH, Phase.DESCEND) if self.config.place_descending else (Phase.APPROACH,)
-        return self.config.place_lookback_s > 0 and self.phase in phases and self._judged != zone_id
+        approaching it or descending to judge it, not once judged, nor in LAND."""
+        return (self.config.place_lookback_s > 0 and self.phase in (Phase.APPROACH, Phase.DESCEND)
+                and self._judged != zone_id)
 
     def _room(self, track: Track) -> float:
         """How much of the zone (m) must stay free around its landing point for the point to stay
@@ -552,7 +462,7 @@ class LandingController:
         if spot is None or not self._placing(track.id):
             return aim
         was = spot.aim_clear_m if math.isfinite(spot.aim_clear_m) else 0.0
-        if spot.clear_m < max(was + PLACE_GAIN_M, self.config.place_min_clear_m):
+        if spot.clear_m < was + PLACE_GAIN_M:
             return aim
         if track.r - math.hypot(spot.x - track.x, spot.y - track.y) < self._room(track) - 1e-6:
             return aim  # another frame's zone: not this one's room
@@ -636,48 +546,6 @@ class LandingController:
         value = self._descent_now().clearance_at_touchdown(track.r, self.status.height)
         return round(value, 2) if math.isfinite(value) else None
 
-    def predicted_clearance(self, north: float, east: float) -> tuple[float, Person | None]:
-        """The least distance (m) anybody seen walking comes to the point (north, east) while the
-        landing is committed (from ``land_abort_above_m`` down to touchdown, at the descent's
-        speeds from the present height), less ``pose_uncertainty_m``; and who. inf and None with
-        nobody walking, prediction off, or no vehicle position.
-
-        Only walkers count: where people stand the zone check sees on every frame, and above the
-        commit height the camera still watches, so a walker who arrives sooner is seen arriving
-        (``people.predicted_clearance`` for the prediction itself)."""
-        c, s = self.config, self.status
-        walkers = [q for q in self.people if q.speed_mps > 0]
-        if not c.predict_people or s is None or not walkers:
-            return math.inf, None
-        if s.height < c.predict_min_height_m and self._paused_for is None:
-            return math.inf, None
-        descent = self._descent_now()
-        horizon = descent.time_to_touchdown(s.height)
-        if not math.isfinite(horizon):
-            return math.inf, None
-        blind_from = max(0.0, horizon - descent.time_to_touchdown(min(s.height, c.land_abort_above_m)))
-        if blind_from > c.predict_lead_s:
-            return math.inf, None  # not yet: the camera watches until the commit is near
-        clear, worst = min(((predicted_clearance([q], north, east, self.now, horizon, blind_from), q)
-                            for q in walkers), key=lambda pair: pair[0])
-        return clear - c.pose_uncertainty_m, worst
-
-    def _walker_in_the_way(self, north: float, east: float, where: str) -> bool:
-        """Whether somebody seen walking is predicted within r0 of the landing point before
-        touchdown; reports the wait once per person (a Note, not a phase change)."""
-        clear, who = self.predicted_clearance(north, east)
-        if who is None or clear >= self.config.planner.r0_m:
-            if self._paused_for is not None:
-                self._event(f"person {self._paused_for} is past the landing point: going on")
-            self._paused_for = None
-            return False
-        if self._paused_for != who.id:
-            self.pauses += 1
-            self._event(f"person {who.id} ({who.speed_mps:.1f} m/s) predicted {max(clear, 0.0):.1f} m from the "
-                        f"landing point before touchdown: {where}")
-        self._paused_for = who.id
-        return True
-
     def zone_target(self) -> Track | None:
         """The zone the vehicle flies to (after a trigger), or would fly to now (before one): what
         the flight recording, the status line and the ground station call "the target". After
@@ -746,7 +614,7 @@ class LandingController:
     def _select(self) -> list[Command]:
         if not self._status_fresh() or self.ceiling_m is None:
             return []
-        zone = self.planner.choose(self.tracks, self.now, exclude=tuple(self._restless), avoid=self._avoided())
+        zone = self.planner.choose(self.tracks, self.now, exclude=tuple(self._restless))
         if zone is None:
             return []
         return self._approach(zone, "landing at")
@@ -851,7 +719,7 @@ class LandingController:
             if self._failing < c.lose_after_frames:
                 self.failures_tolerated += 1
                 return []
-            return self._lost(why, people=True)
+            return self._lost(why)
         self._failing = 0
         self.target = track
         # The landing point stays where it is while the zone still holds r0 plus the margin around
@@ -859,24 +727,8 @@ class LandingController:
         # bounded by the view (everything seen is free) keeps it while the view still shows
         # MIN_VIEW_M around it: low down the view is smaller than r0 plus the margin.
         aim = self._aim = self._aim_for(track)
-        off = math.hypot(aim[0] - track.x, aim[1] - track.y)
-        if c.recentre_m > 0 and off > c.recentre_m and not track.view_limited and \
-                self.phase in (Phase.APPROACH, Phase.DESCEND):
-            # Bounded by what the camera saw, not by its view: the centre is the farthest point
-            # from it. Never in LAND (the autopilot lands where the vehicle is).
-            aim = self._aim = (track.x, track.y)
         aim = self._aim = self._place(track, aim)
         dist = math.hypot(aim[0] - s.north, aim[1] - s.east)
-        if self.phase == Phase.LAND and s.height > c.land_abort_above_m and \
-                self._walker_in_the_way(s.north, s.east, "pausing the LAND"):
-            # Stop (GUIDED/OFFBOARD, the zone still held) and let them pass: cheaper than losing
-            # the zone and climbing back to the hold height. With predict_rejudge, back up to
-            # where the zone is judged, and judged again.
-            self._level = s.alt
-            self._set_phase(Phase.DESCEND, f"LAND over zone {track.id} paused at {s.height:.1f} m"
-                            + self._rejudge(track), zone_id=track.id)
-            self._last_goto = None
-            return self._goto(aim[0], aim[1], self._level, track.id)
         if self.phase == Phase.APPROACH:
             if dist > c.arrive_radius_m:
                 return self._goto(aim[0], aim[1], self._level, track.id)
@@ -889,35 +741,23 @@ class LandingController:
             if over and not s.on_ground and not judged and not self._calm_below(track):
                 if self._calm_wait is not None and self.now - self._calm_wait[1] > c.calm_wait_s:
                     self._restless.add(track.id)
-                    return self._lost(f"not calm after {c.calm_wait_s:g} s over it: people keep passing near it",
-                                      people=True)
+                    return self._lost(f"not calm after {c.calm_wait_s:g} s over it: people keep passing near it")
                 return self._goto(aim[0], aim[1], self._level, track.id)
             land_at = min(c.land_alt_m, judge) if c.land_alt_m > 0 else judge
             if not s.on_ground and over and s.height > land_at + c.alt_tolerance_m:
-                # Judged (calm, nobody predicted in the way): the companion's own descent goes on
-                # to land_at by the plan's steps below, the ground under the vehicle re-checked
-                # every frame above (a person within r0 sends it back to HOLD); a walker predicted
-                # in the way pauses it.
-                if self._walker_in_the_way(s.north, s.east, "pausing the descent" if judged
-                                           else "waiting before the LAND"):
-                    if judged:
-                        self._level = max(self._level, s.alt)
-                        climb = self._rejudge(track)
-                        if climb:
-                            self._event(f"zone {track.id}{climb}")
-                    return self._goto(aim[0], aim[1], self._level, track.id)
+                # Judged (calm): the companion's own descent goes on to land_at by the plan's
+                # steps below, the ground under the vehicle re-checked every frame above (a person
+                # within r0 sends it back to HOLD).
                 if not judged:
                     judged, self._judged = True, track.id
-                    measured = [f"{name} {v:.1f} s" for name, v in (("calm", self._calm_here()),
-                                                                    ("quiet", self._quiet_here()),
-                                                                    ("unwalked", self._unwalked_here()))
-                                if math.isfinite(v)]
+                    calm = self._calm_here()
+                    measured = [f"calm {calm:.1f} s"] if math.isfinite(calm) else []
                     if self._over_steady(track):
                         measured.append(f"steady {track.steady_s:.1f} s")
                     self._event(f"zone {track.id} judged at {s.height:.1f} m"
                                 + (f" ({', '.join(measured)})" if measured else "")
                                 + f": descending over it to {land_at:g} m before the LAND")
-            elif s.on_ground or (over and not self._walker_in_the_way(s.north, s.east, "waiting before the LAND")):
+            elif s.on_ground or over:
                 # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
                 calm = self._calm_here()
                 low_alt = None if s.on_ground else self._low_target(s)
@@ -978,52 +818,23 @@ class LandingController:
     def _zone_id_or_none(self) -> int | None:
         return None if self.target is None else self.target.id
 
-    def _rejudge(self, track: Track) -> str:
-        """With ``predict_rejudge``, below the height where zones are judged (``descend_alt_m``,
-        or the trust height), undo the judgement of ``track`` (a walker is predicted in the way):
-        the vehicle climbs back to that height above the ground, where the calm rule's disc is in
-        view again, and the zone must pass it anew, its wait for calm starting now
-        (``calm_wait_s``, then the zone is given up). Returns the words for the event; "" when
-        nothing was undone (the setting off, or already up there)."""
-        c, s = self.config, self.status
-        assert s is not None
-        judge = min(c.descend_alt_m, c.trust_height_m)
-        if not c.predict_rejudge or s.height >= judge - c.alt_tolerance_m:
-            return ""
-        self._judged = None
-        self._calm_wait = None
-        self._raise_level(s.alt - s.height + judge)
-        self.rejudges += 1
-        return f": climbing back to {judge:g} m to judge it again"
-
     def _calm_below(self, track: Track) -> bool:
         """Whether the ground under the vehicle (the latest frame's ``GroundBelow``) has been
-        watched and seen free for ``planner.min_calm_s``, nobody seen within its wider quiet
-        disc for ``planner.min_quiet_s``, and nobody on its calm disc since it was first seen for
-        ``planner.min_unwalked_s``; when not, says once per zone that the LAND waits for it (a
-        Note) and starts that zone's wait."""
+        watched and seen free for ``planner.min_calm_s``; when not, says once per zone that the
+        LAND waits for it (a Note) and starts that zone's wait."""
         p = self.config.planner
-        calm, quiet, unwalked = self._calm_here(), self._quiet_here(), self._unwalked_here()
+        calm = self._calm_here()
         if self._over_steady(track):
             # A steady zone's watch is the calm of its disc, r0 plus its margin, and the vehicle's
             # own r0 lies within that disc: the calm disc (r0 plus calm_margin_m round the
             # vehicle) may not fit inside a zone that small, however long it has been free.
             calm = max(calm, track.steady_s) if math.isfinite(calm) else track.steady_s
-        if p.is_calm(calm) and p.is_quiet(quiet) and p.is_unwalked(unwalked):
+        if p.is_calm(calm):
             return True
         if self._calm_wait is None or self._calm_wait[0] != track.id:
             self._calm_wait = (track.id, self.now)
-            if not p.is_calm(calm):
-                seen = f"{calm:.1f} s" if math.isfinite(calm) else "not yet"
-                why = f"ground around the landing point watched free for {seen}, not {p.min_calm_s:g} s"
-            elif not p.is_quiet(quiet):
-                seen = f"{quiet:.1f} s" if math.isfinite(quiet) else "not yet"
-                why = f"nobody seen near the landing point for {seen}, not {p.min_quiet_s:g} s"
-            elif math.isfinite(unwalked):
-                why = (f"people walked over the ground around the landing point {unwalked:.1f} s ago, "
-                       f"not {p.min_unwalked_s:g} s")
-            else:  # "not yet ... ago" would read wrong
-                why = f"ground around the landing point not yet measured for walkers, {p.min_unwalked_s:g} s needed"
+            seen = f"{calm:.1f} s" if math.isfinite(calm) else "not yet"
+            why = f"ground around the landing point watched free for {seen}, not {p.min_calm_s:g} s"
             self._event(f"zone {track.id}: {why}: waiting before the LAND")
         return False
 
@@ -1040,14 +851,6 @@ class LandingController:
     def _calm_here(self) -> float:
         """The latest frame's calm under the camera (s; NaN when not measured)."""
         return self.below.calm_s if self.below is not None else math.nan
-
-    def _quiet_here(self) -> float:
-        """The latest frame's quiet under the camera (s; NaN when not measured)."""
-        return self.below.quiet_s if self.below is not None else math.nan
-
-    def _unwalked_here(self) -> float:
-        """The latest frame's unwalked time under the camera (s; NaN when not measured)."""
-        return self.below.unwalked_s if self.below is not None else math.nan
 
     def _out_of_view(self, track: Track | None) -> bool:
         """In LAND, a zone last seen all free with a view of under ``BLIND_VIEW_M`` that then
@@ -1073,22 +876,15 @@ class LandingController:
             self._event(f"zone {last.id} out of view at {h} m, last seen all free: landing committed")
         return True
 
-    def _lost(self, why: str, people: bool = False) -> list[Command]:
+    def _lost(self, why: str) -> list[Command]:
         """Give up the target (``why``: the reason, for the pilot): another eligible zone, else
-        HOLD. ``people``: it was lost because people came within r0 of the landing point, which
-        is then avoided for ``avoid_lost_s``."""
+        HOLD."""
         assert self.target is not None
         lost = self.target
         s = self.status
         if self.phase == Phase.LAND and s is not None and s.height <= self.config.land_abort_above_m:
             return []  # committed: too low to fly away safely; the autopilot finishes the landing
-        if people and self.config.avoid_lost_s > 0:
-            north, east = self._aim if self._aim is not None else (lost.x, lost.y)
-            if math.isfinite(north) and math.isfinite(east):
-                self._avoid.append((north, east, self.now + self.config.avoid_lost_s))
-                why += f"; its ground avoided for {self.config.avoid_lost_s:g} s"
-        other = (self.planner.choose(self.tracks, self.now, exclude=(lost.id, *self._restless),
-                                     avoid=self._avoided())
+        other = (self.planner.choose(self.tracks, self.now, exclude=(lost.id, *self._restless))
                  if self._status_fresh() else None)
         if other is not None:
             return self._approach(other, f"zone {lost.id} lost ({why}); re-targeting", lost_id=lost.id)
@@ -1105,11 +901,6 @@ class LandingController:
         self._raise_level(s.alt - s.height + self.config.hold_height_m)
         return self._goto(s.north, s.east, self._level, None)
 
-    def _avoided(self) -> tuple[tuple[float, float], ...]:
-        """The landing points still avoided now (north, east; see ``avoid_lost_s``)."""
-        self._avoid = [a for a in self._avoid if a[2] > self.now]
-        return tuple((n, e) for n, e, _ in self._avoid)
-
     # -- search ------------------------------------------------------------------------------
 
     def _start_search(self, why: str) -> list[Command]:
@@ -1125,8 +916,6 @@ class LandingController:
         # Climb to the ceiling first, over where the vehicle is: a wider view for free.
         self._raise_level(self._cap())
         self._search = expanding_square((s.north, s.east), self._search_spacing(), c.search_radius_m)
-        self._search_from = (s.north, s.east)
-        self._over_memory = None
         self._aim = None
         self._last_goto = None
         self._set_phase(Phase.SEARCH, f"{why}; searching {c.search_radius_m:g} m around for "
@@ -1165,9 +954,6 @@ class LandingController:
         lead = self._search_lead()
         if lead is not None:
             return self._look_at(lead)
-        memory = self._memory_lead()
-        if memory is not None:
-            return self._search_memory(memory)
         if self._search and math.hypot(self._search[0][0] - s.north,
                                         self._search[0][1] - s.east) <= 2 * c.arrive_radius_m:
             # Hover there long enough for a zone in view to become a track and be old enough to
@@ -1185,19 +971,9 @@ class LandingController:
     def _search_lead(self) -> Track | None:
         """The largest zone the latest frame confirmed that may not be chosen yet (smaller than
         ``r0_m + radius_margin_m``, or young) and has not been looked at already, or None."""
-        avoid = self._avoided()
         leads = [t for t in self.tracks if t.misses == 0 and t.id not in self._investigated
-                 and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.planner.r0_m
-                 and not self.planner.near(t, avoid)]
+                 and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.planner.r0_m]
         return max(leads, key=lambda t: t.r, default=None)
-
-    def _hold_step(self) -> list[Command]:
-        """HOLD: hover where the hold began, or with ``hold_looks`` fly over free ground glimpsed
-        in view (``_look_at``) while the hold lasts."""
-        if not self.config.hold_looks or self.status is None or not self._status_fresh():
-            return []
-        lead = self._search_lead()
-        return [] if lead is None else self._look_at(lead)
 
     def _look_at(self, lead: Track) -> list[Command]:
         """Free ground seen, too little of it to choose (cut by the edge of the view, or too
@@ -1213,7 +989,6 @@ class LandingController:
             self._over_lead = (lead.id, self.now)
         elif self._looked_long_enough(lead, self.now - self._over_lead[1]):
             self._investigated.add(lead.id)  # looked at long enough: it is no zone
-            self._looked_at.append((lead.x, lead.y))
         return []
 
     def _looked_long_enough(self, lead: Track, over_s: float) -> bool:
@@ -1248,47 +1023,6 @@ class LandingController:
         return (lead is not None and s is not None and p.is_steady_sized(lead) and math.isfinite(lead.steady_s)
                 and 0.0 < lead.steady_s < p.steady_s
                 and math.hypot(lead.x - s.north, lead.y - s.east) <= 2 * c.arrive_radius_m)
-
-    def _memory_lead(self) -> Circle | None:
-        """The nearest circle of remembered free ground (``remembered``) large enough to be
-        chosen, within ``search_radius_m`` of where the search started, away from the points
-        to avoid and from those already looked at; None without one (or with memory off)."""
-        c, s = self.config, self.status
-        if c.search_memory_s <= 0 or s is None or self._search_from is None:
-            return None
-        avoid = [*self._avoided(), *self._looked_at]
-        sn, se = self._search_from
-        fits = [m for m in self.remembered if m.r >= c.planner.large_r_m
-                and math.hypot(m.x - sn, m.y - se) <= c.search_radius_m and not self.planner.near(m, avoid)]
-        over = self._over_memory
-        if over is not None:
-            # Keep flying to the place chosen while it is still remembered free (the nearest
-            # may change as the vehicle moves; two places alternating would get neither looked at).
-            here = [m for m in fits if math.hypot(m.x - over[0], m.y - over[1]) < c.planner.r0_m]
-            if here:
-                return max(here, key=lambda m: m.r)
-        return min(fits, key=lambda m: math.hypot(m.x - s.north, m.y - s.east), default=None)
-
-    def _search_memory(self, memory: Circle) -> list[Command]:
-        """Fly over remembered free ground at the search's level and hover there while the
-        tracker looks (``_search_dwell_s``); then, with no zone chosen, it is looked at."""
-        s, c = self.status, self.config
-        assert s is not None
-        over = self._over_memory
-        if over is None or math.hypot(over[0] - memory.x, over[1] - memory.y) >= c.planner.r0_m:
-            # A new place (the circle drifts a little as the map is read again: not a new one).
-            self._over_memory = (memory.x, memory.y, math.inf)
-            self._event(f"searching toward ground seen free, {math.hypot(memory.x - s.north, memory.y - s.east):.0f} m "
-                        f"away, radius {memory.r:.1f} m")
-            over = self._over_memory
-        if math.hypot(memory.x - s.north, memory.y - s.east) > 2 * c.arrive_radius_m:
-            return self._goto(memory.x, memory.y, self._level, None)
-        if not math.isfinite(over[2]):
-            self._over_memory = (over[0], over[1], self.now)
-        elif self.now - over[2] >= self._search_dwell_s():
-            self._looked_at.append((memory.x, memory.y))  # looked at long enough: no zone there now
-            self._over_memory = None
-        return []
 
     def _search_dwell_s(self) -> float:
         """Seconds to hover at each search waypoint: a zone's track must be born and grow old

@@ -42,10 +42,8 @@ STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking
 #: Where proposals come from: the paper's single frame (the default until the controller judges
 #: zones at touchdown), or the ground risk map fused over frames.
 FUSIONS = ("map", "frame")
-#: ``remembered_zones``: the risk map's cells are coarsened this many times (0.3 m at the default
-#: 0.1 m: a free circle loses at most half a coarse diagonal, 0.2 m) and this many circles given.
-MEMORY_FACTOR = 3
-MEMORY_ZONES = 8
+#: ``landing_spot``: the risk map's cells are coarsened this many times (0.3 m at the default 0.1 m).
+SPOT_FACTOR = 3
 #: ``landing_spot``: distances to where people were seen are measured up to this (m). Farther
 #: makes no difference to where the point goes inside a zone of a few metres, and costs more.
 PLACE_REACH_M = 8.0
@@ -201,21 +199,6 @@ class SLZPipeline:
                                 "head plane")
         return self.fixed_projection
 
-    def remembered_zones(self, t: float, within_s: float, n_max: int = MEMORY_ZONES) -> list[Circle]:
-        """Up to ``n_max`` free circles (largest first, radius >= ``r0_m``) on the ground the risk
-        map remembers free at time ``t`` (``GroundRiskMap.remembered_free``: its last look within
-        ``within_s`` seconds saw it free), anywhere on the map, in view or not: where a search
-        may go and look again (the controller's ``search_memory_s``). Empty without a map (no
-        posed frame yet, or a pipeline that keeps none). Call between frames, now and then: it
-        reads the part of the map seen within the horizon (1-3 ms)."""
-        if self.risk is None:
-            return []
-        found = self.risk.remembered_free(t, within_s, MEMORY_FACTOR)
-        if found is None:
-            return []
-        free, grid = found
-        return propose(free, grid, n_max, self.config.r0_m)
-
     def landing_spot(self, request: SpotRequest, t: float) -> Spot | None:
         """Where to land inside a zone (the controller's ``SpotRequest``, ``controller.place_lookback_s``):
         the point within ``request.radius_m`` of its centre farthest from the ground people were
@@ -226,7 +209,7 @@ class SLZPipeline:
         if self.risk is None:
             return None
         return self.risk.farthest_from_walkers(request.x, request.y, request.radius_m, t, request.lookback_s,
-                                               PLACE_REACH_M, aim=request.aim, factor=MEMORY_FACTOR)
+                                               PLACE_REACH_M, aim=request.aim, factor=SPOT_FACTOR)
 
     def process(self, frame: np.ndarray, t: float, pose: Pose | None = None) -> FrameResult:
         """One frame: BGR uint8 (H, W, 3) captured at ``t`` seconds, seen from ``pose``."""

@@ -8,7 +8,7 @@ costs per drawn frame while a client watches (the figure and its JPEG; ``live.ma
 nothing without a client); it is not part of the pipeline's ``total``, and neither is
 ``landing_spot``, the point of the
 largest zone farthest from where people were seen in the last 30 s, which a frame waits for while
-the vehicle approaches its zone (``controller.place_lookback_s``, ``SLZPipeline.landing_spot``).
+the vehicle approaches its zone (``controller.place_lookback_s``, the frame's ``GroundView.spot``).
 ``landability`` is the landability model (the shipped one unless ``--no-landability``; it runs on
 the same frame after the density model and is counted in ``total``, not in ``post_density``).
 Figures are printed, never asserted: this machine is shared and timings are noisy, so compare
@@ -131,7 +131,8 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
             zone = max(res.tracks, key=lambda tr: tr.r)
             t0 = time.perf_counter()
             # Within the part of it that keeps r0 plus radius_margin_m (4 m by default) around.
-            pipe.landing_spot(SpotRequest(zone.x, zone.y, max(0.0, zone.r - 4.0), 30.0, (zone.x, zone.y)), t)
+            assert res.ground is not None
+            res.ground.spot(SpotRequest(zone.x, zone.y, max(0.0, zone.r - 4.0), 30.0, (zone.x, zone.y)))
             samples.setdefault("landing_spot", []).append((time.perf_counter() - t0) * 1e3)
     wanted = list(STAGES if model is not None else STAGES[1:]) + ["post_density"]
     if surface is not None:

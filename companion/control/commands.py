@@ -43,6 +43,12 @@ class Goto:
     north: float
     east: float
 
+    def repeats(self, north: float, east: float, alt: float, zone_id: int | None, within_m: float) -> bool:
+        """Whether a target at (``north``, ``east``, ``alt``: NED metres from home, m above home)
+        for ``zone_id`` is this one again, within ``within_m`` horizontally and vertically."""
+        return (self.zone_id == zone_id and math.hypot(self.north - north, self.east - east) < within_m
+                and abs(self.target.rel_alt_m - alt) < within_m)
+
 
 @dataclass(frozen=True)
 class Land:

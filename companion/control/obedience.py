@@ -111,6 +111,17 @@ class ObedienceMonitor:
         self._progress_t = math.nan
         self._update_best(s)
 
+    def watch(self, s: Sample, ours: bool) -> str | None:
+        """On every vehicle status: while ``ours`` (the vehicle in the companion's mode, flying to
+        a target it was sent) engage and check it; otherwise disengage. Why it disobeys, or None."""
+        if not ours:
+            self.disengage()
+            return None
+        if not self.engaged:
+            self.engage(s)
+            return None
+        return self.check(s)
+
     def check(self, s: Sample) -> str | None:
         """Why the vehicle does not obey its target, or None. Call with every fresh position."""
         if not self.engaged or self._target is None:

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 
 from companion.pipeline.tracker import Track
@@ -93,6 +93,11 @@ class PlannerConfig:
         """Whether ``track`` is a steady zone: steady-sized (``is_steady_sized``) and confirmed
         for ``steady_s`` with that much free (its ``steady_s``; NaN, not measured, is not)."""
         return self.is_steady_sized(track) and track.steady_s >= self.steady_s
+
+    def holds_r0(self, free_m: float, all_free: bool) -> bool:
+        """Whether ground ``free_m`` metres free around a point is enough to land on: r0, or,
+        low down where the view is smaller than r0, ``all_free`` (everything seen there free)."""
+        return free_m >= self.r0_m or all_free
 
     def is_calm(self, calm_s: float) -> bool:
         """Whether ground watched and seen free for ``calm_s`` seconds is calm enough (NaN, not
@@ -153,6 +158,26 @@ class ZonePlanner:
         c = self.config
         unwalked = math.floor(t.unwalked_s) if c.prefer_unwalked and math.isfinite(t.unwalked_s) else 0
         return (t.r < c.large_r_m, not c.is_calm(t.calm_s), -unwalked, t.born_t, t.id)
+
+    def could_become_zone(self, tracks: Iterable[Track]) -> bool:
+        """Whether any zone the latest frame confirmed is at least ``r0_m`` across: something that
+        may still become a landing zone (worth the SELECT's wait, ``select_empty_s``)."""
+        r0 = self.config.r0_m
+        return any(t.misses == 0 and math.isfinite(t.r) and t.r >= r0 for t in tracks)
+
+    def largest_glimpse(self, tracks: Iterable[Track], exclude: Collection[int] = ()) -> Track | None:
+        """The largest zone the latest frame confirmed with at least ``r0_m`` free, not in
+        ``exclude``, whether or not it may be chosen yet (free ground glimpsed, for the search),
+        or None."""
+        leads = [t for t in tracks if t.misses == 0 and t.id not in exclude
+                 and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.r0_m]
+        return max(leads, key=lambda t: t.r, default=None)
+
+    def room(self, track: Track) -> float:
+        """How much of ``track`` (m) must stay free around its landing point for the point to
+        stay put: r0 plus the radius margin, or ``MIN_VIEW_M`` for a zone bounded by the view
+        (``seen_all_free``: low down the view is smaller than r0 plus the margin)."""
+        return MIN_VIEW_M if seen_all_free(track) else self.config.large_r_m
 
     def check_target(self, target_id: int, tracks: Iterable[Track], now: float) -> tuple[ZoneCheck, Track | None, str]:
         """Whether the zone being flown to still holds: (verdict, its latest snapshot, reason)."""

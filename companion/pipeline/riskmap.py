@@ -124,7 +124,7 @@ class Spot:
 
 @dataclass(frozen=True)
 class SpotRequest:
-    """Where a landing point may go (the controller asks, ``SLZPipeline.landing_spot`` answers):
+    """Where a landing point may go (the controller asks, the frame's ``slz.GroundView.spot`` answers):
     within ``radius_m`` of plane point (x, y) (m; world north/east), away from the ground people
     were seen on within ``lookback_s`` (s); ``aim`` the present landing point, or None."""
 

@@ -61,7 +61,6 @@ from companion.mavlink.statustext import event_severity, send_statustext, shadow
 from companion.mavlink.timesync import run_timesync
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
 from companion.pipeline.landability import LandabilityModel, LandabilityModelError, UnlandableMap
-from companion.pipeline.riskmap import Spot
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
@@ -480,20 +479,6 @@ class Service:
             ready = pending.popleft()
         return ready
 
-    def _spot(self, tracks: list[Track], t: float) -> Spot | None:
-        """Where the risk map would put the landing point on this frame, when the controller asks
-        (``controller.place_lookback_s``; 0.1-0.5 ms, in the loop: the frame's decision waits for it)."""
-        assert self.runner is not None
-        request = self.runner.controller.spot_request(tracks)
-        if request is None:
-            return None
-        try:
-            return self.pipeline.landing_spot(request, t)
-        except ValueError as exc:  # a bug, not the vehicle's fault: the point stays where it is
-            self.counters.errors += 1
-            log.warning("landing point not placed: %s", exc)
-            return None
-
     async def _frame_loop(self) -> None:
         pending: deque[Frame] = deque(maxlen=64)
         while not self.stop_event.is_set():
@@ -534,7 +519,9 @@ class Service:
             self.last_result = result
             target: Track | None = None
             if self.runner is not None:
-                self.runner.on_frame(frame.t, result.tracks, pose, result.below, self._spot(result.tracks, frame.t))
+                # The controller decides on this frame before the next is processed: the frame's
+                # ground view reads the risk map as this frame left it.
+                self.runner.on_frame(frame.t, result.tracks, pose, result.below, result.ground)
                 # The zone the vehicle flies to, or would fly to now: the planner's choice, the
                 # one rule (the pipeline reports tracks; it does not pick).
                 target = self.runner.controller.zone_target()

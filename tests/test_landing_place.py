@@ -147,9 +147,13 @@ def fly_to_zone(cfg: LandingConfig = PLACE) -> LandingController:
     return ctl
 
 
-def frame(ctl: LandingController, t: float, spot: Spot | None, north: float = 5.0) -> list:
+def frame(ctl: LandingController, t: float, spot: Spot | None, north: float = 5.0,
+          tracks: list[Track] | None = None) -> tuple[list, View]:
+    """A frame at ``t`` over zone 1 (or ``tracks``) whose ground view answers ``spot``: the
+    commands, and the view (what it was asked)."""
+    view = View(spot)
     ctl.on_state(status(t, north, 0.0, 20.0, mode="GUIDED"))
-    return ctl.on_frame(t, [track(t)], pose(t, north, 0.0, 20.0), view=View(spot))
+    return ctl.on_frame(t, [track(t)] if tracks is None else tracks, pose(t, north, 0.0, 20.0), view=view), view
 
 
 def goto_ned(cmd: Goto) -> tuple[float, float]:
@@ -157,22 +161,19 @@ def goto_ned(cmd: Goto) -> tuple[float, float]:
 
 
 def test_the_controller_asks_within_the_zones_room_and_flies_to_a_spot_clearly_farther_from_people():
+    _, view = frame(fly_to_zone(), 0.1, None, tracks=[])
+    assert view.asked == []  # the target not on this frame: nothing to place
     ctl = fly_to_zone()
-    request = ctl._spot_request([track(0.1)])
-    assert request is not None
+    # 0.3 m farther from people: not worth moving for.
+    cmds, view = frame(ctl, 0.1, Spot(10.0, -2.0, 4.3, 4.0))
+    (request,) = view.asked
     # Room: r0 2 m plus the margin 1 m must stay inside the 6 m zone around the point.
     assert (request.x, request.y, request.radius_m, request.lookback_s) == (10.0, 0.0, 3.0, 30.0)
     assert request.aim == (10.0, 0.0)
-    assert ctl._spot_request([]) is None  # the target not on this frame: nothing to place
-    # 0.3 m farther from people: not worth moving for. The frame's view is asked that request.
-    view = View(Spot(10.0, -2.0, 4.3, 4.0))
-    ctl.on_state(status(0.1, 5.0, 0.0, 20.0, mode="GUIDED"))
-    cmds = ctl.on_frame(0.1, [track(0.1)], pose(0.1, 5.0, 0.0, 20.0), view=view)
-    assert view.asked == [request]
     assert all(goto_ned(c)[1] == pytest.approx(0.0, abs=1e-6) for c in cmds if isinstance(c, Goto))
     assert ctl.placements == 0
     # 2 m farther: the landing point moves there, and the vehicle flies to it.
-    cmds = frame(ctl, 0.2, Spot(10.0, -2.5, 6.0, 4.0))
+    cmds, _ = frame(ctl, 0.2, Spot(10.0, -2.5, 6.0, 4.0))
     gotos = [c for c in cmds if isinstance(c, Goto)]
     assert gotos and goto_ned(gotos[-1]) == pytest.approx((10.0, -2.5), abs=1e-3)
     assert ctl.placements == 1
@@ -180,8 +181,8 @@ def test_the_controller_asks_within_the_zones_room_and_flies_to_a_spot_clearly_f
     assert any("landing point moved 2.5 m, 6.0 m from where people were seen in the last 30 s (was 4.0 m)"
                in e.text for e in notes)
     # The next request starts from the new point.
-    request = ctl._spot_request([track(0.3)])
-    assert request is not None and request.aim == (10.0, -2.5)
+    _, view = frame(ctl, 0.3, None)
+    assert [r.aim for r in view.asked] == [(10.0, -2.5)]
 
 
 def test_a_spot_outside_the_zones_room_or_not_finite_is_ignored():
@@ -205,7 +206,6 @@ def test_once_judged_or_in_land_the_point_stays_and_nothing_is_asked():
                 alt = c.target.rel_alt_m
         t += 0.1
     assert ctl.phase == Phase.LAND
-    assert ctl._spot_request([track(t)]) is None
     ctl.on_state(status(t, 10.0, 0.0, 9.0, mode="LAND"))
     view = View(Spot(10.0, -2.5, 7.0, 3.0))
     ctl.on_frame(t, [track(t)], pose(t, 10.0, 0.0, 9.0), view=view)
@@ -216,26 +216,26 @@ def test_the_point_moves_while_approaching_and_while_descending_to_judge_the_zon
     """The point moves while the vehicle approaches, and also once it is over the zone and
     descending to judge it (the moves that carry the point into the lawn)."""
 
-    def over(ctl: LandingController, t: float, spot: Spot | None = None) -> None:
+    def over(ctl: LandingController, t: float, spot: Spot | None = None) -> View:
+        view = View(spot)
         ctl.on_state(status(t, 10.0, -2.5, 20.0, mode="GUIDED"))
-        ctl.on_frame(t, [track(t)], pose(t, 10.0, -2.5, 20.0), view=View(spot))
+        ctl.on_frame(t, [track(t)], pose(t, 10.0, -2.5, 20.0), view=view)
+        return view
 
     ctl = fly_to_zone()
     frame(ctl, 0.1, Spot(10.0, -2.5, 6.0, 4.0))
     assert ctl.placements == 1 and ctl._aim == (10.0, -2.5)
     over(ctl, 0.2)
     assert ctl.phase == Phase.DESCEND
-    assert ctl._spot_request([track(0.3)]) is not None
-    over(ctl, 0.3, Spot(10.0, -1.5, 8.0, 3.0))
+    assert len(over(ctl, 0.3, Spot(10.0, -1.5, 8.0, 3.0)).asked) == 1  # asked while descending too
     assert ctl.phase == Phase.DESCEND  # still flying it, not handed back
     assert ctl.placements == 2 and ctl._aim == (10.0, -1.5)
 
 
 def test_off_by_default_no_request_and_spots_change_nothing():
     ctl = fly_to_zone(dataclasses.replace(PLACE, place_lookback_s=0.0))
-    assert ctl._spot_request([track(0.1)]) is None
-    frame(ctl, 0.1, Spot(10.0, -2.5, 7.0, 3.0))
-    assert ctl.placements == 0 and ctl._aim == (10.0, 0.0)
+    _, view = frame(ctl, 0.1, Spot(10.0, -2.5, 7.0, 3.0))
+    assert ctl.placements == 0 and ctl._aim == (10.0, 0.0) and view.asked == []
 
 
 # -- the pipeline --------------------------------------------------------------------------------

@@ -21,11 +21,24 @@ These functions answer; the phase machine (``companion.control.landing``) moves 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Protocol
 
+from companion.control.planner import ZonePlanner
 from companion.control.settings import PLACE_GAIN_M
 from companion.pipeline.riskmap import Spot, SpotRequest
 from companion.pipeline.tracker import Track
+
+
+@dataclass(frozen=True)
+class Aimed:
+    """The target as a frame confirms it (``track``), its landing point (``aim``: north, east m)
+    and the vehicle's distance to that point (``dist``, m)."""
+
+    track: Track
+    aim: tuple[float, float]
+    dist: float
 
 
 class SpotSource(Protocol):
@@ -53,6 +66,18 @@ def spot_request(track: Track, room: float, lookback_s: float, aim: tuple[float,
     if radius <= 0:
         return None
     return SpotRequest(track.x, track.y, radius, lookback_s, aim)
+
+
+def request_for(target_id: int, tracks: Sequence[Track], planner: ZonePlanner, lookback_s: float,
+                aim: tuple[float, float] | None) -> SpotRequest | None:
+    """What to ask a frame's ground view for the target ``target_id`` as the frame's ``tracks``
+    confirm it (``spot_request``, the present landing point ``aim`` kept while the zone holds its
+    room); None when the frame does not confirm it."""
+    track = next((t for t in tracks if t.id == target_id and t.misses == 0), None)
+    if track is None:
+        return None
+    room = planner.room(track)
+    return spot_request(track, room, lookback_s, aim_for(aim, track, room))
 
 
 def usable_spot(spot: Spot | None) -> Spot | None:

@@ -32,6 +32,7 @@ These functions answer; the phase machine (``companion.control.landing``) keeps 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from companion.control.settings import LAND_AGL_REACHED_M, LandingConfig
 from companion.control.touchdown import DescentProfile, by_rangefinder
@@ -111,6 +112,25 @@ def profile_now(profile: DescentProfile, s: VehicleStatus | None, land_agl_m: fl
     if s is None or s.measured_agl is None:
         return profile  # no rangefinder height: the LAND at land_alt_m, as low_target says
     return by_rangefinder(profile, land_agl_m)
+
+
+def with_speeds(profile: DescentProfile, speeds: dict[str, float]) -> DescentProfile | None:
+    """``profile`` with the autopilot's own descent speeds (m/s by ``DescentProfile`` field, read
+    from its parameters; a value that is not a positive number is ignored); None when none is
+    known."""
+    known = {k: v for k, v in speeds.items()
+             if k in ("descend_speed_mps", "land_speed_mps") and math.isfinite(v) and v > 0}
+    return replace(profile, **known) if known else None
+
+
+def touchdown_clearance(profile: DescentProfile, s: VehicleStatus | None, r: float) -> float | None:
+    """The least clearance (m) a zone of radius ``r`` can have at touchdown if the vehicle came
+    down over it now from its present height, every walker heading for it; None without a
+    vehicle position."""
+    if s is None:
+        return None
+    value = profile.clearance_at_touchdown(r, s.height)
+    return round(value, 2) if math.isfinite(value) else None
 
 
 def person_trust_height(fx_px: float, min_person_px: float | None, person_m: float = 0.4,

@@ -17,6 +17,11 @@ when chosen, for r0 plus the radius margin) stands for the calm disc that does n
 steady watch (``Track.steady_s``) counts as calm while the vehicle is within ``steady_margin_m``
 of its centre.
 
+During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends the
+vehicle back to HOLD; below it the landing is committed. It is committed too when the zone, last
+seen all free in a view smaller than ``BLIND_VIEW_M``, drops out of the tracks (``gone_blind``):
+the camera has come too low to confirm anything (seen occupied, it is lost as before).
+
 Every function here answers a question and changes nothing; the phase machine
 (``companion.control.landing``) acts on the answers.
 """
@@ -26,7 +31,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from companion.control.planner import MIN_VIEW_M, PlannerConfig
+from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, ZonePlanner, seen_all_free
 from companion.control.vehicle import VehicleStatus
 from companion.pipeline.circles import GroundBelow
 from companion.pipeline.tracker import Track
@@ -132,7 +137,38 @@ def calm_verdict(track: Track, below: GroundBelow | None, steady: bool, planner:
 def gone_blind(last: Track, track: Track | None, now: float, zone_max_age_s: float) -> bool:
     """Whether the zone ``last`` seen (the target), last seen all free with a view of under
     ``BLIND_VIEW_M``, has dropped out of the tracks (``track``: its snapshot on this frame, None
-    when gone) rather than being seen occupied: the camera has come too low to confirm anything.
-    Over uniform free ground this happens a little above the commit height."""
+    when gone) rather than being seen occupied: the camera has come too low to confirm anything,
+    and the landing is committed. Over uniform free ground this happens a little above the commit
+    height; sending the vehicle back up to HOLD there only to come down again churned for a
+    minute. Not while the frame sees somebody within r0 of the vehicle (``someone_within_r0``):
+    "all free" was said of the track's centre, which drifts to the edge of the view while the
+    vehicle comes down over the landing point."""
     gone = track is None or now - track.last_t > zone_max_age_s
     return gone and last.view_limited and not last.r_view >= BLIND_VIEW_M
+
+
+def target_check(planner: ZonePlanner, target: Track, tracks: list[Track], now: float, s: VehicleStatus | None,
+                 below: GroundBelow | None, over_zone: bool, free_under_aim: bool) -> tuple[ZoneCheck, Track | None, str]:
+    """Whether the zone flown to still holds on this frame: ``ZonePlanner.check_target``, and
+    over the zone (``over_zone``: DESCEND, LAND) r0 free around the vehicle, where it lands
+    (``free_below``); a zone the tracker dropped low over it still holds while the ground under
+    the landing point is free (``free_under_aim``, ``holds_under_aim``). (verdict, its snapshot,
+    the reason)."""
+    verdict, track, why = planner.check_target(target.id, tracks, now)
+    if verdict == ZoneCheck.LOST and track is None and free_under_aim:
+        verdict, track, why = ZoneCheck.OK, target, ""
+    if verdict == ZoneCheck.OK and over_zone and s is not None and track is not None and not seen_all_free(track):
+        here = free_below(track, s, below)
+        if not planner.config.holds_r0(here.free, here.all_free):
+            return ZoneCheck.SMALL, track, f"{here.free:.1f} m free around the vehicle < r0 {planner.config.r0_m:g} m"
+    return verdict, track, why
+
+
+def judged_text(zone_id: int, height_m: float, calm: float, steady_s: float | None, land_at_m: float) -> str:
+    """The words for a zone judged at ``height_m`` (m) with its ``calm`` (s; NaN: not measured)
+    and, over a steady zone, its ``steady_s``, the descent going on to ``land_at_m``."""
+    measured = [f"calm {calm:.1f} s"] if math.isfinite(calm) else []
+    if steady_s is not None:
+        measured.append(f"steady {steady_s:.1f} s")
+    return (f"zone {zone_id} judged at {height_m:.1f} m" + (f" ({', '.join(measured)})" if measured else "")
+            + f": descending over it to {land_at_m:g} m before the LAND")

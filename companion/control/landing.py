@@ -2,10 +2,13 @@
 
 The phases and which may follow which are in ``companion.control.phases``. The questions the
 machine asks on its way each have their module, which answers and changes nothing: which zone
-(``planner``), is the ground under the vehicle fit now (``ground``), where in the zone (``aim``),
-the levels and the last metres (``descent``), where to search (``search``), and whether the
-vehicle obeys (``obedience``). Only this machine acts: it emits the commands and the events and
-changes the phase, with one handler per phase for each frame.
+(``planner``: zones are lost there too), is the ground under the vehicle fit now (``ground``:
+and when a LAND is committed), where in the zone (``aim``), the levels and the last metres
+(``descent``), where to search (``search``), what the vehicle and the clock say (``watch``), and
+whether the vehicle obeys (``obedience``). Only this machine acts: it emits the commands and the
+events and changes the phase, with one handler per phase for each frame. HOLD is a position
+target at the vehicle's own position (climbing to ``hold_height_m`` above the ground), so the
+autopilot stays in GUIDED/OFFBOARD and can resume.
 
 Inputs (times are monotonic seconds):
 
@@ -13,10 +16,9 @@ Inputs (times are monotonic seconds):
 - ``on_frame(t, tracks, pose, below, view)``: the zone tracks after the frame captured at ``t``,
   the pose the pipeline used for it, and optionally the ground it saw under the camera
   (``GroundBelow``) and its ground view, which says where the risk map puts the landing point
-  (``aim.SpotSource``; asked only while the point may move). A frame
-  whose pose is missing, not finite or further than ``max_pose_age_s`` from ``t``, or a frame
-  older than ``zone_max_age_s``, is ignored: no decision is ever made on a zone that was not seen
-  with a fresh pose.
+  (``aim.SpotSource``; asked only while the point may move). A frame whose pose is missing, not
+  finite or further than ``max_pose_age_s`` from ``t``, or older than ``zone_max_age_s``, is
+  ignored: no decision is ever made on a zone that was not seen with a fresh pose.
 - ``on_state(status)``: where the vehicle is now (``VehicleStatus``), its mode, armed, on ground.
 - ``tick(now)``: timeouts.
 - ``on_command_result(command, error)``: what became of a command the runner executed.
@@ -24,58 +26,34 @@ Inputs (times are monotonic seconds):
 Each returns the list of ``Command``s to execute now; ``pop_events()`` gives the typed events
 (``companion.control.events``: every phase change, target, hold and handback, with its time); the
 service records them and sends their text as STATUSTEXT.
-
-Losing a zone: a zone seen with less than ``r0_m`` free is lost only once ``lose_after_frames``
-frames in a row see it so (one frame's false detection must not throw a landing away); gone from
-the tracks or stale, it is lost at once. During LAND the zone is still watched: above
-``land_abort_above_m`` a lost zone sends the vehicle back to HOLD; below it the landing is
-committed. It is committed too when the zone, last seen all free in a view smaller than
-``BLIND_VIEW_M``, drops out of the tracks: the camera has come too low to confirm anything (seen
-occupied, it is lost as before). HOLD is a position target at the vehicle's own position (climbing
-to ``hold_height_m`` above the ground), so the autopilot stays in GUIDED/OFFBOARD and can resume.
-
-While the vehicle is in GUIDED/OFFBOARD an ``ObedienceMonitor`` checks that it goes where it is
-told; a vehicle that climbs against its target, sinks below it, moves away from it, or rises above
-the ceiling is handed back to the autopilot's LAND at once, with the reason as an event.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
 
 from companion.control import aim as aiming
 from companion.control import descent as plan
 from companion.control import ground, watch
-from companion.control.commands import Command, Goto, Handback, Land, PositionTarget
+from companion.control.aim import Aimed
+from companion.control.commands import Command, Goto, GotoSender, Handback, Land
 from companion.control.events import HandedBack, Holding, Phase, TargetChosen
 from companion.control.ground import BLIND_VIEW_M
 from companion.control.obedience import ObedienceMonitor, Sample
 from companion.control.phases import ACTIVE, FLYING, PhaseMachine
-from companion.control.planner import ZoneCheck, ZonePlanner, seen_all_free
+from companion.control.planner import ZoneCheck, ZonePlanner
 from companion.control.search import Search, expanding_square
 from companion.control.settings import LAND_AGL_MIN_M, LandingConfig
 from companion.control.touchdown import DescentProfile
 from companion.control.trigger import Trigger
 from companion.control.vehicle import VehicleStatus, pose_usable
 from companion.geometry.camera import Pose
-from companion.geometry.geodesy import geo_from_ned
 from companion.pipeline.circles import GroundBelow
-from companion.pipeline.riskmap import Spot, SpotRequest
+from companion.pipeline.riskmap import Spot
 from companion.pipeline.tracker import Track
 
 person_trust_height = plan.person_trust_height
-
-
-@dataclass(frozen=True)
-class _Over:
-    """The target confirmed by this frame: its snapshot, the landing point, and how far the
-    vehicle is from the point (m)."""
-
-    track: Track
-    aim: tuple[float, float]
-    dist: float
 
 
 class LandingController(PhaseMachine):
@@ -90,10 +68,8 @@ class LandingController(PhaseMachine):
         self.target: Track | None = None
         self.status: VehicleStatus | None = None
         self.tracks: list[Track] = []
-        #: The ground under the camera on the latest usable frame (None: the frame did not say).
-        self.below: GroundBelow | None = None
-        #: Where the risk map would put the landing point (latest frame's ``spot``; ``place_lookback_s``).
-        self.spot: Spot | None = None
+        self.below: GroundBelow | None = None  # under the camera on the latest usable frame, if it said
+        self.spot: Spot | None = None  # where the latest frame's map puts the landing point, if asked
         self.last_valid_frame_t: float | None = None
         self.frames_ignored = 0
         self.refusals = 0
@@ -103,21 +79,17 @@ class LandingController(PhaseMachine):
         self.ceiling_m: float | None = None  # metres above home (``descent``)
         self.obedience = ObedienceMonitor(self.config.obedience)
         self.descent = self.config.descent
-        self._last_goto: Goto | None = None
-        self._last_goto_t = -math.inf
+        self.sender = GotoSender(self.config.retarget_min_move_m, self.config.refresh_s, self.obedience)
         self._mode_confirmed = False
         self._level = math.nan  # the planned altitude (m above home; ``descent``)
         self._aim: tuple[float, float] | None = None  # landing point, north/east metres
         self._blind = False  # in LAND, the zone went out of view: committed
-        # In LAND, the companion's own descent to land_agl_m by the rangefinder: its target
-        # (north, east, m above home; fixed when it starts) until the autopilot's LAND is
-        # commanded; else None.
+        # In LAND, the target of the companion's own descent to land_agl_m (``descent.low_target``).
         self._low_to: tuple[float, float, float] | None = None
         self._restless: set[int] = set()  # zones given up because they never became calm
         self._calm_wait: tuple[int, float] | None = None  # (zone id, since when) waiting for calm
-        # The zone judged at the judging height whose descent goes on below it, under the
-        # companion's control, to land_alt_m: below the judging height the calm disc no longer
-        # fits in the view, so the judgement is kept, not asked again.
+        # The zone judged at the judging height: below it the calm disc no longer fits in the
+        # view, so the judgement is kept down to land_alt_m, not asked again.
         self._judged: int | None = None
         self._steady_target: int | None = None  # the target chosen as a steady zone (``_approach``)
         self._failing = 0  # consecutive frames on which the target failed its check (``_confirmed``)
@@ -137,10 +109,8 @@ class LandingController(PhaseMachine):
         self.trigger = trigger
         self._candidate_seen = self.planner.could_become_zone(self.tracks)
         self._set_phase(Phase.SELECT, f"trigger: {trigger.reason}; looking for a landing zone", warning=True)
-        if self._status_fresh():
-            refused = self._set_ceiling()
-            if refused:
-                return refused
+        if self._status_fresh() and (refused := self._set_ceiling()):
+            return refused
         return self._select()
 
     def on_state(self, status: VehicleStatus) -> list[Command]:
@@ -150,16 +120,14 @@ class LandingController(PhaseMachine):
         self.status = status
         if self.phase not in ACTIVE:
             return []
-        if self.ceiling_m is None:
-            refused = self._set_ceiling()
-            if refused:
-                return refused
-        news = watch.vehicle_news(status, self.phase, self._low_to is not None, self.phase in FLYING, self.ceiling_m)
-        if news is not None:
+        if self.ceiling_m is None and (refused := self._set_ceiling()):
+            return refused
+        if news := watch.vehicle_news(status, self.phase, self._low_to is not None, self.ceiling_m, self._zone_id()):
             return self._on_news(news)
-        obeying = self._check_obedience(status)
-        if obeying:
-            return obeying
+        why = self.obedience.watch(Sample.of(status), watch.obeying_watched(
+            self.phase, self._low_to is not None, status.mode, self.config, self.sender.last is not None))
+        if why is not None:
+            return self._handback(why, action="LAND")
         if self.phase in FLYING and status.mode is not None:
             if watch.ours(status.mode, self.config):
                 self._mode_confirmed = True
@@ -182,7 +150,10 @@ class LandingController(PhaseMachine):
         self.last_valid_frame_t = t
         self.tracks = list(tracks)
         self.below = ground.usable_below(below)
-        request = None if view is None else self._spot_request(tracks)
+        # Asked before the frame changes anything, while the landing point may move (``_placing``).
+        target = self.target
+        request = (aiming.request_for(target.id, tracks, self.planner, self.config.place_lookback_s, self._aim)
+                   if view is not None and target is not None and self._placing(target.id) else None)
         self.spot = aiming.usable_spot(None if view is None or request is None else view.spot(request))
         if self.phase == Phase.SELECT and not self._candidate_seen:
             self._candidate_seen = self.planner.could_become_zone(self.tracks)
@@ -199,7 +170,7 @@ class LandingController(PhaseMachine):
                             None if self.status is None else self.status.t, self.last_valid_frame_t)
         if due is None:
             return []
-        return self._start_search(due.why) if due.search else self._handback(due.why)
+        return (self._start_search if due.search else self._handback)(due.why)
 
     def on_command_result(self, command: Command, error: Exception | None) -> list[Command]:
         if error is None:
@@ -212,47 +183,25 @@ class LandingController(PhaseMachine):
         if self.phase in ACTIVE and self.refusals >= self.config.max_refusals:
             return self._handback(f"{self.refusals} commands failed in a row")
         if isinstance(command, Goto):
-            self._last_goto = None  # re-send at the next frame
+            self.sender.forget()  # re-send at the next frame
         return []
 
     def use_autopilot_speeds(self, speeds: dict[str, float], source: str) -> None:
-        """Take the autopilot's own descent speeds (m/s by ``DescentProfile`` field, read from its
-        parameters) for the time to touchdown; a value that is not a positive number is ignored."""
-        known = {k: v for k, v in speeds.items()
-                 if k in ("descend_speed_mps", "land_speed_mps") and math.isfinite(v) and v > 0}
-        if not known:
-            return
-        self.descent = replace(self.descent, **known)
-        d = self.descent
-        self._event(f"descent {d.descend_speed_mps:.1f} m/s, LAND {d.land_speed_mps:.1f} m/s ({source})")
+        """Take the autopilot's own descent speeds for the time to touchdown (``descent.with_speeds``)."""
+        d = plan.with_speeds(self.descent, speeds)
+        if d is not None:
+            self.descent = d
+            self._event(f"descent {d.descend_speed_mps:.1f} m/s, LAND {d.land_speed_mps:.1f} m/s ({source})")
 
     # -- answers for the service -------------------------------------------------------------
 
-    def _spot_request(self, tracks: Sequence[Track]) -> SpotRequest | None:
-        """What to ask the frame's ground view (``place_lookback_s``), before the frame changes
-        anything: while the landing point may move (``_placing``), where it may go in the target
-        as this frame's ``tracks`` confirm it (``aim.spot_request``). None otherwise."""
-        if self.target is None or not self._placing(self.target.id):
-            return None
-        track = next((t for t in tracks if t.id == self.target.id and t.misses == 0), None)
-        if track is None:
-            return None
-        room = self.planner.room(track)
-        return aiming.spot_request(track, room, self.config.place_lookback_s, aiming.aim_for(self._aim, track, room))
-
     def touchdown_clearance(self, track: Track) -> float | None:
-        """The least clearance (m) ``track`` can have at touchdown if the vehicle came down over it
-        now from its present height, with every walker heading for it (``DescentProfile``); None
-        without a vehicle position."""
-        if self.status is None:
-            return None
-        value = self._descent_now().clearance_at_touchdown(track.r, self.status.height)
-        return round(value, 2) if math.isfinite(value) else None
+        """The least clearance (m) ``track`` can have at touchdown (``descent.touchdown_clearance``)."""
+        return plan.touchdown_clearance(self._descent_now(), self.status, track.r)
 
     def zone_target(self) -> Track | None:
-        """The zone the vehicle flies to (after a trigger), or would fly to now (before one): what
-        the flight recording, the status line and the ground station call "the target". After
-        the flight (LANDED, HANDBACK) there is none."""
+        """The zone the vehicle flies to (after a trigger), or would fly to now (before one); none
+        after the flight: what the recording, the status line and the ground station call the target."""
         if self.phase in ACTIVE:
             return self.target
         if self.phase != Phase.MONITOR:
@@ -284,8 +233,7 @@ class LandingController(PhaseMachine):
         return [] if move.to is None else self._goto(move.to[0], move.to[1], self._level, None)
 
     def _start_search(self, why: str) -> list[Command]:
-        """No zone in view for the SELECT/HOLD timeout: search, or hand back when searching is off
-        or there is no time left for it."""
+        """SELECT/HOLD timed out: search, or hand back when searching is off or out of time."""
         c, s = self.config, self.status
         if c.search_s <= 0 or s is None or not self._status_fresh() or self.ceiling_m is None:
             return self._handback(why)
@@ -297,7 +245,7 @@ class LandingController(PhaseMachine):
         self._level = plan.raised(self._level, self._cap(), self._cap())
         self.search.fly_square((s.north, s.east), self._level, s)
         self._aim = None
-        self._last_goto = None
+        self.sender.forget()
         self._set_phase(Phase.SEARCH, f"{why}; searching {c.search_radius_m:g} m around for "
                         f"{c.search_s:g} s", warning=True)
         return self._goto(s.north, s.east, self._level, None)
@@ -315,8 +263,7 @@ class LandingController(PhaseMachine):
         self.target = zone
         self._failing = 0
         self._aim = (zone.x, zone.y)
-        # Chosen too small for the radius margin, so for its steadiness: its steady watch will
-        # stand for the calm disc that does not fit in it (``ground.over_steady``).
+        # Chosen too small for the radius margin, so for its steadiness (``ground.over_steady``).
         self._steady_target = zone.id if zone.r < c.planner.large_r_m else None
         self._level = plan.approach_level(self._level, s, c, self._cap())
         dist = math.hypot(zone.x - s.north, zone.y - s.east)
@@ -324,13 +271,13 @@ class LandingController(PhaseMachine):
                         event=TargetChosen, zone_id=zone.id, north=zone.x, east=zone.y, r=zone.r,
                         lost_zone_id=lost_id, touchdown_clearance_m=self.touchdown_clearance(zone),
                         edge=zone.edge or None)
-        self._last_goto = None
+        self.sender.forget()
         return self._goto(zone.x, zone.y, self._level, zone.id)
 
     def _frame_approach(self) -> list[Command]:
         """APPROACH: level flight to the landing point; over it, the descent begins."""
         over = self._confirmed()
-        if not isinstance(over, _Over):
+        if not isinstance(over, Aimed):
             return over
         if over.dist > self.config.arrive_radius_m:
             return self._goto(over.aim[0], over.aim[1], self._level, over.track.id)
@@ -341,39 +288,29 @@ class LandingController(PhaseMachine):
 
     def _frame_descend(self) -> list[Command]:
         over = self._confirmed()
-        return self._descend(over) if isinstance(over, _Over) else over
+        return self._descend(over) if isinstance(over, Aimed) else over
 
     def _frame_land(self) -> list[Command]:
         """LAND: the autopilot lands; the zone is still checked (``_confirmed``) above the commit height."""
         over = self._confirmed()
-        return [] if isinstance(over, _Over) else over
+        return [] if isinstance(over, Aimed) else over
 
-    def _confirmed(self) -> _Over | list[Command]:
-        """Whether this frame confirms the target, for APPROACH, DESCEND and LAND: the target, its
-        landing point and the distance to it when it does; else the commands for a zone lost or
-        unconfirmed (none, or another zone, or HOLD)."""
+    def _confirmed(self) -> Aimed | list[Command]:
+        """APPROACH, DESCEND, LAND: the target as this frame confirms it, with its landing point
+        (``Aimed``); else the commands for a zone lost or unconfirmed (none, another zone, HOLD)."""
         assert self.target is not None
-        verdict, track, why = self.planner.check_target(self.target.id, self.tracks, self.now)
-        s, c = self.status, self.config
-        if verdict == ZoneCheck.LOST and track is None and self._ground_below_holds():
-            # Low over the zone the tracker may drop it while this frame sees r0 free straight
-            # under the vehicle: that ground, not the zone's track, is where it comes down.
-            verdict, track, why = ZoneCheck.OK, self.target, ""
+        s, c, aim = self.status, self.config, self._aim
+        over_zone = self.phase in (Phase.DESCEND, Phase.LAND)
+        under_aim = (over_zone and s is not None and aim is not None and self._status_fresh()
+                     and ground.holds_under_aim(s, aim, self.below, c.planner, c.arrive_radius_m))
+        verdict, track, why = ground.target_check(self.planner, self.target, self.tracks, self.now, s, self.below,
+                                                  over_zone, under_aim)
         if verdict == ZoneCheck.LOST:
             # Gone from the tracks, or unconfirmed for zone_max_age_s: that already took time.
             return [] if self._out_of_view(track) else self._lost(why)
         if verdict == ZoneCheck.UNCONFIRMED or track is None or s is None or not self._status_fresh():
             return []  # no new command toward a zone this frame did not confirm
-        if verdict == ZoneCheck.OK and self.phase in (Phase.DESCEND, Phase.LAND) and not seen_all_free(track):
-            # Over the zone the vehicle lands where it is: what must be free is r0 around it.
-            here = ground.free_below(track, s, self.below)
-            if not c.planner.holds_r0(here.free, here.all_free):
-                verdict, why = ZoneCheck.SMALL, f"{here.free:.1f} m free around the vehicle < r0 {c.planner.r0_m:g} m"
-        if verdict == ZoneCheck.SMALL:
-            # Lost only when ``lose_after_frames`` frames in a row say so: the network marks a
-            # patch of ground as a person in one frame now and then (at 10 m about one frame in
-            # thirty, on the simulator's ground). A person who walks in is seen on every frame:
-            # the reaction comes one frame later. No command goes toward the zone meanwhile.
+        if verdict == ZoneCheck.SMALL:  # lost once lose_after_frames frames in a row say so (``planner``)
             self._failing += 1
             if self._failing < c.lose_after_frames:
                 self.failures_tolerated += 1
@@ -390,9 +327,9 @@ class LandingController(PhaseMachine):
             self._event(f"zone {track.id}: landing point moved {moved:.1f} m, {spot.clear_m:.1f} m from where "
                         f"people were seen in the last {c.place_lookback_s:g} s (was {aiming.was_clear(spot):.1f} m)")
             aim = self._aim = (spot.x, spot.y)
-        return _Over(track, aim, math.hypot(aim[0] - s.north, aim[1] - s.east))
+        return Aimed(track, aim, math.hypot(aim[0] - s.north, aim[1] - s.east))
 
-    def _descend(self, over: _Over) -> list[Command]:
+    def _descend(self, over: Aimed) -> list[Command]:
         """DESCEND: step down over the landing point to the judging height, judge the zone there
         (calm), step on down to the LAND height, and command the LAND (``descent``)."""
         s, c = self.status, self.config
@@ -417,13 +354,8 @@ class LandingController(PhaseMachine):
             # below, the ground under the vehicle re-checked every frame (``_confirmed``).
             if not judged:
                 judged, self._judged = True, zone_id
-                calm_s = ground.calm_s(self.below)
-                measured = [f"calm {calm_s:.1f} s"] if math.isfinite(calm_s) else []
-                if self._over_steady(track):
-                    measured.append(f"steady {track.steady_s:.1f} s")
-                self._event(f"zone {zone_id} judged at {s.height:.1f} m"
-                            + (f" ({', '.join(measured)})" if measured else "")
-                            + f": descending over it to {land_at:g} m before the LAND")
+                steady = track.steady_s if self._over_steady(track) else None
+                self._event(ground.judged_text(zone_id, s.height, ground.calm_s(self.below), steady, land_at))
         elif s.on_ground or reached:
             # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
             calm_s = ground.calm_s(self.below)
@@ -437,7 +369,7 @@ class LandingController(PhaseMachine):
             # Straight down over the landing point as it is now: a zone bounded by the view
             # moves with the camera, and the committed descent must not chase it.
             self._low_to = (aim[0], aim[1], low_alt)
-            self._last_goto = None
+            self.sender.forget()
             return self._goto(aim[0], aim[1], low_alt, zone_id)
         # The plan's next step, never below the judging (or, judged, the LAND) height over the
         # ground under the vehicle; off the point it re-centres without climbing.
@@ -449,23 +381,20 @@ class LandingController(PhaseMachine):
         """Act on what the vehicle's status says happened (``watch.vehicle_news``)."""
         if news.seen == watch.Seen.GROUND_EARLY:
             return self._low_land(news.text)
-        if news.seen == watch.Seen.LANDED:
-            self._set_phase(Phase.LANDED, f"landed in zone {self._zone_id()}", zone_id=self._zone_id_or_none())
-        elif news.seen == watch.Seen.LANDED_DISARMED:
-            self._set_phase(Phase.LANDED, f"vehicle on the ground and disarmed (zone {self._zone_id()})",
-                            zone_id=self._zone_id_or_none())
-        elif news.seen == watch.Seen.DISARMED_IN_AIR:
-            self.target = None
-            self._set_phase(Phase.HANDBACK, "vehicle disarmed in the air: companion stops", warning=True,
-                            event=HandedBack, reason="vehicle disarmed in the air")
-        else:
+        if news.seen == watch.Seen.ABOVE_CEILING:
             return self._handback(news.text, action="LAND")
+        if news.seen == watch.Seen.DISARMED_IN_AIR:
+            self.target = None
+            self._set_phase(Phase.HANDBACK, f"{news.text}: companion stops", warning=True, event=HandedBack,
+                            reason=news.text)
+        else:
+            self._set_phase(Phase.LANDED, news.text, zone_id=self._zone_id_or_none())
         return []
 
     def _low_land(self, why: str) -> list[Command]:
         """End the companion's low descent (``descent.low_target``): the autopilot's LAND from here."""
         self._low_to = None
-        self._last_goto = None
+        self.sender.forget()
         self._event(f"zone {self._zone_id()}: LAND now, {why}")
         return [Land()]
 
@@ -485,22 +414,15 @@ class LandingController(PhaseMachine):
                         event=Holding, lost_zone_id=lost.id, reason=why)
         if s is None or not self._status_fresh():
             return []
-        self._last_goto = None
-        # Low over a lost zone the camera sees too little to confirm any zone of r0 plus margin:
-        # climb back to where it sees enough (never above the ceiling), rather than hover blind
-        # until the handback.
+        self.sender.forget()
+        # Low over a lost zone the camera sees too little to confirm any zone: climb to where it does.
         self._aim = None
         self._level = plan.raised(self._level, s.alt - s.height + self.config.hold_height_m, self._cap())
         return self._goto(s.north, s.east, self._level, None)
 
     def _out_of_view(self, track: Track | None) -> bool:
-        """In LAND, a zone last seen all free with a view of under ``BLIND_VIEW_M`` that then drops
-        out of the tracks (rather than being seen occupied) has gone below what the camera can
-        confirm: the landing is committed, as below ``land_abort_above_m`` (says so once). Over
-        uniform free ground this happens a little above the commit height; sending the vehicle
-        back up to HOLD there only to come down again churned for a minute. Not while this frame
-        sees somebody within r0 of the vehicle: "all free" was said of the track's centre, which
-        drifts to the edge of the view while the vehicle comes down over the aim."""
+        """In LAND, whether the target went out of view, all free (``ground.gone_blind``): the
+        landing is committed, as below ``land_abort_above_m`` (says so once)."""
         last = self.target
         if self.phase != Phase.LAND or last is None or \
                 not ground.gone_blind(last, track, self.now, self.config.planner.zone_max_age_s) or \
@@ -515,18 +437,9 @@ class LandingController(PhaseMachine):
     # -- questions asked of the parts with this machine's state ---------------------------------
 
     def _placing(self, zone_id: int) -> bool:
-        """Whether the landing point over zone ``zone_id`` may still move (``place_lookback_s``):
-        approaching it or descending to judge it, not once judged, nor in LAND."""
+        """Whether the landing point may move (``aim``): approaching or descending to judge it."""
         return (self.config.place_lookback_s > 0 and self.phase in (Phase.APPROACH, Phase.DESCEND)
                 and self._judged != zone_id)
-
-    def _ground_below_holds(self) -> bool:
-        """Over the zone (DESCEND, or LAND above the commit height), whether this frame saw r0
-        free around the vehicle under the landing point (``ground.holds_under_aim``)."""
-        s, aim = self.status, self._aim
-        if self.phase not in (Phase.DESCEND, Phase.LAND) or s is None or aim is None or not self._status_fresh():
-            return False
-        return ground.holds_under_aim(s, aim, self.below, self.config.planner, self.config.arrive_radius_m)
 
     def _over_steady(self, track: Track) -> bool:
         return ground.over_steady(track, self.status, self._steady_target, self.config.planner)
@@ -555,33 +468,11 @@ class LandingController(PhaseMachine):
         assert self.ceiling_m is not None
         return self.ceiling_m - self.config.ceiling_margin_m
 
-    def _check_obedience(self, status: VehicleStatus) -> list[Command]:
-        """Hand back to LAND when the vehicle does not follow our targets (see ``obedience``)."""
-        ours = ((self.phase in (Phase.APPROACH, Phase.DESCEND, Phase.HOLD, Phase.SEARCH)
-                 or (self.phase == Phase.LAND and self._low_to is not None))
-                and status.mode in self.config.external_modes and self._last_goto is not None)
-        sample = Sample(status.north, status.east, status.alt, status.vn, status.ve, status.vd, status.t)
-        why = self.obedience.watch(sample, ours)
-        return [] if why is None else self._handback(why, action="LAND")
-
     # -- acting: commands, phases, events ---------------------------------------------------------
 
     def _goto(self, north: float, east: float, alt: float, zone_id: int | None) -> list[Command]:
-        assert self.status is not None
-        alt = min(alt, self._cap())  # never a target above the ceiling, whatever asked for it
-        last = self._last_goto
-        if last is not None and last.repeats(north, east, alt, zone_id, self.config.retarget_min_move_m) \
-                and self.now - self._last_goto_t < self.config.refresh_s:
-            return []  # the vehicle already has this target; do not flood the link
-        point = geo_from_ned(self.status.home, north, east, -alt)
-        cmd = Goto(PositionTarget(point.lat_deg, point.lon_deg, alt, point.alt_m), zone_id, north, east)
-        self._last_goto, self._last_goto_t = cmd, self.now
-        s = self.status
-        # The vehicle flies on with its old target from the status's sample time until this one
-        # reaches it: the status's age plus the link's latency out.
-        unheard = max(0.0, self.now - s.t) + max(0.0, s.latency_s)
-        self.obedience.target(north, east, alt, Sample(s.north, s.east, s.alt, s.vn, s.ve, s.vd, s.t), unheard)
-        return [cmd]
+        assert self.status is not None  # never a target above the ceiling, whatever asked for it:
+        return self.sender.goto(self.status, north, east, min(alt, self._cap()), zone_id, self.now)
 
     def _handback(self, why: str, action: str | None = None) -> list[Command]:
         """Give the vehicle back: ``action`` LAND or RTL (default: the configured one)."""
@@ -604,10 +495,6 @@ class LandingController(PhaseMachine):
             self._low_to = None
 
 
-# The commands the controller returns, its phases and its settings are re-exported: a runner
-# drives the controller with this module alone.
-__all__ = [
-    "ACTIVE", "BLIND_VIEW_M", "FLYING", "LAND_AGL_MIN_M", "LandingConfig", "LandingController", "VehicleStatus",
-    "expanding_square", "person_trust_height",
-    "Command", "Goto", "Handback", "Land", "Phase",
-]
+# Re-exported: a runner drives the controller with this module alone.
+__all__ = ["ACTIVE", "BLIND_VIEW_M", "FLYING", "LAND_AGL_MIN_M", "LandingConfig", "LandingController", "VehicleStatus",
+           "expanding_square", "person_trust_height", "Command", "Goto", "Handback", "Land", "Phase"]

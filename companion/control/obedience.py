@@ -31,6 +31,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from companion.control.vehicle import VehicleStatus
+
 
 @dataclass(frozen=True)
 class ObedienceConfig:
@@ -61,6 +63,11 @@ class Sample:
     ve: float = 0.0
     vd: float = 0.0
     t: float = math.nan
+
+    @classmethod
+    def of(cls, s: VehicleStatus) -> Sample:
+        """The sample a vehicle status gives."""
+        return cls(s.north, s.east, s.alt, s.vn, s.ve, s.vd, s.t)
 
 
 class ObedienceMonitor:

@@ -49,22 +49,33 @@ class Due:
     why: str
 
 
-def vehicle_news(s: VehicleStatus, phase: Phase, low_descent: bool, flying: bool,
-                 ceiling_m: float | None) -> News | None:
+def vehicle_news(s: VehicleStatus, phase: Phase, low_descent: bool, ceiling_m: float | None,
+                 zone: str) -> News | None:
     """What ``s`` says happened, in ``phase`` (``low_descent``: the companion's own descent to
-    ``land_agl_m`` is under way; ``flying``: a phase the companion flies), or None."""
+    ``land_agl_m`` is under way; ``zone``: the target's id, for the words), or None."""
+    flying = phase in FLYING
     landing = phase == Phase.LAND
     if landing and low_descent and s.on_ground and s.armed is not False:
         # The ground came before land_agl_m (a slope, a rangefinder reading long): in
         # GUIDED/OFFBOARD the autopilot would sit on it armed; its LAND finishes and disarms.
         return News(Seen.GROUND_EARLY, f"on the ground at {s.height:.1f} m by the rangefinder")
     if landing and (s.on_ground or s.armed is False):
-        return News(Seen.LANDED)
+        return News(Seen.LANDED, f"landed in zone {zone}")
+    if flying and s.armed is False and s.on_ground:
+        return News(Seen.LANDED_DISARMED, f"vehicle on the ground and disarmed (zone {zone})")
     if flying and s.armed is False:
-        return News(Seen.LANDED_DISARMED if s.on_ground else Seen.DISARMED_IN_AIR)
+        return News(Seen.DISARMED_IN_AIR, "vehicle disarmed in the air")
     if flying and ceiling_m is not None and s.alt > ceiling_m:
         return News(Seen.ABOVE_CEILING, f"vehicle at {s.alt:.1f} m, above the {ceiling_m:.1f} m ceiling")
     return None
+
+
+def obeying_watched(phase: Phase, low_descent: bool, mode: str | None, c: LandingConfig, sent: bool) -> bool:
+    """Whether the obedience monitor watches now: the vehicle in the companion's mode (``mode``),
+    flying a target it was sent (``sent``) in a phase the companion flies (in LAND, only its own
+    low descent, ``low_descent``)."""
+    flying = phase in (Phase.APPROACH, Phase.DESCEND, Phase.HOLD, Phase.SEARCH) or (phase == Phase.LAND and low_descent)
+    return flying and mode in c.external_modes and sent
 
 
 def ours(mode: str, c: LandingConfig) -> bool:

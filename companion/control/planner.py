@@ -29,7 +29,10 @@ the threshold does not make the vehicle dither): present, ``r >= r0_m``, and con
 ``zone_max_age_s``. A kept zone with ``misses > 0`` is *unconfirmed*: no new command goes toward it
 until a frame confirms it again, and it is lost once ``zone_max_age_s`` passes. A zone seen with
 less than ``r0_m`` free is *small*: the controller drops it once that has lasted its
-``lose_after_frames`` frames in a row (one frame's false detection must not throw a landing away).
+``lose_after_frames`` frames in a row (one frame's false detection must not throw a landing away:
+the network marks a patch of ground as a person in one frame now and then, while a person who
+walks in is seen on every frame, so the reaction comes one frame later); gone from the tracks, it
+is lost at once.
 """
 
 from __future__ import annotations

@@ -6,10 +6,9 @@ on the scene's ideal density map unless a model is given, in which case the mode
 rendered frame and its own output feeds the rest. ``live_view`` is what the service's live view
 costs per drawn frame while a client watches (the figure and its JPEG; ``LIVE_MAX_FPS`` at most,
 nothing without a client); it is not part of the pipeline's ``total``, and neither is
-``search_memory``, the risk map's remembered free ground the service reads once a second while
-the controller searches (``SLZPipeline.remembered_zones``), nor ``landing_spot``, the point of the
+``landing_spot``, the point of the
 largest zone farthest from where people were seen in the last 30 s, which a frame waits for while
-the vehicle approaches its zone (``PLACE_LOOKBACK_S``, ``SLZPipeline.landing_spot``).
+the vehicle approaches its zone (``PLACE_LOOKBACK_S``, the frame's ``GroundView.spot``).
 ``landability`` is the landability model (the shipped one unless ``--no-landability``; it runs on
 the same frame after the density model and is counted in ``total``, not in ``post_density``).
 Figures are printed, never asserted: this machine is shared and timings are noisy, so compare
@@ -126,25 +125,21 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
         t0 = time.perf_counter()
         live_jpeg(frame, res, res.tracks[0].id if res.tracks else None, "MONITOR  zones 0  no target  00:00:00")
         samples.setdefault("live_view", []).append((time.perf_counter() - t0) * 1e3)
-        # What the search would read once a second (the controller's search_memory_s): the ground the risk
-        # map remembers free, over the map the drifting views have filled so far.
-        t0 = time.perf_counter()
-        pipe.remembered_zones(t, 60.0)
-        samples.setdefault("search_memory", []).append((time.perf_counter() - t0) * 1e3)
         # What a frame waits for while the vehicle approaches its zone (PLACE_LOOKBACK_S):
         # the point of the largest zone farthest from where people were seen in the last 30 s.
         if res.tracks:
             zone = max(res.tracks, key=lambda tr: tr.r)
             t0 = time.perf_counter()
             # Within the part of it that keeps r0 plus radius_margin_m (4 m by default) around.
-            pipe.landing_spot(SpotRequest(zone.x, zone.y, max(0.0, zone.r - 4.0), 30.0, (zone.x, zone.y)), t)
+            assert res.ground is not None
+            res.ground.spot(SpotRequest(zone.x, zone.y, max(0.0, zone.r - 4.0), 30.0, (zone.x, zone.y)))
             samples.setdefault("landing_spot", []).append((time.perf_counter() - t0) * 1e3)
     wanted = list(STAGES if model is not None else STAGES[1:]) + ["post_density"]
     if surface is not None:
         wanted.insert(1 if model is not None else 0, "landability")
     if model is not None or surface is not None:
         wanted.append("total")
-    wanted += ["live_view", "search_memory", "landing_spot"]
+    wanted += ["live_view", "landing_spot"]
     return {name: _stats(samples[name]) for name in wanted if name in samples}
 
 

@@ -1,13 +1,17 @@
 """What the landing controller asks of the vehicle, in its own terms.
 
 The MAVLink adapters (``companion.mavlink``) turn these into messages for each autopilot; the
-controller never imports them.
+controller never imports them. ``GotoSender`` builds the go-to targets the phase machine sends.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+from companion.control.obedience import ObedienceMonitor, Sample
+from companion.control.vehicle import VehicleStatus
+from companion.geometry.geodesy import geo_from_ned
 
 
 @dataclass(frozen=True)
@@ -43,6 +47,12 @@ class Goto:
     north: float
     east: float
 
+    def repeats(self, north: float, east: float, alt: float, zone_id: int | None, within_m: float) -> bool:
+        """Whether a target at (``north``, ``east``, ``alt``: NED metres from home, m above home)
+        for ``zone_id`` is this one again, within ``within_m`` horizontally and vertically."""
+        return (self.zone_id == zone_id and math.hypot(self.north - north, self.east - east) < within_m
+                and abs(self.target.rel_alt_m - alt) < within_m)
+
 
 @dataclass(frozen=True)
 class Land:
@@ -58,3 +68,37 @@ class Handback:
 
 
 Command = Goto | Land | Handback
+
+
+class GotoSender:
+    """The go-to targets the phase machine sends (``goto``): each built from NED metres, a repeat
+    of the last one (within ``min_move_m``, less than ``refresh_s`` after it) left out so as not
+    to flood the link, and each told to the ``ObedienceMonitor``."""
+
+    def __init__(self, min_move_m: float, refresh_s: float, obedience: ObedienceMonitor) -> None:
+        self.min_move_m = min_move_m
+        self.refresh_s = refresh_s
+        self.obedience = obedience
+        self.last: Goto | None = None
+        self.last_t = -math.inf
+
+    def forget(self) -> None:
+        """Send the next target whatever it is (a new zone, a new phase, a command that failed)."""
+        self.last = None
+
+    def goto(self, s: VehicleStatus, north: float, east: float, alt: float, zone_id: int | None,
+             now: float) -> list[Command]:
+        """The command to fly to (``north``, ``east``: NED metres from home; ``alt``: m above home)
+        for ``zone_id`` at ``now`` (s), or none when the vehicle already has that target."""
+        last = self.last
+        if last is not None and last.repeats(north, east, alt, zone_id, self.min_move_m) \
+                and now - self.last_t < self.refresh_s:
+            return []  # the vehicle already has this target; do not flood the link
+        point = geo_from_ned(s.home, north, east, -alt)
+        cmd = Goto(PositionTarget(point.lat_deg, point.lon_deg, alt, point.alt_m), zone_id, north, east)
+        self.last, self.last_t = cmd, now
+        # The vehicle flies on with its old target from the status's sample time until this one
+        # reaches it: the status's age plus the link's latency out.
+        unheard = max(0.0, now - s.t) + max(0.0, s.latency_s)
+        self.obedience.target(north, east, alt, Sample.of(s), unheard)
+        return [cmd]

@@ -31,6 +31,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from companion.control.vehicle import VehicleStatus
+
 
 @dataclass(frozen=True)
 class ObedienceConfig:
@@ -61,6 +63,11 @@ class Sample:
     ve: float = 0.0
     vd: float = 0.0
     t: float = math.nan
+
+    @classmethod
+    def of(cls, s: VehicleStatus) -> Sample:
+        """The sample a vehicle status gives."""
+        return cls(s.north, s.east, s.alt, s.vn, s.ve, s.vd, s.t)
 
 
 class ObedienceMonitor:
@@ -110,6 +117,17 @@ class ObedienceMonitor:
         self._best_xy = self._best_z = math.inf
         self._progress_t = math.nan
         self._update_best(s)
+
+    def watch(self, s: Sample, ours: bool) -> str | None:
+        """On every vehicle status: while ``ours`` (the vehicle in the companion's mode, flying to
+        a target it was sent) engage and check it; otherwise disengage. Why it disobeys, or None."""
+        if not ours:
+            self.disengage()
+            return None
+        if not self.engaged:
+            self.engage(s)
+            return None
+        return self.check(s)
 
     def check(self, s: Sample) -> str | None:
         """Why the vehicle does not obey its target, or None. Call with every fresh position."""

@@ -23,25 +23,25 @@ equally calm are ranked before age by how long nobody has been seen on that grou
 camera first saw it (``Track.unwalked_s``, whole seconds, longest first): a lawn nobody entered
 comes before a gap walkers crossed a moment ago, also after looking away has broken both zones'
 calm. The controller also waits for
-that calm under the vehicle before it commits the LAND (``companion.control.landing``). The
-controller may also name points to *avoid* (where people walked within r0 of a landing point a
-moment ago): a zone near one is not chosen.
+that calm under the vehicle before it commits the LAND (``companion.control.landing``).
 A zone already targeted is **kept** with a looser test (hysteresis, so a radius flickering around
 the threshold does not make the vehicle dither): present, ``r >= r0_m``, and confirmed within
 ``zone_max_age_s``. A kept zone with ``misses > 0`` is *unconfirmed*: no new command goes toward it
 until a frame confirms it again, and it is lost once ``zone_max_age_s`` passes. A zone seen with
 less than ``r0_m`` free is *small*: the controller drops it once that has lasted its
-``lose_after_frames`` frames in a row (one frame's false detection must not throw a landing away).
+``lose_after_frames`` frames in a row (one frame's false detection must not throw a landing away:
+the network marks a patch of ground as a person in one frame now and then, while a person who
+walks in is seen on every frame, so the reaction comes one frame later); gone from the tracks, it
+is lost at once.
 """
 
 from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 
-from companion.pipeline.circles import Circle
 from companion.pipeline.tracker import Track
 
 #: The least view (m around the zone centre) that can keep confirming a zone during the descent.
@@ -67,15 +67,6 @@ class PlannerConfig:
     #: Seconds the ground around a landing point must have been watched and seen free before the
     #: LAND (0: not required; see the module docstring).
     min_calm_s: float = 0.0
-    #: Seconds nobody must have been seen within the wider quiet disc around the landing point
-    #: (``GroundBelow.quiet_s``) before the LAND (0: not required). Checked with calm, below the
-    #: vehicle, where the zone is judged.
-    min_quiet_s: float = 0.0
-    #: Seconds nobody must have been seen on the calm disc around the landing point since the
-    #: camera first saw it (``GroundBelow.unwalked_s``) before the LAND (0: not required). Checked
-    #: with calm: a gap people walked through a few seconds ago waits, a lawn nobody walks on
-    #: does not.
-    min_unwalked_s: float = 0.0
     #: Rank eligible zones by ``Track.unwalked_s`` (whole seconds, longest first) before age (off
     #: here, the paper's rule; on in the service's settings, ``controller.prefer_unwalked``).
     prefer_unwalked: bool = False
@@ -106,24 +97,19 @@ class PlannerConfig:
         for ``steady_s`` with that much free (its ``steady_s``; NaN, not measured, is not)."""
         return self.is_steady_sized(track) and track.steady_s >= self.steady_s
 
+    def holds_r0(self, free_m: float, all_free: bool) -> bool:
+        """Whether ground ``free_m`` metres free around a point is enough to land on: r0, or,
+        low down where the view is smaller than r0, ``all_free`` (everything seen there free)."""
+        return free_m >= self.r0_m or all_free
+
     def is_calm(self, calm_s: float) -> bool:
         """Whether ground watched and seen free for ``calm_s`` seconds is calm enough (NaN, not
         measured, is not)."""
         return self.min_calm_s <= 0 or calm_s >= self.min_calm_s
 
-    def is_quiet(self, quiet_s: float) -> bool:
-        """Whether ground where nobody was seen for ``quiet_s`` seconds is quiet enough (NaN, not
-        measured, is not)."""
-        return self.min_quiet_s <= 0 or quiet_s >= self.min_quiet_s
-
-    def is_unwalked(self, unwalked_s: float) -> bool:
-        """Whether ground nobody was seen on for ``unwalked_s`` seconds since it was first seen is
-        unwalked long enough (NaN, not measured, is not)."""
-        return self.min_unwalked_s <= 0 or unwalked_s >= self.min_unwalked_s
-
     def __post_init__(self) -> None:
         for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s", "min_calm_s",
-                     "min_quiet_s", "min_unwalked_s", "steady_s", "steady_margin_m"):
+                     "steady_s", "steady_margin_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"controller {name} must be a finite number >= 0, not {value!r}")
@@ -161,15 +147,9 @@ class ZonePlanner:
             return f"small (r {track.r:.1f} m < {c.large_r_m:.1f} m)"
         return None
 
-    def choose(self, tracks: Iterable[Track], now: float, exclude: Sequence[int] = (),
-               avoid: Sequence[tuple[float, float]] = ()) -> Track | None:
-        """The oldest eligible zone not in ``exclude`` and not near a point of ``avoid``, or None.
-
-        ``avoid``: points (north, east, m) where people came within r0 of a landing point; a zone
-        whose centre lies within ``r0_m + radius_margin_m`` of one (the disc it must hold free to
-        be chosen reaches it) is not chosen."""
-        eligible = [t for t in tracks if t.id not in exclude and self.why_not_eligible(t, now) is None
-                    and not self.near(t, avoid)]
+    def choose(self, tracks: Iterable[Track], now: float, exclude: Sequence[int] = ()) -> Track | None:
+        """The best eligible zone not in ``exclude`` (``_rank``), or None."""
+        eligible = [t for t in tracks if t.id not in exclude and self.why_not_eligible(t, now) is None]
         if not eligible:
             return None
         return min(eligible, key=self._rank)
@@ -182,11 +162,25 @@ class ZonePlanner:
         unwalked = math.floor(t.unwalked_s) if c.prefer_unwalked and math.isfinite(t.unwalked_s) else 0
         return (t.r < c.large_r_m, not c.is_calm(t.calm_s), -unwalked, t.born_t, t.id)
 
-    def near(self, track: Track | Circle, points: Sequence[tuple[float, float]]) -> bool:
-        """Whether the centre of ``track`` (a zone, or a remembered free circle) lies within
-        ``r0_m + radius_margin_m`` of any of ``points``."""
-        reach = self.config.large_r_m
-        return any(math.hypot(track.x - n, track.y - e) < reach for n, e in points)
+    def could_become_zone(self, tracks: Iterable[Track]) -> bool:
+        """Whether any zone the latest frame confirmed is at least ``r0_m`` across: something that
+        may still become a landing zone (worth the SELECT's wait, ``select_empty_s``)."""
+        r0 = self.config.r0_m
+        return any(t.misses == 0 and math.isfinite(t.r) and t.r >= r0 for t in tracks)
+
+    def largest_glimpse(self, tracks: Iterable[Track], exclude: Collection[int] = ()) -> Track | None:
+        """The largest zone the latest frame confirmed with at least ``r0_m`` free, not in
+        ``exclude``, whether or not it may be chosen yet (free ground glimpsed, for the search),
+        or None."""
+        leads = [t for t in tracks if t.misses == 0 and t.id not in exclude
+                 and math.isfinite(t.x) and math.isfinite(t.y) and t.r >= self.config.r0_m]
+        return max(leads, key=lambda t: t.r, default=None)
+
+    def room(self, track: Track) -> float:
+        """How much of ``track`` (m) must stay free around its landing point for the point to
+        stay put: r0 plus the radius margin, or ``MIN_VIEW_M`` for a zone bounded by the view
+        (``seen_all_free``: low down the view is smaller than r0 plus the margin)."""
+        return MIN_VIEW_M if seen_all_free(track) else self.config.large_r_m
 
     def check_target(self, target_id: int, tracks: Iterable[Track], now: float) -> tuple[ZoneCheck, Track | None, str]:
         """Whether the zone being flown to still holds: (verdict, its latest snapshot, reason)."""

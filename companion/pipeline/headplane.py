@@ -131,13 +131,22 @@ def _whole_view(h: int, w: int, k: int) -> np.ndarray:
     return whole
 
 
-def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
-                   seen: list[np.ndarray] | None = None) -> np.ndarray:
+def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec) -> np.ndarray:
     """Sample the image free map (255 free, 0 occupied) onto ``grid``: uint8, 255 free, 0 occupied
-    or unknown. Conservative: a cell is free only if every image pixel it spans is free.
+    or unknown. Conservative: a cell is free only if every image pixel it spans is free."""
+    return _sample(free_img, proj, grid, False)[0]
 
-    seen: if given, a uint8 grid with 255 where the camera sees the cell (free or occupied) and 0
-    where it is unknown is appended to it."""
+
+def sample_with_view(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec) -> tuple[np.ndarray, np.ndarray]:
+    """``sample_to_grid``, and the view on the same cells: uint8, 255 where the camera sees the
+    cell (free or occupied), 0 where it is unknown."""
+    out, view = _sample(free_img, proj, grid, True)
+    assert view is not None
+    return out, view
+
+
+def _sample(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
+            with_view: bool) -> tuple[np.ndarray, np.ndarray | None]:
     ppc = pixels_per_cell(proj, grid)
     src = free_img
     kernel = None
@@ -161,7 +170,8 @@ def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
         jj, ii = np.meshgrid(np.arange(grid.cols), np.arange(grid.rows))
         behind = (wrow[0] * jj + wrow[1] * ii + wrow[2]) * proj.w_sign <= 0
         out[behind] = 0
-    if seen is not None:
+    view = None
+    if with_view:
         h, w = free_img.shape[:2]
         whole = _whole_view(h, w, 1 if kernel is None else len(kernel))
         view = cv2.warpPerspective(whole, M, (grid.cols, grid.rows),
@@ -169,5 +179,4 @@ def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if behind is not None:
             view[behind] = 0
-        seen.append(view)
-    return out
+    return out, view

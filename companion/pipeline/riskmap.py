@@ -11,10 +11,6 @@ in seconds on the capture-time clock. From these, for a frame:
 
 - **unknown**: a cell never seen, or not seen for longer than ``memory_s``, is unknown and never
   free (``known_free`` answers for ground outside the current view).
-- **remembered free** (``remembered_free``, for the search): over the whole map, the ground whose
-  last look, within a longer horizon than ``memory_s``, saw it free and that nobody was seen on
-  within ``hold_s``, on a coarser grid (a coarse cell is free only when all its cells are). It
-  does not say the ground is free now; it says where a search should go and look again.
 - **calm** at a point, ``calm_s``: how long the camera has watched every cell within a radius
   without a break of more than ``watch_gap_s`` and seen nobody there. A gap in a walking crowd is
   free on the frame it opens; a lawn nobody walks into stays calm for as long as it is watched.
@@ -106,7 +102,7 @@ class Spot:
 
 @dataclass(frozen=True)
 class SpotRequest:
-    """Where a landing point may go (the controller asks, ``SLZPipeline.landing_spot`` answers):
+    """Where a landing point may go (the controller asks, the frame's ``slz.GroundView.spot`` answers):
     within ``radius_m`` of plane point (x, y) (m; world north/east), away from the ground people
     were seen on within ``lookback_s`` (s); ``aim`` the present landing point, or None."""
 
@@ -289,41 +285,6 @@ class GroundRiskMap:
         look saw them free (a look that saw a cell occupied stamped ``last_occ == last_seen``) and
         that nobody stood on within ``hold_s``: ``seen``/``occ`` are the same cells' times."""
         return recent & (occ < seen) & (occ < now - self.config.hold_s)
-
-    def remembered_free(self, t: float, within_s: float, factor: int = 3) -> tuple[np.ndarray, GridSpec] | None:
-        """The ground the map remembers free at time ``t``, over the whole map: uint8 (255 where,
-        on the map's last look within ``within_s`` seconds, the ground was seen free and nobody
-        stood there within ``hold_s``; else 0), on cells ``factor`` times the map's (a coarse cell
-        is free only when every one of its cells is: coarsening never frees ground), and the
-        ``GridSpec`` placing it on the head plane. None on a map with no frame. Cost: one pass
-        over the part of the map looked at within the horizon (``companion bench``'s
-        ``search_memory``, with the circles: 1.2 ms median; about 3 ms with 80 x 80 m of it
-        seen), so callers ask now and then."""
-        if self._origin is None or not math.isfinite(t):
-            return None
-        if not (math.isfinite(within_s) and within_s > 0) or factor < 1:
-            raise ValueError(f"remembered_free needs within_s > 0 and factor >= 1, got {within_s!r}, {factor!r}")
-        now = self._rel(t)
-        recent = self.last_seen >= np.float32(now - within_s)
-        # Only the part of the map looked at within the horizon (the trail of the views), cut to
-        # whole coarse cells: the rest is unknown, never free.
-        rows, cols = np.flatnonzero(recent.any(axis=1)), np.flatnonzero(recent.any(axis=0))
-        if rows.size == 0:
-            return None
-        r0, c0 = (int(rows[0]) // factor) * factor, (int(cols[0]) // factor) * factor
-        nr, nc = (int(rows[-1]) + 1 - r0) // factor, (int(cols[-1]) + 1 - c0) // factor
-        if nr <= 0 or nc <= 0:
-            return None
-        win = (slice(r0, r0 + nr * factor), slice(c0, c0 + nc * factor))
-        free = self._looked_free(recent[win], self.last_seen[win], self.last_occ[win], now)
-        fine = np.where(free, np.uint8(255), np.uint8(0))
-        # Area averaging over whole factor x factor blocks is 255 exactly where all of a block is.
-        coarse = cv2.resize(fine, (nc, nr), interpolation=cv2.INTER_AREA) if factor > 1 else fine
-        c = self.config.cell_m
-        half = (factor - 1) / 2
-        grid = GridSpec(x0=(self._origin[1] + c0 + half) * c, y0=(self._origin[0] + r0 + half) * c,
-                        cell=factor * c, rows=nr, cols=nc)
-        return np.where(coarse == 255, np.uint8(255), np.uint8(0)), grid
 
     def calm_s(self, x: float, y: float, radius_m: float, t: float) -> float:
         """How long (s, at time ``t``) every cell within ``radius_m`` of plane point (x, y) has

@@ -14,6 +14,7 @@ exactly the people-only one.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -26,12 +27,14 @@ from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlanePro
 from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.density import resolve_threshold
 from companion.pipeline.edges import edge_reason
-from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid
+from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid, sample_with_view
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError, Spot, SpotRequest
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
+
+log = logging.getLogger(__name__)
 
 DensityFn = Callable[[np.ndarray], np.ndarray]
 #: frame -> 2-D per-cell probability that the ground is unlandable (``landability.UnlandableMap``).
@@ -39,11 +42,9 @@ SurfaceFn = Callable[[np.ndarray], np.ndarray]
 
 STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking", "people")
 
-#: ``remembered_zones``: the risk map's cells are coarsened this many times (0.3 m at the default
-#: 0.1 m: a free circle loses at most half a coarse diagonal, 0.2 m) and this many circles given.
-MEMORY_FACTOR = 3
-MEMORY_ZONES = 8
-#: ``landing_spot``: distances to where people were seen are measured up to this (m). Farther
+#: ``GroundView.spot``: the risk map's cells are coarsened this many times (0.3 m at the default 0.1 m).
+SPOT_FACTOR = 3
+#: ``GroundView.spot``: distances to where people were seen are measured up to this (m). Farther
 #: makes no difference to where the point goes inside a zone of a few metres, and costs more.
 PLACE_REACH_M = 8.0
 
@@ -107,6 +108,49 @@ class PipelineConfig:
         return self.tracker.max_tracks
 
 
+@dataclass(frozen=True)
+class FrameClearance:
+    """How far the ground is free and seen around plane points on one frame, for the tracker
+    (``tracker.Clearance``): ``free`` the distances (cells) to the nearest cell not free and
+    ``view`` those to the end of the view, on ``grid``."""
+
+    free: np.ndarray
+    view: PointDistance
+    grid: GridSpec
+
+    def at(self, x: float, y: float) -> tuple[float, float]:
+        """(free radius, view radius) in metres around plane point (x, y)."""
+        return clearance_at(self.free, self.grid, x, y), clearance_at(self.view, self.grid, x, y)
+
+
+@dataclass(frozen=True)
+class GroundView:
+    """What the decision may ask of the risk map about the frame captured at ``t``: where the
+    landing point may go (``spot``, the controller's ``place_lookback_s``). It reads the map as
+    that frame left it (``revision``: the map's updates then); once the pipeline has taken another
+    frame it answers None. The service decides on each frame before it processes the next."""
+
+    t: float
+    risk: GroundRiskMap | None
+    revision: int
+
+    def spot(self, request: SpotRequest) -> Spot | None:
+        """The point within ``request.radius_m`` of its centre farthest from the ground people were
+        seen on within ``request.lookback_s`` (``GroundRiskMap.farthest_from_walkers``, distances up
+        to ``PLACE_REACH_M``), with that distance at the present landing point. None without a map
+        (no posed frame yet, or a pipeline that keeps none), where the zone reaches past it, or
+        once the map has moved on (0.1-0.5 ms)."""
+        risk = self.risk
+        if risk is None or risk.stats.updates != self.revision:
+            return None
+        try:
+            return risk.farthest_from_walkers(request.x, request.y, request.radius_m, self.t, request.lookback_s,
+                                              PLACE_REACH_M, aim=request.aim, factor=SPOT_FACTOR)
+        except ValueError as exc:  # a bug, not the vehicle's fault: the point stays where it is
+            log.warning("landing point not placed: %s", exc)
+            return None
+
+
 @dataclass
 class FrameResult:
     """What one frame produced. Circles and tracks are in head-plane metres; ``occupancy`` is the
@@ -137,6 +181,8 @@ class FrameResult:
     people_free: np.ndarray | None = None
     surface: np.ndarray | None = None
     unlandable: np.ndarray | None = None
+    #: What the decision may ask of the risk map about this frame (the landing spot).
+    ground: GroundView | None = None
 
 
 def _with_calm(track: Track, calm_s: float, unwalked_s: float) -> Track:
@@ -186,33 +232,6 @@ class SLZPipeline:
                                 "head plane")
         return self.fixed_projection
 
-    def remembered_zones(self, t: float, within_s: float, n_max: int = MEMORY_ZONES) -> list[Circle]:
-        """Up to ``n_max`` free circles (largest first, radius >= ``r0_m``) on the ground the risk
-        map remembers free at time ``t`` (``GroundRiskMap.remembered_free``: its last look within
-        ``within_s`` seconds saw it free), anywhere on the map, in view or not: where a search
-        may go and look again (the controller's ``search_memory_s``). Empty without a map (no
-        posed frame yet, or a pipeline that keeps none). Call between frames, now and then: it
-        reads the part of the map seen within the horizon (1-3 ms)."""
-        if self.risk is None:
-            return []
-        found = self.risk.remembered_free(t, within_s, MEMORY_FACTOR)
-        if found is None:
-            return []
-        free, grid = found
-        return propose(free, grid, n_max, self.config.r0_m)
-
-    def landing_spot(self, request: SpotRequest, t: float) -> Spot | None:
-        """Where to land inside a zone (the controller's ``SpotRequest``, its ``place_lookback_s``):
-        the point within ``request.radius_m`` of its centre farthest from the ground people were
-        seen on within ``request.lookback_s`` of ``t`` (``GroundRiskMap.farthest_from_walkers``,
-        distances up to ``PLACE_REACH_M``), with that distance at the present landing point.
-        None without a map (no posed frame yet, or a pipeline that keeps none) or where the zone
-        reaches past it. Call after ``process`` with the same frame (0.1-0.5 ms)."""
-        if self.risk is None:
-            return None
-        return self.risk.farthest_from_walkers(request.x, request.y, request.radius_m, t, request.lookback_s,
-                                               PLACE_REACH_M, aim=request.aim, factor=MEMORY_FACTOR)
-
     def process(self, frame: np.ndarray, t: float, pose: Pose | None = None) -> FrameResult:
         """One frame: BGR uint8 (H, W, 3) captured at ``t`` seconds, seen from ``pose``."""
         if not isinstance(frame, np.ndarray) or frame.ndim not in (2, 3) or frame.size == 0:
@@ -247,8 +266,7 @@ class SLZPipeline:
                 surface = cv2.remap(surface, *self._undistort, cv2.INTER_NEAREST,
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         grid = grid_for_view(proj, (h, w), self.config.grid)
-        seen: list[np.ndarray] = []
-        free_grid = sample_to_grid(free, proj, grid, seen)
+        free_grid, seen = sample_with_view(free, proj, grid)
         people_grid = surface_grid = None
         if surface is not None:
             # Sampling keeps a cell free only when all its pixels are (erosion, then nearest):
@@ -264,7 +282,7 @@ class SLZPipeline:
         calm_map = self.risk if pose is not None else None
         if calm_map is not None:
             try:
-                calm_map.update(grid, free_grid, seen[0], t, proj.camera_xy)
+                calm_map.update(grid, free_grid, seen, t, proj.camera_xy)
             except RiskMapError:
                 calm_map = None  # counted by the map; this frame's zones are not calm (0 s)
         t4 = time.perf_counter()
@@ -274,10 +292,7 @@ class SLZPipeline:
                             prefer=proj.camera_xy, tie_m=self.config.proposal_tie_m)
         t5 = time.perf_counter()
         # How far the view reaches is asked at a few points only (the zones' centres).
-        view_dist = PointDistance(seen[0])
-
-        def clearance(x: float, y: float) -> tuple[float, float]:
-            return clearance_at(dist, grid, x, y), clearance_at(view_dist, grid, x, y)
+        clearance = FrameClearance(dist, PointDistance(seen), grid)
 
         steady_r = None if self.config.steady_margin_m is None else self.config.r0_m + self.config.steady_margin_m
         tracks = self.tracker.update(proposals, t, clearance, r_min=self.config.r0_m, steady_r=steady_r)
@@ -306,7 +321,7 @@ class SLZPipeline:
             # Only with a surface model: without one every edge is people or the view, and the
             # people-only pipeline keeps its cost to the microsecond.
             def edge(x: float, y: float) -> str:
-                return edge_reason(x, y, grid, dist, free_grid, seen[0], people_grid, surface_grid)
+                return edge_reason(x, y, grid, dist, free_grid, seen, people_grid, surface_grid)
 
             edges = [edge(c.x, c.y) for c in proposals]
             tracks = [replace(tr, edge=edge(tr.x, tr.y)) for tr in tracks]
@@ -314,7 +329,7 @@ class SLZPipeline:
         if proj.camera_xy is not None:
             bx, by = (float(v) for v in proj.camera_xy)
             if math.isfinite(bx) and math.isfinite(by):
-                below = GroundBelow(bx, by, *clearance(bx, by),
+                below = GroundBelow(bx, by, *clearance.at(bx, by),
                                     calm_s=calm(bx, by) if measure else math.nan)
         t6 = time.perf_counter()
         followed: list[Person] = []
@@ -337,6 +352,7 @@ class SLZPipeline:
             timings["landability"] = (t_surface - t1) * 1e3
         timings["post_density"] = (t7 - t_surface) * 1e3
         timings["total"] = (t7 - t0) * 1e3
+        ground = GroundView(t, self.risk, self.risk.stats.updates if self.risk is not None else 0)
         return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
                            density, below, followed, edges, people_free,
-                           surface, unlandable)
+                           surface, unlandable, ground)

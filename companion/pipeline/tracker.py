@@ -13,9 +13,8 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -288,6 +287,13 @@ def _assign(a: np.ndarray, b: np.ndarray, min_iou: float) -> tuple[list[tuple[in
     return pairs, [i for i in range(len(a)) if i not in ma], [j for j in range(len(b)) if j not in mb]
 
 
+class Clearance(Protocol):
+    """One frame's measure of the ground (``slz.FrameClearance``): for a plane point (x, y; m),
+    how far the ground around it is free and how far the view reaches (m)."""
+
+    def at(self, x: float, y: float) -> tuple[float, float]: ...
+
+
 class ZoneTracker:
     """Tracks landing zones from per-frame proposals. Call ``update`` once per processed frame."""
 
@@ -308,8 +314,7 @@ class ZoneTracker:
         self._candidates.clear()
         self._t = None
 
-    def update(self, proposals: list[Circle], t: float,
-               clearance: Callable[[float, float], tuple[float, float]] | None = None,
+    def update(self, proposals: list[Circle], t: float, clearance: Clearance | None = None,
                r_min: float | None = None, steady_r: float | None = None) -> list[Track]:
         """Advance to capture time ``t`` (s) with this frame's proposals; returns the tracks.
 
@@ -340,13 +345,13 @@ class ZoneTracker:
             f = self._filters[fi]
             f.update(proposals[pi], t)
             if clearance is not None:
-                f.clear, f.view = clearance(float(f.kf.x[0]), float(f.kf.x[1]))
+                f.clear, f.view = clearance.at(float(f.kf.x[0]), float(f.kf.x[1]))
             f.mark_steady(steady_r)
         for fi in missed:
             f = self._filters[fi]
             if clearance is not None and r_min is not None:
                 x, y = float(f.kf.x[0]), float(f.kf.x[1])
-                clear, view = clearance(x, y)
+                clear, view = clearance.at(x, y)
                 if clear >= r_min or (clear >= view - 1e-6 and view >= _MIN_VIEW):
                     f.update(Circle(x, y, clear), t)
                     f.clear, f.view = clear, view

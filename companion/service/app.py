@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import signal
 import time
 from collections import deque
@@ -60,10 +59,8 @@ from companion.mavlink.link import MavLink
 from companion.mavlink.state import MAX_POSE_AGE_S, VehicleState
 from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
 from companion.mavlink.timesync import run_timesync
-from companion.pipeline.circles import Circle
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
 from companion.pipeline.landability import LandabilityModel, LandabilityModelError, UnlandableMap
-from companion.pipeline.riskmap import Spot
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
@@ -87,9 +84,6 @@ DECISIONS_KEPT = 20
 #: shutdown step gets at most what is left of it (and at least SHUTDOWN_STEP_MIN_S).
 SHUTDOWN_BUDGET_S = 1.8
 SHUTDOWN_STEP_MIN_S = 0.05
-#: While the controller searches, the ground the risk map remembers free is read again this often
-#: (s): it says where to look next, and a read costs 1-3 ms.
-MEMORY_PERIOD_S = 1.0
 
 
 def load_model(cfg: Config) -> DensityModel:
@@ -173,9 +167,6 @@ class Service:
         self.web_error: str | None = None
         self.decisions: deque[tuple[float, int, str]] = deque(maxlen=DECISIONS_KEPT)  # (t, severity, text)
         self.last_result: FrameResult | None = None
-        # The free circles the risk map remembers, read while the controller searches (_remembered).
-        self._memory: list[Circle] = []
-        self._memory_at = -math.inf
 
     # ---- lifecycle ---------------------------------------------------------------------------
     def request_stop(self, why: str = "") -> None:
@@ -483,36 +474,6 @@ class Service:
             ready = pending.popleft()
         return ready
 
-    async def _remembered(self, t: float) -> list[Circle]:
-        """The free circles the risk map remembers (``SLZPipeline.remembered_zones``, for the
-        search), read again at most every ``MEMORY_PERIOD_S``: they only say where to look."""
-        assert self.runner is not None
-        now = time.monotonic()
-        if now - self._memory_at >= MEMORY_PERIOD_S:
-            self._memory_at = now
-            try:
-                self._memory = await asyncio.to_thread(self.pipeline.remembered_zones, t,
-                                                       self.runner.controller.config.search_memory_s)
-            except ValueError as exc:  # a bug, not the vehicle's fault: search on without it
-                self.counters.errors += 1
-                log.warning("remembered ground not read: %s", exc)
-                self._memory = []
-        return self._memory
-
-    def _spot(self, tracks: list[Track], t: float) -> Spot | None:
-        """Where the risk map would put the landing point on this frame, when the controller asks
-        (its ``place_lookback_s``; 0.1-0.5 ms, in the loop: the frame's decision waits for it)."""
-        assert self.runner is not None
-        request = self.runner.controller.spot_request(tracks)
-        if request is None:
-            return None
-        try:
-            return self.pipeline.landing_spot(request, t)
-        except ValueError as exc:  # a bug, not the vehicle's fault: the point stays where it is
-            self.counters.errors += 1
-            log.warning("landing point not placed: %s", exc)
-            return None
-
     async def _frame_loop(self) -> None:
         pending: deque[Frame] = deque(maxlen=64)
         while not self.stop_event.is_set():
@@ -553,9 +514,9 @@ class Service:
             self.last_result = result
             target: Track | None = None
             if self.runner is not None:
-                remembered = await self._remembered(frame.t) if self.runner.controller.wants_memory() else None
-                self.runner.on_frame(frame.t, result.tracks, pose, result.below, result.people, remembered,
-                                     self._spot(result.tracks, frame.t))
+                # The controller decides on this frame before the next is processed: the frame's
+                # ground view reads the risk map as this frame left it.
+                self.runner.on_frame(frame.t, result.tracks, pose, result.below, result.ground)
                 # The zone the vehicle flies to, or would fly to now: the planner's choice, the
                 # one rule (the pipeline reports tracks; it does not pick).
                 target = self.runner.controller.zone_target()

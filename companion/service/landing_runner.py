@@ -31,6 +31,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 
+from companion.control.aim import SpotSource
 from companion.control.events import Event
 from companion.control.landing import (
     Command,
@@ -47,9 +48,7 @@ from companion.mavlink.autopilot import Autopilot
 from companion.mavlink.link import MavLink
 from companion.mavlink.state import VehicleState
 from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
-from companion.pipeline.circles import Circle, GroundBelow
-from companion.pipeline.people import Person
-from companion.pipeline.riskmap import Spot
+from companion.pipeline.circles import GroundBelow
 from companion.pipeline.tracker import Track
 
 log = logging.getLogger(__name__)
@@ -135,9 +134,8 @@ class LandingRunner:
         self._submit(self.controller.on_trigger(trigger))
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
-                 below: GroundBelow | None = None, people: Sequence[Person] | None = None,
-                 remembered: Sequence[Circle] | None = None, spot: Spot | None = None) -> None:
-        self._submit(self.controller.on_frame(t, tracks, pose, below, people, remembered, spot))
+                 below: GroundBelow | None = None, view: SpotSource | None = None) -> None:
+        self._submit(self.controller.on_frame(t, tracks, pose, below, view))
 
     # -- loop ----------------------------------------------------------------------------------
 

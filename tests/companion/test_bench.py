@@ -11,7 +11,7 @@ def test_bench_json_has_every_stage_for_both_resolutions(capsys):
     assert set(out) == {"640x480", "1280x720"}
     for stages in out.values():
         assert {"occupancy", "projection", "proposals", "tracking", "post_density", "live_view",
-                "search_memory", "landing_spot"} <= set(stages)
+                "landing_spot"} <= set(stages)
         for s in stages.values():
             assert s["median_ms"] > 0 and s["p99_ms"] >= s["median_ms"]
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass
 
 import pytest
 
@@ -22,6 +23,29 @@ from tests.companion.control.test_landing_search import SEARCH, _to_search
 STEADY_PLAN = dataclasses.replace(CFG.planner, radius_margin_m=2.0, steady_s=8.0, steady_margin_m=0.5)
 
 
+
+@dataclass(frozen=True)
+class Disc:
+    """One frame's clearance (``tracker.Clearance``): a free disc of radius ``r`` (m) centred at
+    north ``cx``, the view 20 m everywhere."""
+
+    cx: float
+    r: float
+
+    def at(self, x: float, y: float) -> tuple[float, float]:
+        return max(0.0, self.r - math.hypot(x - self.cx, y)), 20.0
+
+
+@dataclass(frozen=True)
+class Uniform:
+    """One frame's clearance: ``free`` m free everywhere, the view 20 m."""
+
+    free: float
+
+    def at(self, x: float, y: float) -> tuple[float, float]:
+        return self.free, 20.0
+
+
 def _tracker_run(radii: list[float | None], steady_r: float | None = 2.5, dt: float = 0.1):
     """One zone at (0, 0) measured on each frame with the given free radius (None: no proposal and
     nothing free under it, a missed frame); the tracks after each frame."""
@@ -30,7 +54,7 @@ def _tracker_run(radii: list[float | None], steady_r: float | None = 2.5, dt: fl
     for k, r in enumerate(radii):
         props = [] if r is None else [Circle(0.0, 0.0, r)]
         free = 0.0 if r is None else r
-        out.append(tr.update(props, k * dt, lambda x, y, f=free: (f, 20.0), r_min=2.0, steady_r=steady_r))
+        out.append(tr.update(props, k * dt, Uniform(free), r_min=2.0, steady_r=steady_r))
     return out
 
 
@@ -60,10 +84,7 @@ def _gap_run(speed: float, r: float = 3.0, frames: int = 60, dt: float = 0.1):
     for k in range(frames):
         cx = speed * k * dt
 
-        def clearance(x: float, y: float, cx: float = cx) -> tuple[float, float]:
-            return max(0.0, r - math.hypot(x - cx, y)), 20.0
-
-        out.append(tr.update([Circle(cx, 0.0, r)], k * dt, clearance, r_min=2.0, steady_r=2.5))
+        out.append(tr.update([Circle(cx, 0.0, r)], k * dt, Disc(cx, r), r_min=2.0, steady_r=2.5))
     return out
 
 
@@ -239,19 +260,19 @@ def test_the_search_keeps_looking_while_a_glimpse_steady_watch_runs_though_it_be
     assert t - arrived == pytest.approx(4.5 + 8.0, abs=0.15)
     # A watch that never starts is given up as before, steady_s plus a second after arriving.
     ctl, t, arrived = _look_at_lawn(watch=False, until=2.2 + 9.0 - 0.2)
-    assert ctl.phase == Phase.SEARCH and 5 not in ctl._investigated
+    assert ctl.phase == Phase.SEARCH and 5 not in ctl.search.investigated
     ctl, t, arrived = _look_at_lawn(watch=False, until=2.2 + 9.0 + 0.3)
-    assert ctl.target is None and 5 in ctl._investigated
+    assert ctl.target is None and 5 in ctl.search.investigated
 
 
 def test_a_steady_look_under_way_when_the_search_time_ends_is_finished_within_steady_s_more():
     # The search's 5 s end in the middle of the watch: the look is finished and the zone taken.
     ctl, t, arrived = _look_at_lawn(search_s=5.0)
     assert ctl.phase == Phase.APPROACH and t - arrived == pytest.approx(8.0, abs=0.15)
-    assert t - ctl._search_t > 5.0
+    assert t - ctl.search.started_t > 5.0
     # No watch running: the search ends on its time, as before.
     ctl, t, _ = _look_at_lawn(search_s=5.0, watch=False)
-    assert ctl.phase == Phase.HANDBACK and t - ctl._search_t == pytest.approx(5.0, abs=0.15)
+    assert ctl.phase == Phase.HANDBACK and t - ctl.search.started_t == pytest.approx(5.0, abs=0.15)
     assert any("searched 5 s without a safe zone" in x for x in texts(ctl))
     # A watch that breaks once the search's time is over: handed back there and then.
     ctl, t, arrived = _look_at_lawn(search_s=5.0, breaks_at=6.0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -118,6 +119,18 @@ PLACE = LandingConfig(
     place_lookback_s=30.0)
 
 
+@dataclass
+class View:
+    """A frame's ground view that answers every request with ``answer`` and keeps the requests."""
+
+    answer: Spot | None = None
+    asked: list[SpotRequest] = field(default_factory=list)
+
+    def spot(self, request: SpotRequest) -> Spot | None:
+        self.asked.append(request)
+        return self.answer
+
+
 def track(t: float) -> Track:
     """Zone 1: centre (10, 0), radius 6 m, tracked for 8 s, confirmed at ``t``."""
     return zone(1, 10.0, 0.0, t, r=6.0, born=t - 8.0)
@@ -134,9 +147,13 @@ def fly_to_zone(cfg: LandingConfig = PLACE) -> LandingController:
     return ctl
 
 
-def frame(ctl: LandingController, t: float, spot: Spot | None, north: float = 5.0) -> list:
+def frame(ctl: LandingController, t: float, spot: Spot | None, north: float = 5.0,
+          tracks: list[Track] | None = None) -> tuple[list, View]:
+    """A frame at ``t`` over zone 1 (or ``tracks``) whose ground view answers ``spot``: the
+    commands, and the view (what it was asked)."""
+    view = View(spot)
     ctl.on_state(status(t, north, 0.0, 20.0, mode="GUIDED"))
-    return ctl.on_frame(t, [track(t)], pose(t, north, 0.0, 20.0), spot=spot)
+    return ctl.on_frame(t, [track(t)] if tracks is None else tracks, pose(t, north, 0.0, 20.0), view=view), view
 
 
 def goto_ned(cmd: Goto) -> tuple[float, float]:
@@ -144,19 +161,19 @@ def goto_ned(cmd: Goto) -> tuple[float, float]:
 
 
 def test_the_controller_asks_within_the_zones_room_and_flies_to_a_spot_clearly_farther_from_people():
+    _, view = frame(fly_to_zone(), 0.1, None, tracks=[])
+    assert view.asked == []  # the target not on this frame: nothing to place
     ctl = fly_to_zone()
-    request = ctl.spot_request([track(0.1)])
-    assert request is not None
+    # 0.3 m farther from people: not worth moving for.
+    cmds, view = frame(ctl, 0.1, Spot(10.0, -2.0, 4.3, 4.0))
+    (request,) = view.asked
     # Room: r0 2 m plus the margin 1 m must stay inside the 6 m zone around the point.
     assert (request.x, request.y, request.radius_m, request.lookback_s) == (10.0, 0.0, 3.0, 30.0)
     assert request.aim == (10.0, 0.0)
-    assert ctl.spot_request([]) is None  # the target not on this frame: nothing to place
-    # 0.3 m farther from people: not worth moving for.
-    cmds = frame(ctl, 0.1, Spot(10.0, -2.0, 4.3, 4.0))
     assert all(goto_ned(c)[1] == pytest.approx(0.0, abs=1e-6) for c in cmds if isinstance(c, Goto))
     assert ctl.placements == 0
     # 2 m farther: the landing point moves there, and the vehicle flies to it.
-    cmds = frame(ctl, 0.2, Spot(10.0, -2.5, 6.0, 4.0))
+    cmds, _ = frame(ctl, 0.2, Spot(10.0, -2.5, 6.0, 4.0))
     gotos = [c for c in cmds if isinstance(c, Goto)]
     assert gotos and goto_ned(gotos[-1]) == pytest.approx((10.0, -2.5), abs=1e-3)
     assert ctl.placements == 1
@@ -164,8 +181,8 @@ def test_the_controller_asks_within_the_zones_room_and_flies_to_a_spot_clearly_f
     assert any("landing point moved 2.5 m, 6.0 m from where people were seen in the last 30 s (was 4.0 m)"
                in e.text for e in notes)
     # The next request starts from the new point.
-    request = ctl.spot_request([track(0.3)])
-    assert request is not None and request.aim == (10.0, -2.5)
+    _, view = frame(ctl, 0.3, None)
+    assert [r.aim for r in view.asked] == [(10.0, -2.5)]
 
 
 def test_a_spot_outside_the_zones_room_or_not_finite_is_ignored():
@@ -189,85 +206,64 @@ def test_once_judged_or_in_land_the_point_stays_and_nothing_is_asked():
                 alt = c.target.rel_alt_m
         t += 0.1
     assert ctl.phase == Phase.LAND
-    assert ctl.spot_request([track(t)]) is None
     ctl.on_state(status(t, 10.0, 0.0, 9.0, mode="LAND"))
-    ctl.on_frame(t, [track(t)], pose(t, 10.0, 0.0, 9.0), spot=Spot(10.0, -2.5, 7.0, 3.0))
-    assert ctl.placements == 0 and ctl._aim == (10.0, 0.0)
+    view = View(Spot(10.0, -2.5, 7.0, 3.0))
+    ctl.on_frame(t, [track(t)], pose(t, 10.0, 0.0, 9.0), view=view)
+    assert ctl.placements == 0 and ctl._aim == (10.0, 0.0) and view.asked == []
 
 
-def test_a_minimum_clearance_keeps_the_point_out_of_ground_walked_on_lately():
-    """``place_min_clear_m``: in a gap of a walking crowd the farthest point is still close to
-    where people were seen; a point clearly farther than the present one but nearer to them than
-    the minimum is no place to move to (the chase), one beyond it is."""
-    ctl = fly_to_zone(dataclasses.replace(PLACE, place_min_clear_m=2.0))
-    frame(ctl, 0.1, Spot(10.0, -2.5, 1.5, 0.0))  # 1.5 m farther, but walked within 1.5 m of
-    assert ctl.placements == 0 and ctl._aim == (10.0, 0.0)
-    cmds = frame(ctl, 0.2, Spot(10.0, -2.5, 2.5, 0.0))
-    gotos = [c for c in cmds if isinstance(c, Goto)]
-    assert ctl.placements == 1 and gotos and goto_ned(gotos[-1]) == pytest.approx((10.0, -2.5), abs=1e-3)
-    # Above the minimum the gain rule still holds: 0.3 m farther is not worth a move.
-    frame(ctl, 0.3, Spot(10.0, 2.0, 2.8, 2.5))
-    assert ctl.placements == 1 and ctl._aim == (10.0, -2.5)
+def test_the_point_moves_while_approaching_and_while_descending_to_judge_the_zone():
+    """The point moves while the vehicle approaches, and also once it is over the zone and
+    descending to judge it (the moves that carry the point into the lawn)."""
 
-
-def test_with_place_descending_off_the_point_stays_once_over_the_zone():
-    """``place_descending=False``: the point moves while the vehicle approaches, and no more once
-    it is over the zone and descending to judge it (nothing is asked of the map then)."""
-
-    def over(ctl: LandingController, t: float, spot: Spot | None = None) -> None:
+    def over(ctl: LandingController, t: float, spot: Spot | None = None) -> View:
+        view = View(spot)
         ctl.on_state(status(t, 10.0, -2.5, 20.0, mode="GUIDED"))
-        ctl.on_frame(t, [track(t)], pose(t, 10.0, -2.5, 20.0), spot=spot)
+        ctl.on_frame(t, [track(t)], pose(t, 10.0, -2.5, 20.0), view=view)
+        return view
 
-    for descending in (False, True):
-        ctl = fly_to_zone(dataclasses.replace(PLACE, place_descending=descending))
-        frame(ctl, 0.1, Spot(10.0, -2.5, 6.0, 4.0))
-        assert ctl.placements == 1 and ctl._aim == (10.0, -2.5)
-        over(ctl, 0.2)
-        assert ctl.phase == Phase.DESCEND
-        assert (ctl.spot_request([track(0.3)]) is not None) == descending
-        over(ctl, 0.3, Spot(10.0, -1.5, 8.0, 3.0))
-        assert ctl.phase == Phase.DESCEND  # still flying it, not handed back
-        assert ctl.placements == (2 if descending else 1)
-        assert ctl._aim == ((10.0, -1.5) if descending else (10.0, -2.5))
-
-
-def test_a_negative_minimum_clearance_is_refused():
-    with pytest.raises(ValueError, match="place_min_clear_m"):
-        LandingConfig(place_min_clear_m=-1.0)
-    with pytest.raises(ValueError, match="place_min_clear_m"):
-        LandingConfig(place_min_clear_m=math.nan)
+    ctl = fly_to_zone()
+    frame(ctl, 0.1, Spot(10.0, -2.5, 6.0, 4.0))
+    assert ctl.placements == 1 and ctl._aim == (10.0, -2.5)
+    over(ctl, 0.2)
+    assert ctl.phase == Phase.DESCEND
+    assert len(over(ctl, 0.3, Spot(10.0, -1.5, 8.0, 3.0)).asked) == 1  # asked while descending too
+    assert ctl.phase == Phase.DESCEND  # still flying it, not handed back
+    assert ctl.placements == 2 and ctl._aim == (10.0, -1.5)
 
 
 def test_off_by_default_no_request_and_spots_change_nothing():
     ctl = fly_to_zone(dataclasses.replace(PLACE, place_lookback_s=0.0))
-    assert ctl.spot_request([track(0.1)]) is None
-    frame(ctl, 0.1, Spot(10.0, -2.5, 7.0, 3.0))
-    assert ctl.placements == 0 and ctl._aim == (10.0, 0.0)
+    _, view = frame(ctl, 0.1, Spot(10.0, -2.5, 7.0, 3.0))
+    assert ctl.placements == 0 and ctl._aim == (10.0, 0.0) and view.asked == []
 
 
 # -- the pipeline --------------------------------------------------------------------------------
 
-def test_the_pipeline_answers_with_its_map_and_without_one_says_none():
-    """Posed frames over a crowd-free view: a pipeline that keeps a map (calm on, as by default)
-    places the point, with nobody seen the farthest distance everywhere; one that keeps none
-    (the paper's per-frame rule alone) answers None, and so does a map with no frame yet."""
+def test_the_frames_ground_view_answers_with_its_map_and_without_one_says_none():
+    """Posed frames over a crowd-free view: the ground view of a pipeline that keeps a map (calm
+    on, as by default) places the point, with nobody seen the farthest distance everywhere; one
+    that keeps none (the paper's per-frame rule alone) answers None; and a view asked after the
+    pipeline has taken another frame answers None (the map has moved on)."""
     base = np.zeros((240, 320), np.float32)
     image = np.zeros((240, 320, 3), np.uint8)
     K = Intrinsics.from_fov(320, 240, 70.0)
     with_map = SLZPipeline(lambda _f: base, PipelineConfig(calm=True), intrinsics=K, mount=Mount())
     without = SLZPipeline(lambda _f: base, PipelineConfig(), intrinsics=K, mount=Mount())
     request = SpotRequest(0.0, 0.0, 1.0, 30.0, (0.0, 0.0))
-    assert with_map.landing_spot(request, 0.0) is None  # no frame yet
     for k in range(10):
         t = 0.1 * k
         at = pose(t, 0.0, 0.0, 20.0)
-        with_map.process(image, t, at)
-        without.process(image, t, at)
-    spot = with_map.landing_spot(request, 0.9)
+        mapped = with_map.process(image, t, at)
+        plain = without.process(image, t, at)
+    assert mapped.ground is not None and plain.ground is not None
+    spot = mapped.ground.spot(request)
     assert spot is not None and math.hypot(spot.x, spot.y) <= 1.0
     # 20 m up the view reaches about 9 m: the unseen ground beyond it bounds the distance.
     assert 5.0 < spot.clear_m <= 8.0 and spot.aim_clear_m == pytest.approx(spot.clear_m, abs=0.31)
-    assert without.landing_spot(request, 0.9) is None
+    assert plain.ground.spot(request) is None
+    with_map.process(image, 1.0, pose(1.0, 0.0, 0.0, 20.0))
+    assert mapped.ground.spot(request) is None  # the map has taken another frame
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -12,7 +12,6 @@ import pytest
 
 from companion.control.events import Phase
 from companion.control.landing import Goto, Handback, LandingController, expanding_square
-from companion.pipeline.circles import Circle
 from tests.companion.control.test_landing_controller import CFG, pose, status, texts, trigger, zone
 
 SEARCH = dataclasses.replace(CFG, search_s=30.0, search_radius_m=25.0, search_reserve_s=20.0, view_ratio=0.525,
@@ -208,81 +207,6 @@ def test_a_glimpse_that_never_qualifies_is_looked_at_once_then_the_square_goes_o
     assert targets[1] == (round(1.5 * 0.525 * 22.3, 1), 0.0)
 
 
-MEMORY = dataclasses.replace(SEARCH, search_memory_s=60.0)
-
-
-def _memory_search(ctl: LandingController, remembered, frames: int, zones=lambda t, n, e: []):
-    """Fly the search for ``frames`` frames (0.1 s apart), the vehicle where it was last sent, the
-    map remembering ``remembered`` (circles) on every frame; returns (t, Goto targets sent)."""
-    t = _to_search(ctl)
-    north = east = 0.0
-    sent: list[tuple[float, float]] = []
-    for _ in range(frames):
-        t += 0.1
-        ctl.on_state(status(t, north, east, 24.0, mode="GUIDED"))
-        for c in ctl.on_frame(t, zones(t, north, east), pose(t, north, east, 24.0), remembered=remembered):
-            if isinstance(c, Goto):
-                if (round(c.north, 1), round(c.east, 1)) not in sent[-1:]:
-                    sent.append((round(c.north, 1), round(c.east, 1)))
-                north, east = c.north, c.east
-        ctl.tick(t)
-        if ctl.phase != Phase.SEARCH:
-            break
-    return t, sent
-
-
-def test_the_search_asks_for_the_map_memory_only_while_searching_and_only_when_on():
-    ctl = LandingController(MEMORY)
-    assert not ctl.wants_memory()  # MONITOR
-    _to_search(ctl)
-    assert ctl.phase == Phase.SEARCH and ctl.wants_memory()
-    off = LandingController(SEARCH)
-    _to_search(off)
-    assert off.phase == Phase.SEARCH and not off.wants_memory()
-    with pytest.raises(ValueError, match="search_memory_s"):
-        dataclasses.replace(SEARCH, search_memory_s=-1.0)
-
-
-def test_remembered_free_ground_out_of_view_is_flown_over_before_the_square_and_chosen_there():
-    """A lawn the map remembers 18 m away (seen before the trigger, out of view now): the search
-    flies there first, at its level, and the zone the camera confirms there is flown to."""
-    ctl = LandingController(MEMORY)
-    lawn = Circle(-12.0, 13.0, 5.0)
-
-    def zones(t: float, north: float, east: float):
-        # The camera sees the lawn (and the tracker confirms it) only once over it.
-        return [zone(7, lawn.x, lawn.y, t)] if math.hypot(north - lawn.x, east - lawn.y) < 3.0 else []
-
-    _, sent = _memory_search(ctl, [lawn], 200, zones)
-    assert sent[0] == (-12.0, 13.0)  # after the climb where it is (sent at the timeout): the lawn
-    assert ctl.phase == Phase.APPROACH and ctl.target is not None and ctl.target.id == 7
-    events = texts(ctl)
-    assert any("searching toward ground seen free, 18 m away, radius 5.0 m" in x for x in events)
-    # Without memory, the same flight flies the square: north first.
-    plain = LandingController(SEARCH)
-    _, sent = _memory_search(plain, [lawn], 30, zones)
-    assert sent[0] == (round(1.5 * 0.525 * 22.3, 1), 0.0)
-
-
-def test_remembered_ground_that_gives_no_zone_is_looked_at_once_then_the_next_then_the_square():
-    ctl = LandingController(MEMORY)
-    a, b = Circle(-12.0, 13.0, 5.0), Circle(10.0, -20.0, 4.0)
-    _, sent = _memory_search(ctl, [b, a], 120)  # nothing is ever confirmed there
-    # The nearest first (a: 17.7 m, b: 22.4 m), hovering 2 s over each, then the square.
-    assert sent[:3] == [(-12.0, 13.0), (10.0, -20.0), (round(1.5 * 0.525 * 22.3, 1), 0.0)]
-    assert sent.count((-12.0, 13.0)) == 1 and sent.count((10.0, -20.0)) == 1  # never back
-
-
-def test_remembered_ground_too_small_or_beyond_the_search_radius_is_not_flown_to():
-    ctl = LandingController(MEMORY)
-    small = Circle(-5.0, 5.0, 2.9)  # r0 + margin is 3 m: it could not be chosen
-    far = Circle(0.0, 30.0, 8.0)  # beyond the 25 m search radius
-    bad = Circle(math.nan, 3.0, 6.0)
-    _, sent = _memory_search(ctl, [small, far, bad], 30)
-    assert sent[0] == (round(1.5 * 0.525 * 22.3, 1), 0.0)  # the square, as without memory
-    assert ctl.remembered == [small, far]  # NaN dropped on the way in
-
-
 def test_nothing_in_view_that_could_be_a_zone_starts_the_search_early():
     """select_empty_s: with no zone of r0 or more on any frame since the trigger, the search starts
     then, not at select_timeout_s; a candidate seen once (a 2.5 m gap that may grow) keeps the
@@ -312,10 +236,9 @@ def test_nothing_in_view_that_could_be_a_zone_starts_the_search_early():
         dataclasses.replace(cfg, select_empty_s=math.nan)
 
 
-def test_holding_with_hold_looks_flies_over_a_glimpse_and_chooses_it_there():
-    """hold_looks: a zone lost, nothing else eligible, a lawn's rim at the edge of the view (2.5 m,
-    too small to choose): the hold flies over it at its level and the zone the camera then sees
-    whole is chosen, before the hold times out; without it, the hold hovers."""
+def test_holding_hovers_where_it_began_beside_a_glimpse_until_the_timeout():
+    """A zone lost, nothing else eligible, a lawn's rim at the edge of the view (2.5 m, too small
+    to choose): the hold hovers where it began until it times out into the search."""
     def fly(cfg) -> tuple[LandingController, list]:
         ctl = LandingController(cfg)
         ctl.on_state(status(0.0, 10.0, 0.0, 20.0))
@@ -340,9 +263,5 @@ def test_holding_with_hold_looks_flies_over_a_glimpse_and_chooses_it_there():
                 break
         return ctl, sent
 
-    looks, sent = fly(dataclasses.replace(SEARCH, hold_timeout_s=4.0, hold_looks=True))
-    assert (16.0, 7.0, None) in sent  # flown over, not yet a target
-    assert looks.phase == Phase.APPROACH and looks.target is not None and looks.target.id == 5
     plain, sent = fly(dataclasses.replace(SEARCH, hold_timeout_s=4.0))
-    # Without it: the hold hovers where it began until it times out into the search.
     assert plain.phase == Phase.SEARCH and all(n == 10.0 and e == 0.0 for n, e, _ in sent)

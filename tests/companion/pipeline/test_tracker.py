@@ -1,6 +1,7 @@
 """Landing-zone tracker (pipeline step 5)."""
 
 import math
+from dataclasses import dataclass
 
 import pytest
 
@@ -8,6 +9,30 @@ from companion.pipeline.circles import Circle
 from companion.pipeline.tracker import TrackerParams, ZoneTracker
 
 DT = 0.1
+
+
+
+@dataclass(frozen=True)
+class Uniform:
+    """One frame's clearance (``tracker.Clearance``): the same free and view radius (m) everywhere."""
+
+    free: float
+    view: float
+
+    def at(self, x: float, y: float) -> tuple[float, float]:
+        return self.free, self.view
+
+
+@dataclass(frozen=True)
+class Split:
+    """``inside`` (free, view) within ``|x| < x_max`` (m), ``outside`` beyond."""
+
+    x_max: float
+    inside: tuple[float, float]
+    outside: tuple[float, float]
+
+    def at(self, x: float, y: float) -> tuple[float, float]:
+        return self.inside if abs(x) < self.x_max else self.outside
 
 
 def _run(tracker, frames, t0=0.0):
@@ -126,45 +151,45 @@ def test_clearance_measures_the_radius_at_the_filtered_centre():
     # The proposal's centre jumps (a noisy largest circle) but the ground about the filtered
     # centre is still free for 4.5 m on this frame: the zone keeps that radius, not a bound from
     # the jumped proposal.
-    (t,) = tr.update([Circle(1.5, 0.0, 5.0)], 0.5, clearance=lambda x, y: (4.5, 20.0))
+    (t,) = tr.update([Circle(1.5, 0.0, 5.0)], 0.5, clearance=Uniform(4.5, 20.0))
     assert t.r == pytest.approx(4.5) and not t.view_limited
-    (t,) = tr.update([Circle(1.5, 0.0, 5.0)], 0.6, clearance=lambda x, y: (9.0, 20.0))
+    (t,) = tr.update([Circle(1.5, 0.0, 5.0)], 0.6, clearance=Uniform(9.0, 20.0))
     assert t.r == pytest.approx(t.r_filtered)  # never wider than the filter's own radius
 
 
 def test_free_ground_confirms_a_zone_no_proposal_matched():
     tr = ZoneTracker(TrackerParams(mu_2=1, mu_1=2))
     for k in range(3):
-        (t0,) = tr.update([Circle(0.0, 0.0, 4.0)], k * DT, clearance=lambda x, y: (4.0, 20.0),
+        (t0,) = tr.update([Circle(0.0, 0.0, 4.0)], k * DT, clearance=Uniform(4.0, 20.0),
                           r_min=2.0)
     # The largest circle jumped elsewhere (no overlap), but the ground under the zone is still
     # free for 3.5 m: the zone stays confirmed, with the radius measured there.
     tracks = tr.update([Circle(30.0, 0.0, 6.0)], 0.3,
-                       clearance=lambda x, y: (3.5, 20.0) if abs(x) < 5 else (6.0, 20.0), r_min=2.0)
+                       clearance=Split(5.0, (3.5, 20.0), (6.0, 20.0)), r_min=2.0)
     zone = next(t for t in tracks if t.id == t0.id)
     assert zone.misses == 0 and zone.r == pytest.approx(3.5, abs=0.01)
     # Someone steps in: free for 1 m only, in a wide view. Not confirmed; gone after mu_1.
     for k in range(3):
-        tracks = tr.update([], 0.4 + k * DT, clearance=lambda x, y: (1.0, 20.0), r_min=2.0)
+        tracks = tr.update([], 0.4 + k * DT, clearance=Uniform(1.0, 20.0), r_min=2.0)
     assert all(t.id != t0.id for t in tracks)
 
 
 def test_a_view_smaller_than_the_zone_confirms_what_it_sees():
     tr = ZoneTracker(TrackerParams(mu_2=1, mu_1=1))
     for k in range(3):
-        (t0,) = tr.update([Circle(0.0, 0.0, 4.0)], k * DT, clearance=lambda x, y: (4.0, 20.0),
+        (t0,) = tr.update([Circle(0.0, 0.0, 4.0)], k * DT, clearance=Uniform(4.0, 20.0),
                           r_min=2.0)
     # Low over the zone: the camera sees 1.5 m around the centre, all of it free.
-    (t,) = tr.update([], 0.3, clearance=lambda x, y: (1.5, 1.5), r_min=2.0)
+    (t,) = tr.update([], 0.3, clearance=Uniform(1.5, 1.5), r_min=2.0)
     assert t.misses == 0 and t.view_limited and t.r == pytest.approx(1.5, abs=0.01)
     assert t.r_view == pytest.approx(1.5)
     # Something seen inside the small view is not "view-limited": the zone is not confirmed.
-    (t,) = tr.update([], 0.4, clearance=lambda x, y: (0.8, 1.5), r_min=2.0)
+    (t,) = tr.update([], 0.4, clearance=Uniform(0.8, 1.5), r_min=2.0)
     assert t.misses == 1
     # A view too small to say anything confirms nothing.
     tr2 = ZoneTracker(TrackerParams(mu_2=1, mu_1=3))
     tr2.update([Circle(0.0, 0.0, 4.0)], 0.0)
-    (t,) = tr2.update([], 0.1, clearance=lambda x, y: (0.5, 0.5), r_min=2.0)
+    (t,) = tr2.update([], 0.1, clearance=Uniform(0.5, 0.5), r_min=2.0)
     assert t.misses == 1
 
 

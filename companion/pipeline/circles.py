@@ -34,10 +34,6 @@ class GroundBelow:
     r_view: how far the camera's view reaches around it (m).
     calm_s: how long the ground around it (r0 plus a margin) has been watched and seen free (s,
         ``riskmap.GroundRiskMap.calm_s``); NaN when not measured (a frame without a pose).
-    quiet_s, unwalked_s: NaN. The pipeline no longer measures them under the vehicle: the
-        controller's switches that read them (``min_quiet_s``, ``min_unwalked_s``) lost their
-        measurement and were removed from the settings (docs/measurements.md); the fields go
-        when the controller stops reading them.
     """
 
     x: float
@@ -45,8 +41,6 @@ class GroundBelow:
     r: float
     r_view: float
     calm_s: float = math.nan
-    quiet_s: float = math.nan
-    unwalked_s: float = math.nan
 
     @property
     def view_limited(self) -> bool:

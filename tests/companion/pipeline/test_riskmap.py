@@ -9,7 +9,6 @@ import pytest
 
 from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.headplane import GridSpec
-from companion.pipeline.proposals import propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 
@@ -182,8 +181,8 @@ def test_the_frame_pipeline_measures_unwalked_only_when_asked():
     assert centre and centre[0].unwalked_s == pytest.approx(2.9, abs=1e-3)
     assert all(math.isnan(tr.calm_s) for tr in res.tracks)  # calm not asked
     assert ref.tracks and all(math.isnan(tr.unwalked_s) for tr in ref.tracks)
-    # Zones only: the ground below is not measured for it.
-    assert res.below is not None and math.isnan(res.below.unwalked_s)
+    # Zones only: the ground below carries no unwalked measure (``GroundBelow`` has none).
+    assert res.below is not None and not hasattr(res.below, "unwalked_s")
 
 
 def test_the_frame_pipeline_measures_each_zones_calm_without_changing_its_zones():

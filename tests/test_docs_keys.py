@@ -4,8 +4,8 @@ The settings schema is ``companion/config/schema.py`` (``config.all_keys()``). T
 README, CONTRIBUTING, ``docs/*.md``, the model card and ``companion.example.toml``. A key is
 "named" when it is written as ``section.key`` in backticks (``pipeline.r0_m``, ``--set
 camera.fps=15``), as a line of a TOML code block (checked under its ``[section]``, and the block
-must validate), or as a commented-out ``key =`` line in the example file. A key the schema lists as
-removed (``config.REMOVED``: a switch whose measurement lost, or tuning that became a constant)
+must validate), or as a commented-out ``key =`` line in the example file. A key listed as
+removed (``config.REMOVED``, ``companion/config/removed.py``: a switch whose measurement lost, or tuning that became a constant)
 may be named too, and only those: docs/measurements.md keeps their history. The example file
 names live keys only.
 """

@@ -20,6 +20,7 @@ from companion.config.compose import (
     signing_key,
     threshold_setting,
 )
+from companion.config.removed import REMOVED, REMOVED_TABLES, Removed
 from companion.config.schema import (
     BEFORE_RECORDED,
     BLOCKED_MACHINES,
@@ -27,8 +28,6 @@ from companion.config.schema import (
     LANDABILITY_DEFAULT,
     LOG_LEVELS,
     PLAIN_MODEL,
-    REMOVED,
-    REMOVED_TABLES,
     SHIPPED_LANDABILITY,
     SHIPPED_MODEL,
     X86_MODEL,
@@ -44,7 +43,6 @@ from companion.config.schema import (
     ModelSettings,
     PipelineSettings,
     RecorderSettings,
-    Removed,
     all_keys,
     from_dict,
     from_recording,

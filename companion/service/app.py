@@ -60,7 +60,7 @@ from companion.mavlink.state import MAX_POSE_AGE_S, VehicleState
 from companion.mavlink.statustext import event_severity, send_statustext, shadow_text
 from companion.mavlink.timesync import run_timesync
 from companion.pipeline.density import DensityModel, DensityModelError, FrameError
-from companion.pipeline.landability import LandabilityModel, LandabilityModelError, UnlandableMap
+from companion.pipeline.landability import UnlandableMap
 from companion.pipeline.slz import FrameResult, SLZPipeline
 from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
@@ -70,6 +70,7 @@ from companion.service.gcs import PHASE_CODES, GroundStation
 from companion.service.health import PIPELINE_STUCK_S, FaultLog, FrameCounters, Health, StageTimings, assess
 from companion.service.landing_runner import LandingRunner
 from companion.service.notify import Notifier
+from companion.service.parts import build_camera, build_pipeline
 from companion.service.web import LiveView, Snapshot, WebServer, live_video_stream, stream_uri
 
 log = logging.getLogger("companion.service")
@@ -84,38 +85,6 @@ DECISIONS_KEPT = 20
 #: shutdown step gets at most what is left of it (and at least SHUTDOWN_STEP_MIN_S).
 SHUTDOWN_BUDGET_S = 1.8
 SHUTDOWN_STEP_MIN_S = 0.05
-
-
-def load_model(cfg: Config) -> DensityModel:
-    """The density model; raises DensityModelError naming the file."""
-    return DensityModel(cfg.model.path, threads=cfg.model.threads, overrides=cfg.model.overrides)
-
-
-def load_landability(cfg: Config) -> UnlandableMap | None:
-    """The landability model bound to ``pipeline.unlandable_levels``, or None when
-    ``model.landability`` is off; raises LandabilityModelError (a DensityModelError) naming the
-    file, or the key for a level the model does not have."""
-    if not cfg.model.landability:
-        return None
-    model = LandabilityModel(cfg.model.landability_path, threads=cfg.model.threads)
-    levels = cfg.pipeline.unlandable_levels or None
-    try:
-        return model.unlandable(levels)
-    except LandabilityModelError as exc:
-        raise LandabilityModelError(f"pipeline.unlandable_levels: {exc}") from None
-
-
-def build_pipeline(cfg: Config, model: DensityModel, surface: UnlandableMap | None = None) -> SLZPipeline:
-    """The pipeline the settings describe, for frames of ``camera.width x camera.height``;
-    ``surface``: the landability model (``load_landability``), None for people alone."""
-    return SLZPipeline(model, settings.pipeline_config(cfg, model.spec),
-                       intrinsics=settings.intrinsics(cfg), mount=settings.mount(cfg), surface=surface)
-
-
-def build_camera(cfg: Config) -> CameraSource:
-    c = cfg.camera
-    return CameraSource(c.source, width=c.width, height=c.height, fps=c.fps,
-                        stall_timeout_s=c.stall_timeout_s, max_backoff_s=c.reopen_max_backoff_s, loop=c.loop)
 
 
 class Service:

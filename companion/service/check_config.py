@@ -58,8 +58,8 @@ def check(cfg: config_mod.Config) -> None:
     ConfigError naming the key or file."""
     from companion.config import signing_key
     from companion.pipeline.density import DensityModelError
-    from companion.service.app import load_landability, load_model
     from companion.service.camera import CameraError, classify
+    from companion.service.parts import load_landability, load_model
 
     signing_key(cfg)
     try:

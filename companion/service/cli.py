@@ -73,8 +73,9 @@ def run(args: argparse.Namespace) -> int:
 
     from companion.config import signing_key
     from companion.pipeline.density import DensityModelError
-    from companion.service.app import Service, load_landability, load_model
+    from companion.service.app import Service
     from companion.service.camera import CameraError, check_source, classify
+    from companion.service.parts import load_landability, load_model
 
     try:
         signing_key(cfg)

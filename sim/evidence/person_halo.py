@@ -57,7 +57,7 @@ def parse_floats(text: str) -> list[float]:
 def measure(heights: Sequence[float], distances: Sequence[float], model_path: str | None = None,
             seed: int = 18) -> list[HaloRow]:
     """The rows for every height and distance (the seed's lawn under the camera)."""
-    from companion.service.app import build_pipeline, load_model
+    from companion.service.parts import build_pipeline, load_model
 
     overrides: dict[str, object] = {"camera.width": 640, "camera.height": 480, "camera.hfov_deg": 70.0}
     if model_path is not None:

@@ -116,7 +116,8 @@ class InProcessService:
         return config_mod.load(args.config, service_cli.overrides_from_args(args))
 
     async def start(self, timeout: float) -> bool:
-        from companion.service.app import Service, load_landability, load_model
+        from companion.service.app import Service
+        from companion.service.parts import load_landability, load_model
 
         self._logger.addHandler(self._handler)
         self._logger.setLevel(logging.INFO)

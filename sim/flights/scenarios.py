@@ -370,7 +370,7 @@ def machine_check(job: FlightJob, frames: int = 40) -> MachineCheck:
     whether they can be clean here. Raises ``DensityModelError`` (naming the file) when the
     model does not load."""
     from companion.bench import bench_frame, paced_frame_ms
-    from companion.service.app import build_pipeline, load_landability, load_model
+    from companion.service.parts import build_pipeline, load_landability, load_model
 
     spec = job.spec()
     # The simulator's camera sends 640x480 frames; the rest is what the service is started with.

@@ -26,8 +26,9 @@ from companion import config
 from companion.control.events import Phase, TargetChosen
 from companion.mavlink.link import MavLink
 from companion.recording import RecordingReader
-from companion.service.app import Service, load_model
+from companion.service.app import Service
 from companion.service.gcs import CONDITIONS, PHASE_CODES
+from companion.service.parts import load_model
 from sim.flights.flight import FlightSpec, build_scene, reserve_port
 from tests.mavpeer import join_statustexts
 

@@ -16,7 +16,8 @@ import pytest
 from companion import config
 from companion.control.events import HandedBack, Phase, TargetChosen
 from companion.mavlink.link import MavLink
-from companion.service.app import Service, load_model
+from companion.service.app import Service
+from companion.service.parts import load_model
 from sim.flights.flight import FlightSpec, build_scene, reserve_port
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(180)]

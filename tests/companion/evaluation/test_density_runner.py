@@ -426,7 +426,7 @@ def test_fixed_size_model_refuses_a_border(tmp_path: Path) -> None:
 def test_border_through_the_service_config(v1_path: Path) -> None:
     """``model.overrides`` is handed to the runner as it is: ``border_px`` needs nothing more."""
     from companion import config
-    from companion.service.app import load_model
+    from companion.service.parts import load_model
 
     cfg = config.load(overrides={"model.path": str(v1_path), "model.overrides.border_px": 16})
     assert load_model(cfg).spec.border_px == 16

@@ -22,7 +22,8 @@ from companion.control.trigger import TriggerSource
 from companion.mavlink.failsafe import FailsafeConfig, FailsafeMonitor
 from companion.mavlink.gcs_commands import NO_LIVE_VIEW_TEXT, CameraInfo, CommandServer, VideoStream
 from companion.mavlink.link import LinkConfig, MavLink
-from companion.service.app import Service, load_model
+from companion.service.app import Service
+from companion.service.parts import load_model
 from tests.mavpeer import MavPeer
 
 pytestmark = pytest.mark.timeout(60)

@@ -212,7 +212,7 @@ def test_without_a_landability_model_the_zones_are_exactly_the_people_only_ones(
 
 
 def test_service_settings_switch_the_landability_model(tmp_path: Path) -> None:
-    from companion.service.app import build_pipeline, load_landability, load_model
+    from companion.service.parts import build_pipeline, load_landability, load_model
 
     off = config.load(None, {"model.landability": False, "model.threads": 1})
     assert load_landability(off) is None

@@ -14,8 +14,9 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 from companion import config
 from companion.control.events import Phase
 from companion.mavlink.link import MavLink
-from companion.service.app import Service, load_model
+from companion.service.app import Service
 from companion.service.cli import configure, overrides_from_args
+from companion.service.parts import load_model
 from tests.mavpeer import MavPeer
 
 

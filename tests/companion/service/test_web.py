@@ -148,7 +148,8 @@ async def test_the_page_the_json_and_bad_requests(monkeypatch):
 
 
 async def test_a_port_in_use_leaves_the_service_running_without_the_page(model_path):
-    from companion.service.app import Service, load_model
+    from companion.service.app import Service
+    from companion.service.parts import load_model
 
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -163,7 +164,8 @@ async def test_a_port_in_use_leaves_the_service_running_without_the_page(model_p
 
 
 async def test_the_stream_is_announced_only_while_served(model_path):
-    from companion.service.app import Service, load_model
+    from companion.service.app import Service
+    from companion.service.parts import load_model
 
     on = LiveSettings(enabled=True, address="127.0.0.1", port=8090)
     stream = live_video_stream(on, 1124, 508)

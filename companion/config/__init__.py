@@ -1,6 +1,6 @@
-"""The service configuration: the schema (``schema``: keys, types, defaults, help, validation,
-removed keys) and the composition (``compose``: each part's objects made from the validated
-settings). ``from companion import config`` gives both, as one module did before."""
+"""The service configuration: the schema (``schema``: keys, types, defaults, help, the file's
+rules, removed keys) and the composition (``compose``: each part's objects made from the settings,
+which check the parts' own rules; ``load`` runs both). ``from companion import config`` gives both, as one module did before."""
 
 from companion.config.compose import (
     PLACE_LOOKBACK_S,
@@ -8,12 +8,16 @@ from companion.config.compose import (
     SELECT_EMPTY_S,
     autopilot_clock,
     camera_info,
+    checked,
     descent_profile,
     failsafe_config,
     frame_budget_ms,
+    from_dict,
+    from_recording,
     intrinsics,
     landing_config,
     link_config,
+    load,
     mount,
     pipeline_config,
     planner_config,
@@ -44,9 +48,6 @@ from companion.config.schema import (
     PipelineSettings,
     RecorderSettings,
     all_keys,
-    from_dict,
-    from_recording,
-    load,
     parse_assignment,
     removed_error,
     shipped_model,
@@ -100,4 +101,5 @@ __all__ = [
     "autopilot_clock",
     "frame_budget_ms",
     "failsafe_config",
+    "checked",
 ]

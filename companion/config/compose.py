@@ -2,6 +2,12 @@
 become each part's own configuration objects. The service, replay and the simulator call these,
 so a setting has one name and one meaning everywhere.
 
+It is also where the parts' own rules check a configuration: each part's object refuses what it
+cannot fly with in its ``__post_init__`` (``companion.invariant.FieldError``), and the tables
+below say which settings key each field came from, so that ``load`` (``checked``) refuses a bad
+value at start-up naming the key (``controller.descend_alt_m must be > 0, got -1.0``). The
+schema does not repeat those rules.
+
 A part's tuning that is no setting keeps its value here or in the part's own dataclass default:
 the core's dataclasses default to the paper's rules (tests and the evaluation use them), and the
 service's choices where they differ are the named constants below.
@@ -10,15 +16,18 @@ service's choices where they differ are the named constants below.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import cast
+from typing import Any, TypeVar, cast
 
+from companion.config import schema
 from companion.config.schema import Config, ConfigError
 from companion.control.landing import LandingConfig, person_trust_height
 from companion.control.obedience import ObedienceConfig
 from companion.control.planner import PlannerConfig
 from companion.control.touchdown import DescentProfile
 from companion.geometry.camera import Intrinsics, Mount
+from companion.invariant import FieldError
 from companion.mavlink.clock import MAX_TELEMETRY_LAG_S, AutopilotClock
 from companion.mavlink.failsafe import FailsafeConfig
 from companion.mavlink.gcs_commands import CameraInfo
@@ -42,6 +51,44 @@ SELECT_EMPTY_S = 3.0
 #: and moves there again before the zone is judged when that is ``PLACE_GAIN_M`` farther from
 #: them (docs/design.md, "Where people walked").
 PLACE_LOOKBACK_S = 30.0
+
+
+def _keys(section: str, *names: str, **renamed: str) -> dict[str, str]:
+    """Field -> settings key: ``names`` are called so in ``section``, ``renamed`` maps field=key."""
+    return {**{n: f"{section}.{n}" for n in names}, **renamed}
+
+
+#: Which settings key each part's field is made from (a field missing is no setting, or derived).
+LANDING_KEYS = _keys("controller", "descend_alt_m", "land_abort_above_m", "hold_height_m", "max_takeover_s",
+                     "land_alt_m", "land_agl_m", "handback_action", "search_climb_m", "max_alt_m", "search_s",
+                     "search_radius_m", "search_reserve_s",
+                     view_ratio="camera.cx / camera.fx and camera.cy / camera.fy (the view ratio)",
+                     trust_height_m="the height people are trusted below (controller.min_person_px)",
+                     ceiling_margin_m="LandingConfig.ceiling_margin_m")
+PLANNER_KEYS = _keys("controller", "radius_margin_m", "min_track_age_s", "min_calm_s", "steady_s",
+                     r0_m="pipeline.r0_m")
+OBEDIENCE_KEYS = _keys("controller", tolerance_z_m="controller.obey_tolerance_z_m",
+                       tolerance_xy_m="controller.obey_tolerance_xy_m")
+#: ``land_alt_m`` is ``controller.land_alt_m``, or ``descend_alt_m`` where that is 0.
+DESCENT_KEYS = _keys("controller", "descend_speed_mps", "land_alt_m", "land_speed_mps",
+                     walk_speed_mps="pipeline.walk_speed_mps")
+PIPELINE_KEYS = _keys("pipeline", "head_height_m", "r0_m", "proposal_tie_m", "calm_margin_m",
+                      surface_threshold="pipeline.unlandable_threshold")
+RISK_KEYS = _keys("pipeline", "walk_speed_mps")
+OCCUPANCY_KEYS = _keys("pipeline", threshold="pipeline.occupancy_threshold")
+LINK_KEYS = _keys("link", "system_id", "component_id", "target_system", "peers")
+FAILSAFE_KEYS = _keys("failsafe", "battery_level", "gcs_system_ids")
+
+_Part = TypeVar("_Part")
+
+
+def _made(keys: Mapping[str, str], make: Callable[..., _Part], *args: Any, **kwargs: Any) -> _Part:
+    """``make(*args, **kwargs)``, a part's object; a field it refuses is a ConfigError naming the
+    settings key ``keys`` gives for it (the part's own name for it where none)."""
+    try:
+        return make(*args, **kwargs)
+    except FieldError as exc:
+        raise ConfigError(exc.named(keys) if exc.field in keys else str(exc)) from None
 
 
 def threshold_setting(cfg: Config) -> float | None:
@@ -75,8 +122,10 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
     in the world frame: zones are ground (the tracker's ``GROUND_MOTION``)."""
     p = cfg.pipeline
     planner = planner_config(cfg)
-    return PipelineConfig(
-        occupancy=OccupancyParams(threshold=resolve_threshold(threshold_setting(cfg), model_spec)),
+    return _made(
+        PIPELINE_KEYS, PipelineConfig,
+        occupancy=_made(OCCUPANCY_KEYS, OccupancyParams,
+                        threshold=resolve_threshold(threshold_setting(cfg), model_spec)),
         tracker=TrackerParams(motion=GROUND_MOTION, sigma_v=GROUND_SIGMA_V),
         head_height_m=p.head_height_m,
         r0_m=p.r0_m,
@@ -86,23 +135,24 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         unwalked=planner.prefer_unwalked,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
         steady_margin_m=planner.steady_margin_m if planner.steady_s > 0 else None,
-        risk=RiskMapConfig(walk_speed_mps=p.walk_speed_mps),
+        risk=_made(RISK_KEYS, RiskMapConfig, walk_speed_mps=p.walk_speed_mps),
     )
 
 
 def descent_profile(cfg: Config) -> DescentProfile:
     """How long a descent from a height takes, and how far a walker gets meanwhile."""
     c = cfg.controller
-    return DescentProfile(descend_speed_mps=c.descend_speed_mps, land_alt_m=c.land_alt_m or c.descend_alt_m,
-                          land_speed_mps=c.land_speed_mps, walk_speed_mps=cfg.pipeline.walk_speed_mps)
+    return _made(DESCENT_KEYS, DescentProfile, descend_speed_mps=c.descend_speed_mps,
+                 land_alt_m=c.land_alt_m or c.descend_alt_m, land_speed_mps=c.land_speed_mps,
+                 walk_speed_mps=cfg.pipeline.walk_speed_mps)
 
 
 def planner_config(cfg: Config) -> PlannerConfig:
     """The ``PlannerConfig``: the one rule for which zone is the target (flight and replay)."""
     c = cfg.controller
-    return PlannerConfig(r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
-                         min_track_age_s=c.min_track_age_s, min_calm_s=c.min_calm_s,
-                         prefer_unwalked=PREFER_UNWALKED, steady_s=c.steady_s)
+    return _made(PLANNER_KEYS, PlannerConfig, r0_m=cfg.pipeline.r0_m, radius_margin_m=c.radius_margin_m,
+                 min_track_age_s=c.min_track_age_s, min_calm_s=c.min_calm_s,
+                 prefer_unwalked=PREFER_UNWALKED, steady_s=c.steady_s)
 
 
 def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> LandingConfig:
@@ -111,13 +161,15 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
     c = cfg.controller
     min_px = c.min_person_px or (model_spec.min_person_px if model_spec is not None else None)
     k = intrinsics(cfg)
-    return LandingConfig(
+    return _made(
+        LANDING_KEYS, LandingConfig,
         planner=planner_config(cfg),
         select_empty_s=SELECT_EMPTY_S, descend_alt_m=c.descend_alt_m,
         land_abort_above_m=c.land_abort_above_m, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         land_alt_m=c.land_alt_m, land_agl_m=c.land_agl_m, max_pose_age_s=MAX_POSE_AGE_S,
         handback_action=c.handback_action, search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,
-        obedience=ObedienceConfig(tolerance_z_m=c.obey_tolerance_z_m, tolerance_xy_m=c.obey_tolerance_xy_m),
+        obedience=_made(OBEDIENCE_KEYS, ObedienceConfig, tolerance_z_m=c.obey_tolerance_z_m,
+                        tolerance_xy_m=c.obey_tolerance_xy_m),
         descent=descent_profile(cfg),
         search_s=c.search_s, search_radius_m=c.search_radius_m, search_reserve_s=c.search_reserve_s,
         place_lookback_s=PLACE_LOOKBACK_S,
@@ -159,10 +211,15 @@ def camera_info(cfg: Config) -> CameraInfo:
 
 def link_config(cfg: Config) -> LinkConfig:
     """The MAVLink link's ``LinkConfig`` (reads the signing key file)."""
+    return _link_config(cfg, signing_key(cfg))
+
+
+def _link_config(cfg: Config, key: bytes | None) -> LinkConfig:
     c = cfg.link
-    return LinkConfig(
+    return _made(
+        LINK_KEYS, LinkConfig,
         url=c.url, system_id=c.system_id, component_id=c.component_id,
-        target_system=c.target_system or None, signing_key=signing_key(cfg),
+        target_system=c.target_system or None, signing_key=key,
         message_rates_hz=message_rates(POSE_RATE_HZ), peers=tuple(c.peers),
     )
 
@@ -183,14 +240,49 @@ def frame_budget_ms(cfg: Config) -> float:
 def failsafe_config(cfg: Config) -> FailsafeConfig:
     """The failsafe monitor's ``FailsafeConfig``."""
     f = cfg.failsafe
-    return FailsafeConfig(battery=f.battery, battery_level=f.battery_level, system_status=f.system_status,
-                          autopilot_land=f.autopilot_land, gcs_command=f.gcs_command,
-                          local_trigger=f.local_trigger, gcs_system_ids=tuple(f.gcs_system_ids),
-                          local_socket=f.local_socket or None)
+    return _made(FAILSAFE_KEYS, FailsafeConfig, battery=f.battery, battery_level=f.battery_level,
+                 system_status=f.system_status, autopilot_land=f.autopilot_land, gcs_command=f.gcs_command,
+                 local_trigger=f.local_trigger, gcs_system_ids=tuple(f.gcs_system_ids),
+                 local_socket=f.local_socket or None)
+
+
+def checked(cfg: Config) -> Config:
+    """``cfg`` once every part's object made from it accepts its values (their rules are not
+    repeated in the schema); else a ConfigError naming the key. Reads no file: the signing key
+    file is read when the link is made (``link_config``; ``companion check-config`` does)."""
+    try:
+        landing_config(cfg)
+        pipeline_config(cfg)
+        mount(cfg)
+        _link_config(cfg, None)
+        failsafe_config(cfg)
+    except ConfigError:
+        raise
+    except ValueError as exc:  # a rule of a part no field names: still exit 2, not a traceback
+        raise ConfigError(f"the settings make no valid part: {exc}") from None
+    return cfg
+
+
+def load(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """``schema.load`` (the file's rules) and ``checked`` (the parts'): the settings
+    ``companion run`` starts with, or a ConfigError naming the key."""
+    return checked(schema.load(path, overrides))
+
+
+def from_dict(raw: Mapping[str, Any], source: Path | None = None) -> Config:
+    """``schema.from_dict`` and ``checked``: a validated :class:`Config` from nested TOML-like data."""
+    return checked(schema.from_dict(raw, source))
+
+
+def from_recording(meta_config: Mapping[str, Any], overrides: Mapping[str, Any] | None = None) -> Config:
+    """``schema.from_recording`` and ``checked``: the settings a recording was flown with."""
+    return checked(schema.from_recording(meta_config, overrides))
 
 
 __all__ = [
     "PREFER_UNWALKED", "SELECT_EMPTY_S", "PLACE_LOOKBACK_S", "threshold_setting", "intrinsics", "mount",
     "pipeline_config", "descent_profile", "planner_config", "landing_config", "signing_key", "camera_info",
-    "link_config", "autopilot_clock", "frame_budget_ms", "failsafe_config",
+    "link_config", "autopilot_clock", "frame_budget_ms", "failsafe_config", "checked", "load", "from_dict",
+    "from_recording", "LANDING_KEYS", "PLANNER_KEYS", "OBEDIENCE_KEYS", "DESCENT_KEYS", "PIPELINE_KEYS",
+    "RISK_KEYS", "OCCUPANCY_KEYS", "LINK_KEYS", "FAILSAFE_KEYS",
 ]

@@ -1,13 +1,21 @@
-"""The settings' schema: every key a user sets, its type, default, bounds and help, read from a
-TOML file and ``--set`` overrides, validated once at start-up.
+"""The settings' schema: every key a user sets, its type, default and help, read from a TOML file
+and ``--set`` overrides, and the rules only the file knows.
 
 Every key has a built-in default, so ``companion run`` with no file flies against the simulator's
 defaults. A file only needs the keys it changes. Validation happens once, before anything opens a
 socket or a camera, and every problem is reported as a :class:`ConfigError` whose message names
 the key (``camera.fps``) and what is allowed, so an integrator reading ``journalctl`` knows what
 to fix; a key that was removed (:data:`REMOVED`) says so and where it went.
-``companion.example.toml`` at the repository root documents every key. The parts' own objects
-are made from a validated :class:`Config` in ``companion.config.compose``.
+``companion.example.toml`` at the repository root documents every key.
+
+Each rule lives in one place. Here: that a key exists, its TOML type, finite numbers, list
+lengths, the names a file spells (``link.flavour``), the stand-ins for "not set" (``-1``, ``0``),
+the operator's limits no part has (``camera.fps`` up to 240), and the rules of keys no part's
+object checks (``link.url``, ``live.address``, the signing key). A part's own invariants (a
+speed > 0, ``land_alt_m`` not above ``descend_alt_m``) live in its configuration object's
+``__post_init__``; ``companion.config.compose`` builds those objects from a :class:`Config` and
+names the key of a field they refuse. ``companion.config.load`` (and ``from_dict``,
+``from_recording``) run both; this module's functions of those names only the file's rules.
 
 Units are in the key names where they matter (``_s`` seconds, ``_m`` metres, ``_deg`` degrees,
 ``_mb`` mebibytes); angles are converted to radians only when handed to the pipeline.
@@ -29,8 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.config.removed import REMOVED, REMOVED_TABLES
-from companion.control.landing import LAND_AGL_MIN_M
-from companion.mavlink.transports import TransportError, parse_peers, parse_url
+from companion.mavlink.transports import TransportError, parse_url
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -86,7 +93,9 @@ class ConfigError(ValueError):
 def _f(default: Any, doc: str = "", *, min: float | None = None, max: float | None = None,
        choices: tuple[Any, ...] | None = None, min_exclusive: bool = False, length: int | None = None,
        path: bool = False) -> Any:
-    """A config field: default plus the checks the validator runs (kept next to the key)."""
+    """A config field: default plus the file's checks of it (kept next to the key): ``min``/``max``
+    are the operator's limits and the stand-ins' floor, where no part's object already refuses the
+    value (companion.config.compose)."""
     meta = {"doc": doc, "min": min, "max": max, "choices": choices, "min_exclusive": min_exclusive,
             "length": length, "path": path}
     if isinstance(default, (list, dict)):
@@ -99,10 +108,10 @@ class LinkSettings:
     """MAVLink connection to the flight controller."""
 
     url: str = _f("udpin:127.0.0.1:14550", "udpin:HOST:PORT, udpout:, tcp:, tcpin:, serial:/dev/ttyX:BAUD")
-    system_id: int = _f(1, "our MAVLink system id (normally the vehicle's)", min=1, max=255)
-    component_id: int = _f(191, "our component id (191 = onboard computer)", min=1, max=255)
+    system_id: int = _f(1, "our MAVLink system id (normally the vehicle's)")
+    component_id: int = _f(191, "our component id (191 = onboard computer)")
     target_system: int = _f(1, "autopilot system id (SYSID_THISMAV / MAV_SYS_ID); 0 = the first autopilot "
-                               "heard, which anyone on the link could be", min=0, max=255)
+                               "heard, which anyone on the link could be")
     flavour: str = _f("auto", "autopilot dialect", choices=FLAVOURS)
     signing_key: str = _f("", "MAVLink 2 signing secret as 64 hex characters; empty = unsigned")
     signing_key_file: str = _f("", "file holding the 64-hex signing secret (wins over signing_key)", path=True)
@@ -161,15 +170,15 @@ class PipelineSettings:
 
     occupancy_threshold: float = _f(-1.0, "density above min(D) marking a pixel occupied; "
                                           "-1 = not set: the model's validated value, else 0", min=-1.0)
-    head_height_m: float = _f(1.7, "height of the head plane above the ground (m)", min=0.0, max=3.0)
+    head_height_m: float = _f(1.7, "height of the head plane above the ground (m)", max=3.0)
     r0_m: float = _f(2.0, "smallest useful landing-zone radius (m)", min=0.1, max=100.0)
     proposal_tie_m: float = _f(0.3, "a proposal may give up this much radius to sit nearer the ground under "
-                                    "the camera (m; 0 = the paper's first largest circle)", min=0.0, max=5.0)
+                                    "the camera (m; 0 = the paper's first largest circle)", max=5.0)
     walk_speed_mps: float = _f(1.5, "how fast a person may walk (m/s): risk grows this fast from where "
                                     "someone was seen (1.34 m/s is the mean, Weidmann 1993)",
                                min=0.1, max=15.0)
     calm_margin_m: float = _f(1.0, "a zone is calm when nobody has been seen within r0 plus this of it while "
-                                   "watched (m; controller.min_calm_s)", min=0.0, max=50.0)
+                                   "watched (m; controller.min_calm_s)", max=50.0)
     unlandable_levels: list[str] = _f([], "risk levels of the landability model that keep zones off the ground; "
                                           "empty = every level but the model's landable one")
     unlandable_threshold: float = _f(-1.0, "probability of the unlandable levels above which a cell is "
@@ -181,7 +190,7 @@ class FailsafeSettings:
     """Which telemetry events trigger a safe landing."""
 
     battery: bool = _f(True, "battery charge state LOW/CRITICAL/EMERGENCY")
-    battery_level: str = _f("critical", "lowest battery state that triggers", choices=("low", "critical", "emergency"))
+    battery_level: str = _f("critical", "lowest battery state that triggers")
     system_status: bool = _f(True, "heartbeat system_status CRITICAL/EMERGENCY")
     autopilot_land: bool = _f(True, "the autopilot switches itself to LAND or RTL")
     gcs_command: bool = _f(True, "an explicit command from the ground station")
@@ -195,19 +204,19 @@ class ControllerSettings:
     """The landing decision's heights, speeds, margins and limits."""
 
     min_track_age_s: float = _f(1.0, "a zone must have been tracked this long to be a target (s; 0 for a "
-                                     "replay of a clip shorter than that)", min=0.0)
+                                     "replay of a clip shorter than that)")
     min_calm_s: float = _f(5.0, "the ground around a landing point (r0 plus pipeline.calm_margin_m) must have "
                                 "been watched and seen free this long before the LAND; calm zones are chosen "
-                                "first (s; 0 = not required, the paper's rule; docs/design.md)", min=0.0, max=120.0)
+                                "first (s; 0 = not required, the paper's rule; docs/design.md)", max=120.0)
     radius_margin_m: float = _f(2.0, "zone radius must exceed r0 plus this margin to be chosen (m); once chosen it "
                                      "is kept, and the LAND commanded, while r0 stays free around the landing "
                                      "point, and its landing point stays put while the zone holds r0 plus this "
-                                     "around it", min=0.0)
+                                     "around it")
     steady_s: float = _f(8.0, "a zone smaller than r0 plus radius_margin_m may still be chosen once every frame for "
                               "this long has seen r0 plus 0.5 m free round the same point: its edge is something "
                               "that does not walk into it (a tree or a bench on a lawn, a crowd that keeps off "
                               "it); that steady watch stands for the calm ground under the vehicle (s; 0 = never; "
-                              "docs/design.md, 'Steady zones')", min=0.0, max=120.0)
+                              "docs/design.md, 'Steady zones')", max=120.0)
     descend_alt_m: float = _f(10.0, "altitude above home at which the zone is judged (calm ground) before the "
                                      "LAND (m): where the camera still sees r0 plus radius_margin_m all round; "
                                      "the LAND itself is commanded at land_alt_m", min=1.0, max=200.0)
@@ -216,14 +225,14 @@ class ControllerSettings:
                                 "over it to this height, the ground under the vehicle re-checked every frame "
                                 "(somebody within r0: HOLD); a shorter slow LAND leaves walkers less time to "
                                 "reach the landing point; 0 = LAND at descend_alt_m (docs/design.md)",
-                          min=0.0, max=200.0)
+                          max=200.0)
     land_agl_m: float = _f(0.0, "with a fresh downward rangefinder, the LAND commanded at land_alt_m is first "
                                 "the companion's own committed descent, straight down at descend_speed_mps, to "
                                 "this height above the ground the rangefinder measures, and the autopilot's "
                                 "slower LAND only there (m); without a fresh rangefinder, or when it goes stale "
                                 "or out of range on the way, the LAND at once; 0 = off, the default (docs/design.md, "
                                 "\"The last metres by the rangefinder\": measured, and why it stays off); "
-                                "1 m is the value measured", min=0.0, max=200.0)
+                                "1 m is the value measured")
     descend_speed_mps: float = _f(1.5, "how fast the stepped descent comes down (m/s; ArduPilot WPNAV_SPEED_DN, "
                                        "PX4 MPC_Z_VEL_MAX_DN): the time to touchdown", min=0.1, max=10.0)
     land_speed_mps: float = _f(0.5, "the autopilot's LAND descent speed (m/s; ArduPilot LAND_SPEED 50 cm/s, "
@@ -239,19 +248,19 @@ class ControllerSettings:
                               "ground, where the camera sees enough to confirm a zone again", min=2.0, max=120.0)
     max_takeover_s: float = _f(90.0, "not landed this long after the trigger: hand back to the "
                                "autopilot's own failsafe", min=10.0, max=600.0)
-    handback_action: str = _f("LAND", "what the autopilot is asked to do on handback", choices=("LAND", "RTL"))
+    handback_action: str = _f("LAND", "what the autopilot is asked to do on handback")
     search_s: float = _f(45.0, "with no zone in view at the SELECT or HOLD timeout, search this long (s) "
                          "before handing back: climb to the ceiling, then fly an expanding square; 0 = "
                          "hand back at once, as before (with steady_s, a look at a glimpse whose steady "
-                         "watch runs is finished, at most steady_s more)", min=0.0, max=600.0)
+                         "watch runs is finished, at most steady_s more)", max=600.0)
     search_radius_m: float = _f(40.0, "the search goes no further than this from where it starts (m)",
-                                min=0.0, max=500.0)
+                                max=500.0)
     search_reserve_s: float = _f(30.0, "stop searching (hand back) when the battery's time left, as the "
                                  "autopilot reports it, is less than the landing needs plus this (s)",
-                                 min=0.0, max=600.0)
+                                 max=600.0)
     search_climb_m: float = _f(5.0, "the ceiling: the vehicle is never sent more than this above its "
                                "altitude at the trigger (m); above it, control goes back to LAND",
-                               min=1.0, max=50.0)
+                               max=50.0)
     max_alt_m: float = _f(120.0, "the ceiling is never above this altitude above home (m)", min=5.0, max=500.0)
     obey_tolerance_z_m: float = _f(1.0, "a vehicle further than this above or below its target than it "
                                    "has shown it can be is handed back to LAND (m)", min=0.3, max=20.0)
@@ -452,28 +461,17 @@ def _build(cls: type, raw: Mapping[str, Any], prefix: str, base_dir: Path | None
 
 
 def _cross_checks(cfg: Config) -> None:
-    """Rules that involve more than one key."""
+    """The file's rules that involve more than one key, or a key that no part's object checks (the
+    parts' own rules, ranges and rules between keys, are checked by building the parts:
+    ``companion.config.compose.checked``)."""
     key = cfg.link.signing_key
     if key and (len(key) != 64 or any(c not in "0123456789abcdefABCDEF" for c in key)):
         raise ConfigError("link.signing_key must be 64 hexadecimal characters (a 32-byte secret)")
-    if cfg.controller.land_alt_m > cfg.controller.descend_alt_m:
-        raise ConfigError(f"controller.land_alt_m ({cfg.controller.land_alt_m:g} m) must not be above "
-                          f"controller.descend_alt_m ({cfg.controller.descend_alt_m:g} m), where the zone is "
-                          "judged before it; set controller.land_alt_m at or below it (0: the LAND at "
-                          "controller.descend_alt_m)")
-    c = cfg.controller
-    lands_at = c.land_alt_m or c.descend_alt_m
-    if c.land_agl_m and not LAND_AGL_MIN_M <= c.land_agl_m < lands_at:
-        raise ConfigError(f"controller.land_agl_m ({c.land_agl_m:g} m) must be 0 (off) or from "
-                          f"{LAND_AGL_MIN_M:g} m up to below the height where the LAND is commanded "
-                          f"(controller.land_alt_m, {lands_at:g} m): the companion's descent goes on "
-                          "below that, by the rangefinder, to it")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")
-    if not cfg.failsafe.gcs_system_ids or any(not 1 <= i <= 255 for i in cfg.failsafe.gcs_system_ids):
-        raise ConfigError(f"failsafe.gcs_system_ids must list system ids 1..255, got "
-                          f"{cfg.failsafe.gcs_system_ids!r}")
+    if not cfg.failsafe.gcs_system_ids:  # their range is FailsafeConfig's
+        raise ConfigError("failsafe.gcs_system_ids must list system ids 1..255, got []")
     if cfg.link.url.split(":", 1)[0] not in ("udpin", "udpout", "tcp", "tcpin", "serial"):
         raise ConfigError(f"link.url must start with udpin:, udpout:, tcp:, tcpin: or serial:, got "
                           f"{cfg.link.url!r}")
@@ -491,10 +489,6 @@ def _cross_checks(cfg: Config) -> None:
     if -1.0 < p.unlandable_threshold < 0.0:
         raise ConfigError(f"pipeline.unlandable_threshold must be -1 (the model's) or in [0, 1), "
                           f"got {p.unlandable_threshold!r}")
-    try:
-        parse_peers(cfg.link.peers)
-    except TransportError as exc:
-        raise ConfigError(f"link.peers: {exc}") from None
     if not cfg.live.address.strip() or any(ch.isspace() for ch in cfg.live.address):
         raise ConfigError(f"live.address must be an IP address or host name, got {cfg.live.address!r}")
     if cfg.link.require_signing and not (cfg.link.signing_key or cfg.link.signing_key_file):

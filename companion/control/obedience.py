@@ -32,6 +32,7 @@ import math
 from dataclasses import dataclass
 
 from companion.control.vehicle import VehicleStatus
+from companion.invariant import require
 
 
 @dataclass(frozen=True)
@@ -47,8 +48,7 @@ class ObedienceConfig:
     def __post_init__(self) -> None:
         for name in ("tolerance_z_m", "tolerance_xy_m", "brake_accel_mss", "stall_s", "progress_m"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"controller {name} must be a positive number, not {value!r}")
+            require(math.isfinite(value) and value > 0, "controller", name, "must be > 0", value)
 
 
 @dataclass(frozen=True)

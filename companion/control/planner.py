@@ -42,6 +42,7 @@ import math
 from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 
+from companion.invariant import require
 from companion.pipeline.tracker import Track
 
 #: The least view (m around the zone centre) that can keep confirming a zone during the descent.
@@ -111,12 +112,10 @@ class PlannerConfig:
         for name in ("r0_m", "radius_margin_m", "min_track_age_s", "zone_max_age_s", "min_calm_s",
                      "steady_s", "steady_margin_m"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"controller {name} must be a finite number >= 0, not {value!r}")
-        if self.r0_m <= 0 or self.zone_max_age_s <= 0:
-            raise ValueError("controller r0_m and zone_max_age_s must be > 0")
-        if self.min_track_hits < 1:
-            raise ValueError(f"controller min_track_hits must be >= 1, not {self.min_track_hits}")
+            require(math.isfinite(value) and value >= 0, "controller", name, "must be >= 0", value)
+        for name in ("r0_m", "zone_max_age_s"):
+            require(getattr(self, name) > 0, "controller", name, "must be > 0", getattr(self, name))
+        require(self.min_track_hits >= 1, "controller", "min_track_hits", "must be >= 1", self.min_track_hits)
 
 
 class ZoneCheck(enum.Enum):

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from companion.control.obedience import ObedienceConfig
 from companion.control.planner import PlannerConfig
 from companion.control.touchdown import DescentProfile
+from companion.invariant import NO_VALUE, require
 
 #: ``place_lookback_s``: the landing point moves to the farthest point from where people were
 #: seen only when that is this much farther from them (m) than the present point: a point that
@@ -106,38 +107,35 @@ class LandingConfig:
     place_lookback_s: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.handback_action not in ("LAND", "RTL"):
-            raise ValueError(f"controller handback_action must be LAND or RTL, not {self.handback_action!r}")
+        # The one place these rules live: the settings (companion.config) build this object to
+        # check a configuration, and name the key of a field refused here (FieldError).
+        def need(ok: bool, name: str, problem: str, refs: tuple[str, ...] = (), show: bool = True) -> None:
+            require(ok, "controller", name, problem, getattr(self, name) if show else NO_VALUE, refs)
+
+        need(self.handback_action in ("LAND", "RTL"), "handback_action", "must be 'LAND' or 'RTL'")
         for name in ("select_timeout_s", "hold_timeout_s", "arrive_radius_m", "descend_alt_m", "descend_step_m",
                      "hold_height_m", "max_takeover_s", "max_alt_m", "calm_wait_s",
                      "max_pose_age_s", "state_timeout_s", "pose_timeout_s"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"controller {name} must be a positive number, not {value!r}")
+            need(math.isfinite(value) and value > 0, name, "must be > 0")
         for name in ("search_s", "search_radius_m", "search_reserve_s", "land_alt_m", "select_empty_s",
                      "place_lookback_s"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"controller {name} must be a number >= 0, not {value!r}")
-        if not (math.isfinite(self.land_agl_m) and (self.land_agl_m == 0 or LAND_AGL_MIN_M <= self.land_agl_m)):
-            raise ValueError(f"controller land_agl_m must be 0 (off) or at least {LAND_AGL_MIN_M:g} m, "
-                             f"not {self.land_agl_m!r}")
-        if self.land_agl_m > 0 and self.land_agl_m >= (self.land_alt_m or self.descend_alt_m):
-            raise ValueError(f"controller land_agl_m ({self.land_agl_m:g} m) must be below the height where the "
-                             f"LAND is commanded ({self.land_alt_m or self.descend_alt_m:g} m)")
-        if self.land_alt_m > self.descend_alt_m:
-            raise ValueError(f"controller land_alt_m ({self.land_alt_m:g} m) must not be above "
-                             f"descend_alt_m ({self.descend_alt_m:g} m): the zone is judged there first")
-        if not (math.isfinite(self.view_ratio) and self.view_ratio > 0):
-            raise ValueError(f"controller view_ratio must be > 0, not {self.view_ratio!r}")
-        if not (self.trust_height_m > 0):  # NaN too
-            raise ValueError(f"controller trust_height_m must be > 0 m (inf: no limit), not {self.trust_height_m!r}")
-        if self.max_refusals < 1:
-            raise ValueError("controller max_refusals must be >= 1")
-        if self.lose_after_frames < 1:
-            raise ValueError(f"controller lose_after_frames must be >= 1, not {self.lose_after_frames!r}")
-        if not (math.isfinite(self.ceiling_margin_m) and self.ceiling_margin_m >= 0):
-            raise ValueError(f"controller ceiling_margin_m must be >= 0, not {self.ceiling_margin_m!r}")
-        if not (math.isfinite(self.search_climb_m) and self.search_climb_m >= self.ceiling_margin_m):
-            raise ValueError(f"controller search_climb_m must be >= ceiling_margin_m "
-                             f"({self.ceiling_margin_m:g} m), not {self.search_climb_m!r}")
+            need(math.isfinite(value) and value >= 0, name, "must be >= 0")
+        need(math.isfinite(self.land_agl_m) and self.land_agl_m >= 0, "land_agl_m", "must be >= 0 (0: off)")
+        need(self.land_alt_m <= self.descend_alt_m, "land_alt_m",
+             f"({self.land_alt_m:g} m) must not be above {{descend_alt_m}} ({self.descend_alt_m:g} m), where the "
+             "zone is judged before it; set it at or below that (0: the LAND at {descend_alt_m})",
+             refs=("descend_alt_m",), show=False)
+        lands_at = self.land_alt_m or self.descend_alt_m
+        need(not self.land_agl_m or LAND_AGL_MIN_M <= self.land_agl_m < lands_at, "land_agl_m",
+             f"({self.land_agl_m:g} m) must be 0 (off) or from {LAND_AGL_MIN_M:g} m up to below the height "
+             f"where the LAND is commanded ({{land_alt_m}}, {lands_at:g} m): the companion's descent goes on "
+             "below that, by the rangefinder, to it", refs=("land_alt_m",), show=False)
+        need(math.isfinite(self.view_ratio) and self.view_ratio > 0, "view_ratio", "must be > 0")
+        need(self.trust_height_m > 0, "trust_height_m", "must be > 0 m (inf: no limit)")  # NaN too
+        need(self.max_refusals >= 1, "max_refusals", "must be >= 1")
+        need(self.lose_after_frames >= 1, "lose_after_frames", "must be >= 1")
+        need(math.isfinite(self.ceiling_margin_m) and self.ceiling_margin_m >= 0, "ceiling_margin_m", "must be >= 0")
+        need(math.isfinite(self.search_climb_m) and self.search_climb_m >= self.ceiling_margin_m, "search_climb_m",
+             f"must be >= {{ceiling_margin_m}} ({self.ceiling_margin_m:g} m)", refs=("ceiling_margin_m",))

@@ -15,6 +15,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+from companion.invariant import require
+
 
 @dataclass(frozen=True)
 class DescentProfile:
@@ -28,10 +30,9 @@ class DescentProfile:
     def __post_init__(self) -> None:
         for name in ("descend_speed_mps", "land_speed_mps", "walk_speed_mps"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"descent {name} must be a positive speed, got {v!r}")
-        if not (math.isfinite(self.land_alt_m) and self.land_alt_m >= 0):
-            raise ValueError(f"descent land_alt_m must be >= 0 m, got {self.land_alt_m!r}")
+            require(math.isfinite(v) and v > 0, "descent", name, "must be > 0 (a speed)", v)
+        require(math.isfinite(self.land_alt_m) and self.land_alt_m >= 0, "descent", "land_alt_m", "must be >= 0",
+                self.land_alt_m)
 
     def time_to_touchdown(self, height_m: float) -> float:
         """Seconds from ``height_m`` above the ground to touchdown (NaN for a NaN height)."""

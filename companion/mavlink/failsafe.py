@@ -36,6 +36,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.control.trigger import Trigger, TriggerSource
+from companion.invariant import require
 from companion.mavlink.autopilot import Autopilot
 from companion.mavlink.gcs_commands import CommandServer, Reply, send_reply
 from companion.mavlink.link import MavLink
@@ -65,12 +66,13 @@ class FailsafeConfig:
     local_socket: str | None = None
 
     def __post_init__(self) -> None:
-        if self.battery_level not in BATTERY_LEVELS:
-            raise ValueError(f"failsafe.battery_level must be one of {sorted(BATTERY_LEVELS)}, not {self.battery_level!r}")
+        # The one place this rule lives (the settings name the key of a field refused here).
+        require(self.battery_level in BATTERY_LEVELS, "failsafe", "battery_level",
+                f"must be one of {', '.join(map(repr, BATTERY_LEVELS))}", self.battery_level)
         if self.battery_remaining_pct is not None and not 0 <= self.battery_remaining_pct <= 100:
             raise ValueError(f"failsafe.battery_remaining_pct must be 0..100, not {self.battery_remaining_pct!r}")
-        if any(not 1 <= s <= 255 for s in self.gcs_system_ids):
-            raise ValueError(f"failsafe.gcs_system_ids must be 1..255: {self.gcs_system_ids!r}")
+        require(all(1 <= s <= 255 for s in self.gcs_system_ids), "failsafe", "gcs_system_ids",
+                "must list system ids 1..255", list(self.gcs_system_ids))
 
 
 class FailsafeMonitor:

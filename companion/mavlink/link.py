@@ -36,10 +36,12 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from companion.invariant import FieldError, require
 from companion.logs import warn_every
 from companion.mavlink.transports import (
     TcpServerTransport,
     Transport,
+    TransportError,
     UdpTransport,
     make_transport,
     parse_peers,
@@ -140,6 +142,11 @@ def parse_signing_key(text: str) -> bytes:
     return hashlib.sha256(text.encode()).digest()
 
 
+class PeersError(FieldError, TransportError):
+    """``LinkConfig.peers`` holds an entry that is no IP address or network: the transport's error
+    (``parse_peers``), and a field the settings name (``link.peers``)."""
+
+
 @dataclass(frozen=True)
 class LinkConfig:
     """How to reach the flight controller and how to present ourselves.
@@ -170,12 +177,11 @@ class LinkConfig:
     def __post_init__(self) -> None:
         if self.target_system == 0:
             object.__setattr__(self, "target_system", None)  # 0 is "any" in the service config
-        if not 1 <= self.system_id <= 255:
-            raise ValueError(f"mavlink system_id {self.system_id} must be 1..255")
-        if not 1 <= self.component_id <= 255:
-            raise ValueError(f"mavlink component_id {self.component_id} must be 1..255")
-        if self.target_system is not None and not 1 <= self.target_system <= 255:
-            raise ValueError(f"mavlink target_system {self.target_system} must be 1..255")
+        # The one place these rules live (the settings name the key of a field refused here).
+        for name in ("system_id", "component_id"):
+            require(1 <= getattr(self, name) <= 255, "mavlink", name, "must be 1..255", getattr(self, name))
+        require(self.target_system is None or 1 <= self.target_system <= 255, "mavlink", "target_system",
+                "must be 0 (the first autopilot heard) or 1..255", self.target_system)
         if self.signing_key is not None and len(self.signing_key) != 32:
             raise ValueError("mavlink signing_key must be 32 bytes (use parse_signing_key)")
         if not 0 <= self.signing_link_id <= 255:
@@ -186,7 +192,10 @@ class LinkConfig:
                 raise ValueError(f"mavlink {name} must be a positive number of seconds, not {value!r}")
         if self.command_retries < 0:
             raise ValueError("mavlink command_retries must be >= 0")
-        parse_peers(self.peers)  # raises TransportError (a ValueError) naming the bad entry
+        try:
+            parse_peers(self.peers)
+        except TransportError as exc:  # it names the bad entry
+            raise PeersError("mavlink", "peers", f"must list IP addresses or networks ({exc})") from None
         for name, hz in self.message_rates_hz.items():
             if f"MAVLINK_MSG_ID_{name}" not in vars(mavlink2):
                 raise ValueError(f"mavlink message_rates_hz: unknown message {name!r}")

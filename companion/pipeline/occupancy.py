@@ -7,10 +7,13 @@ kernel of ones (over-estimating people on purpose), and inverted so that free = 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from companion.invariant import require
 
 FREE = 255
 OCCUPIED = 0
@@ -32,8 +35,9 @@ class OccupancyParams:
     iterations: int = 2
 
     def __post_init__(self) -> None:
-        if self.threshold is not None and (not np.isfinite(self.threshold) or self.threshold < 0):
-            raise ValueError(f"occupancy threshold must be a finite number >= 0, got {self.threshold!r}")
+        threshold = self.threshold
+        require(threshold is None or (math.isfinite(threshold) and threshold >= 0), "occupancy", "threshold",
+                "must be a finite number >= 0", threshold)
         if int(self.kernel) != self.kernel or self.kernel < 1 or self.kernel % 2 == 0:
             raise ValueError(f"occupancy kernel must be an odd integer >= 1, got {self.kernel!r}")
         if int(self.iterations) != self.iterations or self.iterations < 0:

@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from companion.geometry.camera import GeometryError
+from companion.invariant import require
 from companion.pipeline.headplane import GridSpec
 
 NEVER = -np.inf
@@ -78,8 +79,7 @@ class RiskMapConfig:
         for name in ("cell_m", "half_extent_m", "walk_speed_mps", "memory_s", "max_jump_m", "max_jump_s",
                      "watch_gap_s"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"risk map {name} must be a positive number, got {v!r}")
+            require(math.isfinite(v) and v > 0, "risk map", name, "must be > 0", v)
         if not (math.isfinite(self.hold_s) and 0 <= self.hold_s <= self.memory_s):
             raise ValueError(f"risk map hold_s must be in [0, memory_s], got {self.hold_s!r}")
         if self.half_extent_m / self.cell_m > MAX_HALF_CELLS:

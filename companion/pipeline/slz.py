@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
+from companion.invariant import require
 from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.density import resolve_threshold
 from companion.pipeline.edges import edge_reason
@@ -87,21 +88,22 @@ class PipelineConfig:
     steady_margin_m: float | None = None
 
     def __post_init__(self) -> None:
-        if self.steady_margin_m is not None and not (math.isfinite(self.steady_margin_m) and self.steady_margin_m >= 0):
-            raise ValueError(f"steady_margin_m must be >= 0 m or None, got {self.steady_margin_m!r}")
-        if not (math.isfinite(self.calm_margin_m) and self.calm_margin_m >= 0):
-            raise ValueError(f"calm_margin_m must be >= 0 m, got {self.calm_margin_m!r}")
-        if self.surface_threshold is not None and not (
-                math.isfinite(self.surface_threshold) and 0.0 <= self.surface_threshold < 1.0):
-            raise ValueError(f"surface_threshold must be in [0, 1), got {self.surface_threshold!r}")
+        # The one place these rules live (the settings name the key of a field refused here).
+        steady = self.steady_margin_m
+        require(steady is None or (math.isfinite(steady) and steady >= 0), "pipeline", "steady_margin_m",
+                "must be >= 0 m or None", steady)
+        require(math.isfinite(self.calm_margin_m) and self.calm_margin_m >= 0, "pipeline", "calm_margin_m",
+                "must be >= 0", self.calm_margin_m)
+        surface = self.surface_threshold
+        require(surface is None or (math.isfinite(surface) and 0.0 <= surface < 1.0), "pipeline",
+                "surface_threshold", "must be in [0, 1)", surface)
         if abs(self.risk.cell_m - self.grid.cell) > 1e-9:
             raise ValueError(f"the risk map's cell ({self.risk.cell_m} m) must be the grid's ({self.grid.cell} m)")
-        if not (math.isfinite(self.head_height_m) and 0 <= self.head_height_m < 5):
-            raise ValueError(f"head_height_m must be in [0, 5) m, got {self.head_height_m!r}")
-        if not (math.isfinite(self.proposal_tie_m) and self.proposal_tie_m >= 0):
-            raise ValueError(f"proposal_tie_m must be >= 0 m, got {self.proposal_tie_m!r}")
-        if not (math.isfinite(self.r0_m) and self.r0_m > 0):
-            raise ValueError(f"r0_m must be > 0 m, got {self.r0_m!r}")
+        require(math.isfinite(self.head_height_m) and 0 <= self.head_height_m < 5, "pipeline", "head_height_m",
+                "must be >= 0 and < 5", self.head_height_m)
+        require(math.isfinite(self.proposal_tie_m) and self.proposal_tie_m >= 0, "pipeline", "proposal_tie_m",
+                "must be >= 0", self.proposal_tie_m)
+        require(math.isfinite(self.r0_m) and self.r0_m > 0, "pipeline", "r0_m", "must be > 0", self.r0_m)
 
     @property
     def n_proposals(self) -> int:

@@ -77,7 +77,7 @@ def test_unknown_section(tmp_path: Path) -> None:
     [
         ("[camera]\nfps = 'fast'\n", r"camera\.fps must be a number, got 'fast'"),
         ("[camera]\nfps = 0.0\n", r"camera\.fps must be >= 0\.1 and <= 240\.0, got 0\.0"),
-        ("[link]\nsystem_id = 300\n", r"link\.system_id must be >= 1 and <= 255, got 300"),
+        ("[link]\nsystem_id = 300\n", r"link\.system_id must be 1\.\.255, got 300"),
         ("[link]\nsystem_id = 1.5\n", r"link\.system_id must be an integer"),
         ("[link]\nflavour = 'inav'\n", r"link\.flavour must be one of 'auto', 'ardupilot', 'px4'"),
         ("[recorder]\nenabled = 'yes'\n", r"recorder\.enabled must be true or false"),
@@ -105,6 +105,109 @@ def test_bad_values_name_the_key(tmp_path: Path, text: str, pattern: str) -> Non
     f.write_text(text)
     with pytest.raises(ConfigError, match=pattern):
         config.load(f)
+
+
+#: Every numeric key that had a bound when the schema still repeated the parts' rules (before
+#: companion.config.compose checked them by building the parts), each with values just outside and
+#: on each bound, and whether it is refused: the bounds now live in the schema (the operator's
+#: limits, the stand-ins) or in the part's object (its invariants), never both, and together they
+#: refuse exactly what was refused before. ``descend_alt_m = 1`` and ``land_alt_m = 200`` are
+#: refused by the rule between the two (land_alt_m 4 m, descend_alt_m 10 m by default).
+BOUNDS = [
+    ("link.system_id", [(0, True), (1, False), (255, False), (256, True)]),
+    ("link.component_id", [(0, True), (1, False), (255, False), (256, True)]),
+    ("link.target_system", [(-1, True), (0, False), (255, False), (256, True)]),
+    ("camera.width", [(15, True), (16, False), (8192, False), (8193, True)]),
+    ("camera.height", [(15, True), (16, False), (8192, False), (8193, True)]),
+    ("camera.fps", [(0.099, True), (0.1, False), (240.0, False), (240.001, True)]),
+    ("camera.hfov_deg", [(0.999, True), (1.0, False), (179.0, False), (179.001, True)]),
+    ("camera.fx", [(-0.001, True), (0.0, False)]),
+    ("camera.fy", [(-0.001, True), (0.0, False)]),
+    ("camera.cx", [(-1.001, True), (-1.0, False)]),
+    ("camera.cy", [(-1.001, True), (-1.0, False)]),
+    ("camera.mount_roll_deg", [(-180.001, True), (-180.0, False), (180.0, False), (180.001, True)]),
+    ("camera.mount_pitch_deg", [(-180.001, True), (-180.0, False), (180.0, False), (180.001, True)]),
+    ("camera.mount_yaw_deg", [(-180.001, True), (-180.0, False), (180.0, False), (180.001, True)]),
+    ("camera.stall_timeout_s", [(0.099, True), (0.1, False), (60.0, False), (60.001, True)]),
+    ("camera.reopen_max_backoff_s", [(0.099, True), (0.1, False), (300.0, False), (300.001, True)]),
+    ("camera.sensor_width_mm", [(-0.001, True), (0.0, False), (100.0, False), (100.001, True)]),
+    ("model.threads", [(0, True), (1, False), (64, False), (65, True)]),
+    ("pipeline.occupancy_threshold", [(-1.001, True), (-1.0, False)]),
+    ("pipeline.head_height_m", [(-0.001, True), (0.0, False), (3.0, False), (3.001, True)]),
+    ("pipeline.r0_m", [(0.099, True), (0.1, False), (100.0, False), (100.001, True)]),
+    ("pipeline.proposal_tie_m", [(-0.001, True), (0.0, False), (5.0, False), (5.001, True)]),
+    ("pipeline.walk_speed_mps", [(0.099, True), (0.1, False), (15.0, False), (15.001, True)]),
+    ("pipeline.calm_margin_m", [(-0.001, True), (0.0, False), (50.0, False), (50.001, True)]),
+    ("pipeline.unlandable_threshold", [(-1.001, True), (-1.0, False), (0.999, False), (1.0, True)]),
+    ("controller.min_track_age_s", [(-0.001, True), (0.0, False)]),
+    ("controller.min_calm_s", [(-0.001, True), (0.0, False), (120.0, False), (120.001, True)]),
+    ("controller.radius_margin_m", [(-0.001, True), (0.0, False)]),
+    ("controller.steady_s", [(-0.001, True), (0.0, False), (120.0, False), (120.001, True)]),
+    ("controller.descend_alt_m", [(0.999, True), (1.0, True), (200.0, False), (200.001, True)]),
+    ("controller.land_alt_m", [(-0.001, True), (0.0, False), (200.0, True), (200.001, True)]),
+    ("controller.land_agl_m", [(-0.001, True), (0.0, False), (200.0, True), (200.001, True)]),
+    ("controller.descend_speed_mps", [(0.099, True), (0.1, False), (10.0, False), (10.001, True)]),
+    ("controller.land_speed_mps", [(0.099, True), (0.1, False), (5.0, False), (5.001, True)]),
+    ("controller.land_abort_above_m", [(-0.001, True), (0.0, False), (100.0, False), (100.001, True)]),
+    ("controller.min_person_px", [(-0.001, True), (0.0, False), (1000.0, False), (1000.001, True)]),
+    ("controller.hold_height_m", [(1.999, True), (2.0, False), (120.0, False), (120.001, True)]),
+    ("controller.max_takeover_s", [(9.999, True), (10.0, False), (600.0, False), (600.001, True)]),
+    ("controller.search_s", [(-0.001, True), (0.0, False), (600.0, False), (600.001, True)]),
+    ("controller.search_radius_m", [(-0.001, True), (0.0, False), (500.0, False), (500.001, True)]),
+    ("controller.search_reserve_s", [(-0.001, True), (0.0, False), (600.0, False), (600.001, True)]),
+    ("controller.search_climb_m", [(0.999, True), (1.0, False), (50.0, False), (50.001, True)]),
+    ("controller.max_alt_m", [(4.999, True), (5.0, False), (500.0, False), (500.001, True)]),
+    ("controller.obey_tolerance_z_m", [(0.299, True), (0.3, False), (20.0, False), (20.001, True)]),
+    ("controller.obey_tolerance_xy_m", [(0.499, True), (0.5, False), (50.0, False), (50.001, True)]),
+    ("recorder.max_mb", [(0.999, True), (1.0, False)]),
+    ("gcs.values_hz", [(-0.001, True), (0.0, False), (10.0, False), (10.001, True)]),
+    ("live.port", [(0, True), (1, False), (65535, False), (65536, True)]),
+    ("log.health_interval_s", [(0.499, True), (0.5, False), (3600.0, False), (3600.001, True)]),
+]
+
+
+@pytest.mark.parametrize("key, value, refused",
+                         [(key, value, refused) for key, cases in BOUNDS for value, refused in cases])
+def test_every_bound_is_checked_once_and_names_the_key(key: str, value: float, refused: bool) -> None:
+    if not refused:
+        config.load(None, {key: value})
+        return
+    with pytest.raises(ConfigError) as e:
+        config.load(None, {key: value})
+    assert key in str(e.value), str(e.value)
+
+
+@pytest.mark.parametrize(
+    "key, value, pattern",
+    [
+        ("controller.handback_action", "HOVER", r"^controller\.handback_action must be 'LAND' or 'RTL', got 'HOVER'"),
+        ("failsafe.battery_level", "flat", r"^failsafe\.battery_level must be one of 'low', 'critical', 'emergency'"),
+        ("link.peers", ["radio"], r"^link\.peers must list IP addresses or networks .*'radio'"),
+        ("controller.descend_alt_m", 3.0, r"^controller\.land_alt_m \(4 m\) must not be above "
+                                          r"controller\.descend_alt_m \(3 m\)"),
+        ("controller.search_climb_m", 0.5, r"^controller\.search_climb_m must be >= LandingConfig\.ceiling_margin_m"),
+        ("camera.cx", 0.0, r"^camera\.cx / camera\.fx and camera\.cy / camera\.fy \(the view ratio\) must be > 0"),
+    ],
+)
+def test_a_part_rule_refuses_the_setting_naming_the_key(key: str, value: object, pattern: str) -> None:
+    """The rules that live only in a part's object (choices, rules between keys) still refuse a
+    file at start-up, with the settings key in the part's field's place."""
+    with pytest.raises(ConfigError, match=pattern):
+        config.load(None, {key: value})
+
+
+def test_the_parts_keep_their_own_rules_when_built_directly() -> None:
+    """Tests, replay, the evaluation and the simulator build the parts themselves: a part refuses
+    a bad value with its own field's name (``FieldError``, a ValueError)."""
+    from companion.control.landing import LandingConfig
+    from companion.invariant import FieldError
+
+    with pytest.raises(FieldError, match=r"^controller descend_alt_m must be > 0, got -1\.0$") as e:
+        LandingConfig(descend_alt_m=-1.0)
+    assert e.value.field == "descend_alt_m"
+    assert e.value.named({"descend_alt_m": "controller.descend_alt_m"}) == "controller.descend_alt_m must be > 0, got -1.0"
+    with pytest.raises(FieldError, match=r"^controller land_alt_m \(12 m\) must not be above descend_alt_m"):
+        LandingConfig(land_alt_m=12.0)
 
 
 def test_missing_and_malformed_files(tmp_path: Path) -> None:

@@ -40,6 +40,11 @@ Seeds flown in one file only are named and left out. Baseline rows (the autopilo
 out: they do not change with the companion's settings. A file that holds two rows of one seed and
 autopilot (two settings) cannot be paired and is refused (exit 2): compare one setting per file.
 
+Every row is also compared whole (``identity``): a restructuring that must change nothing a
+flight does is proven by lockstep rows equal in every field but those the host sets
+(``HOST_FIELDS``: wall and CPU time, the frame times and starvation they decide, the host and the
+software that flew), baseline rows included; the fields that differ are counted by name.
+
 A p-value below 0.05 says the difference is unlikely under "no change" *for these seeds*; one at
 or above it does not say the two are the same: with 0 against k discordant pairs McNemar needs k
 >= 6 before it says anything (``MIN_DISCORDANT``), and an unsafe landing is rarer than that in
@@ -65,6 +70,11 @@ from sim.flights.results import binomial_interval, flown_apart, read_rows
 ALPHA = 0.05
 #: Unpaired seeds named in the text (the JSON has them all).
 LISTED = 10
+
+#: Fields of a row that the host sets, not the flight: left out of ``identity``. Frame times
+#: (and ``starved``, decided by them) are wall-clock even in lockstep, where they set only how
+#: fast the flight flies, not what it does.
+HOST_FIELDS = frozenset({"wall_s", "cpu_s", "host", "software", "processed_fps", "frame_ms_p95", "starved"})
 
 #: A per-flight yes/no question asked of a row (None: the row cannot say).
 FlightTest = Callable[[dict[str, Any]], bool | None]
@@ -188,6 +198,25 @@ class ChangedPair:
 
 
 @dataclass
+class Identity:
+    """How many rows of the two files are the same flight in every field but ``HOST_FIELDS``:
+    ``pairs`` rows paired by seed, autopilot and baseline (baseline rows too), ``identical`` of
+    them equal, ``fields`` how many pairs differ in each field that differs."""
+
+    pairs: int = 0
+    identical: int = 0
+    fields: dict[str, int] = field(default_factory=dict)
+
+    def text(self) -> str:
+        """The identity for people."""
+        line = (f"rows equal in every field but the host's ({', '.join(sorted(HOST_FIELDS))}): "
+                f"{self.identical} of {self.pairs} (baseline rows included)")
+        if self.fields:
+            line += "; fields that differ: " + ", ".join(f"{k} in {v}" for k, v in sorted(self.fields.items()))
+        return line
+
+
+@dataclass
 class Comparison:
     """What ``compare`` found (see the module docstring)."""
 
@@ -213,12 +242,39 @@ class Comparison:
     #: Both sides in lockstep, flown with the same settings in everything but the clock's start:
     #: the comparison is a yardstick (how far these seeds' verdicts are from chance), not a change.
     clock_only: bool = False
+    #: Every row compared whole, baseline rows included (``identity``).
+    identity: Identity = field(default_factory=Identity)
 
     @property
     def beyond_chance(self) -> list[str]:
         """The figures whose difference is beyond chance at ``ALPHA``."""
         out = [b.name for b in self.binary if b.p < ALPHA]
         return out + [n.name for n in self.numeric if n.p is not None and n.p < ALPHA]
+
+
+def identity(before: list[dict[str, Any]], after: list[dict[str, Any]]) -> Identity:
+    """Pair every row (companion and baseline) by seed, autopilot and baseline, and count the pairs
+    equal in every field but ``HOST_FIELDS``. A key held twice on a side is paired on neither."""
+    def keyed(rows: list[dict[str, Any]]) -> dict[tuple[int, str, bool], dict[str, Any]]:
+        out: dict[tuple[int, str, bool], dict[str, Any]] = {}
+        twice: set[tuple[int, str, bool]] = set()
+        for row in rows:
+            key = (int(row["seed"]), str(row["flavour"]), bool(row.get("baseline")))
+            if key in out:
+                twice.add(key)
+            out[key] = row
+        return {k: v for k, v in out.items() if k not in twice}
+
+    a, b = keyed(before), keyed(after)
+    result = Identity()
+    for key in sorted(set(a) & set(b)):
+        x, y = a[key], b[key]
+        differ = [f for f in sorted(set(x) | set(y)) if f not in HOST_FIELDS and x.get(f) != y.get(f)]
+        result.pairs += 1
+        result.identical += not differ
+        for f in differ:
+            result.fields[f] = result.fields.get(f, 0) + 1
+    return result
 
 
 class CompareError(ValueError):
@@ -274,7 +330,8 @@ def compare(before: list[dict[str, Any]], after: list[dict[str, Any]], include_s
     common = sorted(set(a) & set(b))
     if not common:
         raise CompareError("the two files have no seed flown on the same autopilot in common")
-    result = Comparison(only_before=sorted(set(a) - set(b)), only_after=sorted(set(b) - set(a)))
+    result = Comparison(only_before=sorted(set(a) - set(b)), only_after=sorted(set(b) - set(a)),
+                        identity=identity(before, after))
     result.settings_before, result.settings_after = (
         [list(s) for s in sorted({_flown_with(r) for r in rows.values()})] for rows in (a, b))
     result.software_before, result.software_after = (
@@ -368,6 +425,8 @@ def comparison_text(c: Comparison) -> str:
                         "change also changes how times round: compare with two clock starts of one code "
                         "(--clock-start)" if c.lockstep else
                         "two runs of one setting change some too: compare with theirs"))
+    if c.identity.pairs:
+        lines.append(c.identity.text())
     if c.changed:
         lines.append("verdicts that changed:")
         lines += [f"  seed {p.seed:>4} {p.flavour:<9} {p.world:<12} {p.before} -> {p.after}" for p in c.changed]
@@ -400,8 +459,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         c = compare(loaded[0], loaded[1], include_starved=args.starved)
     except CompareError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        same = identity(loaded[0], loaded[1])
+        if not same.pairs or any(not r.get("baseline") for rows in loaded for r in rows):
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        # Two files of baseline rows alone (the autopilot's failsafe, no companion): nothing of
+        # the companion's to compare, but whether the flights are the same flights.
+        print(json.dumps({"identity": asdict(same)}) if args.json else
+              "baseline rows only (the autopilot alone): " + same.text())
+        return 0
     if args.json:
         # Every figure is a count, a finite p-value or median, or None: plain JSON.
         print(json.dumps({**asdict(c), "beyond_chance": c.beyond_chance, "alpha": ALPHA,

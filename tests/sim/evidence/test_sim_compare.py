@@ -199,3 +199,27 @@ def test_the_software_that_flew_each_side_is_named_where_it_differs() -> None:
     assert "numpy" not in text.split("software differs")[1].split("\n")[0]
     # Rows written before they said which software flew them: nothing to say.
     assert "software differs" not in comparison_text(compare([_row(s, "safe") for s in (1, 2)], after))
+
+
+def test_rows_are_compared_whole_but_for_what_the_host_sets(tmp_path: Path) -> None:
+    """A restructuring is proven by rows equal in every field but the host's: frame times, wall
+    time and software may differ, a message may not, and baseline rows count too."""
+    def row(seed: int, baseline: bool = False, **extra: Any) -> dict[str, Any]:
+        base = {"seed": seed, "flavour": "px4", "world": "crossing", "outcome": "safe", "clearance_m": 5.0,
+                "baseline": baseline, "lockstep": True, "messages": ["SLZ: a"], "wall_s": 40.0,
+                "frame_ms_p95": 50.0, "software": {"git": "a"}}
+        return {**base, **extra}
+    before = [row(1), row(2), row(1, baseline=True)]
+    after = [row(1, wall_s=90.0, frame_ms_p95=110.0, software={"git": "b"}), row(2, messages=["SLZ: b"]),
+             row(1, baseline=True, host="other")]
+    same = compare(before, after).identity
+    assert (same.pairs, same.identical, same.fields) == (3, 2, {"messages": 1})
+    assert "2 of 3" in comparison_text(compare(before, after)) and "messages in 1" in comparison_text(
+        compare(before, after))
+    # Files of baseline rows alone: no companion pair, still whether the flights are the same.
+    b, a = tmp_path / "b.jsonl", tmp_path / "a.jsonl"
+    b.write_text(json.dumps(row(1, baseline=True)) + "\n")
+    a.write_text(json.dumps(row(1, baseline=True, clearance_m=4.0)) + "\n")
+    assert main([str(b), str(a)]) == 0
+    a.write_text(json.dumps(row(3, baseline=True)) + "\n")
+    assert main([str(b), str(a)]) == 2  # nothing in common: refused as before

@@ -59,7 +59,7 @@ def _keys(section: str, *names: str, **renamed: str) -> dict[str, str]:
 
 
 #: Which settings key each part's field is made from (a field missing is no setting, or derived).
-LANDING_KEYS = _keys("controller", "descend_alt_m", "land_abort_above_m", "hold_height_m", "max_takeover_s",
+LANDING_KEYS = _keys("controller", "select_timeout_s", "hold_timeout_s", "descend_alt_m", "land_abort_above_m", "hold_height_m", "max_takeover_s",
                      "land_alt_m", "land_agl_m", "handback_action", "search_climb_m", "max_alt_m", "search_s",
                      "search_radius_m", "search_reserve_s",
                      view_ratio="camera.cx / camera.fx and camera.cy / camera.fy (the view ratio)",
@@ -164,7 +164,8 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
     return _made(
         LANDING_KEYS, LandingConfig,
         planner=planner_config(cfg),
-        select_empty_s=SELECT_EMPTY_S, descend_alt_m=c.descend_alt_m,
+        select_timeout_s=c.select_timeout_s, select_empty_s=SELECT_EMPTY_S, hold_timeout_s=c.hold_timeout_s,
+        descend_alt_m=c.descend_alt_m,
         land_abort_above_m=c.land_abort_above_m, hold_height_m=c.hold_height_m, max_takeover_s=c.max_takeover_s,
         land_alt_m=c.land_alt_m, land_agl_m=c.land_agl_m, max_pose_age_s=MAX_POSE_AGE_S,
         handback_action=c.handback_action, search_climb_m=c.search_climb_m, max_alt_m=c.max_alt_m,

@@ -59,6 +59,7 @@ REMOVED: dict[str, Removed] = {
     # Internal tuning: named constants next to the code that uses them, same values.
     "link.target_component": _constant(1, "companion.mavlink.link.LinkConfig.target_component (MAV_COMP_ID_AUTOPILOT1)"),
     "link.heartbeat_timeout_s": _constant(3.0, "companion.mavlink.link.LinkConfig.heartbeat_timeout_s"),
+    "camera.reopen_max_backoff_s": _constant(10.0, "companion.service.camera.CameraSource.max_backoff_s"),
     "link.telemetry_rate_hz": _constant(20.0, "companion.mavlink.link.POSE_RATE_HZ"),
     "link.max_telemetry_lag_s": _constant(0.5, "companion.mavlink.clock.MAX_TELEMETRY_LAG_S"),
     "link.timesync_period_s": _constant(1.0, "companion.mavlink.timesync.TIMESYNC_PERIOD_S"),
@@ -86,9 +87,7 @@ REMOVED: dict[str, Removed] = {
     "controller.prefer_unwalked": _constant(True, "companion.config.compose.PREFER_UNWALKED"),
     "controller.steady_margin_m": _constant(0.5, "companion.control.planner.PlannerConfig.steady_margin_m"),
     "controller.calm_wait_s": _constant(15.0, "companion.control.landing.LandingConfig.calm_wait_s"),
-    "controller.select_timeout_s": _constant(10.0, "companion.control.landing.LandingConfig.select_timeout_s"),
     "controller.select_empty_s": _constant(3.0, "companion.config.compose.SELECT_EMPTY_S"),
-    "controller.hold_timeout_s": _constant(15.0, "companion.control.landing.LandingConfig.hold_timeout_s"),
     "controller.arrive_radius_m": _constant(1.0, "companion.control.landing.LandingConfig.arrive_radius_m"),
     "controller.descend_step_m": _constant(3.0, "companion.control.landing.LandingConfig.descend_step_m"),
     "controller.lose_after_frames": _constant(2, "companion.control.landing.LandingConfig.lose_after_frames"),

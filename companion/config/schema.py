@@ -144,7 +144,6 @@ class CameraSettings:
     mount_yaw_deg: float = _f(0.0, "camera mount yaw (deg)", min=-180.0, max=180.0)
     mount_offset_m: list[float] = _f([0.0, 0.0, 0.0], "camera position in body FRD (m)", length=3)
     stall_timeout_s: float = _f(2.0, "no frame for this long = camera stalled, reopen", min=0.1, max=60.0)
-    reopen_max_backoff_s: float = _f(10.0, "longest wait between reopen attempts", min=0.1, max=300.0)
     loop: bool = _f(False, "restart a video file or folder at its end (bench tests)")
     sensor_width_mm: float = _f(0.0, "image sensor width (mm), for the focal length in mm a ground station "
                                      "is told (CAMERA_INFORMATION); 0 = unknown", min=0.0, max=100.0)
@@ -249,6 +248,10 @@ class ControllerSettings:
     max_takeover_s: float = _f(90.0, "not landed this long after the trigger: hand back to the "
                                "autopilot's own failsafe", min=10.0, max=600.0)
     handback_action: str = _f("LAND", "what the autopilot is asked to do on handback")
+    select_timeout_s: float = _f(10.0, "no safe zone this long after the trigger: search (search_s), or hand back when "
+                                       "searching is off or out of time (s)", min=0.5, max=600.0)
+    hold_timeout_s: float = _f(15.0, "holding without a safe zone this long: search (search_s), or hand back when "
+                                     "searching is off or out of time (s)", min=0.5, max=600.0)
     search_s: float = _f(45.0, "with no zone in view at the SELECT or HOLD timeout, search this long (s) "
                          "before handing back: climb to the ceiling, then fly an expanding square; 0 = "
                          "hand back at once, as before (with steady_s, a look at a glimpse whose steady "

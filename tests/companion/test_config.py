@@ -129,7 +129,8 @@ BOUNDS = [
     ("camera.mount_pitch_deg", [(-180.001, True), (-180.0, False), (180.0, False), (180.001, True)]),
     ("camera.mount_yaw_deg", [(-180.001, True), (-180.0, False), (180.0, False), (180.001, True)]),
     ("camera.stall_timeout_s", [(0.099, True), (0.1, False), (60.0, False), (60.001, True)]),
-    ("camera.reopen_max_backoff_s", [(0.099, True), (0.1, False), (300.0, False), (300.001, True)]),
+    ("controller.select_timeout_s", [(0.499, True), (0.5, False), (600.0, False), (600.001, True)]),
+    ("controller.hold_timeout_s", [(0.499, True), (0.5, False), (600.0, False), (600.001, True)]),
     ("camera.sensor_width_mm", [(-0.001, True), (0.0, False), (100.0, False), (100.001, True)]),
     ("model.threads", [(0, True), (1, False), (64, False), (65, True)]),
     ("pipeline.occupancy_threshold", [(-1.001, True), (-1.0, False)]),
@@ -310,8 +311,8 @@ def test_a_key_that_became_a_constant_says_where_it_went() -> None:
     with pytest.raises(ConfigError, match=r"^pipeline\.tracker\.mu_1 was removed: internal tuning, now "
                                           r"companion\.pipeline\.tracker\.TrackerParams\.mu_1 = 3"):
         config.load(None, {"pipeline.tracker.mu_1": 3})
-    with pytest.raises(ConfigError, match=r"^controller\.hold_timeout_s was removed"):
-        config.from_dict({"controller": {"hold_timeout_s": 20.0}})
+    with pytest.raises(ConfigError, match=r"^controller\.arrive_radius_m was removed"):
+        config.from_dict({"controller": {"arrive_radius_m": 2.0}})
     with pytest.raises(ConfigError, match=r"\[pipeline\.tracker\] was removed"):
         config.from_dict({"pipeline": {"tracker": {}}})
 

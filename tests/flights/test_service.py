@@ -290,7 +290,7 @@ async def test_ready_watchdog_status_on_faults_and_clean_sigterm(tmp_path: Path)
 
     async with simulated_vehicle(port) as (sim, cam, _world):
         cfg = _write_config(tmp_path, port, cam.url)
-        svc = Service(["--config", str(cfg), "--record", str(rec_dir), "--set", "link.heartbeat_timeout_s=1.5"],
+        svc = Service(["--config", str(cfg), "--record", str(rec_dir)],
                       env, tmp_path / "svc.log")
         try:
             await _until(lambda: notify.has("READY=1"), 60, "READY=1", svc)

@@ -59,7 +59,6 @@ REMOVED: dict[str, Removed] = {
     # Internal tuning: named constants next to the code that uses them, same values.
     "link.target_component": _constant(1, "companion.mavlink.link.LinkConfig.target_component (MAV_COMP_ID_AUTOPILOT1)"),
     "link.heartbeat_timeout_s": _constant(3.0, "companion.mavlink.link.LinkConfig.heartbeat_timeout_s"),
-    "camera.reopen_max_backoff_s": _constant(10.0, "companion.service.camera.CameraSource.max_backoff_s"),
     "link.telemetry_rate_hz": _constant(20.0, "companion.mavlink.link.POSE_RATE_HZ"),
     "link.max_telemetry_lag_s": _constant(0.5, "companion.mavlink.clock.MAX_TELEMETRY_LAG_S"),
     "link.timesync_period_s": _constant(1.0, "companion.mavlink.timesync.TIMESYNC_PERIOD_S"),

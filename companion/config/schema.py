@@ -144,6 +144,7 @@ class CameraSettings:
     mount_yaw_deg: float = _f(0.0, "camera mount yaw (deg)", min=-180.0, max=180.0)
     mount_offset_m: list[float] = _f([0.0, 0.0, 0.0], "camera position in body FRD (m)", length=3)
     stall_timeout_s: float = _f(2.0, "no frame for this long = camera stalled, reopen", min=0.1, max=60.0)
+    reopen_max_backoff_s: float = _f(10.0, "longest wait between reopen attempts", min=0.1, max=300.0)
     loop: bool = _f(False, "restart a video file or folder at its end (bench tests)")
     sensor_width_mm: float = _f(0.0, "image sensor width (mm), for the focal length in mm a ground station "
                                      "is told (CAMERA_INFORMATION); 0 = unknown", min=0.0, max=100.0)

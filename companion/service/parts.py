@@ -43,7 +43,7 @@ def build_pipeline(cfg: Config, model: DensityModel, surface: UnlandableMap | No
 def build_camera(cfg: Config) -> CameraSource:
     c = cfg.camera
     return CameraSource(c.source, width=c.width, height=c.height, fps=c.fps,
-                        stall_timeout_s=c.stall_timeout_s, loop=c.loop)
+                        stall_timeout_s=c.stall_timeout_s, max_backoff_s=c.reopen_max_backoff_s, loop=c.loop)
 
 
 __all__ = ["load_model", "load_landability", "build_pipeline", "build_camera"]

@@ -10,6 +10,7 @@ own site-packages, so the installed ``companion`` is the one imported, not the c
 
 from __future__ import annotations
 
+import argparse
 import fnmatch
 import json
 import os
@@ -300,3 +301,21 @@ def test_a_wheel_installed_outside_the_clone_runs_and_finds_its_model(tmp_path: 
     model = Path(tomllib.loads(r.stdout)["model"]["path"])
     assert model.is_relative_to(site) and model.is_file() and model.stat().st_size > 100_000
     assert re.search(r"^threads = 2$", r.stdout, re.M)
+
+
+def test_the_container_build_script_parses_and_checks_what_the_image_holds() -> None:
+    """scripts/container-build.sh (docs/install.md, "Container") builds the image from Debian's
+    packages with debootstrap and buildah; building takes minutes and root, so CI only parses it
+    and checks that the replay it runs inside the image uses options `companion replay` has."""
+    script = REPO / "scripts" / "container-build.sh"
+    r = subprocess.run(["bash", "-n", str(script)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    text = script.read_text()
+    assert "debootstrap" in text and "buildah bud" in text and "BASE_IMAGE=" in text
+    from companion.replay.cli import configure
+    parser = argparse.ArgumentParser()
+    configure(parser)
+    args = parser.parse_args(["frames", "--nadir", "--gsd", "0.05", "--no-progress",
+                                      "--summary-json", "summary.json"])
+    assert args.nadir and args.gsd == 0.05
+    assert "companion replay frames --nadir --gsd 0.05 --no-progress --summary-json summary.json" in text

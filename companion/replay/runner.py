@@ -19,7 +19,6 @@ from typing import IO, Any
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from companion.control.planner import PlannerConfig, ZonePlanner
 from companion.control.touchdown import DescentProfile, touchdown_basis
@@ -126,6 +125,25 @@ def _log_skip(counts: dict[str, int], reason: str, index: int, why: str) -> None
             log.warning("further frames skipped for the same reason are counted in the summary only")
 
 
+class _NoBar:
+    """Stands in for a tqdm bar when no progress is shown."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress_bar(total: int | None, progress: bool, desc: str) -> Any:
+    """A tqdm bar on stderr when ``progress``; tqdm (the tools extra) is imported only then, so a
+    replay without progress runs where only the daemon's dependencies are installed (the image)."""
+    if not progress:
+        return _NoBar()
+    from tqdm import tqdm
+    return tqdm(total=total, unit="frame", file=sys.stderr, desc=desc)
+
+
 def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_pose: bool,
            max_frames: int | None = None, progress: bool | None = None,
            on_result: Callable[[ReplayFrame, FrameResult], None] | None = None,
@@ -155,8 +173,7 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
     if outputs.masks is not None:
         outputs.masks.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    bar = tqdm(total=total, unit="frame", disable=not progress, file=sys.stderr,
-               desc=f"replay {source.path.name}")
+    bar = _progress_bar(total, progress, f"replay {source.path.name}")
     try:
         for frame in itertools.islice(source.frames, max_frames):
             bar.update(1)

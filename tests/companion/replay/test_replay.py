@@ -200,6 +200,18 @@ def test_video_input_as_a_subprocess(work: dict[str, Path], tmp_path: Path) -> N
     assert json.loads((tmp_path / "s.json").read_text())["frames"] == N_FRAMES
 
 
+def test_a_replay_without_progress_needs_no_tools_extra(work: dict[str, Path], tmp_path: Path) -> None:
+    """The container image installs the daemon's dependencies only (no tqdm, no av): a replay
+    without a progress bar or a video runs there (scripts/container-build.sh replays two frames
+    inside the image). tqdm is made unimportable in the child, as in the image."""
+    code = ("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
+            f"sys.exit(main(['replay', {str(work['frames'])!r}, '--nadir', '--gsd', '{GSD}', '--no-progress', "
+            f"'--model', {str(work['model'])!r}, '--threads', '1', '--summary-json', {str(tmp_path / 's.json')!r}]))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "s.json").read_text())["frames"] == N_FRAMES
+
+
 def test_homography_file_gives_the_nadir_result(work: dict[str, Path], tmp_path: Path,
                                                 capsys: pytest.CaptureFixture) -> None:
     # The same nadir mapping written as a projectively scaled matrix in a text file.

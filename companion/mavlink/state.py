@@ -353,8 +353,12 @@ class VehicleState:
                              f"(limit {self.clock.max_lag_s:g} s)")
         if stamp.verdict is Verdict.BACKWARDS:
             raise StateError(f"{stream} time_boot_ms {time_boot_ms} is not newer than the last sample")
+        if stamp.verdict is Verdict.AHEAD:
+            raise StateError(f"{stream} time_boot_ms {time_boot_ms} is {-stamp.lag_s:.2f} s ahead of the "
+                             "autopilot's clock (unconfirmed: a forgery or a jump the next samples confirm)")
         if stamp.verdict is Verdict.REBOOT:
-            log.warning("autopilot clock restarted (reboot?): pose history cleared")
+            # Rate-limited: however a reboot is claimed, the warning must not flood the journal.
+            warn_every(log, "autopilot reboot", 10.0, "autopilot clock restarted (reboot?): pose history cleared")
             self._att.clear()
             self._pos.clear()
         return stamp.t, stamp.boot_s

@@ -119,6 +119,11 @@ class Transport:
         """False while there is nowhere to send (UDP listen before the first packet, TCP down)."""
         return True
 
+    @property
+    def current_source(self) -> tuple[str, int] | None:
+        """The address of the datagram being handed to ``on_data`` (UDP), else None."""
+        return None
+
 
 class _UdpProtocol(asyncio.DatagramProtocol):
     def __init__(self, owner: UdpTransport) -> None:
@@ -222,6 +227,10 @@ class UdpTransport(Transport):
             self._on_data(data)
         finally:
             self._current = None
+
+    @property
+    def current_source(self) -> tuple[str, int] | None:
+        return self._current
 
     def pin_current(self) -> None:
         """The datagram being handled came from the autopilot: talk to its address alone from now

@@ -612,7 +612,8 @@ class MavLink:
         self.last_heartbeat_t = t
         self.last_heartbeat = msg
         if isinstance(self._transport, UdpTransport):
-            self._transport.pin_current()  # from now on its address alone is heard
+            # Its address alone is heard once the heartbeats make it plausible (not on one packet).
+            self._transport.autopilot_heard(self.config.heartbeat_timeout_s)
         if not self.connected:
             self.connected = True
             log.info("autopilot heartbeat: link up (system %d)", self.vehicle_system)

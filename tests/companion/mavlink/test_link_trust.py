@@ -50,7 +50,7 @@ async def test_once_the_autopilot_is_heard_udpin_hears_and_talks_to_it_alone():
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         await link.wait_connected(2.0)
-        assert link.transport.pinned is not None
+        await until(lambda: link.transport.pinned is not None)  # after three heartbeats
         # The impostor claims the autopilot's ids and feeds an attitude, and listens for what the
         # companion sends.
         impostor.sendto(packed(m.MAVLink_attitude_message(5000, 1.0, 0, 0, 0, 0, 0)), link.local_address)
@@ -301,5 +301,87 @@ async def test_unsigned_unknown_ids_on_a_signed_link_are_rejected_unsigned():
         await until(lambda: link.stats.unsigned_rejected == 11)
         assert link.stats.unknown == 0
     finally:
+        await autopilot.close()
+        await link.close()
+
+
+# -- issue 61, item 5: the autopilot's address is pinned on evidence, not on one packet ---------
+
+
+def forged_heartbeat() -> bytes:
+    return packed(m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3))
+
+
+async def _until_pinned_to(link: MavLink, autopilot: MavPeer, impostor: socket.socket, timeout: float = 3.0) -> None:
+    await until(lambda: link.transport.pinned is not None, timeout)
+    assert link.transport.pinned == autopilot.udp_address
+    # The impostor is now foreign, the autopilot still heard.
+    foreign = link.transport.foreign
+    impostor.sendto(forged_heartbeat(), link.local_address)
+    await until(lambda: link.transport.foreign == foreign + 1)
+
+
+async def test_a_forger_who_speaks_first_is_not_pinned_and_the_autopilot_is():
+    """The audit: on udpin without peers, whoever spoke first as system 1 was pinned and the
+    real autopilot dropped as foreign, 20 times of 20."""
+    cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
+    for _ in range(5):
+        link = MavLink(cfg)
+        await link.start()
+        autopilot = MavPeer()
+        impostor = impostor_socket()
+        try:
+            impostor.sendto(forged_heartbeat(), link.local_address)  # first, once
+            await until(lambda: link.connected)
+            await autopilot.connect_udp(link.local_address)
+            autopilot.start_heartbeats(0.05)
+            await _until_pinned_to(link, autopilot, impostor)
+        finally:
+            impostor.close()
+            await autopilot.close()
+            await link.close()
+
+
+async def test_after_a_link_loss_the_autopilot_is_pinned_again_not_a_newcomer():
+    cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer()
+    impostor = impostor_socket()
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.start_heartbeats(0.05)
+        await _until_pinned_to(link, autopilot, impostor)
+        autopilot.stop_heartbeats()
+        await until(lambda: not link.connected)  # the gap: the link is lost, the pin released
+        assert link.transport.pinned is None
+        impostor.sendto(forged_heartbeat(), link.local_address)  # the newcomer speaks first
+        for _ in range(2):
+            impostor.sendto(forged_heartbeat(), link.local_address)
+        await asyncio.sleep(0.05)
+        assert link.transport.pinned is None  # three heartbeats, but in a burst
+        autopilot.start_heartbeats(0.05)
+        await until(lambda: link.transport.pinned == autopilot.udp_address)  # on its first heartbeat
+    finally:
+        impostor.close()
+        await autopilot.close()
+        await link.close()
+
+
+async def test_two_senders_that_keep_claiming_the_autopilot_leave_the_link_unpinned():
+    cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer()
+    impostor = impostor_socket()
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.start_heartbeats(0.05)
+        for _ in range(20):
+            impostor.sendto(forged_heartbeat(), link.local_address)
+            await asyncio.sleep(0.05)
+        assert link.transport.pinned is None and link.connected  # both heard, neither pinned (warned)
+    finally:
+        impostor.close()
         await autopilot.close()
         await link.close()

@@ -34,7 +34,9 @@ No single unauthenticated packet moves the estimate (issue 61):
 - **A TIMESYNC exchange that disagrees with the estimate in use** (their uncertainty intervals,
   half a round trip each, do not overlap) is not used until ``TIMESYNC_CONFIRM`` exchanges in a
   row agree with it; then the estimate moves, with a warning (``timesync_shifts``). The first
-  estimate needs as many. One forged answer once moved the offset by 0.39 s without a word.
+  estimate needs as many. One forged answer once moved the offset by 0.39 s without a word. A
+  request answered twice with answers that disagree (a forger answering before the autopilot,
+  whose answer then comes second) cancels the change being confirmed (``timesync_conflicts``).
 
 Pure: times are passed in (seconds; ``local`` on ``time.monotonic()``, ``boot`` on the
 autopilot's clock). The offset drifts with the two crystals (tens of ppm, well under a millisecond
@@ -89,6 +91,7 @@ class ClockStats:
     jumps: int = 0  # jumps ahead the streams confirmed (the estimate moved on them)
     timesync_unconfirmed: int = 0  # exchanges that disagreed with the estimate, not (yet) confirmed
     timesync_shifts: int = 0  # times a confirmed TIMESYNC estimate replaced another (or the first)
+    timesync_conflicts: int = 0  # requests answered twice, the answers disagreeing (a forger)
 
 
 #: Pose telemetry arriving later than this after the autopilot sampled it (its time_boot_ms) is
@@ -145,6 +148,9 @@ class AutopilotClock:
         self._last_ok_arrival: float | None = None  # local arrival of the newest accepted sample
         self._pending: dict[int, float] = {}  # TIMESYNC ts1 (ns) we sent -> local send time (s)
         self._sync_candidates: list[tuple[float, float, float]] = []  # exchanges not yet agreed on
+        #: ts1 (ns) answered -> (local send time, the exchange), for max_rtt_s: a second answer
+        #: to one request shows two answerers.
+        self._answered: dict[int, tuple[float, tuple[float, float, float]]] = {}
 
     # -- estimate ----------------------------------------------------------------------------
 
@@ -197,6 +203,7 @@ class AutopilotClock:
         self._last_ok_arrival = None
         self._pending.clear()
         self._sync_candidates.clear()
+        self._answered.clear()
 
     # -- input -------------------------------------------------------------------------------
 
@@ -253,12 +260,23 @@ class AutopilotClock:
     def on_timesync(self, tc1_ns: int, ts1_ns: int, received_s: float) -> bool:
         """Take a TIMESYNC answer (``tc1`` their boot time, ``ts1`` ours echoed); True if used."""
         sent = self._pending.pop(ts1_ns, None)
+        if sent is None and ts1_ns in self._answered and tc1_ns > 0:
+            # A second answer to one request: two answerers. If they disagree, one forges: the
+            # change it pushes is not confirmed while the autopilot keeps answering too.
+            first_sent, first = self._answered[ts1_ns]
+            second = (first_sent + received_s) / 2.0 - tc1_ns * 1e-9
+            if abs(second - first[2]) > received_s - first_sent + TIMESYNC_TOL_S:
+                self.stats.timesync_conflicts += 1
+                self._sync_candidates.clear()
         rtt = None if sent is None else received_s - sent
         if sent is None or tc1_ns <= 0 or rtt is None or not 0.0 <= rtt <= self.max_rtt_s:
             self.stats.timesync_ignored += 1
             return False
         offset = (sent + received_s) / 2.0 - tc1_ns * 1e-9
         exchange = (received_s, rtt, offset)
+        self._answered[ts1_ns] = (sent, exchange)
+        for key in [k for k, (t0, _e) in self._answered.items() if received_s - t0 > self.max_rtt_s]:
+            del self._answered[key]
         while self._syncs and received_s - self._syncs[0][0] > self.window_s:
             self._syncs.popleft()
         best = min(self._syncs, key=lambda s: s[1]) if self._syncs else None

@@ -326,20 +326,24 @@ async def test_a_forger_who_speaks_first_is_not_pinned_and_the_autopilot_is():
     real autopilot dropped as foreign, 20 times of 20."""
     cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
     for _ in range(5):
-        link = MavLink(cfg)
-        await link.start()
-        autopilot = MavPeer()
-        impostor = impostor_socket()
-        try:
-            impostor.sendto(forged_heartbeat(), link.local_address)  # first, once
-            await until(lambda: link.connected)
-            await autopilot.connect_udp(link.local_address)
-            autopilot.start_heartbeats(0.05)
-            await _until_pinned_to(link, autopilot, impostor)
-        finally:
-            impostor.close()
-            await autopilot.close()
-            await link.close()
+        await _forger_first(cfg)
+
+
+async def _forger_first(cfg: LinkConfig) -> None:
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer()
+    impostor = impostor_socket()
+    try:
+        impostor.sendto(forged_heartbeat(), link.local_address)  # first, once
+        await until(lambda: link.connected)
+        await autopilot.connect_udp(link.local_address)
+        autopilot.start_heartbeats(0.05)
+        await _until_pinned_to(link, autopilot, impostor)
+    finally:
+        impostor.close()
+        await autopilot.close()
+        await link.close()
 
 
 async def test_after_a_link_loss_the_autopilot_is_pinned_again_not_a_newcomer():

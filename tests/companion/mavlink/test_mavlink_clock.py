@@ -219,3 +219,19 @@ def test_a_timesync_change_confirmed_by_the_next_exchanges_is_taken_and_said(cap
         assert exchange(clock, BOOT_AT + 104.0, BOOT_AT - 0.15, rtt=0.02)
     assert clock.offset == pytest.approx(BOOT_AT - 0.15, abs=1e-6) and clock.stats.timesync_shifts == 2
     assert "offset moved by -150 ms" in caplog.text
+
+
+def test_a_forger_answering_every_request_first_is_caught_by_the_autopilots_second_answers() -> None:
+    """A forger who sees our requests answers each first; the autopilot's answer comes second
+    (its request is no longer pending). The two disagree: the forged change is never confirmed."""
+    clock = AutopilotClock()
+    genuine(clock, 100.0, 20, latency=0.01)
+    for k in range(2):
+        exchange(clock, BOOT_AT + 101.0 + k, BOOT_AT, rtt=0.02)
+    for k in range(10):
+        sent = BOOT_AT + 103.0 + k
+        ts1 = clock.request(sent)
+        forged = clock.on_timesync(int((sent + 0.0005 - (BOOT_AT - 0.3)) * 1e9), ts1, sent + 0.001)
+        assert not forged
+        assert not clock.on_timesync(int((sent + 0.01 - BOOT_AT) * 1e9), ts1, sent + 0.02)  # second
+    assert clock.offset == pytest.approx(BOOT_AT, abs=1e-6) and clock.stats.timesync_conflicts == 10

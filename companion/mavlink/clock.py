@@ -30,7 +30,8 @@ No single unauthenticated packet moves the estimate (issue 61):
   stream on. One forged ATTITUDE an hour ahead once left the service without a pose for the hour.
   A real jump ahead (a link whose latency fell) is taken once ``reboot_confirm`` samples in a row,
   over at least ``AHEAD_CONFIRM_S`` with no sample on the old estimate between them, agree on the
-  new offset (``jumps`` counts them).
+  new offset (``jumps`` counts them). A first estimate set by such a sample (it came first) gives
+  way the same way to the late samples that follow, until ``reboot_confirm`` samples were taken.
 - **A TIMESYNC exchange that disagrees with the estimate in use** (their uncertainty intervals,
   half a round trip each, do not overlap) is not used until ``TIMESYNC_CONFIRM`` exchanges in a
   row agree with it; then the estimate moves, with a warning (``timesync_shifts``). The first
@@ -64,6 +65,7 @@ class Verdict(str, Enum):
     BACKWARDS = "backwards"  # not newer than the stream's last sample
     AHEAD = "ahead"  # sent after it arrived, by the estimate, and not (yet) confirmed
     REBOOT = "reboot"  # the sample that confirmed a reboot: the estimate restarted on it
+    RESET = "reset"  # the sample that confirmed a new first estimate (the first one was an outlier)
 
 
 @dataclass(frozen=True)
@@ -146,6 +148,7 @@ class AutopilotClock:
         self._reboot_votes: list[float] = []  # implied offsets of consecutive jumps back
         self._ahead_votes: list[tuple[str, float, float]] = []  # (stream, boot, arrival) ahead in a row
         self._last_ok_arrival: float | None = None  # local arrival of the newest accepted sample
+        self._ok_since_reset = 0  # samples accepted since the estimate started
         self._pending: dict[int, float] = {}  # TIMESYNC ts1 (ns) we sent -> local send time (s)
         self._sync_candidates: list[tuple[float, float, float]] = []  # exchanges not yet agreed on
         #: ts1 (ns) answered -> (local send time, the exchange), for max_rtt_s: a second answer
@@ -201,6 +204,7 @@ class AutopilotClock:
         self._reboot_votes.clear()
         self._ahead_votes.clear()
         self._last_ok_arrival = None
+        self._ok_since_reset = 0
         self._pending.clear()
         self._sync_candidates.clear()
         self._answered.clear()
@@ -221,6 +225,7 @@ class AutopilotClock:
                 self._observe(boot_s, arrival_s)
                 self._last_boot[stream] = boot_s
                 self._last_ok_arrival = arrival_s
+                self._ok_since_reset = 1
                 return Stamp(Verdict.REBOOT, arrival_s, 0.0, boot_s)
             self.stats.backwards += 1
             off = self.offset
@@ -234,17 +239,29 @@ class AutopilotClock:
                 return Stamp(Verdict.AHEAD, boot_s + off, arrival_s - boot_s - off, boot_s)
             self._take_jump()
         else:
-            self._ahead_votes.clear()  # a sample on the estimate: the old clock still talks
             self._observe(boot_s, arrival_s)
         off = self.offset
         assert off is not None  # _observe just gave a bound
         t = boot_s + off
         lag = arrival_s - t
         if lag > self.max_lag_s:
-            self.stats.late += 1
-            return Stamp(Verdict.LATE, t, lag, boot_s)
+            # An estimate that rests on fewer than reboot_confirm samples (a forged first packet
+            # ahead of the autopilot's clock) gives way to the late samples that agree on another.
+            if not (self._ok_since_reset < self.reboot_confirm and self._vote_ahead(stream, boot_s, arrival_s)):
+                self.stats.late += 1
+                return Stamp(Verdict.LATE, t, lag, boot_s)
+            # The first estimate and every stream's place on it go: the history is on a clock
+            # that never was (the caller clears it, as after a reboot).
+            self._last_boot.clear()
+            self._take_jump()
+            self._ok_since_reset = 1
+            self._last_ok_arrival = arrival_s
+            t = boot_s + self.offset  # type: ignore[operator]  # the votes gave a bound
+            return Stamp(Verdict.RESET, t, arrival_s - t, boot_s)
+        self._ahead_votes.clear()  # a sample on the estimate: the old clock still talks
         self._last_boot[stream] = boot_s
         self._last_ok_arrival = arrival_s
+        self._ok_since_reset += 1
         self.stats.stamped += 1
         return Stamp(Verdict.OK, t, lag, boot_s)
 
@@ -337,16 +354,16 @@ class AutopilotClock:
         return len(votes) >= self.reboot_confirm and arrival_s - votes[0][2] >= AHEAD_CONFIRM_S
 
     def _take_jump(self) -> None:
-        """The streams confirmed a jump ahead: the arrival bound starts again from the votes (the
-        old one said they were sent after they arrived), and their streams move on."""
+        """The streams confirmed a new offset (a jump ahead, or a first estimate they all contradict):
+        the arrival bound starts again from the votes, and their streams move on."""
         self._bounds.clear()
         for stream, boot_s, arrival_s in self._ahead_votes:
             self._observe(boot_s, arrival_s)
             self._last_boot[stream] = max(boot_s, self._last_boot.get(stream, boot_s))
         self._ahead_votes.clear()
         self.stats.jumps += 1
-        log.warning("autopilot clock: %d samples over %.2f s confirmed a jump ahead of the estimate",
-                    self.reboot_confirm, AHEAD_CONFIRM_S)
+        log.warning("autopilot clock: %d samples over %.2f s confirmed a new offset", self.reboot_confirm,
+                    AHEAD_CONFIRM_S)
 
     def _vote_reboot(self, implied_offset: float) -> bool:
         """True once ``reboot_confirm`` jumps back in a row agree on one new offset (to 1 s)."""

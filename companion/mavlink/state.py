@@ -371,6 +371,10 @@ class VehicleState:
         if stamp.verdict is Verdict.REBOOT:
             # Rate-limited: however a reboot is claimed, the warning must not flood the journal.
             warn_every(log, "autopilot reboot", 10.0, "autopilot clock restarted (reboot?): pose history cleared")
+        if stamp.verdict is Verdict.RESET:
+            warn_every(log, "clock reset", 10.0, "autopilot clock: the first estimate was an outlier (a forged "
+                       "first sample?); the streams agree on another: pose history cleared")
+        if stamp.verdict in (Verdict.REBOOT, Verdict.RESET):
             self._att.clear()
             self._pos.clear()
         return stamp.t, stamp.boot_s

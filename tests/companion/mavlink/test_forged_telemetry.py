@@ -132,3 +132,28 @@ async def test_a_flood_of_replayed_old_attitudes_is_no_reboot_and_the_genuine_po
         assert pose is not None and pose.yaw == pytest.approx(0.3) and pose.roll == pytest.approx(0.01)
     finally:
         await _teardown(link, ap)
+
+
+async def test_a_forged_pose_packet_before_the_autopilots_first_costs_a_few_frames_not_an_hour():
+    """The forger speaks before the autopilot's first pose sample: its clock is the first
+    estimate. The genuine streams, all late against it, replace it within 0.25 s."""
+    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, **FAST))
+    state = VehicleState(max_extrapolation_s=0.25)
+    state.attach(link)
+    await link.start()
+    peer = MavPeer()
+    await peer.connect_udp(link.local_address)
+    peer.start_heartbeats(0.1)
+    ap = Autopilot(peer)
+    try:
+        await link.wait_connected(2.0)
+        ap.peer.send_raw(ap.forged(m.MAVLink_attitude_message(ap.boot_ms() + 3_600_000, 1.0, 0.5, -2.0, 0, 0, 0)))
+        await asyncio.sleep(0.05)
+        ap.task = asyncio.create_task(ap.stream())
+        await asyncio.sleep(0.5)
+        frames, missing, longest = await _frames_without_pose(state, 1.0)
+        assert frames >= 7 and missing == 0, (missing, longest)
+        pose = state.pose_at(time.monotonic() - 0.05)
+        assert pose is not None and pose.yaw == pytest.approx(0.3)
+    finally:
+        await _teardown(link, ap)

@@ -235,3 +235,17 @@ def test_a_forger_answering_every_request_first_is_caught_by_the_autopilots_seco
         assert not forged
         assert not clock.on_timesync(int((sent + 0.01 - BOOT_AT) * 1e9), ts1, sent + 0.02)  # second
     assert clock.offset == pytest.approx(BOOT_AT, abs=1e-6) and clock.stats.timesync_conflicts == 10
+
+
+def test_a_forged_first_sample_ahead_gives_way_to_the_streams_that_follow() -> None:
+    """A forger who speaks before the autopilot's first pose sample sets the first estimate; the
+    genuine samples, all late against it, agree on another and replace it within 0.25 s."""
+    clock = AutopilotClock()
+    assert clock.stamp("ATTITUDE", 3700.0, BOOT_AT + 99.99).verdict is Verdict.OK  # the forgery
+    verdicts = genuine(clock, 100.0, 20)
+    assert verdicts.count(Verdict.RESET) == 1 and verdicts[-10:] == [Verdict.OK] * 10
+    assert verdicts.index(Verdict.RESET) <= 10  # within 0.25 s
+    assert clock.offset == pytest.approx(BOOT_AT + 0.01) and clock.stats.jumps == 1
+    # Once established, late samples are late: a slow link does not move the estimate.
+    genuine(clock, 101.0, 10)
+    assert set(genuine(clock, 102.0, 10, latency=0.9)) == {Verdict.LATE}

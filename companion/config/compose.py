@@ -180,9 +180,9 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
 
 
 def signing_key(cfg: Config) -> bytes | None:
-    """The 32-byte MAVLink signing secret from ``link.signing_key_file`` or ``link.signing_key``;
+    """The 32-byte MAVLink signing secret from ``link.signing_key_file`` (None when it is empty);
     ConfigError naming the file when it cannot be read or holds no key."""
-    text = cfg.link.signing_key
+    text = ""
     if cfg.link.signing_key_file:
         try:
             text = Path(cfg.link.signing_key_file).read_text().strip()

@@ -97,6 +97,10 @@ REMOVED: dict[str, Removed] = {
                                         "(1000 / camera.fps) reports 'model slow'"),
     "live.max_fps": _constant(5.0, "companion.service.web.LIVE_MAX_FPS"),
     "live.jpeg_quality": _constant(80, "companion.service.web.LiveView's jpeg_quality"),
+    # A secret does not belong in a file that gets pasted into bug reports and recordings.
+    "link.signing_key": Removed("", "a secret inline in the configuration file ends up in bug reports; "
+                                    "put the 64-hex secret in a file only the service can read (chmod 600) "
+                                    "and name that file with link.signing_key_file"),
 }
 #: Tables that are gone with all their keys.
 REMOVED_TABLES = frozenset({"pipeline.tracker"})

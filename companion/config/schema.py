@@ -113,8 +113,8 @@ class LinkSettings:
     target_system: int = _f(1, "autopilot system id (SYSID_THISMAV / MAV_SYS_ID); 0 = the first autopilot "
                                "heard, which anyone on the link could be")
     flavour: str = _f("auto", "autopilot dialect", choices=FLAVOURS)
-    signing_key: str = _f("", "MAVLink 2 signing secret as 64 hex characters; empty = unsigned")
-    signing_key_file: str = _f("", "file holding the 64-hex signing secret (wins over signing_key)", path=True)
+    signing_key_file: str = _f("", "file (mode 0600) holding the 64-hex MAVLink 2 signing secret; empty = "
+                                    "unsigned", path=True)
     require_signing: bool = _f(False, "refuse to start without a signing key (docs/signing.md); unsigned, "
                                       "the service warns at start and at every link-up")
     peers: list[str] = _f([], "UDP links: IP addresses or CIDR networks allowed to talk to the companion "
@@ -329,12 +329,9 @@ class Config:
     source: Path | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain nested dict (for the recorder's meta.json and debugging), secrets redacted: a
-        recording must never carry the link's signing key."""
-        d = {k: v for k, v in _to_dict(self).items() if k != "source"}
-        if d["link"].get("signing_key"):
-            d["link"]["signing_key"] = "<redacted>"
-        return d
+        """Plain nested dict (for the recorder's meta.json and debugging). It holds no secret: the
+        signing key lives only in the file ``link.signing_key_file`` names."""
+        return {k: v for k, v in _to_dict(self).items() if k != "source"}
 
 
 # ---- keys that are gone ---------------------------------------------------------------------
@@ -468,9 +465,6 @@ def _cross_checks(cfg: Config) -> None:
     """The file's rules that involve more than one key, or a key that no part's object checks (the
     parts' own rules, ranges and rules between keys, are checked by building the parts:
     ``companion.config.compose.checked``)."""
-    key = cfg.link.signing_key
-    if key and (len(key) != 64 or any(c not in "0123456789abcdefABCDEF" for c in key)):
-        raise ConfigError("link.signing_key must be 64 hexadecimal characters (a 32-byte secret)")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")
@@ -495,9 +489,8 @@ def _cross_checks(cfg: Config) -> None:
                           f"got {p.unlandable_threshold!r}")
     if not cfg.live.address.strip() or any(ch.isspace() for ch in cfg.live.address):
         raise ConfigError(f"live.address must be an IP address or host name, got {cfg.live.address!r}")
-    if cfg.link.require_signing and not (cfg.link.signing_key or cfg.link.signing_key_file):
-        raise ConfigError("link.require_signing is on but neither link.signing_key nor "
-                          "link.signing_key_file is set (docs/signing.md)")
+    if cfg.link.require_signing and not cfg.link.signing_key_file:
+        raise ConfigError("link.require_signing is on but link.signing_key_file is not set (docs/signing.md)")
 
 
 def from_dict(raw: Mapping[str, Any], source: Path | None = None) -> Config:
@@ -614,9 +607,9 @@ def _drop_removed(raw: dict[str, Any], prefix: str = "") -> None:
 
 def from_recording(meta_config: Mapping[str, Any], overrides: Mapping[str, Any] | None = None) -> Config:
     """The settings a recording was flown with (its ``meta.json`` ``config``), with ``overrides``
-    (dotted keys) on top, validated as a file would be. The signing key is never recorded (it
-    reads ``<redacted>``) and is dropped. A setting the recording lacks was added after it was
-    flown: it takes the value that flew then (:data:`BEFORE_RECORDED`), not today's default."""
+    (dotted keys) on top, validated as a file would be. The signing key (``<redacted>`` in
+    recordings older than issue 61) and the key file's name are dropped. A setting the recording
+    lacks was added after it was flown: it takes the value that flew then (:data:`BEFORE_RECORDED`), not today's default."""
     raw = json.loads(json.dumps(dict(meta_config)))  # a deep copy of plain JSON data
     link = raw.get("link")
     if isinstance(link, dict):

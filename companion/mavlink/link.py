@@ -206,7 +206,9 @@ class LinkConfig:
 @dataclass
 class LinkStats:
     """Counters since start. ``received`` counts decoded packets of known messages only; ``bad``
-    includes ``unsigned_rejected``; ``dropped`` = sequence gaps of known messages."""
+    counts each corruption once (a wrong length byte and the stray bytes it leaves are one) and
+    includes ``unsigned_rejected`` (unsigned or wrongly signed frames on a signed link, unknown
+    message ids included); ``dropped`` = sequence gaps of the vehicle's components, per sender."""
 
     received: int = 0
     bad: int = 0
@@ -278,7 +280,8 @@ class MavLink:
         self._transport: Transport = make_transport(config.url, self._on_data, parse_peers(config.peers))
         self._subs: dict[str, list[MessageCallback]] = defaultdict(list)
         self._any_source_subs: dict[str, list[MessageCallback]] = defaultdict(list)
-        self._seq: dict[tuple[int, int], int] = {}
+        self._seq: dict[tuple[Any, int, int], int] = {}  # (sender address, system, component) -> seq
+        self._bad_run = False  # the bytes being parsed follow a bad frame (one corruption, one count)
         self._tasks: list[asyncio.Task[Any]] = []
         self._interval_task: asyncio.Task[None] | None = None
         self._command_locks: dict[int, asyncio.Lock] = defaultdict(asyncio.Lock)
@@ -487,6 +490,8 @@ class MavLink:
 
     def _on_data(self, data: bytes) -> None:
         t = time.monotonic()
+        if self._transport.datagram:
+            self._bad_run = False
         try:
             msgs = self._mav.parse_buffer(data) or []
         except Exception as exc:  # robust_parsing should catch all; a codec bug must not kill the link
@@ -498,9 +503,12 @@ class MavLink:
             self._handle(msg, t)
         if self._transport.datagram and self._mav.buf_len() > 0:
             # A datagram ended inside a frame: it was truncated; it must not eat the next datagram.
-            self.stats.bad += 1
+            if not self._bad_run:
+                self.stats.bad += 1
             log.debug("dropped %d bytes of a truncated frame", self._mav.buf_len())
             self._reset_parser()
+        if self._transport.datagram:
+            self._bad_run = False  # the next datagram starts clean
 
     def _reset_parser(self) -> None:
         self._mav.buf = bytearray()
@@ -510,12 +518,24 @@ class MavLink:
     def _handle(self, msg: Message, t: float) -> None:
         msg_type = msg.get_type()
         if msg_type == "BAD_DATA":
-            self.stats.bad += 1
             if "signature" in str(getattr(msg, "reason", "")):
+                # A whole frame, refused for its signature: each one counts.
+                self.stats.bad += 1
                 self.stats.unsigned_rejected += 1
+                self._bad_run = False
+            elif not self._bad_run:
+                # One corruption (a wrong length byte) yields a CRC error, then stray bytes and a
+                # truncated tail: counted once, until a good frame parses.
+                self.stats.bad += 1
+                self._bad_run = True
             log.debug("bad MAVLink data: %s", getattr(msg, "reason", "?"))
             return
+        self._bad_run = False
         if msg_type.startswith("UNKNOWN_"):
+            if not self._signature_accepted(msg):
+                self.stats.bad += 1
+                self.stats.unsigned_rejected += 1
+                return
             # A message id this dialect lacks: its CRC cannot be checked (no CRC_EXTRA), so it
             # may be random bytes that framed by chance. Not received, and its sequence number
             # must not count as a gap in the sender's stream.
@@ -523,20 +543,39 @@ class MavLink:
             return
         self.stats.received += 1
         src = (msg.get_srcSystem(), msg.get_srcComponent())
-        seq = msg.get_seq()
-        last = self._seq.get(src)
-        if last is not None:
-            gap = (seq - last - 1) % 256
-            # A gap of > 128 is more likely a peer restart than 128+ lost packets in a row.
-            if 0 < gap < 128:
-                self.stats.dropped += gap
-        self._seq[src] = seq
+        self._count_gap(src, msg.get_seq())
         if msg_type == "HEARTBEAT":
             self._on_heartbeat(msg, t)
         from_vehicle = src[0] == self.vehicle_system and src[1] != self.config.component_id
         if from_vehicle:
             self._dispatch(self._subs, msg_type, msg, t)
         self._dispatch(self._any_source_subs, msg_type, msg, t)
+
+    def _count_gap(self, src: tuple[int, int], seq: int) -> None:
+        """Sequence gaps of the vehicle's components, per sender address and (system, component):
+        other systems (a ground station, a flood claiming other ids) have their own counters,
+        which say nothing of the autopilot's link, and are not counted in ``dropped``."""
+        key = (self._transport.current_source, *src)
+        last = self._seq.get(key)
+        if last is not None and src[0] == self.vehicle_system:
+            gap = (seq - last - 1) % 256
+            # A gap of > 128 is more likely a peer restart than 128+ lost packets in a row.
+            if 0 < gap < 128:
+                self.stats.dropped += gap
+        if last is None and len(self._seq) >= 1024:
+            self._seq.clear()  # senders from a flood must not grow memory
+        self._seq[key] = seq
+
+    def _signature_accepted(self, msg: Message) -> bool:
+        """For a frame pymavlink did not check (an unknown message id): on a signed link that
+        refuses unsigned packets, only a frame with a valid signature passes."""
+        signing = self._mav.signing
+        if signing.secret_key is None or self.config.accept_unsigned:
+            return True
+        buf = bytearray(getattr(msg, "_msgbuf", b""))
+        if len(buf) < 10 + 2 + 13 or buf[0] != mavlink2.PROTOCOL_MARKER_V2 or not buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED:
+            return False
+        return bool(self._mav.check_signature(buf, buf[5], buf[6]))
 
     def _dispatch(self, table: dict[str, list[MessageCallback]], msg_type: str, msg: Message, t: float) -> None:
         for callback in (*table.get(msg_type, ()), *table.get("*", ())):
@@ -573,7 +612,8 @@ class MavLink:
         self.last_heartbeat_t = t
         self.last_heartbeat = msg
         if isinstance(self._transport, UdpTransport):
-            self._transport.pin_current()  # from now on its address alone is heard
+            # Its address alone is heard once the heartbeats make it plausible (not on one packet).
+            self._transport.autopilot_heard(self.config.heartbeat_timeout_s)
         if not self.connected:
             self.connected = True
             log.info("autopilot heartbeat: link up (system %d)", self.vehicle_system)

@@ -172,6 +172,9 @@ class LandedState:
 #: Limits past which telemetry is corrupt or forged: 20 km altitude, 100 m/s.
 MAX_ALT_MM = 20_000_000
 MAX_SPEED_CMS = 10_000
+#: The longest range (cm) a downward rangefinder on a multicopter measures: long-range lidars
+#: (LightWare SF30/D) reach 200 m; a reading or a range beyond 250 m is no rangefinder's.
+MAX_RANGEFINDER_CM = 25_000
 
 
 def _finite(*values: float) -> bool:
@@ -306,6 +309,8 @@ class VehicleState:
     def _on_home_position(self, msg: Any, t: float) -> None:
         if msg.latitude == 0 and msg.longitude == 0:
             raise StateError("HOME_POSITION at (0, 0): home not set")
+        if abs(msg.altitude) > MAX_ALT_MM:  # home is the ground frames are projected onto
+            raise StateError(f"HOME_POSITION altitude {msg.altitude} mm is out of range")
         self.home = Home(t, GeoPoint(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3))
 
     def _on_extended_sys_state(self, msg: Any, t: float) -> None:
@@ -329,6 +334,13 @@ class VehicleState:
     def _on_distance_sensor(self, msg: Any, t: float) -> None:
         if msg.orientation != DOWNWARD_ORIENTATION:
             return  # only a downward rangefinder measures height above ground
+        if msg.min_distance >= msg.max_distance or msg.max_distance > MAX_RANGEFINDER_CM \
+                or msg.current_distance > MAX_RANGEFINDER_CM:
+            # A sensor that claims a range no rangefinder on a multicopter has, or an empty one, is
+            # corrupt or forged: counted and dropped, and the height it gave before is kept no
+            # longer than RANGEFINDER_MAX_AGE_S.
+            raise StateError(f"DISTANCE_SENSOR implausible: current={msg.current_distance} cm "
+                             f"min={msg.min_distance} cm max={msg.max_distance} cm")
         d = downward_range_m(msg.current_distance, msg.min_distance, msg.max_distance)
         # Out of range: no height above ground rather than a wrong one.
         self.rangefinder = None if d is None else Rangefinder(t, d)
@@ -353,8 +365,16 @@ class VehicleState:
                              f"(limit {self.clock.max_lag_s:g} s)")
         if stamp.verdict is Verdict.BACKWARDS:
             raise StateError(f"{stream} time_boot_ms {time_boot_ms} is not newer than the last sample")
+        if stamp.verdict is Verdict.AHEAD:
+            raise StateError(f"{stream} time_boot_ms {time_boot_ms} is {-stamp.lag_s:.2f} s ahead of the "
+                             "autopilot's clock (unconfirmed: a forgery or a jump the next samples confirm)")
         if stamp.verdict is Verdict.REBOOT:
-            log.warning("autopilot clock restarted (reboot?): pose history cleared")
+            # Rate-limited: however a reboot is claimed, the warning must not flood the journal.
+            warn_every(log, "autopilot reboot", 10.0, "autopilot clock restarted (reboot?): pose history cleared")
+        if stamp.verdict is Verdict.RESET:
+            warn_every(log, "clock reset", 10.0, "autopilot clock: the first estimate was an outlier (a forged "
+                       "first sample?); the streams agree on another: pose history cleared")
+        if stamp.verdict in (Verdict.REBOOT, Verdict.RESET):
             self._att.clear()
             self._pos.clear()
         return stamp.t, stamp.boot_s

@@ -8,9 +8,11 @@ the start of the next datagram.
 URLs (the same spelling as MAVProxy / mavlink-router / MAVSDK):
 
 - ``udpin:HOST:PORT``   listen. Until the autopilot is heard, packets go to every address heard
-  from in the last 10 s; once its heartbeat pins its address (``pin_current``), datagrams from
-  any other address are dropped before parsing (counted in ``foreign``) and packets go to it
-  alone, besides the configured ``peers`` (a ground station sharing the port). A lost link unpins.
+  from in the last 10 s; once its heartbeats pin its address (``autopilot_heard``: three of them
+  while no other address claims the autopilot), datagrams from any other address are dropped
+  before parsing (counted in ``foreign``) and packets go to it alone, besides the configured
+  ``peers`` (a ground station sharing the port). A lost link unpins; the same address is pinned
+  again on its first heartbeat, a new one needs the same evidence as at the start.
 - ``udpout:HOST:PORT``  send to HOST:PORT (the flight controller or a router listens there);
   datagrams from any other address or port are dropped.
 
@@ -32,8 +34,11 @@ import socket
 import termios
 import time
 import tty
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+
+from companion.logs import warn_every
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +124,11 @@ class Transport:
         """False while there is nowhere to send (UDP listen before the first packet, TCP down)."""
         return True
 
+    @property
+    def current_source(self) -> tuple[str, int] | None:
+        """The address of the datagram being handed to ``on_data`` (UDP), else None."""
+        return None
+
 
 class _UdpProtocol(asyncio.DatagramProtocol):
     def __init__(self, owner: UdpTransport) -> None:
@@ -138,6 +148,8 @@ class UdpTransport(Transport):
     datagram = True
 
     PEER_TIMEOUT_S = 10.0
+    #: Autopilot heartbeats from one address, with no other address sending one, that pin it.
+    PIN_HEARTBEATS = 3
 
     #: Receive buffer asked of the kernel: a burst (or a flood) queues rather than drops the
     #: autopilot's packets while the loop is busy. Linux caps it at net.core.rmem_max.
@@ -153,6 +165,8 @@ class UdpTransport(Transport):
         self._allowed = tuple(peers)
         self._allowed_cache: dict[str, bool] = {}
         self._pinned: tuple[str, int] | None = None
+        self._previous: tuple[str, int] | None = None  # the address pinned before a link loss
+        self._heard: dict[tuple[str, int], deque[float]] = {}  # address -> autopilot heartbeat times
         self._current: tuple[str, int] | None = None  # the datagram being handed to on_data
 
     async def start(self) -> None:
@@ -223,16 +237,62 @@ class UdpTransport(Transport):
         finally:
             self._current = None
 
+    @property
+    def current_source(self) -> tuple[str, int] | None:
+        return self._current
+
     def pin_current(self) -> None:
         """The datagram being handled came from the autopilot: talk to its address alone from now
         on (and to the allowed ``peers``). No effect on ``udpout``, whose peer is fixed."""
         if self._fixed is None and self._current is not None and self._pinned != self._current:
             self._pinned = self._current
+            self._heard.clear()
             log.info("udp: autopilot at %s:%d; other senders are dropped", *self._pinned)
 
+    def autopilot_heard(self, window_s: float) -> None:
+        """The datagram being handled holds an autopilot heartbeat: pin its address once the
+        evidence is plausible (issue 61: whoever spoke first as system 1 was pinned, and the real
+        autopilot then dropped as foreign, 20 times of 20).
+
+        The address pinned before a link loss is pinned again on its first heartbeat (the
+        autopilot came back). Any other address needs ``PIN_HEARTBEATS`` heartbeats within
+        ``window_s`` (s), spread over half of it at least (a burst proves nothing), while no other
+        address sent one in that time: a forger who speaks
+        first, once or now and then, is never pinned while the autopilot talks, and two senders
+        that keep claiming the autopilot leave the link unpinned, with a warning."""
+        addr = self._current
+        if self._fixed is not None or addr is None or self._pinned is not None:
+            return
+        if addr == self._previous:
+            self.pin_current()
+            return
+        now = time.monotonic()
+        heard = self._heard
+        if addr not in heard and len(heard) >= 64:
+            heard.clear()  # addresses from a flood must not grow memory
+        heard.setdefault(addr, deque()).append(now)
+        for a in list(heard):
+            times = heard[a]
+            while times and now - times[0] > window_s:
+                times.popleft()
+            if not times:
+                del heard[a]
+        times = heard[addr]
+        if len(heard) == 1 and len(times) >= self.PIN_HEARTBEATS and times[-1] - times[0] >= window_s / 2:
+            self.pin_current()
+        elif len(heard) > 1:
+            warn_every(log, "two autopilots", 30.0,
+                       "udp: %d addresses send autopilot heartbeats (%s): none is pinned; set link.peers "
+                       "or sign the link (docs/signing.md)", len(heard),
+                       ", ".join(f"{a[0]}:{a[1]}" for a in heard))
+
     def unpin(self) -> None:
-        """The autopilot went silent: hear from any (allowed) address again."""
+        """The autopilot went silent: hear from any (allowed) address again. Its address is
+        remembered: its next heartbeat pins it again at once."""
+        if self._pinned is not None:
+            self._previous = self._pinned
         self._pinned = None
+        self._heard.clear()
 
     @property
     def pinned(self) -> tuple[str, int] | None:

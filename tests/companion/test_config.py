@@ -82,7 +82,7 @@ def test_unknown_section(tmp_path: Path) -> None:
         ("[link]\nflavour = 'inav'\n", r"link\.flavour must be one of 'auto', 'ardupilot', 'px4'"),
         ("[recorder]\nenabled = 'yes'\n", r"recorder\.enabled must be true or false"),
         ("[camera]\nmount_offset_m = [0, 0]\n", r"camera\.mount_offset_m must hold exactly 3 numbers"),
-        ("[link]\nsigning_key = 'abc'\n", r"link\.signing_key must be 64 hexadecimal"),
+        ("[link]\nsigning_key = 'abc'\n", r"link\.signing_key was removed: .*link\.signing_key_file"),
         ("[link]\nurl = 'http://x'\n", r"link\.url must start with udpin:"),
         ("camera = 3\n", r"camera must be a table"),
         ("[camera]\nfps = nan\n", r"camera\.fps must be a finite number"),
@@ -254,14 +254,20 @@ def test_ground_station_ids_and_the_trigger_socket_are_settings(tmp_path: Path) 
             config.load(f)
 
 
-def test_the_signing_key_never_leaves_in_the_config_dict(tmp_path: Path) -> None:
+def test_the_signing_key_lives_in_a_file_never_in_the_config(tmp_path: Path) -> None:
     key = "ab" * 32
     f = tmp_path / "c.toml"
     f.write_text(f'[link]\nsigning_key = "{key}"\n')
+    # A secret inline in the file was removed (issue 61): the message says where it goes instead.
+    with pytest.raises(ConfigError, match=r"link\.signing_key was removed: .*64-hex secret in a file.*"
+                                          r"link\.signing_key_file"):
+        config.load(f)
+    (tmp_path / "signing.key").write_text(key + "\n")
+    f.write_text('[link]\nsigning_key_file = "signing.key"\n')  # relative to the config file
     cfg = config.load(f)
-    assert cfg.link.signing_key == key  # the service still has it
+    assert config.signing_key(cfg) == bytes.fromhex(key)  # the service still has it
     dumped = repr(cfg.to_dict())  # what the recorder writes into meta.json
-    assert key not in dumped and "<redacted>" in dumped
+    assert key not in dumped
 
 
 def test_the_trust_height_comes_from_the_setting_or_else_the_model() -> None:
@@ -321,9 +327,8 @@ def test_a_key_that_became_a_constant_says_where_it_went() -> None:
 def test_removed_keys_are_no_keys_and_the_count_stays_lean() -> None:
     keys = {key for key, _default, _doc in config.all_keys()}
     assert not keys & set(config.REMOVED)
-    # Issue 58 aims at 80 (136 before); select_timeout_s and hold_timeout_s were kept as the 80th and
-    # 81st: how long the companion waits is the operator's, and the flight tests shape flights with them.
-    assert len(keys) <= 81
+    # Issue 58 aims at 80 (136 before).
+    assert len(keys) <= 80
 
 
 def test_a_recording_with_removed_keys_at_the_values_flown_now_replays() -> None:

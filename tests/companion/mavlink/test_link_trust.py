@@ -50,7 +50,7 @@ async def test_once_the_autopilot_is_heard_udpin_hears_and_talks_to_it_alone():
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         await link.wait_connected(2.0)
-        assert link.transport.pinned is not None
+        await until(lambda: link.transport.pinned is not None)  # after three heartbeats
         # The impostor claims the autopilot's ids and feeds an attitude, and listens for what the
         # companion sends.
         impostor.sendto(packed(m.MAVLink_attitude_message(5000, 1.0, 0, 0, 0, 0, 0)), link.local_address)
@@ -210,4 +210,182 @@ async def test_an_autopilot_with_another_system_id_is_ignored_and_named(caplog):
         assert "link.target_system is 1" in caplog.text
     finally:
         await other.close()
+        await link.close()
+
+
+# -- issue 61, item 10: counters that say what happened, once -----------------------------------
+
+
+async def test_other_systems_sequence_numbers_do_not_count_as_drops():
+    """The audit: 10,000 datagrams of other systems added 108,546 to ``dropped``. Here a router
+    forwards other systems' packets from the autopilot's address, their sequence numbers wild."""
+    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}))
+    await link.start()
+    autopilot = MavPeer()
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.heartbeat()
+        await link.wait_connected(2.0)
+        received = link.stats.received
+        for k in range(2000):
+            sysid = 2 + k % 5
+            sender = m.MAVLink(None, sysid, 190)
+            sender.seq = (k * 3) % 256  # each system's own sequence jumps by 15: gaps of 14
+            autopilot.send_raw(bytes(m.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3).pack(sender)))
+            if k % 100 == 0:
+                autopilot.heartbeat()  # the autopilot's own stream, consecutive
+                await asyncio.sleep(0.001)
+        await asyncio.sleep(0.5)
+        assert link.stats.received == received + 2020, link.stats
+        assert link.stats.dropped == 0
+        # A gap in the autopilot's own stream still counts.
+        autopilot.mav.seq = (autopilot.mav.seq + 5) % 256
+        autopilot.heartbeat()
+        await until(lambda: link.stats.dropped == 5)
+    finally:
+        await autopilot.close()
+        await link.close()
+
+
+async def test_a_wrong_length_byte_counts_once_as_bad():
+    """The audit: a wrong length byte was counted 1.41 times (a CRC error, then stray bytes)."""
+    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}))
+    await link.start()
+    autopilot = MavPeer()
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.heartbeat()
+        await link.wait_connected(2.0)
+        sent = 0
+        for length in range(256):
+            raw = bytearray(packed(m.MAVLink_attitude_message(1000, 0.1, 0.2, 0.3, 0, 0, 0)))
+            if raw[1] == length:
+                continue
+            raw[1] = length
+            autopilot.send_raw(bytes(raw))
+            sent += 1
+        autopilot.heartbeat()
+        await until(lambda: link.stats.received >= 2)
+        await asyncio.sleep(0.1)
+        assert link.stats.bad == sent
+    finally:
+        await autopilot.close()
+        await link.close()
+
+
+async def test_unsigned_unknown_ids_on_a_signed_link_are_rejected_unsigned():
+    """The audit: on a signed link, unsigned frames of ids the dialect lacks were counted
+    ``unknown`` as if they had been accepted, not as rejected."""
+    from companion.mavlink.link import parse_signing_key
+
+    key = parse_signing_key("correct horse battery staple")
+    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, signing_key=key))
+    await link.start()
+    autopilot = MavPeer(signing_key=key)
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.heartbeat()
+        await link.wait_connected(2.0)
+        raw = bytearray(packed(m.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3)))  # unsigned
+        raw[7:10] = (60000).to_bytes(3, "little")
+        for _ in range(10):
+            autopilot.send_raw(bytes(raw))
+        await until(lambda: link.stats.unsigned_rejected == 10)
+        assert link.stats.unknown == 0 and link.stats.bad == 10
+        # A signed frame of an unknown id from the key holder is unknown, not rejected.
+        signed = autopilot.mav.heartbeat_encode(2, 3, 0, 0, 4, 3)
+        buf = bytearray(signed.pack(autopilot.mav))
+        assert buf[2] & m.MAVLINK_IFLAG_SIGNED
+        buf[7:10] = (60000).to_bytes(3, "little")  # the signature covers the id: now a forgery
+        autopilot.send_raw(bytes(buf))
+        await until(lambda: link.stats.unsigned_rejected == 11)
+        assert link.stats.unknown == 0
+    finally:
+        await autopilot.close()
+        await link.close()
+
+
+# -- issue 61, item 5: the autopilot's address is pinned on evidence, not on one packet ---------
+
+
+def forged_heartbeat() -> bytes:
+    return packed(m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3))
+
+
+async def _until_pinned_to(link: MavLink, autopilot: MavPeer, impostor: socket.socket, timeout: float = 3.0) -> None:
+    await until(lambda: link.transport.pinned is not None, timeout)
+    assert link.transport.pinned == autopilot.udp_address
+    # The impostor is now foreign, the autopilot still heard.
+    foreign = link.transport.foreign
+    impostor.sendto(forged_heartbeat(), link.local_address)
+    await until(lambda: link.transport.foreign == foreign + 1)
+
+
+async def test_a_forger_who_speaks_first_is_not_pinned_and_the_autopilot_is():
+    """The audit: on udpin without peers, whoever spoke first as system 1 was pinned and the
+    real autopilot dropped as foreign, 20 times of 20."""
+    cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
+    for _ in range(5):
+        await _forger_first(cfg)
+
+
+async def _forger_first(cfg: LinkConfig) -> None:
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer()
+    impostor = impostor_socket()
+    try:
+        impostor.sendto(forged_heartbeat(), link.local_address)  # first, once
+        await until(lambda: link.connected)
+        await autopilot.connect_udp(link.local_address)
+        autopilot.start_heartbeats(0.05)
+        await _until_pinned_to(link, autopilot, impostor)
+    finally:
+        impostor.close()
+        await autopilot.close()
+        await link.close()
+
+
+async def test_after_a_link_loss_the_autopilot_is_pinned_again_not_a_newcomer():
+    cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer()
+    impostor = impostor_socket()
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.start_heartbeats(0.05)
+        await _until_pinned_to(link, autopilot, impostor)
+        autopilot.stop_heartbeats()
+        await until(lambda: not link.connected)  # the gap: the link is lost, the pin released
+        assert link.transport.pinned is None
+        impostor.sendto(forged_heartbeat(), link.local_address)  # the newcomer speaks first
+        for _ in range(2):
+            impostor.sendto(forged_heartbeat(), link.local_address)
+        await asyncio.sleep(0.05)
+        assert link.transport.pinned is None  # three heartbeats, but in a burst
+        autopilot.start_heartbeats(0.05)
+        await until(lambda: link.transport.pinned == autopilot.udp_address)  # on its first heartbeat
+    finally:
+        impostor.close()
+        await autopilot.close()
+        await link.close()
+
+
+async def test_two_senders_that_keep_claiming_the_autopilot_leave_the_link_unpinned():
+    cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer()
+    impostor = impostor_socket()
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.start_heartbeats(0.05)
+        for _ in range(20):
+            impostor.sendto(forged_heartbeat(), link.local_address)
+            await asyncio.sleep(0.05)
+        assert link.transport.pinned is None and link.connected  # both heard, neither pinned (warned)
+    finally:
+        impostor.close()
+        await autopilot.close()
         await link.close()

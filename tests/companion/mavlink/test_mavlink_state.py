@@ -276,3 +276,22 @@ def test_a_held_pose_reports_its_true_age_and_the_controller_refuses_it():
     assert ctl.phase is Phase.SELECT
     fresh_now = dataclasses.replace(held, t=10.7)
     assert [type(c).__name__ for c in ctl.on_frame(10.7, [zone], fresh_now)] == ["Goto"]
+
+
+def test_an_implausible_home_altitude_or_rangefinder_is_counted_and_dropped():
+    """Issue 61, item 10: HOME_POSITION's altitude and DISTANCE_SENSOR were not range-checked."""
+    s = VehicleState()
+    s.update(home_msg(), 0.0)
+    good_home = s.home
+    high = m.MAVLink_home_position_message(round(HOME.lat_deg * 1e7), round(HOME.lon_deg * 1e7),
+                                           2_000_000_000, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0)  # 2,000 km
+    s.update(with_header(high), 1.0)
+    assert s.rejected == 1 and s.home is good_home
+    down = m.MAV_SENSOR_ROTATION_PITCH_270
+    s.update(m.MAVLink_distance_sensor_message(0, 20, 4000, 300, 0, 0, down, 0), 1.0)
+    for bad in (m.MAVLink_distance_sensor_message(0, 20, 65535, 60000, 0, 0, down, 0),  # 600 m
+                m.MAVLink_distance_sensor_message(0, 4000, 20, 300, 0, 0, down, 0),     # min above max
+                m.MAVLink_distance_sensor_message(0, 20, 20, 20, 0, 0, down, 0)):       # an empty range
+        s.update(bad, 1.1)
+    assert s.rejected == 4
+    assert s.altitude_above_ground(1.2) == pytest.approx(3.0)  # the last plausible reading, aged as before

@@ -422,8 +422,10 @@ def test_recording_replays_with_the_settings_it_was_flown_with(work: dict[str, P
 
     # Flown with r0 1 m and the planner's age and margin checks off: with the default settings
     # (r0 2 m, tracked 1 s) these five frames (0.4 s) would never show a target.
+    key_file = tmp_path / "signing.key"
+    key_file.write_text("ab" * 32 + "\n")
     flown = config.load(None, {"pipeline.r0_m": 1.0, "controller.min_track_age_s": 0.0,
-                               "controller.radius_margin_m": 0.0, "link.signing_key": "ab" * 32})
+                               "controller.radius_margin_m": 0.0, "link.signing_key_file": str(key_file)})
     K = Intrinsics.from_fov(640, 480, 70.0)
     rec = FlightRecorder(tmp_path / "rec", intrinsics=K, mount=Mount(), fps=10.0,
                          meta={"config": flown.to_dict()})

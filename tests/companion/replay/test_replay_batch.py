@@ -39,8 +39,10 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
                         synthetic.render(synthetic.move(s, (shift, 0.0)), seed=k))
     from companion.recording import FlightRecorder
 
+    key_file = root / "signing.key"
+    key_file.write_text("ab" * 32 + "\n")
     flown = config.load(None, {"pipeline.r0_m": 1.0, "controller.min_track_age_s": 0.0,
-                               "link.signing_key": "ab" * 32})
+                               "link.signing_key_file": str(key_file)})
     rec = FlightRecorder(root / "rec", intrinsics=Intrinsics.from_fov(640, 480, 70.0), mount=Mount(),
                          fps=10.0, meta={"config": flown.to_dict()})
     run_dir = rec.start()

@@ -349,22 +349,27 @@ class Service:
     async def _handback_on_exit(self) -> None:
         """Stopping while the companion has the vehicle (GUIDED/OFFBOARD toward a zone, or
         holding) must not leave it hovering with nobody in charge: give it back to the
-        autopilot's own failsafe first. In LAND the autopilot is already landing by itself."""
-        if self.phase not in ("SELECT", "APPROACH", "DESCEND", "HOLD", "SEARCH") or self.autopilot is None:
+        autopilot's own failsafe first. In LAND the autopilot is already landing by itself.
+        The runner is halted by then (``_shutdown``), so this is the last command sent; PX4's
+        setpoint stream stops after it, acknowledged or not."""
+        if self.autopilot is None:
             return
-        if self.shadow:
-            return  # the companion never had the vehicle: nothing to give back
-        action = self.cfg.controller.handback_action
-        log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)
         try:
-            send_statustext(self.link, f"SLZ: companion stopping; handing back ({action})",
-                            m.MAV_SEVERITY_WARNING)
-            # Insist within the shutdown's budget: one packet can be lost (at 20 % loss one
-            # shutdown in five left the vehicle in GUIDED/OFFBOARD), so resend every 0.25 s
-            # until acknowledged, five times at most (1.25 s).
-            await asyncio.wait_for(self.autopilot.handback(action, timeout_s=0.25, retries=4), 1.3)
-        except Exception as exc:  # timeouts, refusals: nothing more we can do on the way out
-            log.error("handback on exit failed: %r", exc)
+            if self.phase not in ("SELECT", "APPROACH", "DESCEND", "HOLD", "SEARCH") or self.shadow:
+                return  # shadow: the companion never had the vehicle, nothing to give back
+            action = self.cfg.controller.handback_action
+            log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)
+            try:
+                send_statustext(self.link, f"SLZ: companion stopping; handing back ({action})",
+                                m.MAV_SEVERITY_WARNING)
+                # Insist within the shutdown's budget: one packet can be lost (at 20 % loss one
+                # shutdown in five left the vehicle in GUIDED/OFFBOARD), so resend every 0.25 s
+                # until acknowledged, five times at most (1.25 s).
+                await asyncio.wait_for(self.autopilot.handback(action, timeout_s=0.25, retries=4), 1.3)
+            except Exception as exc:  # timeouts, refusals: nothing more we can do on the way out
+                log.error("handback on exit failed: %r", exc)
+        finally:
+            await self.autopilot.stop()
 
     async def _shutdown(self, tasks: list[asyncio.Task[Any]]) -> None:
         """Stop every part, in order, within SHUTDOWN_BUDGET_S. Each step is guarded: one that
@@ -375,6 +380,12 @@ class Service:
         def left(most: float) -> float:
             return max(min(most, deadline - time.monotonic()), SHUTDOWN_STEP_MIN_S)
 
+        # Every producer of commands stops before the last handback, so that it is the last
+        # command sent: the runner (its ticks, queue and command in flight with its retries)
+        # and the link's own requests (message intervals). Nothing else sends commands.
+        if self.runner is not None:
+            await self._shutdown_step("landing runner", self.runner.halt(), left(0.3))
+        self.link.stop_requests()
         if self.runner is not None:
             await self._shutdown_step("handback", self._handback_on_exit(), left(1.4))
         if self.monitor is not None:

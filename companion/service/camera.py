@@ -67,7 +67,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from companion.frames import IMAGE_SUFFIXES, image_files, read_image, read_video_frame
+from companion.frames import IMAGE_SUFFIXES, decode_image, image_files, read_image, read_video_frame
 
 log = logging.getLogger(__name__)
 
@@ -245,10 +245,17 @@ def folder_images(folder: Path) -> list[Path]:
 
 
 def check_source(source: str) -> Kind:
-    """``classify``, and for a folder, that it holds images: what start-up can know is wrong."""
+    """``classify``, and for a folder, that it holds images and that at least one of them decodes
+    (one truncated or foreign file among good ones is counted and dropped as it plays, but a
+    folder of nothing but those would run without a single frame): what start-up can know is
+    wrong."""
     kind = classify(source)
     if kind is Kind.FOLDER:
-        folder_images(Path(source.strip()))
+        folder = Path(source.strip())
+        files = folder_images(folder)
+        if not any(read_image(p) is not None for p in files):
+            raise CameraError(f"camera.source {str(folder)!r}: none of the folder's {len(files)} image "
+                              f"file(s) decodes as a whole image (truncated or not images), e.g. {files[0].name}")
     return kind
 
 
@@ -329,7 +336,7 @@ class _MjpegReader(_Reader):
         except (OSError, EOFError, ValueError, http.client.HTTPException) as exc:
             log.debug("MJPEG read failed: %s", exc)
             return _Status.LOST, None
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+        image = decode_image(data, cv2.IMREAD_COLOR)  # a part cut short is refused, not decoded
         if image is None:
             return _Status.CORRUPT, None
         self.stamp = _parse_stamp(headers.get("x-timestamp"))

@@ -25,6 +25,7 @@ from companion import config
 from companion.mavlink.link import MavLink
 from companion.mavlink.px4 import px4_custom_mode
 from companion.service.app import Service
+from companion.service.freshness import HISTORY
 from companion.service.parts import load_model
 from tests.companion.service.test_landing_runner import Vehicle
 from tests.mavpeer import MavPeer
@@ -38,7 +39,9 @@ async def _stop_while_unanswered(tmp_path: Path, flavour: str) -> tuple[MavPeer,
     frames = tmp_path / "frames"
     frames.mkdir(parents=True)
     rng = np.random.default_rng(0)
-    for i in range(2):  # grass-like noise: fresh frames with nothing a zone could be made of
+    # Grass-like noise: frames with nothing a zone could be made of, more of them than the camera's
+    # freshness history holds, so that the looped folder plays as a live camera.
+    for i in range(HISTORY + 4):
         cv2.imwrite(str(frames / f"{i:04d}.png"), rng.integers(80, 120, (480, 640, 3), dtype=np.uint8))
     px4 = flavour == "px4"
     peer = MavPeer(autopilot=m.MAV_AUTOPILOT_PX4 if px4 else m.MAV_AUTOPILOT_ARDUPILOTMEGA,

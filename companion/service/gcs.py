@@ -98,7 +98,7 @@ CONDITIONS: dict[str, Condition] = {
     # Frames arrive but cannot be decided with (companion.service.frame_use). On the ground that is
     # no fault ("ground", NOTICE; below the head plane too); in the air it is as bad as a lost camera.
     "frames": Condition("SLZ: frames not used: {}", "SLZ: frames used again", m.MAV_SEVERITY_ERROR, retell=True),
-    "ground": Condition("SLZ: {}: frames not used", "SLZ: frames used", m.MAV_SEVERITY_NOTICE, retell=True),
+    "ground": Condition("SLZ: standby, {}", "SLZ: airborne, frames used", m.MAV_SEVERITY_NOTICE, retell=True),
     "link": Condition("SLZ: autopilot link lost", "SLZ: autopilot link back", m.MAV_SEVERITY_WARNING),
     "pipeline": Condition("SLZ: pipeline stuck {}", "SLZ: pipeline running again", m.MAV_SEVERITY_ERROR),
     "slow": Condition("SLZ: model slow: {}", "SLZ: model speed ok: {}", m.MAV_SEVERITY_WARNING),

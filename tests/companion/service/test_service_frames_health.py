@@ -105,7 +105,7 @@ async def test_health_names_why_frames_cannot_be_used_and_tells_the_pilot(tmp_pa
         rig.vehicle._task = None
         rig.vehicle.start()
         await rig.until(lambda: svc.health(time.monotonic()).reason == "on the ground", "on the ground", 15)
-        await rig.until(lambda: "SLZ: on the ground: frames not used" in rig.texts(), "its STATUSTEXT")
+        await rig.until(lambda: "SLZ: standby, on the ground" in rig.texts(), "its STATUSTEXT")
         await rig.until(lambda: rig.system_status() == m.MAV_STATE_STANDBY, "STANDBY")
         await rig.until(lambda: svc.notifier.last_status.startswith("standby: on the ground; MONITOR"), "STATUS=")
         assert svc.status_json()["health"]["reason"] == "on the ground"
@@ -113,12 +113,12 @@ async def test_health_names_why_frames_cannot_be_used_and_tells_the_pilot(tmp_pa
         # Airborne again: frames used, ok, ACTIVE, and the pilot is told.
         rig.vehicle.alt, rig.vehicle.on_ground = 30.0, False
         await rig.until(lambda: svc.health(time.monotonic()).ok, "ok again", 15)
-        await rig.until(lambda: "SLZ: frames used" in rig.texts(), "its STATUSTEXT")
+        await rig.until(lambda: "SLZ: airborne, frames used" in rig.texts(), "its STATUSTEXT")
         await rig.until(lambda: rig.system_status() == m.MAV_STATE_ACTIVE, "ACTIVE again")
         # One text per change, not one per frame.
         texts = rig.texts()
         assert texts.count("SLZ: frames not used: stale pose") == 1, texts
-        assert texts.count("SLZ: on the ground: frames not used") == 1, texts
+        assert texts.count("SLZ: standby, on the ground") == 1, texts
 
     await _run(tmp_path, _live_frames(tmp_path / "frames"), body)
 

@@ -5,7 +5,7 @@ the controller) or refused, with one of :data:`FRAME_REASONS` (:func:`pose_reaso
 pose at its capture time, :func:`geometry_reason` when the pipeline could not place it); the health
 loop asks it for the state (``companion.service.health.assess``), held a moment each way so that it
 does not flap. On the ground (and below the people's heads) no frame can be used: the pipeline
-places frames on the head plane, 1.7 m up.
+places frames on the head plane (``pipeline.head_height_m``, 1.7 m by default).
 """
 
 from __future__ import annotations

@@ -2,6 +2,12 @@
 
 A folder of images is played in file-name order; an image is BGR ``uint8`` (H, W, 3) or, when it
 cannot be decoded, ``None`` (the caller counts it as corrupt, it never stops a stream).
+
+A JPEG cut short (a file still being written, a copy interrupted, a stream part lost on the way) is
+not decoded at all: OpenCV's ``imread`` decodes what is there and fills the rest with flat grey
+(128), and one cut at 3 % of its bytes came out 97.5 % grey, an image of nothing that the pipeline
+would have taken for empty ground. A JPEG must end with its end-of-image marker (``FF D9``; zero,
+``FF`` or white-space padding after it is allowed); one that does not is refused before decoding.
 """
 
 from __future__ import annotations
@@ -34,9 +40,32 @@ def image_files(folder: Path) -> list[Path]:
                   key=lambda p: p.name)
 
 
+#: A JPEG stream's first two bytes (start of image) and last two (end of image).
+JPEG_SOI = b"\xff\xd8"
+JPEG_EOI = b"\xff\xd9"
+
+
+def truncated_jpeg(data: bytes) -> bool:
+    """``data`` is a JPEG (starts with SOI) that does not end with its EOI marker, padding aside:
+    cut short, so part of the image would be made up by the decoder."""
+    return data[:2] == JPEG_SOI and not data.rstrip(b"\x00\xff \t\r\n").endswith(JPEG_EOI)
+
+
+def decode_image(data: bytes, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
+    """Encoded image bytes as BGR uint8, or None when they are not a whole, decodable image (a
+    truncated JPEG among them, see the module docstring)."""
+    if not data or truncated_jpeg(data):
+        return None
+    return as_bgr(cv2.imdecode(np.frombuffer(data, np.uint8), flags))
+
+
 def read_image(path: Path) -> np.ndarray | None:
-    """One image file as BGR uint8, or None when it cannot be decoded as one."""
-    return as_bgr(cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
+    """One image file as BGR uint8, or None when it cannot be read or decoded as a whole image."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    return decode_image(data)
 
 
 def read_video_frame(cap: cv2.VideoCapture) -> tuple[bool, np.ndarray | None]:

@@ -284,6 +284,7 @@ class MavLink:
         self._bad_run = False  # the bytes being parsed follow a bad frame (one corruption, one count)
         self._tasks: list[asyncio.Task[Any]] = []
         self._interval_task: asyncio.Task[None] | None = None
+        self._requests_stopped = False
         self._command_locks: dict[int, asyncio.Lock] = defaultdict(asyncio.Lock)
         self._link_callbacks: list[Callable[[bool], None]] = []
         self.vehicle_system: int | None = config.target_system
@@ -318,6 +319,13 @@ class MavLink:
                 pass
         self._tasks = []
         await self._transport.close()
+
+    def stop_requests(self) -> None:
+        """Send no more requests of the link's own (message intervals), now or at a later link-up:
+        a stopping service calls it so that its exit handback is the last command sent."""
+        self._requests_stopped = True
+        if self._interval_task is not None:
+            self._interval_task.cancel()
 
     async def __aenter__(self) -> MavLink:
         await self.start()
@@ -618,7 +626,8 @@ class MavLink:
             self.connected = True
             log.info("autopilot heartbeat: link up (system %d)", self.vehicle_system)
             self._seq.clear()  # a rebooted autopilot restarts its sequence
-            self._interval_task = asyncio.get_running_loop().create_task(self._request_intervals_safe())
+            if not self._requests_stopped:
+                self._interval_task = asyncio.get_running_loop().create_task(self._request_intervals_safe())
             self._notify_link(True)
 
     async def _request_intervals_safe(self) -> None:

@@ -66,6 +66,7 @@ from companion.pipeline.tracker import Track
 from companion.recording import FlightRecorder
 from companion.replay.live_figure import CAPTION_PX
 from companion.service.camera import CameraSource, Frame
+from companion.service.frame_use import UNUSABLE, FrameUse, geometry_reason, pose_reason
 from companion.service.gcs import PHASE_CODES, GroundStation
 from companion.service.health import PIPELINE_STUCK_S, FaultLog, FrameCounters, Health, StageTimings, assess
 from companion.service.landing_runner import LandingRunner
@@ -121,6 +122,7 @@ class Service:
         self.camera = camera or build_camera(cfg)
         self.timings = StageTimings()
         self.counters = FrameCounters()
+        self.frame_use = FrameUse()  # why frames cannot be decided with, for health
         self.stop_event = asyncio.Event()
         self.busy_since: float | None = None
         self.last_processed_t: float | None = None
@@ -349,22 +351,27 @@ class Service:
     async def _handback_on_exit(self) -> None:
         """Stopping while the companion has the vehicle (GUIDED/OFFBOARD toward a zone, or
         holding) must not leave it hovering with nobody in charge: give it back to the
-        autopilot's own failsafe first. In LAND the autopilot is already landing by itself."""
-        if self.phase not in ("SELECT", "APPROACH", "DESCEND", "HOLD", "SEARCH") or self.autopilot is None:
+        autopilot's own failsafe first. In LAND the autopilot is already landing by itself.
+        The runner is halted by then (``_shutdown``), so this is the last command sent; PX4's
+        setpoint stream stops after it, acknowledged or not."""
+        if self.autopilot is None:
             return
-        if self.shadow:
-            return  # the companion never had the vehicle: nothing to give back
-        action = self.cfg.controller.handback_action
-        log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)
         try:
-            send_statustext(self.link, f"SLZ: companion stopping; handing back ({action})",
-                            m.MAV_SEVERITY_WARNING)
-            # Insist within the shutdown's budget: one packet can be lost (at 20 % loss one
-            # shutdown in five left the vehicle in GUIDED/OFFBOARD), so resend every 0.25 s
-            # until acknowledged, five times at most (1.25 s).
-            await asyncio.wait_for(self.autopilot.handback(action, timeout_s=0.25, retries=4), 1.3)
-        except Exception as exc:  # timeouts, refusals: nothing more we can do on the way out
-            log.error("handback on exit failed: %r", exc)
+            if self.phase not in ("SELECT", "APPROACH", "DESCEND", "HOLD", "SEARCH") or self.shadow:
+                return  # shadow: the companion never had the vehicle, nothing to give back
+            action = self.cfg.controller.handback_action
+            log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)
+            try:
+                send_statustext(self.link, f"SLZ: companion stopping; handing back ({action})",
+                                m.MAV_SEVERITY_WARNING)
+                # Insist within the shutdown's budget: one packet can be lost (at 20 % loss one
+                # shutdown in five left the vehicle in GUIDED/OFFBOARD), so resend every 0.25 s
+                # until acknowledged, five times at most (1.25 s).
+                await asyncio.wait_for(self.autopilot.handback(action, timeout_s=0.25, retries=4), 1.3)
+            except Exception as exc:  # timeouts, refusals: nothing more we can do on the way out
+                log.error("handback on exit failed: %r", exc)
+        finally:
+            await self.autopilot.stop()
 
     async def _shutdown(self, tasks: list[asyncio.Task[Any]]) -> None:
         """Stop every part, in order, within SHUTDOWN_BUDGET_S. Each step is guarded: one that
@@ -375,6 +382,12 @@ class Service:
         def left(most: float) -> float:
             return max(min(most, deadline - time.monotonic()), SHUTDOWN_STEP_MIN_S)
 
+        # Every producer of commands stops before the last handback, so that it is the last
+        # command sent: the runner (its ticks, queue and command in flight with its retries)
+        # and the link's own requests (message intervals). Nothing else sends commands.
+        if self.runner is not None:
+            await self._shutdown_step("landing runner", self.runner.halt(), left(0.3))
+        self.link.stop_requests()
         if self.runner is not None:
             await self._shutdown_step("handback", self._handback_on_exit(), left(1.4))
         if self.monitor is not None:
@@ -459,12 +472,15 @@ class Service:
                 # Stale is unsafe: without a pose at capture time the frame can't be placed on
                 # the ground, and must not confirm or move any zone.
                 self.counters.no_pose += 1
+                self.frame_use.refused(pose_reason(self.state), time.monotonic())
                 continue
             self.busy_since = time.monotonic()
             try:
                 result = await asyncio.to_thread(self.pipeline.process, image, frame.t, pose)
             except (FrameError, GeometryError) as exc:
                 self.counters.bad += 1
+                self.frame_use.refused(UNUSABLE if isinstance(exc, FrameError) else geometry_reason(
+                    self.state, pose, self.mount, self.cfg.pipeline.head_height_m), time.monotonic())
                 # First one visible (e.g. "camera is not above the head plane" on the ground),
                 # then only now and then: a stream of identical warnings helps nobody.
                 level = logging.INFO if self.counters.bad == 1 or self.counters.bad % 500 == 0 else logging.DEBUG
@@ -472,6 +488,7 @@ class Service:
                 continue
             except (DensityModelError, ValueError) as exc:
                 self.counters.errors += 1
+                self.frame_use.refused(UNUSABLE, time.monotonic())
                 if self.counters.errors <= 10 or self.counters.errors % 100 == 0:
                     log.warning("frame %d: pipeline failed: %s", frame.index, exc)
                 continue
@@ -479,6 +496,7 @@ class Service:
                 self.busy_since = None
             self.counters.processed += 1
             self.last_processed_t = time.monotonic()
+            self.frame_use.used(self.last_processed_t)
             self.timings.add(result.timings_ms)
             self.last_result = result
             target: Track | None = None
@@ -507,10 +525,11 @@ class Service:
     # ---- health ------------------------------------------------------------------------------
     def health(self, now: float) -> Health:
         """The verdict: internal faults (pipeline stuck) stop the watchdog, external ones (link,
-        camera) are only reported."""
+        camera, frames that cannot be used) are only reported."""
         busy = self.busy_since
         return assess(link_connected=self.link.connected, camera_delivering=self.camera.delivering(now),
-                      busy_s=None if busy is None else now - busy, stuck_after_s=PIPELINE_STUCK_S)
+                      busy_s=None if busy is None else now - busy, stuck_after_s=PIPELINE_STUCK_S,
+                      camera_frozen=self.camera.frozen(now), frames=self.frame_use.state(now))
 
     def healthy(self, now: float) -> tuple[bool, str]:
         """Link alive, camera delivering, pipeline not stuck; with the reason when not."""
@@ -653,11 +672,11 @@ class Service:
         ck, clock = self.state.clock.stats, self.state.clock
         latency = clock.latency_s
         log.info(
-            "health %s: frames camera=%d processed=%d dropped=%d repeated=%d corrupt=%d no_pose=%d "
+            "health %s: frames camera=%d processed=%d dropped=%d repeated=%d stale=%d corrupt=%d no_pose=%d "
             "superseded=%d bad=%d errors=%d stalls=%d | link rx=%d bad=%d unknown=%d foreign=%d lost=%d "
             "| telemetry late=%d backwards=%d rejected=%d clock=%s latency=%s "
             "| gcs commands=%d refused=%d malformed=%d | timings %s%s",
-            "ok" if ok else f"BAD ({why})", cs.frames, fc.processed, cs.dropped, cs.repeated, cs.corrupt,
+            "ok" if ok else f"BAD ({why})", cs.frames, fc.processed, cs.dropped, cs.repeated, cs.stale, cs.corrupt,
             fc.no_pose, fc.superseded, fc.bad, fc.errors, cs.stalls, ls.received, ls.bad, ls.unknown,
             self.link.transport.foreign, ls.link_losses, ck.late, ck.backwards, self.state.rejected, clock.source,
             "-" if latency is None else f"{latency * 1000:.0f}ms",

@@ -30,16 +30,17 @@ A source timestamp is used only when it is plausibly on our clock: not in the fu
 time and the first such fallback is logged once (a camera stamping wall-clock time or another
 machine's clock ends up there).
 
-Freshness. A frame whose pixels are identical to the previous delivered frame is not fresh: a
-camera that re-serves its last frame after a reconnect, or a frozen driver or encoder that repeats
-a buffer. It is counted in ``repeated`` and dropped: not delivered, not recorded, and it does not
-count as a frame for ``delivering()`` or the stall timeout (only repeats for ``stall_timeout_s`` =
-a stalled camera, reopened). The previous delivered frame is kept across reconnects, so the last
-frame before a stall served again after it is caught too. The check is a 128-bit BLAKE2b digest of
-a strided subsample (every 8th row and column, ~0.1 ms at 1280x720), with a full pixel comparison
-only when the digests match. A real sensor never gives two bit-identical frames (read noise);
-a looped single-image folder or a renderer over a static scene without noise does, and is
-treated as frozen (the simulator's camera adds sensor noise for that reason).
+Freshness. A frame a live sensor could not have given is not fresh (``companion.service.freshness``):
+one identical to the previous delivered frame (a camera re-serving its last frame after a reconnect,
+a frozen driver or encoder repeating a buffer), or the same as one of the last few delivered frames
+but for a small region (a driver cycling through its buffers, a frozen image with a live clock
+drawn on it). It is counted in ``repeated`` (the history's verdicts also in ``stale``) and dropped:
+not delivered, not recorded, and it does not count as a frame for ``delivering()`` or the stall
+timeout (only stale frames for ``stall_timeout_s`` = a frozen camera, reopened, and ``frozen()``
+says so). The history is kept across reconnects, so the last frame before a stall served again
+after it is caught too. A real sensor never gives such frames (read noise changes every part of
+the image); a looped folder of a few images or a renderer over a static scene without noise does,
+and is treated as frozen (the simulator's camera adds sensor noise for that reason).
 
 A frame that cannot be decoded or is not an HxWx3 uint8 image is counted in ``corrupt`` and
 dropped. No new frame for ``stall_timeout_s`` means the camera stalled or was lost: it is closed and
@@ -51,7 +52,6 @@ frame and nothing queues up behind a slow pipeline.
 from __future__ import annotations
 
 import asyncio
-import hashlib
 import http.client
 import logging
 import math
@@ -67,16 +67,14 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from companion.frames import IMAGE_SUFFIXES, image_files, read_image, read_video_frame
+from companion.frames import IMAGE_SUFFIXES, decode_image, image_files, read_image, read_video_frame
+from companion.service.freshness import Freshness
 
 log = logging.getLogger(__name__)
 
 #: Oldest source timestamp taken as a capture time (s before the grab returned); older, or in the
 #: future, means the source stamps on another clock (or is badly late): the grab time is used.
 MAX_SOURCE_AGE_S = 1.0
-#: Rows and columns between the pixels hashed for the repeated-frame check.
-FINGERPRINT_STRIDE = 8
-
 TimeSource = Literal["grab", "device", "header"]
 
 
@@ -108,20 +106,24 @@ class Frame:
 @dataclass
 class CameraStats:
     """Counters since start. frames: good fresh frames delivered by the device; corrupt: frames
-    counted and dropped as undecodable/malformed; repeated: frames identical to the previous
-    delivered one (a frozen camera), counted and dropped; dropped: good frames replaced by a newer
-    one before the consumer took them; stalls: times no new frame came for ``stall_timeout_s``;
-    reopens: successful opens after the first; last_frame_t: capture time (monotonic) of the
-    newest fresh frame."""
+    counted and dropped as undecodable/malformed; repeated: frames not fresh (a frozen camera:
+    see the module docstring), counted and dropped; stale: those of them judged by the history
+    (the same as a recent frame but for a small region), not identical to the previous one;
+    dropped: good frames replaced by a newer one before the consumer took them; stalls: times no
+    new frame came for ``stall_timeout_s``; reopens: successful opens after the first;
+    last_frame_t: capture time (monotonic) of the newest fresh frame; last_stale_t: when the
+    newest frame that was not fresh arrived (monotonic)."""
 
     frames: int = 0
     corrupt: int = 0
     repeated: int = 0
+    stale: int = 0
     dropped: int = 0
     stalls: int = 0
     reopens: int = 0
     open_failures: int = 0
     last_frame_t: float | None = None
+    last_stale_t: float | None = None
 
 
 class Kind(str, Enum):
@@ -245,10 +247,17 @@ def folder_images(folder: Path) -> list[Path]:
 
 
 def check_source(source: str) -> Kind:
-    """``classify``, and for a folder, that it holds images: what start-up can know is wrong."""
+    """``classify``, and for a folder, that it holds images and that at least one of them decodes
+    (one truncated or foreign file among good ones is counted and dropped as it plays, but a
+    folder of nothing but those would run without a single frame): what start-up can know is
+    wrong."""
     kind = classify(source)
     if kind is Kind.FOLDER:
-        folder_images(Path(source.strip()))
+        folder = Path(source.strip())
+        files = folder_images(folder)
+        if not any(read_image(p) is not None for p in files):
+            raise CameraError(f"camera.source {str(folder)!r}: none of the folder's {len(files)} image "
+                              f"file(s) decodes as a whole image (truncated or not images), e.g. {files[0].name}")
     return kind
 
 
@@ -329,7 +338,7 @@ class _MjpegReader(_Reader):
         except (OSError, EOFError, ValueError, http.client.HTTPException) as exc:
             log.debug("MJPEG read failed: %s", exc)
             return _Status.LOST, None
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+        image = decode_image(data, cv2.IMREAD_COLOR)  # a part cut short is refused, not decoded
         if image is None:
             return _Status.CORRUPT, None
         self.stamp = _parse_stamp(headers.get("x-timestamp"))
@@ -375,15 +384,6 @@ def plausible_capture_time(stamp: float, now: float, previous: float | None) -> 
             and (previous is None or stamp > previous))
 
 
-def fingerprint(image: np.ndarray) -> bytes:
-    """A 128-bit digest of a strided subsample of ``image`` (and its shape): equal for
-    identical images; when it is equal, compare the pixels to be sure."""
-    h = hashlib.blake2b(repr(image.shape).encode(), digest_size=16)
-    sub = image[::FINGERPRINT_STRIDE, ::FINGERPRINT_STRIDE]
-    h.update(np.ascontiguousarray(sub).data)
-    return h.digest()
-
-
 FrameCallback = Callable[[Frame], None]
 
 
@@ -418,9 +418,8 @@ class CameraSource:
         self._anew: asyncio.Event | None = None
         self._next_index = 0
         self._listeners: list[FrameCallback] = []
-        # The previous delivered frame, kept across reopens: a repeat of it is not fresh.
-        self._prev_key: bytes | None = None
-        self._prev_image: np.ndarray | None = None
+        # The recent delivered frames, kept across reopens: a repeat of them is not fresh.
+        self._freshness = Freshness()
         self._prev_t: float | None = None
         self._warned_stamp = False
         if self.kind is Kind.FOLDER:
@@ -455,6 +454,12 @@ class CameraSource:
         last = self.stats.last_frame_t
         now = time.monotonic() if now is None else now
         return last is not None and now - last < self.stall_timeout_s
+
+    def frozen(self, now: float | None = None) -> bool:
+        """Not delivering, but frames keep coming that are not fresh (a frozen camera)."""
+        now = time.monotonic() if now is None else now
+        stale = self.stats.last_stale_t
+        return not self.delivering(now) and stale is not None and now - stale < self.stall_timeout_s
 
     def take(self) -> Frame | None:
         """The newest frame not yet taken, or None."""
@@ -534,13 +539,15 @@ class CameraSource:
                          device_stamps=self.kind is Kind.V4L2)
 
     def _is_repeat(self, image: np.ndarray) -> bool:
-        """``image`` is identical to the previous delivered frame; remembers it when it is not."""
-        key = fingerprint(image)
-        prev = self._prev_image
-        if key == self._prev_key and prev is not None and np.array_equal(image, prev):
-            return True
-        self._prev_key, self._prev_image = key, image
-        return False
+        """``image`` is not fresh (see the module docstring; the caller counts it in ``repeated``);
+        a fresh one is remembered."""
+        verdict = self._freshness.judge(image)
+        if verdict == "fresh":
+            return False
+        self.stats.last_stale_t = time.monotonic()
+        if verdict == "stale":
+            self.stats.stale += 1
+        return True
 
     def _capture_time(self, stamp: float | None, source: TimeSource, now: float) -> tuple[float, TimeSource]:
         """The frame's capture time and its source: the source's timestamp ``stamp`` when
@@ -612,8 +619,8 @@ class CameraSource:
                 # Not fresh: a frozen source, or one re-serving its last frame after a reconnect.
                 self.stats.repeated += 1
                 if self.stats.repeated <= 3 or self.stats.repeated % 100 == 0:
-                    log.warning("camera %s: frame identical to the previous one ignored (%d so far)",
-                                self.source, self.stats.repeated)
+                    log.warning("camera %s: stale frame ignored (%d so far, %d the same as a recent one "
+                                "but for a small region)", self.source, self.stats.repeated, self.stats.stale)
             elif status is _Status.CORRUPT:
                 self.stats.corrupt += 1
                 if self.stats.corrupt <= 10 or self.stats.corrupt % 100 == 0:

@@ -54,16 +54,17 @@ def to_toml(settings: dict[str, Any], prefix: str = "") -> list[str]:
 
 
 def check(cfg: config_mod.Config) -> None:
-    """The start-up checks of ``companion run`` short of the link and the camera; raises
+    """The start-up checks of ``companion run`` short of opening the link and the camera (a frames
+    folder is read: at least one of its images must decode); raises
     ConfigError naming the key or file."""
     from companion.config import signing_key
     from companion.pipeline.density import DensityModelError
-    from companion.service.camera import CameraError, classify
+    from companion.service.camera import CameraError, check_source
     from companion.service.parts import load_landability, load_model
 
     signing_key(cfg)
     try:
-        classify(cfg.camera.source)
+        check_source(cfg.camera.source)
     except CameraError as exc:
         raise ConfigError(f"camera.source: {exc}") from None
     try:

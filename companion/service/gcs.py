@@ -5,10 +5,11 @@ MAVLink's conventions, as ArduPilot and PX4 follow them for their own components
 
 - the companion's HEARTBEAT is that of an onboard controller (``MAV_TYPE_ONBOARD_CONTROLLER``,
   ``MAV_AUTOPILOT_INVALID``, base and custom mode 0); its ``system_status`` says how it is:
-  ``STANDBY`` until ready (model loaded, autopilot heard), ``ACTIVE`` while it watches with
-  everything working, ``CRITICAL`` while it cannot do its job (camera not delivering, autopilot
-  link lost, pipeline stuck): the autopilot's own failsafe is then the only one;
-  (:func:`companion_state`);
+  ``STANDBY`` until ready (model loaded, autopilot heard) and while the vehicle is on the ground
+  (no frame can be used there), ``ACTIVE`` while it watches with everything working, ``CRITICAL``
+  while it cannot do its job (camera not delivering or frozen, autopilot link lost, pipeline
+  stuck, frames without a pose or otherwise unusable in the air): the autopilot's own failsafe is
+  then the only one; (:func:`companion_state`);
 - each change of state is one STATUSTEXT, sent once when it happens (never every frame), within
   50 characters, with the severity ground stations rank it by (:data:`CONDITIONS`); a condition
   that flaps is told at most once per ``min_gap_s``, and its last state is always told;
@@ -44,7 +45,7 @@ PHASE_CODES: dict[Phase, int] = {
 }
 
 #: SLZ_HEALTH bits.
-HEALTH_CAMERA, HEALTH_LINK, HEALTH_STUCK, HEALTH_SLOW = 1, 2, 4, 8
+HEALTH_CAMERA, HEALTH_LINK, HEALTH_STUCK, HEALTH_SLOW, HEALTH_FRAMES = 1, 2, 4, 8, 16
 
 #: The named values, (name, MAVLink message, unit, meaning): the one list the docs table and the
 #: tests read. Names are at most 10 characters (NAMED_VALUE_*.name is char[10]).
@@ -52,8 +53,9 @@ VALUE_NAMES: tuple[tuple[str, str, str, str], ...] = (
     ("SLZ_PHASE", "INT", "-", "landing controller phase: 0 MONITOR, 1 SELECT, 2 APPROACH, 3 DESCEND, "
                               "4 LAND, 5 HOLD, 6 LANDED, 7 HANDBACK, 8 SEARCH"),
     ("SLZ_ZONES", "INT", "-", "landing zones tracked on the last frame"),
-    ("SLZ_HEALTH", "INT", "bits", "0 healthy; 1 camera not delivering, 2 autopilot link lost, "
-                                  "4 pipeline stuck, 8 model slow"),
+    ("SLZ_HEALTH", "INT", "bits", "0 healthy; 1 camera not delivering or frozen, 2 autopilot link lost, "
+                                  "4 pipeline stuck, 8 model slow, 16 frames not used (no pose, stale "
+                                  "pose, on the ground, below the head plane, unusable)"),
     ("SLZ_TGT_R", "FLOAT", "m", "radius of the target zone (the one it flies to, or would fly to "
                                 "now); NaN: none"),
     ("SLZ_CLEAR", "FLOAT", "m", "the target's least clearance at touchdown if it committed now "
@@ -68,7 +70,7 @@ def companion_state(ready: bool, health: Health) -> int:
     """The HEARTBEAT ``system_status`` (MAV_STATE) for the companion's state (see the module
     docstring). A slow model is no fault here: the companion still works, later; it is told by
     STATUSTEXT and SLZ_HEALTH."""
-    if not ready:
+    if not ready or health.standby:
         return m.MAV_STATE_STANDBY
     return m.MAV_STATE_ACTIVE if health.ok else m.MAV_STATE_CRITICAL
 
@@ -83,6 +85,7 @@ class Condition:
     good_text: str
     bad_severity: int
     good_severity: int = m.MAV_SEVERITY_NOTICE
+    retell: bool = False  # a new detail while bad is a change too ("no pose" -> "stale pose")
 
 
 #: The conditions by key. The companion is a secondary system to the autopilot (whose own
@@ -90,7 +93,12 @@ class Condition:
 #: system"), not CRITICAL; a slow model and a lost link (which may not even reach the ground
 #: station) WARNING.
 CONDITIONS: dict[str, Condition] = {
-    "camera": Condition("SLZ: camera lost: no landing zones", "SLZ: camera back", m.MAV_SEVERITY_ERROR),
+    "camera": Condition("SLZ: camera {}: no landing zones", "SLZ: camera back", m.MAV_SEVERITY_ERROR,
+                        retell=True),
+    # Frames arrive but cannot be decided with (companion.service.frame_use). On the ground that is
+    # no fault ("ground", NOTICE; below the head plane too); in the air it is as bad as a lost camera.
+    "frames": Condition("SLZ: frames not used: {}", "SLZ: frames used again", m.MAV_SEVERITY_ERROR, retell=True),
+    "ground": Condition("SLZ: standby, {}", "SLZ: airborne, frames used", m.MAV_SEVERITY_NOTICE, retell=True),
     "link": Condition("SLZ: autopilot link lost", "SLZ: autopilot link back", m.MAV_SEVERITY_WARNING),
     "pipeline": Condition("SLZ: pipeline stuck {}", "SLZ: pipeline running again", m.MAV_SEVERITY_ERROR),
     "slow": Condition("SLZ: model slow: {}", "SLZ: model speed ok: {}", m.MAV_SEVERITY_WARNING),
@@ -105,6 +113,7 @@ class ConditionReporter:
 
     min_gap_s: float = 5.0
     _told: dict[str, bool] = field(default_factory=dict)  # key -> bad, as last told
+    _detail: dict[str, str] = field(default_factory=dict)  # key -> its detail, as last told
     _told_t: dict[str, float] = field(default_factory=dict)
 
     def update(self, bad: dict[str, tuple[bool, str]], now: float) -> list[tuple[int, str]]:
@@ -116,12 +125,13 @@ class ConditionReporter:
             if told is None and not is_bad:
                 self._told[key] = False
                 continue
-            if told == is_bad or now - self._told_t.get(key, -math.inf) < self.min_gap_s:
-                continue
             cond = CONDITIONS[key]
+            same = told == is_bad and not (is_bad and cond.retell and detail != self._detail.get(key))
+            if same or now - self._told_t.get(key, -math.inf) < self.min_gap_s:
+                continue
             text = (cond.bad_text if is_bad else cond.good_text).format(detail)
             out.append((cond.bad_severity if is_bad else cond.good_severity, text[:50]))
-            self._told[key], self._told_t[key] = is_bad, now
+            self._told[key], self._told_t[key], self._detail[key] = is_bad, now, detail
         return out
 
 
@@ -211,7 +221,8 @@ class GroundStation:
     def health_bits(self, health: Health) -> int:
         keys = {f.key for f in health.faults}
         return ((HEALTH_CAMERA if "camera" in keys else 0) | (HEALTH_LINK if "link" in keys else 0)
-                | (HEALTH_STUCK if "pipeline" in keys else 0) | (HEALTH_SLOW if self.slow else 0))
+                | (HEALTH_STUCK if "pipeline" in keys else 0) | (HEALTH_SLOW if self.slow else 0)
+                | (HEALTH_FRAMES if "frames" in keys else 0))
 
     def update(self, health: Health, now: float) -> None:
         """The heartbeat's status from ``health``, and a STATUSTEXT for each condition that changed."""
@@ -220,10 +231,13 @@ class GroundStation:
             return
         faults = {f.key: f for f in health.faults}
         stuck = faults.get("pipeline")
+        camera, frames = faults.get("camera"), faults.get("frames")
         ms = self.frame_ms
         speed = "-" if math.isnan(ms) else f"{ms:.0f} ms/frame"
         state = {
-            "camera": ("camera" in faults, ""),
+            "camera": (camera is not None, "frozen" if camera is not None and "frozen" in camera.text else "lost"),
+            "frames": (frames is not None and not frames.standby, "" if frames is None else frames.text),
+            "ground": (frames is not None and frames.standby, "" if frames is None else frames.text),
             "link": ("link" in faults, ""),
             "pipeline": (stuck is not None, "" if stuck is None else stuck.text.removeprefix("pipeline stuck ")),
             "slow": (self.slow, f"{speed} > {self.frame_budget_ms:.0f} ms" if self.slow else speed),

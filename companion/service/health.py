@@ -1,8 +1,10 @@
 """Per-stage timings, frame counters and the health verdict the service logs and reports to systemd.
 
 :func:`assess` tells internal faults (the process is broken: stop feeding the watchdog, let
-systemd restart it) from external ones (camera, autopilot link: report them, keep feeding the
-watchdog, the service reconnects by itself); :class:`FaultLog` keeps the log lines about them few.
+systemd restart it) from external ones (camera, autopilot link, frames that cannot be decided
+with: report them, keep feeding the watchdog, the service recovers by itself); :class:`FaultLog`
+keeps the log lines about them few. Why frames cannot be used comes from
+:mod:`companion.service.frame_use`.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from collections import defaultdict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from companion.service.frame_use import NO_POSE, STALE_POSE, STANDBY_REASONS
 
 
 @dataclass
@@ -72,6 +76,7 @@ class Fault:
     key: str
     text: str
     internal: bool
+    standby: bool = False  # not a fault: the vehicle is where the companion cannot work (on the ground)
 
 
 @dataclass(frozen=True)
@@ -96,30 +101,43 @@ class Health:
         return not any(f.internal for f in self.faults)
 
     @property
+    def standby(self) -> bool:
+        """Only standby states hold (on the ground): nothing is wrong, but nothing is watched."""
+        return bool(self.faults) and all(f.standby for f in self.faults)
+
+    @property
     def reason(self) -> str:
         return "; ".join(f.text for f in self.faults) or "ok"
 
     def status(self, normal: str) -> str:
-        """The ``STATUS=`` line: ``normal`` when healthy, ``degraded: <external faults>; normal``
-        while only external faults hold, ``unhealthy: <faults>`` on an internal one."""
+        """The ``STATUS=`` line: ``normal`` when healthy, ``standby: <state>; normal`` on the
+        ground, ``degraded: <external faults>; normal`` while only external faults hold,
+        ``unhealthy: <faults>`` on an internal one."""
         if self.ok:
             return normal
+        if self.standby:
+            return f"standby: {self.reason}; {normal}"
         if self.feed_watchdog:
             return f"degraded: {self.reason}; {normal}"
         return f"unhealthy: {self.reason}"
 
 
 def assess(*, link_connected: bool, camera_delivering: bool, busy_s: float | None,
-           stuck_after_s: float = PIPELINE_STUCK_S) -> Health:
+           stuck_after_s: float = PIPELINE_STUCK_S, camera_frozen: bool = False,
+           frames: str | None = None) -> Health:
     """The health verdict from the service's state. busy_s: how long the pipeline call now
-    running has been running (None when idle). Internal faults first."""
+    running has been running (None when idle). camera_frozen: not delivering because every frame
+    is stale. frames: why the frames that arrive cannot be used (:class:`FrameUse`), or None; a
+    missing pose is not told again while the link is down (that is why). Internal faults first."""
     faults: list[Fault] = []
     if busy_s is not None and busy_s > stuck_after_s:
         faults.append(Fault("pipeline", f"pipeline stuck for {busy_s:.1f} s", internal=True))
     if not link_connected:
         faults.append(Fault("link", "no autopilot heartbeat", internal=False))
     if not camera_delivering:
-        faults.append(Fault("camera", "camera not delivering", internal=False))
+        faults.append(Fault("camera", "camera frozen" if camera_frozen else "camera not delivering", internal=False))
+    elif frames is not None and not (not link_connected and frames in (NO_POSE, STALE_POSE)):
+        faults.append(Fault("frames", frames, internal=False, standby=frames in STANDBY_REASONS))
     return Health(tuple(faults))
 
 
@@ -129,7 +147,7 @@ class FaultLog:
     or however often it comes and goes: a line when a fault begins and when it clears, a reminder
     every ``remind_s`` while it lasts, and for a fault that flaps, at most one begin line per
     ``min_gap_s`` (the flaps in between are counted and told with the next one). Internal faults
-    are errors, external ones warnings, recoveries info.
+    are errors, external ones warnings, standby states (on the ground) and recoveries info.
     """
 
     remind_s: float = 60.0
@@ -151,8 +169,9 @@ class FaultLog:
             if key not in self._since:
                 self._since[key] = now
                 self._flaps[key] = self._flaps.get(key, 0) + 1
-            level = logging.ERROR if fault.internal else logging.WARNING
+            level = logging.ERROR if fault.internal else logging.INFO if fault.standby else logging.WARNING
             kind = ("internal fault: watchdog no longer fed" if fault.internal
+                    else "standby: frames not used" if fault.standby
                     else "external fault: reported, watchdog still fed")
             last = self._told.get(key, -math.inf)
             if self._flaps.get(key) and now - last >= self.min_gap_s:

@@ -22,6 +22,13 @@ not: the vehicle does not fly to the zone, so the controller sees it coming down
 (LANDED "vehicle on the ground and disarmed", or a hold or takeover timeout handing back): every
 event of a shadow run is therefore marked shadow, in the STATUSTEXT ("SHADOW: ...") and in the
 recording.
+
+Stopping (``halt``): the service halts the runner before its exit handback, so that the handback is
+the last command the autopilot gets. A halted runner ticks no more, takes no trigger or frame, drops
+what is queued and cancels the command in flight (its retries with it: a DO_SET_MODE waiting for an
+ACK that never comes would otherwise be resent after the handback, and would hold the link's
+per-command lock the handback needs). PX4's setpoint stream is left running: the handback switches
+mode first and then stops it (stopping it first makes PX4 fire its offboard-loss action).
 """
 
 from __future__ import annotations
@@ -118,6 +125,9 @@ class LandingRunner:
         self.shadow = shadow
         self.withheld: list[Command] = []  # shadow mode: every command not sent, in order
         self._withheld_listeners: list[Callable[[Command], None]] = []
+        self.halted = False
+        self._worker: asyncio.Task[None] | None = None
+        self._speeds: asyncio.Task[None] | None = None
 
     def subscribe(self, listener: Callable[[Event], None]) -> None:
         """Call ``listener`` with every controller event, in order, as it is emitted (before its
@@ -131,30 +141,48 @@ class LandingRunner:
     # -- inputs from the service ---------------------------------------------------------------
 
     def on_trigger(self, trigger: Trigger) -> None:
+        if self.halted:
+            return
         self._submit(self.controller.on_trigger(trigger))
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
                  below: GroundBelow | None = None, view: SpotSource | None = None) -> None:
+        if self.halted:
+            return
         self._submit(self.controller.on_frame(t, tracks, pose, below, view))
 
     # -- loop ----------------------------------------------------------------------------------
 
     async def run(self) -> None:
         """Tick and execute until cancelled (stops the autopilot's setpoint stream on the way out)."""
-        worker = asyncio.create_task(self._execute_loop(), name="landing commands")
-        speeds = asyncio.create_task(self.read_autopilot_speeds(), name="autopilot speeds")
+        self._worker = asyncio.create_task(self._execute_loop(), name="landing commands")
+        self._speeds = asyncio.create_task(self.read_autopilot_speeds(), name="autopilot speeds")
         try:
             while True:
                 self.step()
                 await asyncio.sleep(1.0 / self.tick_hz)
         finally:
-            speeds.cancel()
+            await self._stop_tasks()
+            await self.autopilot.stop()
+
+    async def halt(self) -> None:
+        """Produce no command any more (see the module docstring): no tick, trigger or frame is
+        taken, the queue is dropped and the command in flight cancelled. Idempotent; the setpoint
+        stream, if any, is the caller's to stop (``autopilot.stop()``) after its handback."""
+        if not self.halted:
+            log.info("landing runner halted%s", f" ({len(self._pending)} queued command(s) dropped)"
+                     if self._pending else "")
+        self.halted = True
+        self._pending.clear()
+        await self._stop_tasks()
+
+    async def _stop_tasks(self) -> None:
+        for task in (self._speeds, self._worker):
             # Cancel until it is done: a cancellation racing with a command's completion must
             # not leave the worker alive (and this coroutine waiting for it forever).
-            while not worker.done():
-                worker.cancel()
-                await asyncio.wait({worker}, timeout=0.5)
-            await self.autopilot.stop()
+            while task is not None and not task.done():
+                task.cancel()
+                await asyncio.wait({task}, timeout=0.5)
 
     async def read_autopilot_speeds(self) -> None:
         """Ask the autopilot for its descent speeds (parameters) once; the controller keeps the
@@ -169,6 +197,8 @@ class LandingRunner:
 
     def step(self) -> None:
         """One tick: the latest vehicle status, then timeouts."""
+        if self.halted:
+            return
         now = self._clock()
         status = vehicle_status(self.state, self.autopilot, now)
         if status is not None:
@@ -176,6 +206,8 @@ class LandingRunner:
         self._submit(self.controller.tick(now))
 
     def _submit(self, commands: list[Command]) -> None:
+        if self.halted:  # a command result arriving as the worker is cancelled: nothing more goes out
+            commands = []
         for cmd in commands:
             if isinstance(cmd, Goto):
                 self._pending = [c for c in self._pending if not isinstance(c, Goto)]

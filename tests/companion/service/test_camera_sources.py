@@ -23,9 +23,13 @@ from companion.service.camera import (
 
 
 def _frame(i: int, w: int = 64, h: int = 48) -> np.ndarray:
-    """A frame whose content encodes ``i`` (a bright square moving across a gradient)."""
+    """A frame whose content encodes ``i`` (a bright square moving across a gradient), with read
+    noise of its own as a live sensor gives (without it, frames of a scene that changes only in a
+    small region are a frozen camera's: ``companion.service.freshness``)."""
     img = np.zeros((h, w, 3), np.uint8)
     img[:, :, 1] = np.linspace(0, 200, w, dtype=np.uint8)[None, :]
+    noise = np.random.default_rng(1000 + i).integers(0, 8, (h, w, 3), dtype=np.uint8)
+    img = cv2.add(img, noise)
     x = (i * 5) % (w - 8)
     img[10:18, x:x + 8] = 255
     img[0, 0] = (i, i, i)
@@ -146,6 +150,7 @@ class _MjpegServer:
 
     def __init__(self) -> None:
         self.connections = 0
+        self.sent = 0  # frames sent over all connections: a live camera's next one is new
         self.stop = threading.Event()
         self.stall_after = 5
         outer = self
@@ -167,7 +172,8 @@ class _MjpegServer:
                             outer.stop.wait(10)  # silent, connection open
                             return
                         data = b"garbage, not a JPEG" if (first and i == 2) else \
-                            cv2.imencode(".jpg", _frame(i))[1].tobytes()
+                            cv2.imencode(".jpg", _frame(outer.sent))[1].tobytes()
+                        outer.sent += 1
                         self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\n"
                                          + f"Content-Length: {len(data)}\r\n\r\n".encode() + data + b"\r\n")
                         self.wfile.flush()
@@ -226,10 +232,11 @@ def test_lost_camera_retries_with_backoff() -> None:
 
 def test_repeated_frames_are_counted_not_delivered(tmp_path: Path) -> None:
     one_pixel = _frame(2).copy()
-    one_pixel[3, 5] = (7, 7, 7)  # off the fingerprint's subsample grid: the full check decides
+    one_pixel[3, 5] = (7, 7, 7)  # off the digest's subsample grid: the full check decides
     # frame 1 repeated twice, frame 2 once (a frozen encoder repeating its buffer), then a frame
-    # that differs from frame 2 by a single pixel, which is fresh.
-    images = [_frame(0), _frame(1), _frame(1), _frame(1), _frame(2), _frame(2), one_pixel]
+    # that differs from frame 2 by a single pixel (no live sensor gives that: the history's
+    # verdict, stale), then frame 3.
+    images = [_frame(0), _frame(1), _frame(1), _frame(1), _frame(2), _frame(2), one_pixel, _frame(3)]
     for i, img in enumerate(images):
         cv2.imwrite(str(tmp_path / f"f{i:03d}.png"), img)
     cam = CameraSource(str(tmp_path), fps=200)
@@ -238,12 +245,12 @@ def test_repeated_frames_are_counted_not_delivered(tmp_path: Path) -> None:
     assert _wait_until(lambda: cam.ended, 5)
     cam.stop()
     assert [f.index for f in got] == [0, 1, 2, 3]
-    for f, img in zip(got, [_frame(0), _frame(1), _frame(2), one_pixel]):
+    for f, img in zip(got, [_frame(0), _frame(1), _frame(2), _frame(3)]):
         assert np.array_equal(f.image, img)
     assert cam.stats.frames == 4
-    assert cam.stats.repeated == 3
+    assert cam.stats.repeated == 4 and cam.stats.stale == 1
     last = cam.take()
-    assert last is not None and np.array_equal(last.image, one_pixel)
+    assert last is not None and np.array_equal(last.image, _frame(3))
 
 
 class _ScriptedMjpegServer:

@@ -114,6 +114,24 @@ def test_a_flapping_camera_is_told_at_most_once_per_gap_and_its_last_state_alway
     assert ConditionReporter().update({"camera": (False, "")}, 0.0) == []
 
 
+def test_a_new_reason_while_bad_is_told_where_the_condition_says_so():
+    """Lost then frozen, no pose then stale pose: each is told (no sooner than the gap); the model's
+    speed, whose detail is a number that changes every frame, is not told again for it."""
+    from companion.service.gcs import ConditionReporter
+
+    rep = ConditionReporter(min_gap_s=5.0)
+    assert rep.update({"camera": (True, "lost")}, 0.0) == [(m.MAV_SEVERITY_ERROR, "SLZ: camera lost: no landing zones")]
+    assert rep.update({"camera": (True, "frozen")}, 1.0) == []  # within the gap
+    assert rep.update({"camera": (True, "frozen")}, 6.0) == [(m.MAV_SEVERITY_ERROR, "SLZ: camera frozen: no landing zones")]
+    assert rep.update({"camera": (True, "frozen")}, 20.0) == []
+    told = rep.update({"frames": (True, "no pose")}, 0.0) + rep.update({"frames": (True, "stale pose")}, 5.0)
+    assert [t for _, t in told] == ["SLZ: frames not used: no pose", "SLZ: frames not used: stale pose"]
+    assert rep.update({"ground": (True, "on the ground")}, 0.0) == [(m.MAV_SEVERITY_NOTICE, "SLZ: standby, on the ground")]
+    assert rep.update({"ground": (False, "")}, 9.0) == [(m.MAV_SEVERITY_NOTICE, "SLZ: airborne, frames used")]
+    assert rep.update({"slow": (True, "200 ms/frame > 100 ms")}, 0.0) != []
+    assert rep.update({"slow": (True, "210 ms/frame > 100 ms")}, 10.0) == []
+
+
 def test_every_condition_text_fits_one_statustext():
     for cond in CONDITIONS.values():
         for text in (cond.bad_text, cond.good_text):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 
+from companion.service.frame_use import FrameUse
 from companion.service.health import PIPELINE_STUCK_S, FaultLog, Health, assess
 
 
@@ -80,3 +81,54 @@ def test_fault_log_a_flapping_fault_makes_few_lines_and_none_are_lost() -> None:
         heard += fl.update(down, t)
         t += 0.25
     assert any(line.startswith("camera not delivering") for _, line in heard), heard
+
+
+def test_frames_that_cannot_be_used_are_a_state_with_its_name() -> None:
+    """No pose, a stale pose, below the head plane: external, reported, never "ok"; on the ground
+    (or under the head plane) it is standby, not a fault; a missing pose is not told again while
+    the link is down (that says why), nor any frame state while the camera itself is the fault."""
+    for reason in ("no pose", "stale pose", "frames unusable"):
+        h = _ok(frames=reason)
+        assert not h.ok and h.feed_watchdog and not h.standby and h.reason == reason
+        assert h.status("MONITOR: no zone") == f"degraded: {reason}; MONITOR: no zone"
+    for reason in ("on the ground", "below the head plane"):
+        h = _ok(frames=reason)
+        assert not h.ok and h.standby and h.status("MONITOR: no zone") == f"standby: {reason}; MONITOR: no zone"
+    assert _ok(frames="stale pose", link_connected=False).reason == "no autopilot heartbeat"
+    assert _ok(frames="on the ground", camera_delivering=False).reason == "camera not delivering"
+    assert _ok(camera_delivering=False, camera_frozen=True).reason == "camera frozen"
+
+
+def test_frame_use_holds_a_moment_each_way_and_names_the_common_reason() -> None:
+    fu = FrameUse(bad_after_s=1.0, good_after_s=1.0, expire_s=3.0)
+    t = 0.0
+    for _ in range(10):  # used at 10 Hz
+        fu.used(t)
+        t += 0.1
+    assert fu.state(t) is None
+    for _ in range(9):  # refused for 0.9 s: not yet
+        fu.refused("stale pose", t)
+        assert fu.state(t) is None
+        t += 0.1
+    fu.refused("no pose", t)
+    fu.refused("stale pose", t)
+    assert fu.state(t + 0.15) == "stale pose"  # 1 s of refusals; the most common reason
+    # Every other frame used: it does not flap back to ok.
+    for i in range(20):
+        (fu.used if i % 2 else lambda now: fu.refused("stale pose", now))(t)
+        assert fu.state(t) == "stale pose"
+        t += 0.1
+    for _ in range(10):  # used for 1 s: ok again
+        fu.used(t)
+        t += 0.1
+    assert fu.state(t) is None
+    # One refusal among used frames does not make it bad.
+    fu.refused("on the ground", t)
+    fu.used(t + 0.1)
+    assert fu.state(t + 1.5) is None
+    # No frame at all for expire_s: unknown (the camera's own fault tells it), not a stale reason.
+    for _ in range(12):
+        fu.refused("on the ground", t)
+        t += 0.1
+    assert fu.state(t) == "on the ground"
+    assert fu.state(t + 3.5) is None

@@ -306,7 +306,7 @@ def test_px4_with_200_ms_of_link_latency_lands_clear_instead_of_handing_back(mod
     # simulated clock) handed back ("vehicle moving away from its target") when a hold reached a
     # vehicle still speeding toward a lost zone: the obedience monitor judged it from a status
     # 0.4 s older than the moment the vehicle heard the hold. Without latency the seed lands
-    # (4.9 m clear); with the fix it lands so with latency too (4.9 m, measured in sim-scenarios).
+    # (4.9 m clear); with the fix it lands clear with latency too (5.7 m, measured in sim-scenarios).
     spec = FlightJob(8, "px4", lockstep=True, link_latency=0.2, threads=1).spec()  # as sim-scenarios flew it
     assert spec.latency_ms == pytest.approx(200.0)
     r = fly_in_process(spec)

@@ -13,9 +13,16 @@ The rule, in world NED metres from home (altitudes above home), per axis:
   target behind it or below a climb is approached after an overshoot). The least such error since
   the target was set is the best the vehicle has shown it can do.
 - When the target moves by ``d`` metres, that best error may grow by at most ``d`` (triangle
-  inequality), and is at most the error the vehicle's stopping point has now. So targets that
-  creep with a zone's filtered centre never look like disobedience, while a vehicle drifting away
-  from a target re-sent every second still adds up.
+  inequality), and is at most the error the vehicle's stopping point has once it has heard the
+  target. So targets that creep with a zone's filtered centre never look like disobedience, while
+  a vehicle drifting away from a target re-sent every second still adds up.
+- A target is heard the status's age plus the link's one-way latency after it was sent. Until
+  then the vehicle flies the last target it heard, and may still speed up toward it: its samples
+  lower the best error only by their error to that target plus the distance between the two
+  targets (the triangle again). With 200 ms of latency each way, a hold sent while the vehicle
+  sped toward a zone otherwise took the best from a sample 0.4 s before the vehicle heard it, and
+  the overshoot that followed read as moving away: a handback, and the autopilot's LAND wherever
+  the vehicle was.
 - The vehicle disobeys when that error, now, exceeds the best by more than the tolerance:
   ``tolerance_z_m`` vertically (climbing while told to hold or descend, or sinking below the
   target), ``tolerance_xy_m`` horizontally (moving away from the target).
@@ -29,6 +36,7 @@ controller knows, and ``check`` returns the reason to hand back, or None.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 from companion.control.vehicle import VehicleStatus
@@ -81,6 +89,9 @@ class ObedienceMonitor:
         self._best_z = math.inf
         self._progress_t = math.nan  # when the vehicle last got closer (or was there)
         self._progress_best = (math.inf, math.inf)
+        self._heard: tuple[float, float, float] | None = None  # the last target the vehicle heard
+        #: Targets sent and not heard yet: (sample time from which the vehicle has it, target).
+        self._unheard: deque[tuple[float, tuple[float, float, float]]] = deque()
 
     def disengage(self) -> None:
         """The autopilot flies by itself (its LAND, a mode change): nothing to judge."""
@@ -91,9 +102,9 @@ class ObedienceMonitor:
         """A new position target was commanded (metres; alt above home); ``now`` the vehicle then.
 
         ``unheard_s``: how long the vehicle goes on with its old target before it can act on this
-        one (the age of ``now`` plus the link's one-way latency, s). It keeps its velocity that
-        long, so the best error it can reach grows by its speed times that: with 200 ms of link
-        latency a vehicle re-targeted mid-flight otherwise looked like one moving away.
+        one (the age of ``now`` plus the link's one-way latency, s): samples taken before
+        ``now.t + unheard_s`` are judged as the module docstring says. Without a sample time
+        (``now.t`` NaN), ``now`` carried on at its velocity for ``unheard_s`` bounds the best.
         """
         if self._target is not None:
             n0, e0, a0 = self._target
@@ -103,7 +114,10 @@ class ObedienceMonitor:
             if max(abs(alt - a0), math.hypot(north - n0, east - e0)) >= self.config.progress_m:
                 self._progress_t = math.nan  # a new target: a new chance to make progress
         self._target = (north, east, alt)
-        if now is not None and self.engaged:
+        if now is not None and self.engaged and math.isfinite(now.t) and math.isfinite(unheard_s):
+            self._unheard.append((now.t + max(0.0, unheard_s), self._target))
+            self._update_best(now)  # as far as what it heard says (``_update_best``)
+        elif now is not None and self.engaged:
             self._update_best(now)  # and is at most what the vehicle can reach from where it is
             if math.isfinite(unheard_s) and unheard_s > 0:
                 speed_xy = math.hypot(now.vn, now.ve)
@@ -116,6 +130,7 @@ class ObedienceMonitor:
         self.engaged = True
         self._best_xy = self._best_z = math.inf
         self._progress_t = math.nan
+        self._heard, self._unheard = self._target, deque()  # in its mode now: it flies this target
         self._update_best(s)
 
     def watch(self, s: Sample, ours: bool) -> str | None:
@@ -150,6 +165,8 @@ class ObedienceMonitor:
             why = (f"vehicle moving away from its target: {math.hypot(s.north - n, s.east - e):.1f} m "
                    f"off and heading {err_xy:.1f} m off, had been heading within {self._best_xy:.1f} m")
         self._update_best(s)
+        if self._unheard:
+            return why  # still flying an older target: no progress to judge toward this one
         return why or self._stalled(s, err_z, err_xy)
 
     def _stalled(self, s: Sample, err_z: float, err_xy: float) -> str | None:
@@ -170,13 +187,13 @@ class ObedienceMonitor:
         return (f"vehicle not reaching its target: {s.alt - alt:+.1f} m vertically and "
                 f"{math.hypot(s.north - n, s.east - e):.1f} m horizontally off for {c.stall_s:g} s")
 
-    def _stop_errors(self, s: Sample) -> tuple[float, float]:
-        """(vertical, horizontal) error of the point where the vehicle would stop if it braked now:
-        ``v|v| / 2a`` further along each axis. Actual and best errors are always compared through
-        this same estimate, so a vehicle speeding up toward its target never looks like one
-        falling behind."""
+    def _stop_errors(self, s: Sample, target: tuple[float, float, float] | None = None) -> tuple[float, float]:
+        """(vertical, horizontal) error of the point where the vehicle would stop if it braked now
+        (``v|v| / 2a`` further along each axis) from ``target`` (the present one when None).
+        Actual and best errors are always compared through this same estimate, so a vehicle
+        speeding up toward its target never looks like one falling behind."""
         assert self._target is not None
-        n, e, alt = self._target
+        n, e, alt = self._target if target is None else target
         a = self.config.brake_accel_mss
         stop_n = s.north + s.vn * abs(s.vn) / (2 * a)
         stop_e = s.east + s.ve * abs(s.ve) / (2 * a)
@@ -184,8 +201,20 @@ class ObedienceMonitor:
         return stop_alt - alt, math.hypot(stop_n - n, stop_e - e)
 
     def _update_best(self, s: Sample) -> None:
+        """Lower the best errors by what sample ``s`` shows the vehicle can reach: its stopping
+        point's error, or, before it has heard the present target, its error to the target it
+        heard last plus the distance between the two (the module docstring)."""
         if self._target is None:
             return
+        t = s.t if math.isfinite(s.t) else math.inf
+        while self._unheard and self._unheard[0][0] <= t:
+            self._heard = self._unheard.popleft()[1]
         err_z, err_xy = self._stop_errors(s)
+        if self._unheard:
+            if self._heard is None:
+                return  # nothing heard since it was engaged: nothing it does bounds these targets
+            (n0, e0, a0), (n, e, alt) = self._heard, self._target
+            heard_z, heard_xy = self._stop_errors(s, self._heard)
+            err_z, err_xy = abs(heard_z) + abs(alt - a0), heard_xy + math.hypot(n - n0, e - e0)
         self._best_xy = min(self._best_xy, err_xy)
         self._best_z = min(self._best_z, abs(err_z))

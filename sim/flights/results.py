@@ -311,9 +311,10 @@ class Apart:
 
 def flown_apart(row: dict[str, Any]) -> list[Apart]:
     """How a row was flown apart from the scenarios' own, in key order: the LAND speed, the
-    crossing window, the watch before the failsafe, and a lockstep flight's clock start when
+    crossing window, the watch before the failsafe, a lockstep flight's clock start when
     it is not :data:`LOCKSTEP_CLOCK_START_S` (``unknown`` for a lockstep row written before the
-    start was fixed). The one walk of those fields for keys and for comparisons."""
+    start was fixed), and the link latency added each way (``link_latency_s``, ``--link-latency``).
+    The one walk of those fields for keys and for comparisons."""
     out: list[Apart] = []
     land = other_land_speed(row)
     if land is not None:
@@ -327,6 +328,9 @@ def flown_apart(row: dict[str, Any]) -> list[Apart]:
     clock = other_clock_start(row)
     if clock is not None:
         out.append(Apart("clock", "clock_start_s", clock if isinstance(clock, str) else _exact(clock)))
+    latency = row.get("link_latency_s")
+    if latency:  # rows flown without added latency have no such field
+        out.append(Apart("latency", "link_latency_s", _exact(float(latency))))
     return out
 
 

@@ -191,6 +191,9 @@ MAX_WATCH_S = 600.0
 MIN_CLOCK_START_S = 1.0
 MAX_CLOCK_START_S = 1.0e7
 
+#: ``--link-latency`` bound (s, one way): a link slower than this is no link to land by.
+MAX_LINK_LATENCY_S = 5.0
+
 #: The share of free-area seeds whose free circle walkers cross during the descent (``crossing``).
 CROSSING_SHARE = 1 / 3
 #: The share of dense-crowd seeds with one free circle out of the first view (``dense_beyond``).
@@ -238,6 +241,9 @@ class FlightJob:
     #: Where a lockstep flight's simulated clock starts (s, ``--clock-start``; None: the fixed
     #: ``sim.flights.results.LOCKSTEP_CLOCK_START_S``); part of its key when it is another.
     clock_start: float | None = None
+    #: One-way MAVLink latency added each way from the moment the service is ready (s,
+    #: ``--link-latency``; None: none); part of its key when it is set.
+    link_latency: float | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
@@ -249,6 +255,8 @@ class FlightJob:
             spec = dataclasses.replace(spec, crossing_window=self.crossing_window)
         if self.watch_s is not None:
             spec = dataclasses.replace(spec, watch_s=self.watch_s)
+        if self.link_latency is not None:
+            spec = dataclasses.replace(spec, latency_ms=self.link_latency * 1000.0)
         if self.overrides:
             spec = dataclasses.replace(spec, **dict(self.overrides))
         if self.service_set:
@@ -280,7 +288,8 @@ class FlightJob:
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
                         "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
-                        "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None})
+                        "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None,
+                        **link_latency_field(spec)})
 
 
 def _cpu_s() -> float:
@@ -306,7 +315,14 @@ def fly_seed(job: FlightJob) -> dict[str, Any]:
                host=socket.gethostname(), model_threads=job.model_threads(), settings=list(job.service_set),
                land_speed=spec.land_speed, crossing_window=list(spec.crossing_window), watch_s=spec.watch_s,
                clock_start_s=spec.clock_start_s if spec.lockstep else None, software=software())
+    row.update(link_latency_field(spec))
     return row
+
+
+def link_latency_field(spec: FlightSpec) -> dict[str, float]:
+    """``{"link_latency_s": S}`` for a flight flown with link latency (one way, each way, s), else
+    nothing: rows flown without any keep exactly the fields they always had."""
+    return {"link_latency_s": spec.latency_ms / 1000.0} if spec.latency_ms > 0 else {}
 
 
 #: The machine check times the pipeline alone; a flight runs the simulator and the service's
@@ -512,6 +528,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              f"failsafe ({MIN_WATCH_S:g}-{MAX_WATCH_S:g}; default {SCENARIO_WATCH_S:g}): what its "
                              f"risk map has seen by then; a service that ran the whole flight has seen "
                              f"more than the default's few seconds; recorded in each row")
+    parser.add_argument("--link-latency", type=float, default=None, metavar="S",
+                        help=f"one-way MAVLink latency added each way (s, 0-{MAX_LINK_LATENCY_S:g}) from the "
+                             "moment the service is ready; with --lockstep it runs on the simulated "
+                             "clock, so a seed flown with and without it pairs in sim-compare; "
+                             "recorded in each row")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -584,11 +605,16 @@ def run(args: argparse.Namespace) -> int:
         print("companion sim-scenarios: --clock-start needs --lockstep (a real-time flight's clock is the "
               "machine's)", file=sys.stderr)
         return 2
+    latency = args.link_latency
+    if latency is not None and not (math.isfinite(latency) and 0.0 <= latency <= MAX_LINK_LATENCY_S):
+        print(f"companion sim-scenarios: --link-latency must be 0-{MAX_LINK_LATENCY_S:g} s, not {latency:g}",
+              file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
                       land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch,
-                      clock_start=start)
+                      clock_start=start, link_latency=latency or None)
             for start in starts for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

@@ -143,6 +143,10 @@ def test_the_settings_line_names_a_land_speed_other_than_the_scenarios() -> None
     c = compare(before, watched)
     assert c.pairs == 2 and c.settings_after == [["watch_s=30"]]
     assert compare(before, [{**_row(s, "safe"), "watch_s": 4.0} for s in (1, 2)]).settings_after == [[]]
+    # Link latency added each way (--link-latency) is named: the same seeds with and without it pair.
+    lagged = [{**_row(s, "safe"), "link_latency_s": 0.2} for s in (1, 2)]
+    c = compare(before, lagged)
+    assert c.pairs == 2 and c.settings_after == [["link_latency_s=0.2"]]
 
 
 def test_the_last_metres_are_paired_where_both_rows_carry_them() -> None:

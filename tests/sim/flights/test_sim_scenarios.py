@@ -352,6 +352,50 @@ def test_a_longer_watch_is_flown_and_keeps_its_rows_apart(tmp_path, monkeypatch,
     assert main(args) == 0 and flown == []  # resumed
 
 
+def test_link_latency_is_flown_recorded_and_keeps_its_rows_apart(tmp_path, monkeypatch, capsys):
+    # `--link-latency 0.2` flies every seed with 200 ms added each way (on the simulated clock in
+    # lockstep), records it in the row and keys it apart, so the same seed with and without it
+    # pairs in sim-compare; without it (or at 0) the rows keep exactly the fields they had.
+    job = FlightJob(3, "px4", lockstep=True, link_latency=0.2)
+    assert job.spec().latency_ms == pytest.approx(200.0) and FlightJob(3, "px4").spec().latency_ms == 0.0
+    assert job.key() == (3, "px4", "latency:0.2", "lockstep")
+    assert FlightJob(3, "px4", lockstep=True).key() == (3, "px4", "lockstep")
+    assert scenarios.link_latency_field(job.spec()) == {"link_latency_s": pytest.approx(0.2)}
+    assert scenarios.link_latency_field(FlightJob(3, "px4").spec()) == {}
+
+    out = tmp_path / "results.jsonl"
+    with ResultsFile(out) as f:
+        f.append(_row(1, "safe"))  # flown without latency: not this experiment's
+    flown: list[float] = []
+
+    def fake(j: FlightJob) -> dict[str, Any]:
+        flown.append(j.spec().latency_ms)
+        return {**_row(j.seed, "safe"), **scenarios.link_latency_field(j.spec())}
+
+    monkeypatch.setattr(scenarios, "fly_seed", fake)
+    from companion.cli import main
+
+    args = ["sim-scenarios", "--seeds", "1-2", "--flavour", "ardupilot", "--workers", "1", "--no-progress",
+            "--no-machine-check", "--json", "--link-latency", "0.2", "--out", str(out)]
+    assert main(args) == 0 and flown == [200.0, 200.0]
+    s = json.loads(capsys.readouterr().out)
+    assert [(r["seed"], r["link_latency_s"]) for r in s["flights"]] == [(1, 0.2), (2, 0.2)]
+    flown.clear()
+    assert main(args) == 0 and flown == []  # resumed
+    assert main([*args[:-4], "--link-latency", "0", "--out", str(tmp_path / "none.jsonl")]) == 0
+    assert flown == [0.0, 0.0]  # 0 is no latency: the rows of a flight without the option
+    assert "link_latency_s" not in read_rows(tmp_path / "none.jsonl")[0][0]
+
+
+@pytest.mark.parametrize("value", ["-0.1", "nan", "inf", "5.5"])
+def test_a_bad_link_latency_is_exit_2_before_anything_flies(value, monkeypatch, capsys):
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--link-latency", value]) == 2
+    assert "--link-latency must be 0-5 s" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("value", ["0", "0.5", "-1", "nan", "inf", "601"])
 def test_a_bad_watch_is_exit_2_before_anything_flies(value, monkeypatch, capsys):
     from companion.cli import main

@@ -122,6 +122,7 @@ from sim.flights.results import (
     summarise_rows,
     summary_text,
 )
+from sim.flights.spec import camera_name, parse_camera
 from sim.flights.spec import service_settings as flight_settings
 
 
@@ -238,6 +239,9 @@ class FlightJob:
     #: Where a lockstep flight's simulated clock starts (s, ``--clock-start``; None: the fixed
     #: ``sim.flights.results.LOCKSTEP_CLOCK_START_S``); part of its key when it is another.
     clock_start: float | None = None
+    #: The camera (``--camera``: lens model and horizontal field of view in degrees) of the simulator
+    #: and the service as one (None: the scenarios' own, pinhole:70); part of its key when it is another.
+    camera: tuple[str, float] | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
@@ -249,6 +253,8 @@ class FlightJob:
             spec = dataclasses.replace(spec, crossing_window=self.crossing_window)
         if self.watch_s is not None:
             spec = dataclasses.replace(spec, watch_s=self.watch_s)
+        if self.camera is not None:
+            spec = dataclasses.replace(spec, camera_model=self.camera[0], hfov_deg=self.camera[1])
         if self.overrides:
             spec = dataclasses.replace(spec, **dict(self.overrides))
         if self.service_set:
@@ -280,7 +286,8 @@ class FlightJob:
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
                         "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
-                        "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None})
+                        "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None,
+                        "camera": camera_name(spec)})
 
 
 def _cpu_s() -> float:
@@ -512,6 +519,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              f"failsafe ({MIN_WATCH_S:g}-{MAX_WATCH_S:g}; default {SCENARIO_WATCH_S:g}): what its "
                              f"risk map has seen by then; a service that ran the whole flight has seen "
                              f"more than the default's few seconds; recorded in each row")
+    parser.add_argument("--camera", default=None, metavar="MODEL:HFOV",
+                        help="the camera of the simulator and of the service as one: lens model "
+                             "(pinhole or fisheye) and horizontal field of view in degrees, e.g. "
+                             "pinhole:110 or fisheye:160 (default pinhole:70, the scenarios' own); "
+                             "recorded in each row when it is another")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -584,11 +596,16 @@ def run(args: argparse.Namespace) -> int:
         print("companion sim-scenarios: --clock-start needs --lockstep (a real-time flight's clock is the "
               "machine's)", file=sys.stderr)
         return 2
+    try:
+        camera = None if args.camera is None else parse_camera(args.camera)
+    except ValueError as exc:
+        print(f"companion sim-scenarios: --camera: {exc}", file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
                       land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch,
-                      clock_start=start)
+                      clock_start=start, camera=camera)
             for start in starts for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

@@ -252,6 +252,47 @@ class LensView:
                              np.full(len(p), self.plane_z - self.position[2])])
         return self.intrinsics.project(d @ self.R_cv_from_world.T)
 
+    def seen_to_image(self, xy: np.ndarray) -> np.ndarray:
+        """``plane_to_image``, NaN also where the ray is wider than ``lens.TRUSTED_THETA`` from the
+        axis: where the ground counts as seen (the grid's view), people being found there."""
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        d = np.column_stack([p[:, 0] - self.position[0], p[:, 1] - self.position[1],
+                             np.full(len(p), self.plane_z - self.position[2])])
+        xc = d @ self.R_cv_from_world.T
+        uv = self.intrinsics.project(xc)
+        with np.errstate(invalid="ignore"):
+            wide = np.arctan2(np.hypot(xc[:, 0], xc[:, 1]), xc[:, 2]) > lens.TRUSTED_THETA
+        uv[wide] = np.nan
+        return uv
+
+    def seen_boundary(self, n: int = 32) -> np.ndarray:
+        """Plane points (M, 2) around the edge of the ground counted as seen: the image border
+        (``4 n`` pixels) within ``lens.TRUSTED_THETA``, and the trusted cone's edge (``4 n`` rays)
+        within the image. A row is NaN where that edge's ray misses the plane (above the horizon):
+        the seen ground is then unbounded."""
+        w, h = self.intrinsics.width, self.intrinsics.height
+        s = np.linspace(0.0, 1.0, n, endpoint=False)
+        border = np.concatenate([np.column_stack([s * (w - 1), np.zeros(n)]),
+                                 np.column_stack([np.full(n, w - 1.0), s * (h - 1)]),
+                                 np.column_stack([(1 - s) * (w - 1), np.full(n, h - 1.0)]),
+                                 np.column_stack([np.zeros(n), (1 - s) * (h - 1)])])
+        rays = self.intrinsics.unproject(border)
+        with np.errstate(invalid="ignore"):
+            rays = rays[rays[:, 2] >= math.cos(lens.TRUSTED_THETA) - 1e-12]
+        phi = np.linspace(0.0, 2 * math.pi, 4 * n, endpoint=False)
+        st, ct = math.sin(lens.TRUSTED_THETA), math.cos(lens.TRUSTED_THETA)
+        cone = np.column_stack([st * np.cos(phi), st * np.sin(phi), np.full(len(phi), ct)])
+        uv = self.intrinsics.project(cone)
+        with np.errstate(invalid="ignore"):
+            inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        d = np.concatenate([rays, cone[inside]]) @ self.R_cv_from_world  # world NED directions
+        drop = self.plane_z - self.position[2]
+        out = np.full((len(d), 2), np.nan)
+        down = d[:, 2] > 1e-9
+        out[down, 0] = self.position[0] + drop / d[down, 2] * d[down, 0]
+        out[down, 1] = self.position[1] + drop / d[down, 2] * d[down, 1]
+        return out
+
     def image_to_plane(self, uv: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 2) plane metres; NaN for pixels whose rays point at or above the
         horizon (or that the lens does not see): they never meet the plane."""

@@ -20,8 +20,13 @@ import cv2
 import numpy as np
 
 MODELS = ("pinhole", "fisheye")
-#: Widest ray (rad from the optical axis) any lens is trusted to see: a 200-degree diagonal view.
+#: Widest ray (rad from the optical axis) any lens is written for: a 200-degree diagonal view.
 MAX_THETA = math.radians(100.0)
+#: Widest ray (rad from the optical axis) along which ground counts as seen (free when nobody is
+#: found there): the shipped model found at least 99.5 % of the people rendered through a
+#: fisheye:160 in every 10-degree bin out to 70 degrees, and 98.5 % at 70-80 (sim.evidence.lens_recall,
+#: docs/measurements.md session 26). Beyond it people are still placed, but the ground is unseen.
+TRUSTED_THETA = math.radians(70.0)
 
 
 @functools.lru_cache(maxsize=16)

@@ -62,9 +62,11 @@ def _footprint_bounds(proj: PlaneProjection, image_hw: tuple[int, int], params: 
     h, w = image_hw
     corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=float)
     if proj.lens is not None:
-        # Through a fisheye the image's straight edges are curves on the plane: walk the border.
-        corners = _border(w, h, 32)
-    pts = proj.image_to_plane(corners)
+        # Through a fisheye the image's straight edges are curves on the plane, and the ground
+        # seen ends at the trusted cone: walk the edge of what counts as seen.
+        pts = proj.lens.seen_boundary()
+    else:
+        pts = proj.image_to_plane(corners)
     ok = np.isfinite(pts).all(axis=1)
     if proj.camera_xy is not None:
         cx, cy = proj.camera_xy
@@ -89,16 +91,6 @@ def _footprint_bounds(proj: PlaneProjection, image_hw: tuple[int, int], params: 
     span = 2 * params.max_extent
     xmax, ymax = min(xmax, xmin + span), min(ymax, ymin + span)
     return xmin, ymin, xmax, ymax
-
-
-def _border(w: int, h: int, n: int) -> np.ndarray:
-    """``4 n`` pixels along the image border, corners included."""
-    s = np.linspace(0.0, 1.0, n, endpoint=False)
-    top = np.column_stack([s * (w - 1), np.zeros(n)])
-    right = np.column_stack([np.full(n, w - 1.0), s * (h - 1)])
-    bottom = np.column_stack([(1 - s) * (w - 1), np.full(n, h - 1.0)])
-    left = np.column_stack([np.zeros(n), (1 - s) * (h - 1)])
-    return np.concatenate([top, right, bottom, left])
 
 
 def grid_for_view(proj: PlaneProjection, image_hw: tuple[int, int], params: GridParams) -> GridSpec:
@@ -205,14 +197,16 @@ LENS_STEP = 4
 
 def lens_maps(proj: PlaneProjection, grid: GridSpec) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.remap`` maps (float32, grid-shaped) giving each cell's pixel through the lens; cells the
-    lens does not see (or next to one, where interpolation would mix a seen and an unseen cell)
+    lens does not see or is not trusted on (``LensView.seen_to_image``; or next to one, where interpolation would mix a seen and an unseen cell)
     get -1, outside every image."""
     s = LENS_STEP
     rows = np.arange(0, grid.rows + s, s, dtype=float)
     cols = np.arange(0, grid.cols + s, s, dtype=float)
     cc, rr = np.meshgrid(cols, rows)
     x, y = grid.to_plane(rr.ravel(), cc.ravel())
-    uv = proj.plane_to_image(np.column_stack([x, y])).reshape(len(rows), len(cols), 2)
+    assert proj.lens is not None
+    # Only ground along rays the model is trusted on counts as seen (lens.TRUSTED_THETA).
+    uv = proj.lens.seen_to_image(np.column_stack([x, y])).reshape(len(rows), len(cols), 2)
     ok = np.isfinite(uv).all(axis=2).astype(np.uint8)
     ok = cv2.erode(ok, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
     uv = np.where(np.isfinite(uv), uv, -1e4).astype(np.float32)

@@ -215,3 +215,23 @@ def test_check_config_exits_2_on_a_bad_or_missing_calibration(tmp_path: Path, ca
     assert "must stay unset" in capsys.readouterr().err
     f.write_text('[camera]\nmodel = "fisheye"\ncalibration = "good.yaml"\n')
     assert companion_main(["check-config", str(f)]) == 0
+
+
+def test_ground_wider_than_the_trusted_angle_is_unseen_though_people_there_are_placed() -> None:
+    # The shipped model's recall holds out to lens.TRUSTED_THETA (70 deg) from the axis; beyond,
+    # the ground is unseen (never free), but a person found there is still on the plane.
+    from companion.geometry.lens import TRUSTED_THETA
+
+    K = Intrinsics.from_fov(640, 480, 160.0, "fisheye")
+    proj = PlaneProjection.from_pose(K, Mount(), Pose(0.0, 0.0, 0.0, -11.7, 0.0, 0.0, 0.0), 1.7)
+    grid = grid_for_view(proj, (480, 640), GridParams())
+    _out, view = sample_with_view(np.full((480, 640), 255, np.uint8), proj, grid)
+    limit = 10.0 * math.tan(TRUSTED_THETA)  # 27.5 m out on the head plane, 10 m below the camera
+    jj, ii = np.meshgrid(np.arange(grid.cols), np.arange(grid.rows))
+    x, y = grid.to_plane(ii, jj)
+    # Across the image (east) the cone ends the view; along it (north) the image's own edge at 60 deg.
+    across = np.abs(x) < 0.5
+    assert view[across & (np.abs(y) < limit - 1.0)].all() and not view[np.hypot(x, y) > limit + 0.5].any()
+    assert grid.y0 > -limit - 1.0  # the grid ends where the trusted ground does
+    far = proj.image_to_plane(proj.plane_to_image(np.array([[0.0, limit + 5.0]])))
+    assert far[0] == pytest.approx([0.0, limit + 5.0], abs=1e-6)

@@ -26,7 +26,8 @@ from companion.control.landing import LandingConfig, person_trust_height
 from companion.control.obedience import ObedienceConfig
 from companion.control.planner import PlannerConfig
 from companion.control.touchdown import DescentProfile
-from companion.geometry.camera import Intrinsics, Mount
+from companion.geometry import calibration
+from companion.geometry.camera import GeometryError, Intrinsics, Mount
 from companion.invariant import FieldError
 from companion.mavlink.clock import MAX_TELEMETRY_LAG_S, AutopilotClock
 from companion.mavlink.failsafe import FailsafeConfig
@@ -99,14 +100,48 @@ def threshold_setting(cfg: Config) -> float | None:
 
 
 def intrinsics(cfg: Config) -> Intrinsics:
-    """Pinhole intrinsics (``geometry.camera.Intrinsics``) for ``camera.width x camera.height``."""
+    """The camera (``geometry.camera.Intrinsics``: matrix, lens model and distortion) for
+    ``camera.width x camera.height``: from ``camera.calibration`` when set (the file is read and
+    checked here: ConfigError naming the key), else from the fx..distortion keys or hfov_deg."""
     c = cfg.camera
-    base = Intrinsics.from_fov(c.width, c.height, c.hfov_deg)
+    if c.calibration:
+        return _calibrated(cfg)
+    base = Intrinsics.from_fov(c.width, c.height, c.hfov_deg, c.model)
     fx = c.fx or base.fx
     fy = c.fy or fx
     cx = base.cx if c.cx < 0 else c.cx
     cy = base.cy if c.cy < 0 else c.cy
-    return Intrinsics(fx, fy, cx, cy, c.width, c.height, tuple(c.distortion))
+    try:
+        return Intrinsics(fx, fy, cx, cy, c.width, c.height, tuple(c.distortion), c.model)
+    except GeometryError as exc:
+        raise ConfigError(f"camera.distortion: {exc}") from None
+
+
+def _calibrated(cfg: Config) -> Intrinsics:
+    c = cfg.camera
+    key = f"camera.calibration {c.calibration}"
+    if c.fx or c.fy or c.cx >= 0 or c.cy >= 0 or c.distortion:
+        raise ConfigError(f"{key}: camera.fx, fy, cx, cy and distortion must stay unset with a calibration "
+                          "file (it holds them)")
+    try:
+        cal = calibration.load(c.calibration)
+    except calibration.CalibrationError as exc:
+        raise ConfigError(f"{key}: {exc}") from None
+    if (cal.width, cal.height) != (c.width, c.height):
+        raise ConfigError(f"{key}: the calibration is for {cal.width}x{cal.height} but camera.width x "
+                          f"camera.height is {c.width}x{c.height}")
+    if cal.fisheye is not None and cal.fisheye != (c.model == "fisheye"):
+        raise ConfigError(f"{key}: the file is a {'fisheye' if cal.fisheye else 'pinhole'} calibration "
+                          f"but camera.model is {c.model}")
+    if c.model == "fisheye" and len(cal.dist) != 4:
+        raise ConfigError(f"{key}: a fisheye (camera.model) takes 4 distortion coefficients (k1..k4), "
+                          f"the file holds {len(cal.dist)}")
+    K = cal.camera_matrix
+    try:
+        return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), c.width, c.height,
+                          cal.dist, c.model)
+    except GeometryError as exc:
+        raise ConfigError(f"{key}: {exc}") from None
 
 
 def mount(cfg: Config) -> Mount:
@@ -249,8 +284,9 @@ def failsafe_config(cfg: Config) -> FailsafeConfig:
 
 def checked(cfg: Config) -> Config:
     """``cfg`` once every part's object made from it accepts its values (their rules are not
-    repeated in the schema); else a ConfigError naming the key. Reads no file: the signing key
-    file is read when the link is made (``link_config``; ``companion check-config`` does)."""
+    repeated in the schema); else a ConfigError naming the key. Reads one file, the camera's
+    calibration (``camera.calibration``); the signing key file is read when the link is made
+    (``link_config``; ``companion check-config`` does)."""
     try:
         landing_config(cfg)
         pipeline_config(cfg)

@@ -133,6 +133,11 @@ class CameraSettings:
                     min=16, max=8192)
     height: int = _f(480, "frame height the calibration is for (px)", min=16, max=8192)
     fps: float = _f(10.0, "frame rate asked of the device; pace of files and folders", min=0.1, max=240.0)
+    model: str = _f("pinhole", "lens model: pinhole (OpenCV's distortion) or fisheye (OpenCV's equidistant "
+                                "cv2.fisheye, distortion k1..k4)", choices=("pinhole", "fisheye"))
+    calibration: str = _f("", "calibration file written by OpenCV (FileStorage YAML/XML/JSON: camera_matrix, "
+                              "distortion_coefficients, image_width/height); wins over hfov_deg, and fx..distortion "
+                              "must then stay unset", path=True)
     hfov_deg: float = _f(70.0, "horizontal field of view used when fx/fy are 0 (the simulator's is 70)", min=1.0, max=179.0)
     fx: float = _f(0.0, "focal length x (px); 0 = from hfov_deg", min=0.0)
     fy: float = _f(0.0, "focal length y (px); 0 = same as fx", min=0.0)
@@ -465,6 +470,9 @@ def _cross_checks(cfg: Config) -> None:
     """The file's rules that involve more than one key, or a key that no part's object checks (the
     parts' own rules, ranges and rules between keys, are checked by building the parts:
     ``companion.config.compose.checked``)."""
+    if cfg.camera.model == "fisheye" and len(cfg.camera.distortion) not in (0, 4):
+        raise ConfigError("camera.distortion of a fisheye (camera.model) must hold 0 or 4 coefficients "
+                          f"(k1..k4), got {len(cfg.camera.distortion)}")
     if len(cfg.camera.distortion) not in (0, 4, 5, 8, 12, 14):
         raise ConfigError("camera.distortion must hold 0, 4, 5, 8, 12 or 14 coefficients "
                           f"(OpenCV), got {len(cfg.camera.distortion)}")

@@ -11,7 +11,9 @@ replaces the mount rotation.
 The mapping between head-plane points ``(x_north, y_east)`` in metres and image pixels is the
 homography ``H_img_from_plane = K [c1 c2 (-h_h c3 + t)]`` where ``c_i`` are the columns of the
 world-to-camera rotation and ``t`` its translation. Lens distortion is not a homography: the
-pipeline undistorts the occupancy map first (``Intrinsics.undistort_maps``).
+pipeline undistorts a pinhole's occupancy map first (``Intrinsics.undistort_maps``); a fisheye
+(``companion.geometry.lens``) is not a pinhole at all, and its projection goes ray by ray
+(``LensView``), ``H`` then being only the pinhole of the same focal length near the centre.
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
+from companion.geometry import lens
 
 # Columns are the OpenCV camera axes expressed in the camera FRD frame:
 # cv x (right) = FRD y, cv y (down) = FRD z, cv z (forward) = FRD x.
@@ -72,7 +76,9 @@ def _require_finite(name: str, *values: float) -> None:
 
 @dataclass(frozen=True)
 class Intrinsics:
-    """Pinhole intrinsics in pixels plus OpenCV distortion coefficients (k1, k2, p1, p2[, k3...])."""
+    """Camera matrix in pixels plus the lens: ``model`` "pinhole" with OpenCV distortion coefficients
+    (k1, k2, p1, p2[, k3...]) or "fisheye", OpenCV's equidistant model with ``dist`` = (k1, k2, k3,
+    k4) (``companion.geometry.lens``)."""
 
     fx: float
     fy: float
@@ -81,19 +87,32 @@ class Intrinsics:
     width: int
     height: int
     dist: tuple[float, ...] = ()
+    model: str = "pinhole"
 
     def __post_init__(self) -> None:
         _require_finite("intrinsics", self.fx, self.fy, self.cx, self.cy, *self.dist)
+        if self.model not in lens.MODELS:
+            raise GeometryError(f"camera model must be one of {lens.MODELS}, got {self.model!r}")
+        if self.model == "fisheye" and len(self.dist) not in (0, 4):
+            raise GeometryError(f"a fisheye takes 4 distortion coefficients (k1..k4), got {len(self.dist)}")
+        if self.model == "pinhole" and len(self.dist) not in (0, 4, 5, 8, 12, 14):
+            raise GeometryError("a pinhole takes 4, 5, 8, 12 or 14 distortion coefficients (OpenCV), "
+                                f"got {len(self.dist)}")
         if self.fx <= 0 or self.fy <= 0:
             raise GeometryError(f"focal lengths must be > 0, got fx={self.fx}, fy={self.fy}")
         if self.width <= 0 or self.height <= 0:
             raise GeometryError(f"image size must be > 0, got {self.width}x{self.height}")
 
     @classmethod
-    def from_fov(cls, width: int, height: int, hfov_deg: float) -> Intrinsics:
-        """Square pixels, centred principal point, horizontal field of view in degrees."""
-        f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
-        return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
+    def from_fov(cls, width: int, height: int, hfov_deg: float, model: str = "pinhole") -> Intrinsics:
+        """Square pixels, centred principal point, horizontal field of view in degrees; a fisheye
+        is the ideal equidistant lens (``r = f theta``), so fisheye:160 at 4:3 sees 200 degrees
+        across the diagonal."""
+        if model == "fisheye":
+            f = (width / 2.0) / (math.radians(hfov_deg) / 2.0)
+        else:
+            f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height, model=model)
 
     @property
     def K(self) -> np.ndarray:
@@ -107,10 +126,25 @@ class Intrinsics:
         """The same camera at another resolution (frames resized before processing)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height,
-                          self.dist)
+                          self.dist, self.model)
+
+    @property
+    def is_fisheye(self) -> bool:
+        return self.model == "fisheye"
+
+    def project(self, xc: np.ndarray) -> np.ndarray:
+        """Camera-frame points (N, 3) -> pixels (N, 2), NaN where the lens does not see them."""
+        return lens.project(self.model, self.K, self.dist, xc)
+
+    def unproject(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) -> unit rays (N, 3) in the camera frame, NaN where nothing seen lands."""
+        return lens.unproject(self.model, self.K, self.dist, uv)
 
     def undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """``cv2.remap`` maps that turn a distorted image into the ideal pinhole image of ``K``."""
+        """``cv2.remap`` maps that turn a distorted image into the ideal pinhole image of ``K``
+        (pinhole model only: a fisheye goes ray by ray, ``LensView``)."""
+        if self.is_fisheye:
+            raise GeometryError("a fisheye is not undistorted to a pinhole; project through LensView")
         return cv2.initUndistortRectifyMap(
             self.K, np.asarray(self.dist, dtype=np.float64), None, self.K,
             (self.width, self.height), cv2.CV_16SC2,
@@ -202,6 +236,78 @@ def _check_homography(H: np.ndarray, what: str) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class LensView:
+    """The head plane ``z = plane_z`` (world NED) seen through a lens ray by ray: what a homography
+    cannot say of a fisheye. ``R_cv_from_world`` and ``position`` as in ``CameraExtrinsics``."""
+
+    intrinsics: Intrinsics
+    R_cv_from_world: np.ndarray
+    position: np.ndarray
+    plane_z: float
+
+    def plane_to_image(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) plane metres (north, east) -> (N, 2) pixels, NaN where the lens does not see."""
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        d = np.column_stack([p[:, 0] - self.position[0], p[:, 1] - self.position[1],
+                             np.full(len(p), self.plane_z - self.position[2])])
+        return self.intrinsics.project(d @ self.R_cv_from_world.T)
+
+    def seen_to_image(self, xy: np.ndarray) -> np.ndarray:
+        """``plane_to_image``, NaN also where the ray is wider than ``lens.TRUSTED_THETA`` from the
+        axis: where the ground counts as seen (the grid's view), people being found there."""
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        d = np.column_stack([p[:, 0] - self.position[0], p[:, 1] - self.position[1],
+                             np.full(len(p), self.plane_z - self.position[2])])
+        xc = d @ self.R_cv_from_world.T
+        uv = self.intrinsics.project(xc)
+        with np.errstate(invalid="ignore"):
+            wide = np.arctan2(np.hypot(xc[:, 0], xc[:, 1]), xc[:, 2]) > lens.TRUSTED_THETA
+        uv[wide] = np.nan
+        return uv
+
+    def seen_boundary(self, n: int = 32) -> np.ndarray:
+        """Plane points (M, 2) around the edge of the ground counted as seen: the image border
+        (``4 n`` pixels) within ``lens.TRUSTED_THETA``, and the trusted cone's edge (``4 n`` rays)
+        within the image. A row is NaN where that edge's ray misses the plane (above the horizon):
+        the seen ground is then unbounded."""
+        w, h = self.intrinsics.width, self.intrinsics.height
+        s = np.linspace(0.0, 1.0, n, endpoint=False)
+        border = np.concatenate([np.column_stack([s * (w - 1), np.zeros(n)]),
+                                 np.column_stack([np.full(n, w - 1.0), s * (h - 1)]),
+                                 np.column_stack([(1 - s) * (w - 1), np.full(n, h - 1.0)]),
+                                 np.column_stack([np.zeros(n), (1 - s) * (h - 1)])])
+        rays = self.intrinsics.unproject(border)
+        with np.errstate(invalid="ignore"):
+            rays = rays[rays[:, 2] >= math.cos(lens.TRUSTED_THETA) - 1e-12]
+        phi = np.linspace(0.0, 2 * math.pi, 4 * n, endpoint=False)
+        st, ct = math.sin(lens.TRUSTED_THETA), math.cos(lens.TRUSTED_THETA)
+        cone = np.column_stack([st * np.cos(phi), st * np.sin(phi), np.full(len(phi), ct)])
+        uv = self.intrinsics.project(cone)
+        with np.errstate(invalid="ignore"):
+            inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        d = np.concatenate([rays, cone[inside]]) @ self.R_cv_from_world  # world NED directions
+        drop = self.plane_z - self.position[2]
+        out = np.full((len(d), 2), np.nan)
+        down = d[:, 2] > 1e-9
+        out[down, 0] = self.position[0] + drop / d[down, 2] * d[down, 0]
+        out[down, 1] = self.position[1] + drop / d[down, 2] * d[down, 1]
+        return out
+
+    def image_to_plane(self, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels -> (N, 2) plane metres; NaN for pixels whose rays point at or above the
+        horizon (or that the lens does not see): they never meet the plane."""
+        rays = self.intrinsics.unproject(uv) @ self.R_cv_from_world  # world NED directions
+        drop = self.plane_z - self.position[2]  # > 0: the plane is below the camera
+        out = np.full((len(rays), 2), np.nan)
+        with np.errstate(invalid="ignore"):
+            down = rays[:, 2] > 1e-9
+        s = drop / rays[down, 2]
+        out[down, 0] = self.position[0] + s * rays[down, 0]
+        out[down, 1] = self.position[1] + s * rays[down, 1]
+        return out
+
+
+@dataclass(frozen=True)
 class PlaneProjection:
     """The mapping between head-plane metres ``(x, y)`` and image pixels ``(u, v)``.
 
@@ -217,6 +323,9 @@ class PlaneProjection:
     # Sign of the homogeneous w of points in front of the camera (a homography is defined up to
     # scale, and a negative scale flips it).
     w_sign: float = 1.0
+    # A lens that is not a pinhole (fisheye): projections go ray by ray through it, and ``H`` is
+    # only the pinhole of the same camera matrix (good near the image centre).
+    lens: LensView | None = field(default=None, compare=False)
 
     @classmethod
     def from_plane_to_image(cls, H: np.ndarray, camera_xy: tuple[float, float] | None = None
@@ -264,15 +373,23 @@ class PlaneProjection:
                 f"(z = {-head_height:.2f} m)"
             )
         M = np.column_stack([R[:, 0], R[:, 1], -head_height * R[:, 2] + t])
-        return cls.from_plane_to_image(intrinsics.K @ M,
-                                       (float(ext.position[0]), float(ext.position[1])))
+        below = (float(ext.position[0]), float(ext.position[1]))
+        proj = cls.from_plane_to_image(intrinsics.K @ M, below)
+        if intrinsics.is_fisheye:
+            proj = cls(proj.H, proj.H_inv, below, 1.0, LensView(intrinsics, R, ext.position, -head_height))
+        return proj
 
     def plane_to_image(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 2) plane metres -> (N, 2) pixels. Points behind the camera come out as NaN."""
+        """(N, 2) plane metres -> (N, 2) pixels. Points behind the camera (or that the lens does
+        not see) come out as NaN."""
+        if self.lens is not None:
+            return self.lens.plane_to_image(xy)
         return _apply(self.H, xy, self.w_sign)
 
     def image_to_plane(self, uv: np.ndarray) -> np.ndarray:
         """(N, 2) pixels -> (N, 2) plane metres. Pixels above the horizon come out as NaN."""
+        if self.lens is not None:
+            return self.lens.image_to_plane(uv)
         return _apply(self.H_inv, uv, self.w_sign)
 
 

@@ -61,7 +61,12 @@ def _footprint_bounds(proj: PlaneProjection, image_hw: tuple[int, int], params: 
                       ) -> tuple[float, float, float, float]:
     h, w = image_hw
     corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=float)
-    pts = proj.image_to_plane(corners)
+    if proj.lens is not None:
+        # Through a fisheye the image's straight edges are curves on the plane, and the ground
+        # seen ends at the trusted cone: walk the edge of what counts as seen.
+        pts = proj.lens.seen_boundary()
+    else:
+        pts = proj.image_to_plane(corners)
     ok = np.isfinite(pts).all(axis=1)
     if proj.camera_xy is not None:
         cx, cy = proj.camera_xy
@@ -148,6 +153,8 @@ def sample_with_view(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec
 def _sample(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
             with_view: bool) -> tuple[np.ndarray, np.ndarray | None]:
     ppc = pixels_per_cell(proj, grid)
+    if proj.lens is not None:
+        return _sample_lens(free_img, proj, grid, ppc, with_view)
     src = free_img
     kernel = None
     if ppc > 1.0:
@@ -179,4 +186,55 @@ def _sample(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if behind is not None:
             view[behind] = 0
+    return out, view
+
+
+#: Through a lens, the pixel of every ``LENS_STEP``-th cell is projected exactly and the cells
+#: between are interpolated (the map is smooth: a fraction of a pixel off at 4 cells); one more
+#: pixel of erosion covers that.
+LENS_STEP = 4
+
+
+def lens_maps(proj: PlaneProjection, grid: GridSpec) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps (float32, grid-shaped) giving each cell's pixel through the lens; cells the
+    lens does not see or is not trusted on (``LensView.seen_to_image``; or next to one, where interpolation would mix a seen and an unseen cell)
+    get -1, outside every image."""
+    s = LENS_STEP
+    rows = np.arange(0, grid.rows + s, s, dtype=float)
+    cols = np.arange(0, grid.cols + s, s, dtype=float)
+    cc, rr = np.meshgrid(cols, rows)
+    x, y = grid.to_plane(rr.ravel(), cc.ravel())
+    assert proj.lens is not None
+    # Only ground along rays the model is trusted on counts as seen (lens.TRUSTED_THETA).
+    uv = proj.lens.seen_to_image(np.column_stack([x, y])).reshape(len(rows), len(cols), 2)
+    ok = np.isfinite(uv).all(axis=2).astype(np.uint8)
+    ok = cv2.erode(ok, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    uv = np.where(np.isfinite(uv), uv, -1e4).astype(np.float32)
+    size = ((len(cols) - 1) * s + 1, (len(rows) - 1) * s + 1)
+    # align corners: coarse node k sits on fine cell k * s (cv2.resize maps pixel centres instead).
+    A = np.array([[1.0 / s, 0.0, 0.0], [0.0, 1.0 / s, 0.0]])
+    mx = cv2.warpAffine(uv[..., 0], A, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                        borderMode=cv2.BORDER_REPLICATE)[:grid.rows, :grid.cols]
+    my = cv2.warpAffine(uv[..., 1], A, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                        borderMode=cv2.BORDER_REPLICATE)[:grid.rows, :grid.cols]
+    seen = cv2.warpAffine(ok, A, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)[:grid.rows, :grid.cols]
+    mx[seen == 0] = -1.0
+    my[seen == 0] = -1.0
+    return mx, my
+
+
+def _sample_lens(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec, ppc: float,
+                 with_view: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """``_sample`` through a lens that is not a pinhole: each cell looks up its pixel (``lens_maps``)."""
+    k = int(math.ceil(ppc + 1.0)) | 1
+    kernel = np.ones((k, k), np.uint8)
+    src = cv2.erode(free_img, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    mx, my = lens_maps(proj, grid)
+    out = cv2.remap(src, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    view = None
+    if with_view:
+        h, w = free_img.shape[:2]
+        view = cv2.remap(_whole_view(h, w, k), mx, my, cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return out, view

@@ -220,8 +220,11 @@ class SLZPipeline:
         needed = config.calm or config.unwalked
         self.risk = GroundRiskMap(config.risk) if needed else None
         self.people = PeopleTracker(config.people) if config.people is not None else None
+        # A pinhole's distortion is undone on the image, then the homography holds; a fisheye's
+        # projection goes through the lens cell by cell (``PlaneProjection.lens``).
         self._undistort = (intrinsics.undistort_maps()
-                           if intrinsics is not None and intrinsics.has_distortion else None)
+                           if intrinsics is not None and intrinsics.has_distortion and not intrinsics.is_fisheye
+                           else None)
 
     def projection_for(self, pose: Pose | None) -> PlaneProjection:
         if pose is not None:

@@ -113,12 +113,12 @@ class RecordingReader:
             k = self.meta.get("intrinsics")
             self.intrinsics: Intrinsics | None = None if k is None else Intrinsics(
                 float(k["fx"]), float(k["fy"]), float(k["cx"]), float(k["cy"]), int(k["width"]),
-                int(k["height"]), tuple(float(v) for v in k.get("dist", ())))
+                int(k["height"]), tuple(float(v) for v in k.get("dist", ())), str(k.get("model", "pinhole")))
             m = self.meta.get("mount")
             self.mount: Mount | None = None if m is None else Mount(
                 float(m["roll"]), float(m["pitch"]), float(m["yaw"]),
                 cast("tuple[float, float, float]", tuple(float(v) for v in m["offset"])))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:  # GeometryError is a ValueError
             raise RecordingError(f"{meta_path}: bad intrinsics or mount: {exc}") from None
         self.stats = ReadStats()
 

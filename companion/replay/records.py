@@ -38,7 +38,12 @@ def finite_or_none(value: float) -> float | None:
 
 
 def plane_jacobian(proj: PlaneProjection, x: float, y: float) -> np.ndarray:
-    """d(u, v)/d(x, y) of the plane-to-image homography at plane point (x, y): (2, 2), px/m."""
+    """d(u, v)/d(x, y) of the plane-to-image projection at plane point (x, y): (2, 2), px/m
+    (through a fisheye by central differences over 1 cm, the lens being no homography)."""
+    if proj.lens is not None:
+        e = 0.01
+        p = proj.plane_to_image(np.array([[x - e, y], [x + e, y], [x, y - e], [x, y + e]]))
+        return np.column_stack([(p[1] - p[0]) / (2 * e), (p[3] - p[2]) / (2 * e)])
     H = proj.H
     w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
     u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w

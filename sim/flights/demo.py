@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from sim.flights.flight import FlightResult, FlightSpec, fly, reserve_port
+from sim.flights.spec import parse_camera
 
 #: Event kinds printed live: the failsafe trigger and the controller's decisions.
 LIVE_KINDS = ("trigger", "controller")
@@ -47,6 +48,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("demo-out"),
                         help="output folder (default ./demo-out; git ignores it in a clone)")
     parser.add_argument("--no-video", action="store_true", help="skip the video")
+    parser.add_argument("--camera", default="pinhole:70", metavar="MODEL:HFOV",
+                        help="the camera of the simulator and of the service as one: pinhole or fisheye "
+                             "and the horizontal field of view in degrees (default pinhole:70; e.g. fisheye:160)")
     parser.add_argument("--model", type=Path, default=None,
                         help="ONNX density model for the service (default: the shipped one)")
 
@@ -203,6 +207,11 @@ def run(args: argparse.Namespace) -> int:
         print("companion: demo: the video needs the optional package 'av': pip install 'companion-slz[tools]' "
               "(or run with --no-video)", file=sys.stderr)
         return 2
+    try:
+        lens, hfov = parse_camera(args.camera)
+    except ValueError as exc:
+        print(f"companion: demo: --camera: {exc}", file=sys.stderr)
+        return 2
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     rec = out / "recording"
@@ -211,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
     # A port for a ground station, claimed node-wide like the flight's own (sim.flights.flight.reserve_port).
     with reserve_port() as gcs:
         spec = FlightSpec(flavour=args.flavour, seed=args.seed, altitude_m=args.altitude,
-                          home_origin_offset_m=offset,
+                          home_origin_offset_m=offset, camera_model=lens, hfov_deg=hfov,
                           record_dir=rec, service_log=out / "service.log",
                           service_set=() if args.model is None else (f"model.path={args.model}",),
                           gcs_port=gcs.port)

@@ -481,7 +481,7 @@ def build_scene(spec: FlightSpec, link_port: int, cam_port: int
                               start_position=(start[0], start[1], -spec.altitude_m), vehicle=vp,
                               autopilot=AutopilotConfig(origin_alt_offset_m=spec.home_origin_offset_m),
                               seed=spec.seed), world=world)
-    K = Intrinsics.from_fov(640, 480, spec.hfov_deg)
+    K = Intrinsics.from_fov(640, 480, spec.hfov_deg, spec.camera_model)  # the service's camera (service_settings)
     ground = FlatGround(UNIFORM_GROUND_BGR) if spec.world == "uniform" else None
     camera = CameraServer(sim.pose, world, K, Mount(), fps=spec.fps, port=cam_port, ground=ground)
     return world, free, sim, camera

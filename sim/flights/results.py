@@ -64,6 +64,9 @@ from scipy.stats import beta
 CONFIDENCE = 0.95
 #: The last element of a baseline flight's key in a results file.
 BASELINE = "baseline"
+#: The scenarios' camera (``MODEL:HFOV``, ``sim.flights.spec.camera_name``): the simulator's
+#: 70-degree pinhole. Rows flown with another record it (``camera``) and are keyed apart.
+DEFAULT_CAMERA = "pinhole:70"
 #: The scenarios' LAND descent speed (m/s; ``sim.flights.spec.FlightSpec.land_speed``'s default): the
 #: simulated autopilot's ``LAND_SPEED`` / ``MPC_LAND_SPEED``. Rows flown at another speed
 #: (``companion sim-scenarios --land-speed``) are keyed apart.
@@ -311,7 +314,8 @@ class Apart:
 
 def flown_apart(row: dict[str, Any]) -> list[Apart]:
     """How a row was flown apart from the scenarios' own, in key order: the LAND speed, the
-    crossing window, the watch before the failsafe, a lockstep flight's clock start when
+    crossing window, the watch before the failsafe, the camera (``--camera``), a lockstep
+    flight's clock start when
     it is not :data:`LOCKSTEP_CLOCK_START_S` (``unknown`` for a lockstep row written before the
     start was fixed), and the link latency added each way (``link_latency_s``, ``--link-latency``).
     The one walk of those fields for keys and for comparisons."""
@@ -325,6 +329,9 @@ def flown_apart(row: dict[str, Any]) -> list[Apart]:
     watch = other_watch(row)
     if watch is not None:
         out.append(Apart("watch", "watch_s", f"{watch:g}"))
+    camera = row.get("camera")
+    if camera and camera != DEFAULT_CAMERA:
+        out.append(Apart("camera", "camera", str(camera)))
     clock = other_clock_start(row)
     if clock is not None:
         out.append(Apart("clock", "clock_start_s", clock if isinstance(clock, str) else _exact(clock)))

@@ -122,6 +122,7 @@ from sim.flights.results import (
     summarise_rows,
     summary_text,
 )
+from sim.flights.spec import camera_name, parse_camera
 from sim.flights.spec import service_settings as flight_settings
 
 
@@ -244,6 +245,9 @@ class FlightJob:
     #: One-way MAVLink latency added each way from the moment the service is ready (s,
     #: ``--link-latency``; None: none); part of its key when it is set.
     link_latency: float | None = None
+    #: The camera (``--camera``: lens model and horizontal field of view in degrees) of the simulator
+    #: and the service as one (None: the scenarios' own, pinhole:70); part of its key when it is another.
+    camera: tuple[str, float] | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
@@ -257,6 +261,8 @@ class FlightJob:
             spec = dataclasses.replace(spec, watch_s=self.watch_s)
         if self.link_latency is not None:
             spec = dataclasses.replace(spec, latency_ms=self.link_latency * 1000.0)
+        if self.camera is not None:
+            spec = dataclasses.replace(spec, camera_model=self.camera[0], hfov_deg=self.camera[1])
         if self.overrides:
             spec = dataclasses.replace(spec, **dict(self.overrides))
         if self.service_set:
@@ -289,7 +295,7 @@ class FlightJob:
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
                         "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
                         "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None,
-                        **link_latency_field(spec)})
+                        "camera": camera_name(spec), **link_latency_field(spec)})
 
 
 def _cpu_s() -> float:
@@ -533,6 +539,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "moment the service is ready; with --lockstep it runs on the simulated "
                              "clock, so a seed flown with and without it pairs in sim-compare; "
                              "recorded in each row")
+    parser.add_argument("--camera", default=None, metavar="MODEL:HFOV",
+                        help="the camera of the simulator and of the service as one: lens model "
+                             "(pinhole or fisheye) and horizontal field of view in degrees, e.g. "
+                             "pinhole:110 or fisheye:160 (default pinhole:70, the scenarios' own); "
+                             "recorded in each row when it is another")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -610,11 +621,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"companion sim-scenarios: --link-latency must be 0-{MAX_LINK_LATENCY_S:g} s, not {latency:g}",
               file=sys.stderr)
         return 2
+    try:
+        camera = None if args.camera is None else parse_camera(args.camera)
+    except ValueError as exc:
+        print(f"companion sim-scenarios: --camera: {exc}", file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
                       land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch,
-                      clock_start=start, link_latency=latency or None)
+                      clock_start=start, link_latency=latency or None, camera=camera)
             for start in starts for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

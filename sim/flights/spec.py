@@ -15,7 +15,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sim.flights.results import LOCKSTEP_CLOCK_START_S, SCENARIO_LAND_SPEED, SCENARIO_WATCH_S
+from sim.flights.results import DEFAULT_CAMERA, LOCKSTEP_CLOCK_START_S, SCENARIO_LAND_SPEED, SCENARIO_WATCH_S
 from sim.world.crowd import CROSSING_WINDOW_S
 from sim.world.ground import LANDABLE_SURFACES
 
@@ -78,6 +78,8 @@ class FlightSpec:
     timeout_s: float = 150.0
     r0_m: float = 2.0
     hfov_deg: float = 70.0
+    #: The lens of the simulator's camera and the service's (``companion.geometry.lens``), as one.
+    camera_model: str = "pinhole"
     fps: float = 10.0
     land_speed: float = SCENARIO_LAND_SPEED
     crossing_window: tuple[float, float] = CROSSING_WINDOW_S
@@ -182,7 +184,35 @@ class FlightResult:
             "zone_losses_r0_free": sum(z.nearest_m >= self.spec.r0_m for z in self.zone_losses),
             "zone_loss_nearest_m": [None if not math.isfinite(z.nearest_m) else round(z.nearest_m, 2)
                                     for z in self.zone_losses],
+            # Only a camera other than the scenarios' own: rows flown with it stay as they were.
+            **({} if camera_name(self.spec) == DEFAULT_CAMERA else {"camera": camera_name(self.spec)}),
         }
+
+
+#: Widest horizontal field of view a ``--camera`` may ask (degrees; ``camera.hfov_deg``'s bound).
+MAX_CAMERA_HFOV = 179.0
+
+
+def camera_name(spec: FlightSpec) -> str:
+    """``MODEL:HFOV`` of a flight's camera, e.g. ``fisheye:160``."""
+    return f"{spec.camera_model}:{spec.hfov_deg:g}"
+
+
+def parse_camera(text: str) -> tuple[str, float]:
+    """``MODEL:HFOV`` (``pinhole:70``, ``pinhole:110``, ``fisheye:160``) -> (model, degrees);
+    ValueError saying what is wrong."""
+    from companion.geometry.lens import MODELS
+
+    model, sep, hfov = text.partition(":")
+    if not sep or model not in MODELS:
+        raise ValueError(f"want MODEL:HFOV with MODEL one of {', '.join(MODELS)}, e.g. fisheye:160, not {text!r}")
+    try:
+        deg = float(hfov)
+    except ValueError:
+        raise ValueError(f"the field of view must be degrees, not {hfov!r}") from None
+    if not (math.isfinite(deg) and 1.0 <= deg <= MAX_CAMERA_HFOV):
+        raise ValueError(f"the field of view must be 1-{MAX_CAMERA_HFOV:g} degrees, not {hfov!r}")
+    return model, deg
 
 
 @dataclass(frozen=True)
@@ -205,7 +235,8 @@ def service_settings(spec: FlightSpec) -> tuple[str, ...]:
     """The ``KEY=VALUE`` settings the flight's service runs with (``--set``, in this order: the
     scenario's camera and r0, then ``spec.service_set``, which wins): one list for the service
     and for ``sim.flights.scenarios.machine_check``, which times the same pipeline."""
-    return (f"camera.hfov_deg={spec.hfov_deg}", f"camera.fps={spec.fps}", f"pipeline.r0_m={spec.r0_m}",
+    lens = () if spec.camera_model == "pinhole" else (f"camera.model={spec.camera_model}",)
+    return (f"camera.hfov_deg={spec.hfov_deg}", *lens, f"camera.fps={spec.fps}", f"pipeline.r0_m={spec.r0_m}",
             "log.health_interval_s=5", *spec.service_set)
 
 

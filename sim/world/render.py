@@ -13,11 +13,15 @@ as an ellipse ~0.5 m x 0.3 m at ``z = -1.4`` in a clothing colour; the head as a
 
 World = local NED metres (ground z = 0); people are ground points (north, east) with a heading in
 radians from north toward east. Camera = OpenCV (x right, y down, z forward). Images are BGR uint8.
-Lens distortion is not rendered (the frames are ideal pinhole images of ``intrinsics.K``).
+A pinhole's distortion is not rendered (its frames are ideal pinhole images of ``intrinsics.K``); a
+fisheye (``intrinsics.model == "fisheye"``) is rendered through its lens: the ground pixel by pixel
+(each pixel's ray met with the ground, ``render_ground_lens``) and the people's 3-D parts projected
+through the same lens model the service uses (``Intrinsics.project``).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Protocol
@@ -31,8 +35,13 @@ HEAD_Z = -1.7  # m, centre of the head (the pipeline's head plane)
 SHOULDER_Z = -1.4  # m
 HIP_Z = -0.9  # m
 SKY = (225, 205, 190)  # BGR, hazy sky above the horizon
+OUTSIDE_LENS = (0, 0, 0)  # BGR, pixels outside a fisheye's image circle
 HAZE = (180, 175, 170)  # BGR, ground beyond the rendered range
 MAX_RANGE = 250.0  # m of ground drawn around the camera
+# A fisheye's ground is drawn out to this many times the camera's height (rays up to 80.5 deg from
+# straight down): one mosaic of at most 3072 px a side then stays about as fine as the lens's centre
+# pixel (height / f); beyond is haze, as beyond MAX_RANGE.
+LENS_RANGE_PER_M = 6.0
 SHIFT = 4  # fixed-point bits for sub-pixel drawing
 _ONE = float(1 << SHIFT)
 # Sun from the south-west at 58 deg elevation: shadows fall north-east, ~0.6 x body height long.
@@ -76,6 +85,11 @@ def project_points(points: np.ndarray, intrinsics: Intrinsics, mount: Mount, pos
     ext = camera_extrinsics(pose, mount)
     p = np.asarray(points, float)
     xc = (p - ext.position) @ ext.R_cv_from_world.T
+    if intrinsics.is_fisheye:
+        # Through the lens; the "depth" is the range (m), -1 where the lens does not see the point.
+        uv = intrinsics.project(xc.reshape(-1, 3)).reshape(*xc.shape[:-1], 2)
+        rng = np.linalg.norm(xc, axis=-1)
+        return uv, np.where(np.isfinite(uv).all(axis=-1), rng, -1.0)
     z = xc[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = intrinsics.fx * xc[..., 0] / z + intrinsics.cx
@@ -226,8 +240,55 @@ def view_footprint(intrinsics: Intrinsics, mount: Mount, pose: Pose, max_range: 
             float(hit[:, 1].max()), max(gsd, 1e-4))
 
 
+@functools.lru_cache(maxsize=4)
+def _pixel_rays(intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Unit ray (camera frame) of every pixel as three float32 (h, w) images x, y, z (0 outside the
+    lens's view), and the mask of the pixels the lens sees. Read-only: the same camera comes every
+    frame."""
+    uu, vv = np.meshgrid(np.arange(intrinsics.width, dtype=float), np.arange(intrinsics.height, dtype=float))
+    rays = intrinsics.unproject(np.column_stack([uu.ravel(), vv.ravel()]))
+    seen = np.isfinite(rays).all(axis=1).reshape(uu.shape)
+    rays = np.nan_to_num(rays, nan=0.0).astype(np.float32)
+    out = tuple(np.ascontiguousarray(rays[:, i].reshape(uu.shape)) for i in range(3)) + (seen,)
+    for arr in out:
+        arr.flags.writeable = False
+    return out
+
+
+def render_ground_lens(pose: Pose, intrinsics: Intrinsics, mount: Mount, ground: Ground) -> np.ndarray:
+    """``render_ground`` through a lens that is not a pinhole: each pixel's ray met with the ground
+    z = 0 and looked up in the ground's mosaic (sky where the ray does not go down, black outside
+    the lens's image circle, haze beyond ``LENS_RANGE_PER_M`` x the height)."""
+    rx, ry, rz, seen = _pixel_rays(intrinsics)
+    ext = camera_extrinsics(pose, mount)
+    c = ext.position
+    R = ext.R_cv_from_world.astype(np.float32)  # world direction d_j = sum_i ray_i R[i, j]
+    dn = R[0, 0] * rx + R[1, 0] * ry + R[2, 0] * rz
+    de = R[0, 1] * rx + R[1, 1] * ry + R[2, 1] * rz
+    dd = R[0, 2] * rx + R[1, 2] * ry + R[2, 2] * rz
+    height = max(-float(c[2]), 1e-3)
+    reach = min(MAX_RANGE, LENS_RANGE_PER_M * height)
+    down = dd > 1e-6
+    # Horizontal distance per unit height is |d_h| / d_down: within reach when |d_h| <= k d_down.
+    near = down & (dn * dn + de * de <= np.float32((reach / height) ** 2) * dd * dd)
+    s = np.float32(height) / np.where(near, dd, np.float32(1.0))
+    gsd = height / max(intrinsics.fx, intrinsics.fy)  # the centre pixel's, straight down
+    mosaic, A = ground.view(c[0] - reach, c[0] + reach, c[1] - reach, c[1] + reach, gsd)
+    A = A.astype(np.float64)
+    n_off, e_off = s * dn, s * de
+    mx = np.float32(A[0, 0]) * n_off + np.float32(A[0, 1]) * e_off + np.float32(A[0, 0] * c[0] + A[0, 1] * c[1] + A[0, 2])
+    my = np.float32(A[1, 0]) * n_off + np.float32(A[1, 1]) * e_off + np.float32(A[1, 0] * c[0] + A[1, 1] * c[1] + A[1, 2])
+    mx[~near] = -1e4
+    img = cv2.remap(mosaic, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=HAZE)
+    img[seen & ~down] = SKY
+    img[~seen] = OUTSIDE_LENS
+    return img
+
+
 def render_ground(pose: Pose, intrinsics: Intrinsics, mount: Mount, ground: Ground) -> np.ndarray:
     """The ground plane z = 0 as the camera sees it (sky above the horizon), BGR uint8."""
+    if intrinsics.is_fisheye:
+        return render_ground_lens(pose, intrinsics, mount, ground)
     w, h = intrinsics.width, intrinsics.height
     n0, n1, e0, e1, gsd = view_footprint(intrinsics, mount, pose)
     mosaic, A = ground.view(n0, n1, e0, e1, gsd)

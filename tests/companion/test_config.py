@@ -327,8 +327,9 @@ def test_a_key_that_became_a_constant_says_where_it_went() -> None:
 def test_removed_keys_are_no_keys_and_the_count_stays_lean() -> None:
     keys = {key for key, _default, _doc in config.all_keys()}
     assert not keys & set(config.REMOVED)
-    # Issue 58 aims at 80 (136 before).
-    assert len(keys) <= 80
+    # Issue 58 aims at 80 (136 before). Issue 60 adds camera.model and camera.calibration (a fisheye
+    # and its calibration file): 82.
+    assert len(keys) <= 82
 
 
 def test_a_recording_with_removed_keys_at_the_values_flown_now_replays() -> None:

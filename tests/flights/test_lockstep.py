@@ -254,6 +254,21 @@ def test_lockstep_flights_repeat_exactly_one_or_two_at_a_time(tmp_path: Path, mo
 
 
 @pytest.mark.sitl
+@pytest.mark.timeout(900)
+def test_a_fisheye_lockstep_flight_repeats_exactly(tmp_path: Path, model_path, capsys) -> None:
+    # Issue 60: the simulator and the service see through one fisheye; lockstep stays exact.
+    # PX4 seed 3, a free-area landing.
+    jobs = [FlightJob(3, "px4", lockstep=True, camera=("fisheye", 160.0))]
+    one, two = tmp_path / "one.jsonl", tmp_path / "two.jsonl"
+    run_jobs(jobs, workers=1, out=one, as_json=True)
+    run_jobs(jobs, workers=1, out=two, as_json=True)
+    capsys.readouterr()
+    a, b = _flights(one), _flights(two)
+    assert set(a) == {(3, "px4")} and a == b
+    assert a[(3, "px4")]["camera"] == "fisheye:160" and not a[(3, "px4")]["starved"]
+
+
+@pytest.mark.sitl
 @pytest.mark.timeout(300)
 def test_a_lockstep_flight_is_the_real_service_over_real_mavlink(tmp_path: Path, model_path) -> None:
     # Nobody on one-colour ground: the service takes control and lands under itself, as in real

@@ -83,3 +83,21 @@ def test_the_touchdown_is_told_with_what_the_vehicle_came_down_on() -> None:
     assert not any("touched down on" in x for x in touchdown_lines(FlightResult(
         spec, "safe", touchdown=(0.0, 0.0), clearance_m=5.0, time_to_touchdown_s=20.0)))
     assert touchdown_lines(FlightResult(spec, "timeout")) == []
+
+
+def test_the_demo_takes_a_camera_and_refuses_a_bad_one_before_flying(tmp_path: Path, monkeypatch, capsys) -> None:
+    # Issue 60: `companion demo --camera MODEL:HFOV` flies the simulator's and the service's camera as one.
+    import sim.flights.demo as demo
+    from companion.cli import main
+
+    flown: list[FlightSpec] = []
+
+    async def fake(spec: FlightSpec, follower: object) -> FlightResult:
+        flown.append(spec)
+        return FlightResult(spec, "timeout")
+
+    monkeypatch.setattr(demo, "_fly_following", fake)
+    assert main(["demo", "--no-video", "--out", str(tmp_path), "--camera", "fisheye:400"]) == 2
+    assert "--camera" in capsys.readouterr().err and flown == []
+    main(["demo", "--no-video", "--out", str(tmp_path), "--camera", "fisheye:160"])
+    assert [(s.camera_model, s.hfov_deg) for s in flown] == [("fisheye", 160.0)]

@@ -551,3 +551,30 @@ def test_a_row_says_which_software_flew_it() -> None:
     assert sw["numpy"] == np.__version__ == metadata.version("numpy")
     assert set(SOFTWARE) <= set(sw) and sw["python"].count(".") == 2
     assert "git" not in sw or len(sw["git"].split("+")[0]) == 12
+
+
+def test_a_camera_flies_both_cameras_as_one_and_is_keyed_apart(monkeypatch, capsys):
+    # Issue 60: `--camera MODEL:HFOV` is the simulator's camera and the service's; a row says it
+    # only when it is not the scenarios' own (pinhole:70), so the committed rows stay as they are.
+    from sim.flights.spec import camera_name, parse_camera, service_settings
+
+    assert parse_camera("fisheye:160") == ("fisheye", 160.0) and parse_camera("pinhole:110") == ("pinhole", 110.0)
+    for bad in ("fisheye", "omni:120", "pinhole:0", "pinhole:180", "fisheye:nan", "fisheye:wide"):
+        with pytest.raises(ValueError):
+            parse_camera(bad)
+    plain = FlightJob(3, "px4", lockstep=True)
+    fish = FlightJob(3, "px4", lockstep=True, camera=("fisheye", 160.0))
+    assert camera_name(plain.spec()) == "pinhole:70" and plain.key() == (3, "px4", "lockstep")
+    assert fish.spec().camera_model == "fisheye" and fish.spec().hfov_deg == 160.0
+    assert fish.key() == (3, "px4", "camera:fisheye:160", "lockstep")
+    assert FlightJob(3, "px4", lockstep=True, camera=("pinhole", 70.0)).key() == plain.key()
+    assert "camera.model=fisheye" in service_settings(fish.spec())
+    assert not any(s.startswith("camera.model") for s in service_settings(plain.spec()))
+    assert "camera" not in FlightResult(plain.spec(), "safe").as_dict()
+    assert FlightResult(fish.spec(), "safe").as_dict()["camera"] == "fisheye:160"
+
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--camera", "fish:160"]) == 2
+    assert "--camera" in capsys.readouterr().err

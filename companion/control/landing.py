@@ -73,7 +73,7 @@ class LandingController(PhaseMachine):
         self.last_valid_frame_t: float | None = None
         self.frames_ignored = 0
         self.refusals = 0
-        self.placements = 0  # landing points moved away from where people were seen (place_lookback_s)
+        self.placements, self.moves = 0, aiming.MoveNews({})  # points moved away from people; which told
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.trigger_alt: float | None = None  # metres above home at the trigger
         self.ceiling_m: float | None = None  # metres above home (``descent``)
@@ -322,10 +322,10 @@ class LandingController(PhaseMachine):
         aim = self._aim = aiming.aim_for(self._aim, track, room)
         spot = self.spot
         if spot is not None and self._placing(track.id) and aiming.worth_moving(spot, track, room):
-            moved = math.hypot(spot.x - aim[0], spot.y - aim[1])
             self.placements += 1
-            self._event(f"zone {track.id}: landing point moved {moved:.1f} m, {spot.clear_m:.1f} m from where "
-                        f"people were seen in the last {c.place_lookback_s:g} s (was {aiming.was_clear(spot):.1f} m)")
+            if news := self.moves.tell(track.id, aim, aiming.was_clear(spot), spot, self.now):
+                self._event(f"zone {track.id}: landing point moved {news[0]:.1f} m, {spot.clear_m:.1f} m from where "
+                            f"people were seen in the last {c.place_lookback_s:g} s (was {news[1]:.1f} m)")
             aim = self._aim = (spot.x, spot.y)
         return Aimed(track, aim, math.hypot(aim[0] - s.north, aim[1] - s.east))
 

@@ -39,7 +39,6 @@ from companion.control import ground, watch
 from companion.control.aim import Aimed
 from companion.control.commands import Command, Goto, GotoSender, Handback, Land
 from companion.control.events import HandedBack, Holding, Phase, TargetChosen
-from companion.control.ground import BLIND_VIEW_M
 from companion.control.obedience import ObedienceMonitor, Sample
 from companion.control.phases import ACTIVE, FLYING, PhaseMachine
 from companion.control.planner import ZoneCheck, ZonePlanner
@@ -421,17 +420,17 @@ class LandingController(PhaseMachine):
         return self._goto(s.north, s.east, self._level, None)
 
     def _out_of_view(self, track: Track | None) -> bool:
-        """In LAND, whether the target went out of view, all free (``ground.gone_blind``): the
-        landing is committed, as below ``land_abort_above_m`` (says so once)."""
+        """In LAND, whether the target left the tracks with nobody seen within r0 of the vehicle
+        (``ground.gone``): the landing is committed, as below ``land_abort_above_m`` (says so once)."""
         last = self.target
         if self.phase != Phase.LAND or last is None or \
-                not ground.gone_blind(last, track, self.now, self.config.planner.zone_max_age_s) or \
+                not ground.gone(track, self.now, self.config.planner.zone_max_age_s) or \
                 ground.someone_within_r0(self.status, self.below, self.config.planner):
             return False
         if not self._blind:
             self._blind = True
             h = "?" if self.status is None else f"{self.status.height:.1f}"
-            self._event(f"zone {last.id} out of view at {h} m, last seen all free: landing committed")
+            self._event(f"zone {last.id} out of view at {h} m, nobody seen within r0: landing committed")
         return True
 
     # -- questions asked of the parts with this machine's state ---------------------------------
@@ -496,5 +495,5 @@ class LandingController(PhaseMachine):
 
 
 # Re-exported: a runner drives the controller with this module alone.
-__all__ = ["ACTIVE", "BLIND_VIEW_M", "FLYING", "LAND_AGL_MIN_M", "LandingConfig", "LandingController", "VehicleStatus",
+__all__ = ["ACTIVE", "FLYING", "LAND_AGL_MIN_M", "LandingConfig", "LandingController", "VehicleStatus",
            "expanding_square", "person_trust_height", "Command", "Goto", "Handback", "Land", "Phase"]

@@ -304,9 +304,12 @@ class LandingController(PhaseMachine):
                      and ground.holds_under_aim(s, aim, self.below, c.planner, c.arrive_radius_m))
         verdict, track, why = ground.target_check(self.planner, self.target, self.tracks, self.now, s, self.below,
                                                   over_zone, under_aim)
-        if verdict == ZoneCheck.LOST:
-            # Gone from the tracks, or unconfirmed for zone_max_age_s: that already took time.
-            return [] if self._out_of_view(track) else self._lost(why)
+        if verdict == ZoneCheck.LOST:  # gone from the tracks, or unconfirmed for zone_max_age_s
+            if not self._out_of_view(track):
+                return self._lost(why)
+            if self.phase == Phase.LAND or s is None or aim is None or not self._status_fresh():
+                return []
+            return Aimed(self.target, aim, math.hypot(aim[0] - s.north, aim[1] - s.east))  # the judged descent goes on
         if verdict == ZoneCheck.UNCONFIRMED or track is None or s is None or not self._status_fresh():
             return []  # no new command toward a zone this frame did not confirm
         if verdict == ZoneCheck.SMALL:  # lost once lose_after_frames frames in a row say so (``planner``)
@@ -365,13 +368,11 @@ class LandingController(PhaseMachine):
                             calm_s=round(calm_s, 1) if math.isfinite(calm_s) else None)
             if low_alt is None:
                 return [Land()]
-            # Straight down over the landing point as it is now: a zone bounded by the view
-            # moves with the camera, and the committed descent must not chase it.
+            # Straight down over the landing point as it is now: the committed descent chases no zone.
             self._low_to = (aim[0], aim[1], low_alt)
             self.sender.forget()
             return self._goto(aim[0], aim[1], low_alt, zone_id)
-        # The plan's next step, never below the judging (or, judged, the LAND) height over the
-        # ground under the vehicle; off the point it re-centres without climbing.
+        # The plan's next step, never below the judging (judged: LAND) height; off the point it re-centres.
         floor = s.alt - s.height + (land_at if judged else judge)
         self._level = plan.next_level(self._level, s, over.dist, floor, c, self._cap())
         return self._goto(aim[0], aim[1], self._level, zone_id)
@@ -420,10 +421,10 @@ class LandingController(PhaseMachine):
         return self._goto(s.north, s.east, self._level, None)
 
     def _out_of_view(self, track: Track | None) -> bool:
-        """In LAND, whether the target left the tracks with nobody seen within r0 of the vehicle
-        (``ground.gone``): the landing is committed, as below ``land_abort_above_m`` (says so once)."""
+        """In LAND, or descending over the judged zone (too low to confirm it), whether the target left the
+        tracks with nobody seen within r0 of the vehicle (``ground.gone``): the landing is committed."""
         last = self.target
-        if self.phase != Phase.LAND or last is None or \
+        if last is None or not (self.phase == Phase.LAND or self._judged == last.id) or \
                 not ground.gone(track, self.now, self.config.planner.zone_max_age_s) or \
                 ground.someone_within_r0(self.status, self.below, self.config.planner):
             return False

@@ -726,6 +726,34 @@ def test_a_judged_zone_is_flown_down_to_land_alt_before_the_land_watched_all_the
     assert low_profile.time_to_touchdown(10.0) == pytest.approx(6.0 / 1.5 + 4.0 / 0.5)
 
 
+def test_a_judged_zone_leaving_the_tracks_low_down_is_no_reason_to_climb_a_person_is():
+    """Below the judging height the view is too small to confirm the zone; the simulated PX4 with
+    its altitude reading 1.3 m low lost it there on every descent and climbed back four times until
+    the takeover's budget ran out (issue 62). Gone from the tracks, nobody seen within r0 under
+    the vehicle: the judged descent goes on to the LAND. Somebody seen: HOLD, as before."""
+    ctl = LandingController(LOW)
+    t = _low_over_zone(ctl)
+    t, alt, alts, _ = _descend_low(ctl, t, until_alt=7.5)
+    assert alts == [7.0] and ctl.phase == Phase.DESCEND
+    texts(ctl)
+    cmds: list = []
+    while t < 20.0 and not any(isinstance(c, Land) for c in cmds):
+        ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [], pose(t, 10, 0, alt))  # no zone, and no measure under the vehicle
+        alt = min([c.target.rel_alt_m for c in cmds if isinstance(c, Goto)] + [alt])
+        t += 0.1
+    assert ctl.phase == Phase.LAND and cmds == [Land()]
+    said = texts(ctl)
+    assert any("zone 1 out of view at 7.0 m, nobody seen within r0: landing committed" in x for x in said), said
+    assert not any("lost" in x for x in said)
+    ctl = LandingController(LOW)
+    t = _low_over_zone(ctl)
+    t, alt, _, _ = _descend_low(ctl, t, until_alt=7.5)
+    ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+    ctl.on_frame(t, [], pose(t, 10, 0, alt), GroundBelow(10, 0, 0.9, 3.0))  # somebody 0.9 m away
+    assert ctl.phase == Phase.HOLD
+
+
 def test_somebody_within_r0_during_the_low_descent_sends_it_back_up_and_the_zone_is_judged_again():
     ctl = LandingController(LOW)
     t = _low_over_zone(ctl)

@@ -136,12 +136,14 @@ def statustext_messages(link: MavLink, text: str, severity: int) -> list[object]
     return msgs
 
 
-def send_statustext(link: MavLink, text: str, severity: int = m.MAV_SEVERITY_INFO, key: str = "") -> None:
+def send_statustext(link: MavLink, text: str, severity: int = m.MAV_SEVERITY_INFO, key: str = "",
+                    last: bool = False) -> None:
     """Tell ``text`` with MAV_SEVERITY ``severity``: through the link's :class:`TextOutbox` when
     it has one (the service's), paced (``key``: see :class:`TextPacer`); else at once, its
-    chunks back to back."""
+    chunks back to back. ``last``: the service's last words (it is stopping and nothing could
+    send them later): at once, past the queue."""
     outbox = _outboxes.get(link)
-    if outbox is not None:
+    if outbox is not None and not last:
         outbox.offer(text, severity, key)
         return
     for msg in statustext_messages(link, text, severity):

@@ -173,6 +173,9 @@ async def test_a_burst_arrives_whole_over_mavlink_paced_and_in_severity_order():
         assert starts[4] - starts[0] >= 1.0 - 1e-3
         times = [t for msg, t in peer.received if msg.get_type() == "STATUSTEXT" and msg.id and msg.chunk_seq > 0]
         assert times, "no chunked text arrived"
+        # The service's last words (stopping, handing back) go at once, past a full window.
+        send_statustext(link, "SLZ: companion stopping; handing back (LAND)", m.MAV_SEVERITY_WARNING, last=True)
+        await peer.wait_for_text("companion stopping", timeout=0.3)
     finally:
         await peer.close()
         await link.close()

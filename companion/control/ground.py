@@ -86,9 +86,12 @@ def free_below(track: Track, status: VehicleStatus, below: GroundBelow | None) -
 
 
 def someone_within_r0(status: VehicleStatus | None, below: GroundBelow | None, planner: PlannerConfig) -> bool:
-    """Whether this frame saw somebody (not the end of the view) within r0 of the vehicle."""
+    """Whether this frame saw somebody (not the end of the view) within r0 of the vehicle. A view
+    that saw only free ground saw nobody, however far the vehicle has moved from its centre since
+    (carried to the vehicle, its free radius shrinks by that much, which is no person)."""
     here = below_here(status, below)
-    return here is not None and not planner.holds_r0(here.free, here.all_free)
+    return here is not None and below is not None and not below.view_limited and \
+        not planner.holds_r0(here.free, here.all_free)
 
 
 def holds_under_aim(status: VehicleStatus, aim: tuple[float, float], below: GroundBelow | None,

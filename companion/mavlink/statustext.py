@@ -270,6 +270,22 @@ class TextOutbox:
         self._schedule(loop)
 
 
+    def flush_all(self) -> int:
+        """The service is stopping: send every text still waiting now, most severe first, past
+        the pace (nothing could send them later); the number sent."""
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        waiting = sorted(self.pacer._queue, key=lambda q: (q[0], q[1]))
+        self.pacer._queue = []
+        now = self.clock()
+        for severity, _, _, text, _ in waiting:
+            self.sent.append((now, severity, text))
+            for msg in statustext_messages(self.link, text, severity):
+                self.link.send(msg)
+        return len(waiting)
+
+
 _outboxes: weakref.WeakKeyDictionary[MavLink, TextOutbox] = weakref.WeakKeyDictionary()
 
 

@@ -389,6 +389,7 @@ class Service:
         if self.recorder is not None:
             budget = left(1.0)
             await self._shutdown_step("recorder", asyncio.to_thread(self.recorder.close, budget), budget + 0.1)
+        self.gcs.outbox.flush_all()  # texts still waiting their turn: now or never
         await self._shutdown_step("link", self.link.close(), left(1.0))
         log.info("stopped")
 

@@ -982,3 +982,15 @@ def test_prefer_unwalked_ranks_calm_zones_by_unwalked_time_before_age():
     assert off.choose([old_gap, young_lawn], 30.0).id == 1
     unmeasured = dataclasses.replace(young_lawn, unwalked_s=math.nan)
     assert on.choose([old_gap, unmeasured], 30.0).id == 1
+
+
+def test_a_small_all_free_view_behind_the_vehicle_is_nobody_within_r0():
+    # The view saw only free ground (r = r_view = 1.5 m) around a point 1 m from where the vehicle
+    # is now: carried to the vehicle only 0.5 m of it is left, which is the view's end, no person.
+    # The simulated PX4 reading its altitude 1.3 m low lost its judged zone so on every descent.
+    ctl = LandingController(CFG)
+    t = _in_land(ctl, r_view=3.0)
+    ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
+    ctl.on_frame(t, [], pose(t, 10, 0, 5.9), GroundBelow(11.0, 0.0, 1.5, 1.5))
+    assert ctl.phase == Phase.LAND
+    assert any("nobody seen within r0: landing committed" in x for x in texts(ctl))

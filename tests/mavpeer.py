@@ -15,6 +15,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as m
 
+from companion.mavlink.statustext import join_chunks
+
 
 class MavPeer:
     def __init__(
@@ -209,16 +211,16 @@ class MavPeer:
 def join_statustexts(messages: Iterable[Any]) -> list[tuple[int, str]]:
     """(severity, text) of each STATUSTEXT among ``messages``, in order, the chunks of a long
     text (same non-zero ``id``) joined as a ground station joins them."""
-    out: list[tuple[int, str]] = []
+    out: list[tuple[int, list[str]]] = []
     open_ids: dict[int, int] = {}
     for msg in messages:
         if msg.get_type() != "STATUSTEXT":
             continue
         if msg.id and msg.id in open_ids:
-            i = open_ids[msg.id]
-            out[i] = (out[i][0], out[i][1] + msg.text)
+            out[open_ids[msg.id]][1].append(msg.text)
             continue
         if msg.id:
             open_ids[msg.id] = len(out)
-        out.append((int(msg.severity), msg.text))
-    return out
+        out.append((int(msg.severity), [msg.text]))
+    # The companion cuts chunks at spaces, pads them and repeats its prefix (statustext.py).
+    return [(sev, join_chunks([c for c in chunks if c])) for sev, chunks in out]

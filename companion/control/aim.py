@@ -98,3 +98,29 @@ def worth_moving(spot: Spot, track: Track, room: float) -> bool:
 def was_clear(spot: Spot) -> float:
     """How far the present landing point was from where people were seen (m; 0 when not measured)."""
     return spot.aim_clear_m if math.isfinite(spot.aim_clear_m) else 0.0
+
+
+#: A moved landing point is told (``MoveNews``) when it has moved at least this far (m) from the
+#: point last told for its zone, at most once per TELL_GAP_S (s): the point follows the risk map
+#: frame by frame, and telling each step flooded the ground station (19 texts in 12 s, issue 62).
+TELL_MIN_M, TELL_GAP_S = 1.0, 5.0
+
+
+@dataclass
+class MoveNews:
+    """Which moves of the landing point the pilot is told of (``TELL_MIN_M``, ``TELL_GAP_S``):
+    the point still moves on every frame that moves it; only the words wait."""
+
+    #: zone id -> (north, east m, clearance m, when told s) of the point last told (or chosen).
+    told: dict[int, tuple[float, float, float, float]]
+
+    def tell(self, zone_id: int, was: tuple[float, float], was_clear_m: float, spot: Spot,
+             now: float) -> tuple[float, float] | None:
+        """(distance moved m, clearance then m) to tell for ``zone_id``'s point moving from
+        ``was`` (clear by ``was_clear_m``) to ``spot`` at ``now``, or None to say nothing yet."""
+        north, east, clear, t = self.told.setdefault(zone_id, (was[0], was[1], was_clear_m, -math.inf))
+        moved = math.hypot(spot.x - north, spot.y - east)
+        if moved < TELL_MIN_M or now - t < TELL_GAP_S:
+            return None
+        self.told[zone_id] = (spot.x, spot.y, spot.clear_m, now)
+        return moved, clear

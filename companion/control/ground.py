@@ -17,10 +17,12 @@ when chosen, for r0 plus the radius margin) stands for the calm disc that does n
 steady watch (``Track.steady_s``) counts as calm while the vehicle is within ``steady_margin_m``
 of its centre.
 
-During LAND the zone is still watched: above ``land_abort_above_m`` a lost zone sends the
-vehicle back to HOLD; below it the landing is committed. It is committed too when the zone, last
-seen all free in a view smaller than ``BLIND_VIEW_M``, drops out of the tracks (``gone_blind``):
-the camera has come too low to confirm anything (seen occupied, it is lost as before).
+During LAND the zone is still watched: above ``land_abort_above_m`` a zone seen occupied sends
+the vehicle back to HOLD; below it the landing is committed. A zone that merely drops out of the
+tracks (``gone``) commits the landing too, unless the frame sees somebody within r0 of the
+vehicle: low over it the view is too small for the tracker to keep the zone, and that is no
+reason to climb (the real PX4 1.15.4 SIH climbed back to 10-12 m from 3-4 m three times so, its
+altitude reading up to 1.8 m off; issue 62).
 
 Every function here answers a question and changes nothing; the phase machine
 (``companion.control.landing``) acts on the answers.
@@ -35,9 +37,6 @@ from companion.control.planner import MIN_VIEW_M, PlannerConfig, ZoneCheck, Zone
 from companion.control.vehicle import VehicleStatus
 from companion.pipeline.circles import GroundBelow
 from companion.pipeline.tracker import Track
-
-#: A view radius (m) under which a zone that drops out of view during LAND commits the landing.
-BLIND_VIEW_M = 2 * MIN_VIEW_M
 
 
 @dataclass(frozen=True)
@@ -87,9 +86,12 @@ def free_below(track: Track, status: VehicleStatus, below: GroundBelow | None) -
 
 
 def someone_within_r0(status: VehicleStatus | None, below: GroundBelow | None, planner: PlannerConfig) -> bool:
-    """Whether this frame saw somebody (not the end of the view) within r0 of the vehicle."""
+    """Whether this frame saw somebody (not the end of the view) within r0 of the vehicle. A view
+    that saw only free ground saw nobody, however far the vehicle has moved from its centre since
+    (carried to the vehicle, its free radius shrinks by that much, which is no person)."""
     here = below_here(status, below)
-    return here is not None and not planner.holds_r0(here.free, here.all_free)
+    return here is not None and below is not None and not below.view_limited and \
+        not planner.holds_r0(here.free, here.all_free)
 
 
 def holds_under_aim(status: VehicleStatus, aim: tuple[float, float], below: GroundBelow | None,
@@ -134,17 +136,14 @@ def calm_verdict(track: Track, below: GroundBelow | None, steady: bool, planner:
                                     f"not {planner.min_calm_s:g} s")
 
 
-def gone_blind(last: Track, track: Track | None, now: float, zone_max_age_s: float) -> bool:
-    """Whether the zone ``last`` seen (the target), last seen all free with a view of under
-    ``BLIND_VIEW_M``, has dropped out of the tracks (``track``: its snapshot on this frame, None
-    when gone) rather than being seen occupied: the camera has come too low to confirm anything,
-    and the landing is committed. Over uniform free ground this happens a little above the commit
-    height; sending the vehicle back up to HOLD there only to come down again churned for a
-    minute. Not while the frame sees somebody within r0 of the vehicle (``someone_within_r0``):
-    "all free" was said of the track's centre, which drifts to the edge of the view while the
-    vehicle comes down over the landing point."""
-    gone = track is None or now - track.last_t > zone_max_age_s
-    return gone and last.view_limited and not last.r_view >= BLIND_VIEW_M
+def gone(track: Track | None, now: float, zone_max_age_s: float) -> bool:
+    """Whether the target has dropped out of the tracks (``track``: its snapshot on this frame,
+    None when gone, or not confirmed for ``zone_max_age_s``) rather than being seen occupied. In
+    LAND that commits the landing unless the frame sees somebody within r0 of the vehicle
+    (``someone_within_r0``): whether the view was small by the height the pose gives or by the
+    true one (the real PX4 SIH's altitude reads up to 1.8 m high), the camera low over the zone
+    cannot confirm it, and the vehicle must not climb away for that."""
+    return track is None or now - track.last_t > zone_max_age_s
 
 
 def target_check(planner: ZonePlanner, target: Track, tracks: list[Track], now: float, s: VehicleStatus | None,

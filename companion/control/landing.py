@@ -39,7 +39,6 @@ from companion.control import ground, watch
 from companion.control.aim import Aimed
 from companion.control.commands import Command, Goto, GotoSender, Handback, Land
 from companion.control.events import HandedBack, Holding, Phase, TargetChosen
-from companion.control.ground import BLIND_VIEW_M
 from companion.control.obedience import ObedienceMonitor, Sample
 from companion.control.phases import ACTIVE, FLYING, PhaseMachine
 from companion.control.planner import ZoneCheck, ZonePlanner
@@ -73,7 +72,7 @@ class LandingController(PhaseMachine):
         self.last_valid_frame_t: float | None = None
         self.frames_ignored = 0
         self.refusals = 0
-        self.placements = 0  # landing points moved away from where people were seen (place_lookback_s)
+        self.placements, self.moves = 0, aiming.MoveNews({})  # points moved away from people; which told
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.trigger_alt: float | None = None  # metres above home at the trigger
         self.ceiling_m: float | None = None  # metres above home (``descent``)
@@ -305,9 +304,12 @@ class LandingController(PhaseMachine):
                      and ground.holds_under_aim(s, aim, self.below, c.planner, c.arrive_radius_m))
         verdict, track, why = ground.target_check(self.planner, self.target, self.tracks, self.now, s, self.below,
                                                   over_zone, under_aim)
-        if verdict == ZoneCheck.LOST:
-            # Gone from the tracks, or unconfirmed for zone_max_age_s: that already took time.
-            return [] if self._out_of_view(track) else self._lost(why)
+        if verdict == ZoneCheck.LOST:  # gone from the tracks, or unconfirmed for zone_max_age_s
+            if not self._out_of_view(track):
+                return self._lost(why)
+            if self.phase == Phase.LAND or s is None or aim is None or not self._status_fresh():
+                return []
+            return Aimed(self.target, aim, math.hypot(aim[0] - s.north, aim[1] - s.east))  # the judged descent goes on
         if verdict == ZoneCheck.UNCONFIRMED or track is None or s is None or not self._status_fresh():
             return []  # no new command toward a zone this frame did not confirm
         if verdict == ZoneCheck.SMALL:  # lost once lose_after_frames frames in a row say so (``planner``)
@@ -322,10 +324,10 @@ class LandingController(PhaseMachine):
         aim = self._aim = aiming.aim_for(self._aim, track, room)
         spot = self.spot
         if spot is not None and self._placing(track.id) and aiming.worth_moving(spot, track, room):
-            moved = math.hypot(spot.x - aim[0], spot.y - aim[1])
             self.placements += 1
-            self._event(f"zone {track.id}: landing point moved {moved:.1f} m, {spot.clear_m:.1f} m from where "
-                        f"people were seen in the last {c.place_lookback_s:g} s (was {aiming.was_clear(spot):.1f} m)")
+            if news := self.moves.tell(track.id, aim, aiming.was_clear(spot), spot, self.now):
+                self._event(f"zone {track.id}: landing point moved {news[0]:.1f} m, {spot.clear_m:.1f} m from where "
+                            f"people were seen in the last {c.place_lookback_s:g} s (was {news[1]:.1f} m)")
             aim = self._aim = (spot.x, spot.y)
         return Aimed(track, aim, math.hypot(aim[0] - s.north, aim[1] - s.east))
 
@@ -366,13 +368,11 @@ class LandingController(PhaseMachine):
                             calm_s=round(calm_s, 1) if math.isfinite(calm_s) else None)
             if low_alt is None:
                 return [Land()]
-            # Straight down over the landing point as it is now: a zone bounded by the view
-            # moves with the camera, and the committed descent must not chase it.
+            # Straight down over the landing point as it is now: the committed descent chases no zone.
             self._low_to = (aim[0], aim[1], low_alt)
             self.sender.forget()
             return self._goto(aim[0], aim[1], low_alt, zone_id)
-        # The plan's next step, never below the judging (or, judged, the LAND) height over the
-        # ground under the vehicle; off the point it re-centres without climbing.
+        # The plan's next step, never below the judging (judged: LAND) height; off the point it re-centres.
         floor = s.alt - s.height + (land_at if judged else judge)
         self._level = plan.next_level(self._level, s, over.dist, floor, c, self._cap())
         return self._goto(aim[0], aim[1], self._level, zone_id)
@@ -421,17 +421,17 @@ class LandingController(PhaseMachine):
         return self._goto(s.north, s.east, self._level, None)
 
     def _out_of_view(self, track: Track | None) -> bool:
-        """In LAND, whether the target went out of view, all free (``ground.gone_blind``): the
-        landing is committed, as below ``land_abort_above_m`` (says so once)."""
+        """In LAND, or descending over the judged zone (too low to confirm it), whether the target left the
+        tracks with nobody seen within r0 of the vehicle (``ground.gone``): the landing is committed."""
         last = self.target
-        if self.phase != Phase.LAND or last is None or \
-                not ground.gone_blind(last, track, self.now, self.config.planner.zone_max_age_s) or \
+        if last is None or not (self.phase == Phase.LAND or self._judged == last.id) or \
+                not ground.gone(track, self.now, self.config.planner.zone_max_age_s) or \
                 ground.someone_within_r0(self.status, self.below, self.config.planner):
             return False
         if not self._blind:
             self._blind = True
             h = "?" if self.status is None else f"{self.status.height:.1f}"
-            self._event(f"zone {last.id} out of view at {h} m, last seen all free: landing committed")
+            self._event(f"zone {last.id} out of view at {h} m, nobody seen within r0: landing committed")
         return True
 
     # -- questions asked of the parts with this machine's state ---------------------------------
@@ -496,5 +496,5 @@ class LandingController(PhaseMachine):
 
 
 # Re-exported: a runner drives the controller with this module alone.
-__all__ = ["ACTIVE", "BLIND_VIEW_M", "FLYING", "LAND_AGL_MIN_M", "LandingConfig", "LandingController", "VehicleStatus",
+__all__ = ["ACTIVE", "FLYING", "LAND_AGL_MIN_M", "LandingConfig", "LandingController", "VehicleStatus",
            "expanding_square", "person_trust_height", "Command", "Goto", "Handback", "Land", "Phase"]

@@ -363,7 +363,7 @@ class Service:
             log.warning("stopping during %s: handing back to the autopilot (%s)", self.phase, action)
             try:
                 send_statustext(self.link, f"SLZ: companion stopping; handing back ({action})",
-                                m.MAV_SEVERITY_WARNING)
+                                m.MAV_SEVERITY_WARNING, last=True)
                 # Insist within the shutdown's budget: one packet can be lost (at 20 % loss one
                 # shutdown in five left the vehicle in GUIDED/OFFBOARD), so resend every 0.25 s
                 # until acknowledged, five times at most (1.25 s).
@@ -402,6 +402,7 @@ class Service:
         if self.recorder is not None:
             budget = left(1.0)
             await self._shutdown_step("recorder", asyncio.to_thread(self.recorder.close, budget), budget + 0.1)
+        self.gcs.outbox.flush_all()  # texts still waiting their turn: now or never
         await self._shutdown_step("link", self.link.close(), left(1.0))
         log.info("stopped")
 

@@ -12,7 +12,11 @@ MAVLink's conventions, as ArduPilot and PX4 follow them for their own components
   then the only one; (:func:`companion_state`);
 - each change of state is one STATUSTEXT, sent once when it happens (never every frame), within
   50 characters, with the severity ground stations rank it by (:data:`CONDITIONS`); a condition
-  that flaps is told at most once per ``min_gap_s``, and its last state is always told;
+  that flaps is told at most once per ``min_gap_s``, and its last state is always told; the
+  model's speed changes state only with hysteresis (:data:`SLOW_BAND`, :data:`SLOW_HOLD_S`);
+- every text of the link (these, the landing's, the commands' answers) goes out through one paced
+  outbox (``companion.mavlink.statustext.TextOutbox``: at most 4 in any 10 s, none repeated
+  within 5 s, most severe first);
 - the numbers (:data:`VALUE_NAMES`, at most 10 characters each; docs/ground-station-values.md) go
   out at ``gcs.values_hz``.
 
@@ -33,7 +37,7 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.control.events import Phase
 from companion.mavlink.link import MavLink
-from companion.mavlink.statustext import send_statustext
+from companion.mavlink.statustext import TextOutbox, TextPacer, attach_outbox, send_statustext
 from companion.service.health import Health
 
 log = logging.getLogger(__name__)
@@ -43,6 +47,12 @@ PHASE_CODES: dict[Phase, int] = {
     Phase.MONITOR: 0, Phase.SELECT: 1, Phase.APPROACH: 2, Phase.DESCEND: 3, Phase.LAND: 4,
     Phase.HOLD: 5, Phase.LANDED: 6, Phase.HANDBACK: 7, Phase.SEARCH: 8,
 }
+
+#: The model's speed, with hysteresis: it becomes slow once the median frame time has stayed
+#: above the budget for SLOW_HOLD_S (s), and fast again once it has stayed under SLOW_BAND times
+#: the budget for as long. Around the threshold (a median wandering 90-110 ms on a 100 ms
+#: budget) it then says nothing rather than "model slow" / "model speed ok" every few seconds.
+SLOW_BAND, SLOW_HOLD_S = 0.8, 5.0
 
 #: SLZ_HEALTH bits.
 HEALTH_CAMERA, HEALTH_LINK, HEALTH_STUCK, HEALTH_SLOW, HEALTH_FRAMES = 1, 2, 4, 8, 16
@@ -168,8 +178,10 @@ class GroundStation:
     at ``gcs.values_hz``."""
 
     def __init__(self, link: MavLink, *, frame_budget_ms: float, min_gap_s: float = 5.0,
-                 window: int = 20) -> None:
+                 window: int = 20, pacer: TextPacer | None = None) -> None:
         self.link = link
+        #: Every text on this link goes through it from now on (``send_statustext``).
+        self.outbox = attach_outbox(link, TextOutbox(link, pacer))
         self.frame_budget_ms = frame_budget_ms
         self.ready = False
         self.conditions = ConditionReporter(min_gap_s)
@@ -177,13 +189,16 @@ class GroundStation:
         self._latency_ms: deque[float] = deque(maxlen=window)
         self._frame_t: deque[float] = deque(maxlen=window)
         self._t0 = time.monotonic()
+        self._slow = False
+        self._slow_flip_t: float | None = None  # since when the speed says the other state
         self.sent_texts: list[tuple[int, str]] = []
         link.system_status = m.MAV_STATE_STANDBY
 
-    def say(self, text: str, severity: int) -> None:
-        """One STATUSTEXT (chunked by ``send_statustext`` when over 50 characters)."""
+    def say(self, text: str, severity: int, key: str = "") -> None:
+        """One STATUSTEXT (chunked by ``send_statustext`` when over 50 characters), paced by the
+        outbox; ``key`` names the condition it tells of (its newer news replaces it in the queue)."""
         self.sent_texts.append((severity, text))
-        send_statustext(self.link, text, severity)
+        send_statustext(self.link, text, severity, key)
 
     def set_ready(self, texts: Iterable[str]) -> None:
         """Start-up is over: tell it (NOTICE) and report ACTIVE from now on."""
@@ -200,6 +215,20 @@ class GroundStation:
             self._frame_ms.append(pipeline_ms)
         if math.isfinite(latency_ms):
             self._latency_ms.append(latency_ms)
+        self._judge_speed(now)
+
+    def _judge_speed(self, now: float) -> None:
+        """The hysteresis of :attr:`slow` (:data:`SLOW_BAND`, :data:`SLOW_HOLD_S`)."""
+        full = len(self._frame_ms) == self._frame_ms.maxlen
+        ms = self.frame_ms
+        other = (not full or ms < SLOW_BAND * self.frame_budget_ms) if self._slow else \
+            (full and ms > self.frame_budget_ms)
+        if not other:
+            self._slow_flip_t = None
+        elif self._slow_flip_t is None:
+            self._slow_flip_t = now
+        elif now - self._slow_flip_t >= SLOW_HOLD_S:
+            self._slow, self._slow_flip_t = not self._slow, None
 
     @property
     def frame_ms(self) -> float:
@@ -214,9 +243,10 @@ class GroundStation:
 
     @property
     def slow(self) -> bool:
-        """The median pipeline time over the last frames is over budget (a full window only: a
-        first slow frame, the model warming up, is not a slow model)."""
-        return len(self._frame_ms) == self._frame_ms.maxlen and self.frame_ms > self.frame_budget_ms
+        """The median pipeline time over the last frames has been over budget for
+        :data:`SLOW_HOLD_S` (a full window only: a first slow frame, the model warming up, is not
+        a slow model), and not yet under :data:`SLOW_BAND` of it for as long."""
+        return self._slow
 
     def health_bits(self, health: Health) -> int:
         keys = {f.key for f in health.faults}
@@ -242,8 +272,9 @@ class GroundStation:
             "pipeline": (stuck is not None, "" if stuck is None else stuck.text.removeprefix("pipeline stuck ")),
             "slow": (self.slow, f"{speed} > {self.frame_budget_ms:.0f} ms" if self.slow else speed),
         }
-        for severity, text in self.conditions.update(state, now):
-            self.say(text, severity)
+        for key, entry in state.items():  # one key at a time: each text carries its condition's key
+            for severity, text in self.conditions.update({key: entry}, now):
+                self.say(text, severity, key)
 
     def values(self, now: float, *, phase: Phase, zones: int, health: Health, target_r_m: float | None,
                clearance_m: float | None) -> Values:

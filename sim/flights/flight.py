@@ -479,7 +479,9 @@ def build_scene(spec: FlightSpec, link_port: int, cam_port: int
         outputs = [outputs[0] + forward, f"udpin:127.0.0.1:{spec.gcs_port}{forward}"]
     sim = Simulator(SimConfig(flavour=spec.flavour, outputs=outputs,
                               start_position=(start[0], start[1], -spec.altitude_m), vehicle=vp,
-                              autopilot=AutopilotConfig(origin_alt_offset_m=spec.home_origin_offset_m),
+                              autopilot=AutopilotConfig(origin_alt_offset_m=spec.home_origin_offset_m,
+                                                        alt_bias_m=spec.alt_bias_m,
+                                                        rangefinder_max_m=spec.rangefinder_max_m),
                               seed=spec.seed), world=world)
     K = Intrinsics.from_fov(640, 480, spec.hfov_deg, spec.camera_model)  # the service's camera (service_settings)
     ground = FlatGround(UNIFORM_GROUND_BGR) if spec.world == "uniform" else None

@@ -49,6 +49,11 @@ class FlightSpec:
         that crossings come at any time of a landing, whatever its speed.
     home_origin_offset_m: the simulated PX4's home altitude minus its estimator origin's altitude
         (m). The real PX4 converts frame-6 position targets wrongly unless this is 0.
+    alt_bias_m: the simulated autopilot's altitude error (m; ``AutopilotConfig.alt_bias_m``): it
+        believes, reports and flies altitudes this much higher than true, as PX4 SIH's estimate
+        does (-1.3 to +1.8 m on the ground). Not in the rows: the yardstick flies 0.
+    rangefinder_max_m: the simulated rangefinder's range (m); a small one (0.5) leaves the
+        companion the autopilot's altitude alone, as on a vehicle without one. Not in the rows.
     record_dir: where the service records the flight (a temporary folder when None: the judge
         reads the controller's events from the recording either way).
     service_env: extra environment variables for the service process (tests use it to prove the
@@ -87,6 +92,8 @@ class FlightSpec:
     service_log: Path | None = None
     service_set: tuple[str, ...] = ()
     home_origin_offset_m: float = 0.0
+    alt_bias_m: float = 0.0
+    rangefinder_max_m: float = 40.0
     service_env: tuple[tuple[str, str], ...] = ()
     companion: bool = True
     gcs_port: int | None = None

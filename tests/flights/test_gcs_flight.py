@@ -56,6 +56,7 @@ class Flight:
     svc: Service
     code: int
     wire: list[tuple[Any, int, int]] = field(default_factory=list)  # (message, src system, src component)
+    wire_t: list[float] = field(default_factory=list)  # when each arrived (monotonic s)
     modes: list[str] = field(default_factory=list)  # the simulated autopilot's modes, as they changed
     touchdown: bool = False
     dom: str | None = None  # the status page as Chromium rendered it
@@ -121,6 +122,7 @@ async def _fly_on(record_dir: Path, link_port: int, cam_port: int, page_port: in
 
     def on_wire(msg: Any, channel: Any) -> None:  # everything the simulated autopilot receives
         flight.wire.append((msg, msg.get_srcSystem(), msg.get_srcComponent()))
+        flight.wire_t.append(time.monotonic())
         handle(msg, channel)
 
     sim.autopilot.handle_message = on_wire  # type: ignore[method-assign]
@@ -204,8 +206,11 @@ def test_the_ground_station_sees_readiness_the_shadow_decisions_and_the_numbers(
     told = tuple(c.split("{")[0] for cond in CONDITIONS.values() for c in (cond.bad_text, cond.good_text))
     unmarked = [t for _, t in texts if not t.startswith(("SHADOW: ", "SLZ: ready", *told))]
     assert not unmarked, unmarked
-    # Each decision is told once: as many texts as the controller had events.
-    assert len(decisions) == len(flight.svc.events), (decisions, [e.text for e in flight.svc.events])
+    # Each decision told is one of the controller's, told once; every text the paced outbox sent
+    # arrived whole, in its order (the rest were repeats, stale news or newer news of a condition).
+    said = ["SHADOW: " + e.text.removeprefix("SLZ: ") for e in flight.svc.events]
+    assert all(t in said for _, t in decisions) and len({t for _, t in decisions}) == len(decisions), decisions
+    assert [t for _, t in texts] == [t for _, _, t in flight.svc.gcs.outbox.sent], texts
     values: dict[str, list[float]] = {}
     for msg in from_companion(flight):
         if msg.get_type() in ("NAMED_VALUE_INT", "NAMED_VALUE_FLOAT"):
@@ -283,3 +288,23 @@ def test_the_status_page_in_headless_chromium_shows_the_phase_the_zones_and_the_
     assert zones >= 1 and page.rows == zones + 1  # the header row and one per zone
     assert page.text["target"].startswith("#")
     assert '<img id="live" src="/stream.mjpg"' in flight.dom
+
+
+def test_the_ground_station_gets_at_most_4_texts_in_any_10_s_none_repeated_within_5_s(flight):
+    """Issue 62's targets, on what reached the autopilot (and so the ground station) in a real-time
+    flight: at most 4 texts from the companion in any 10 s, none repeated within 5 s, at most 2
+    about the model's speed; the chunks of one text 50 ms apart."""
+    cfg = flight.svc.cfg.link
+    mine = [(t, msg) for (msg, sys_id, comp), t in zip(flight.wire, flight.wire_t)
+            if (sys_id, comp) == (cfg.system_id, cfg.component_id) and msg.get_type() == "STATUSTEXT"]
+    starts = [(t, msg) for t, msg in mine if not msg.chunk_seq]  # one per text
+    assert len(starts) >= 3, starts
+    texts = [(t, text) for (t, _), (_, text) in zip(starts, join_statustexts([msg for _, msg in mine]))]
+    for t0, _ in texts:
+        window = [text for t, text in texts if t0 <= t < t0 + 10.0 - 0.05]  # 50 ms for the loopback
+        assert len(window) <= 4, window
+        assert sum("model s" in text for text in window) <= 2, window
+    for k, (t0, text) in enumerate(texts):
+        assert not any(text == other and t - t0 < 5.0 - 0.05 for t, other in texts[k + 1:]), text
+    chunked = [t for t, msg in mine if msg.chunk_seq]
+    assert all(any(0.04 <= tc - t <= 1.0 for t, _ in starts) for tc in chunked), "chunks sent back to back"

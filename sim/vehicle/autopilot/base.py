@@ -121,10 +121,18 @@ class AutopilotConfig:
     gcs_timeout_s: float | None = None  # FS_GCS_TIMEOUT; None = FS_GCS_ENABLE 0 (the default)
     telemetry_rates: dict[int, float] | None = None  # overrides of the flavour's default rates
     origin_alt_offset_m: float = 0.0   # home_alt - EKF origin alt AMSL (m); PX4 only, see above
+    #: The estimator's altitude error (m): the autopilot believes it is this much higher than it
+    #: is, reports its altitude so (GLOBAL_POSITION_INT alt and relative_alt, LOCAL_POSITION_NED z)
+    #: and flies altitude targets in that belief (a target of 5 m above home puts the vehicle 5 m
+    #: less the bias above the ground). PX4 1.15.4 SIH's relative altitude on the ground reads
+    #: -1.3 to +1.8 m (issue 62). Its rangefinder, if any, still measures the ground truly.
+    alt_bias_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.origin_alt_offset_m):
             raise ValueError(f"origin_alt_offset_m must be finite, got {self.origin_alt_offset_m}")
+        if not math.isfinite(self.alt_bias_m):
+            raise ValueError(f"alt_bias_m must be finite, got {self.alt_bias_m}")
         for kind, action in self.failsafe_action.items():
             if action not in ("land", "rtl"):
                 raise ValueError(f"failsafe action for {kind.value} must be 'land' or 'rtl'")

@@ -120,6 +120,9 @@ class CommandsMixin(ABC, MixinBase):
         if pos_bits == 0:
             if not np.all(np.isfinite(pos)):
                 return None
+            if frame not in (R.MAV_FRAME_LOCAL_OFFSET_NED, R.MAV_FRAME_BODY_NED, R.MAV_FRAME_BODY_OFFSET_NED,
+                             R.MAV_FRAME_BODY_FRD):
+                pos[2] += self.config.alt_bias_m  # an altitude in the estimator's belief (alt_bias_m)
             sp.position = pos
         if vel_bits != _IGNORE_VEL:
             if not np.all(np.isfinite(vel)):

@@ -108,13 +108,14 @@ class TelemetryMixin(MixinBase):
             q = quaternion_from_euler(s.roll, s.pitch, s.yaw)
             return mav.MAVLink_attitude_quaternion_message(tb, *q, 0.0, 0.0, s.yaw_rate)
         if msg_id == mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
-            lat, lon, alt = self.geo.to_global(n, e, d)
+            d_est = d - c.alt_bias_m  # where the estimator believes the vehicle is
+            lat, lon, alt = self.geo.to_global(n, e, d_est)
             hdg = int(round(math.degrees(s.yaw) * 100)) % 36000
             return mav.MAVLink_global_position_int_message(
                 tb, int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
-                int(round(-d * 1000)), _i16(vn * 100), _i16(ve * 100), _i16(vd * 100), hdg)
+                int(round(-d_est * 1000)), _i16(vn * 100), _i16(ve * 100), _i16(vd * 100), hdg)
         if msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
-            return mav.MAVLink_local_position_ned_message(tb, n, e, d - self.origin_down_m(),
+            return mav.MAVLink_local_position_ned_message(tb, n, e, d - c.alt_bias_m - self.origin_down_m(),
                                                           vn, ve, vd)
         if msg_id == mav.MAVLINK_MSG_ID_HOME_POSITION:
             hn, he, hd = self.reported_home()

@@ -351,7 +351,8 @@ def test_land_is_aborted_above_the_commit_altitude_only():
     ctl2.on_state(status(0.2, 10, 0, 10.2, mode="GUIDED"))
     ctl2.on_frame(0.2, [zone(1, 10, 0, 0.2, born=-8)], pose(0.2, 10, 0, 10.2))
     ctl2.on_state(status(0.3, 10, 0, 8.0, mode="LAND"))
-    cmds = ctl2.on_frame(0.3, [], pose(0.3, 10, 0, 8.0))
+    # Above the commit height, the zone gone and somebody seen 0.9 m from the vehicle: HOLD.
+    cmds = ctl2.on_frame(0.3, [], pose(0.3, 10, 0, 8.0), GroundBelow(10.0, 0.0, 0.9, 4.0))
     assert ctl2.phase == Phase.HOLD and isinstance(cmds[0], Goto) and cmds[0].zone_id is None
 
 
@@ -538,7 +539,7 @@ def test_a_zone_dropping_out_of_a_tiny_all_free_view_in_land_commits_the_landing
         assert ctl.on_frame(t, [], pose(t, 10, 0, 5.9 - 0.1 * k)) == []
         t += 0.1
     assert ctl.phase == Phase.LAND
-    assert any("out of view at 5.9 m, last seen all free: landing committed" in x for x in texts(ctl))
+    assert any("out of view at 5.9 m, nobody seen within r0: landing committed" in x for x in texts(ctl))
 
 
 @pytest.mark.parametrize("height, below, phase", [
@@ -561,11 +562,20 @@ def test_a_zone_out_of_view_never_commits_while_the_frame_sees_someone_within_r0
         assert not any("landing committed" in x for x in texts(ctl))
 
 
-def test_a_zone_seen_occupied_or_lost_from_a_large_view_in_land_still_sends_it_to_hold():
+def test_a_zone_gone_from_a_large_view_in_land_commits_unless_someone_is_seen_within_r0():
+    # The real PX4 SIH: its altitude reading 1.3-1.8 m off, the view the pipeline computed was
+    # larger than the camera's; the zone left the tracks at 3-4 m and the vehicle climbed back to
+    # 10-12 m, three times (issue 62). Leaving the tracks is no reason to climb; a person is.
     ctl = LandingController(CFG)
-    t = _in_land(ctl, r_view=3.0)  # the view was large: losing the zone means something
+    t = _in_land(ctl, r_view=3.0)
     ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
-    ctl.on_frame(t, [], pose(t, 10, 0, 5.9))
+    assert ctl.on_frame(t, [], pose(t, 10, 0, 5.9)) == []
+    assert ctl.phase == Phase.LAND
+    assert any("nobody seen within r0: landing committed" in x for x in texts(ctl))
+    ctl = LandingController(CFG)
+    t = _in_land(ctl, r_view=3.0)
+    ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
+    ctl.on_frame(t, [], pose(t, 10, 0, 5.9), GroundBelow(10.0, 0.0, 0.9, 4.0))  # a person 0.9 m away
     assert ctl.phase == Phase.HOLD
     ctl = LandingController(CFG)
     t = _in_land(ctl, r_view=1.1)
@@ -714,6 +724,34 @@ def test_a_judged_zone_is_flown_down_to_land_alt_before_the_land_watched_all_the
     assert LOW.descent.time_to_touchdown(10.0) == pytest.approx(10.0 / LOW.descent.land_speed_mps)
     low_profile = dataclasses.replace(LOW.descent, land_alt_m=4.0)
     assert low_profile.time_to_touchdown(10.0) == pytest.approx(6.0 / 1.5 + 4.0 / 0.5)
+
+
+def test_a_judged_zone_leaving_the_tracks_low_down_is_no_reason_to_climb_a_person_is():
+    """Below the judging height the view is too small to confirm the zone; the simulated PX4 with
+    its altitude reading 1.3 m low lost it there on every descent and climbed back four times until
+    the takeover's budget ran out (issue 62). Gone from the tracks, nobody seen within r0 under
+    the vehicle: the judged descent goes on to the LAND. Somebody seen: HOLD, as before."""
+    ctl = LandingController(LOW)
+    t = _low_over_zone(ctl)
+    t, alt, alts, _ = _descend_low(ctl, t, until_alt=7.5)
+    assert alts == [7.0] and ctl.phase == Phase.DESCEND
+    texts(ctl)
+    cmds: list = []
+    while t < 20.0 and not any(isinstance(c, Land) for c in cmds):
+        ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+        cmds = ctl.on_frame(t, [], pose(t, 10, 0, alt))  # no zone, and no measure under the vehicle
+        alt = min([c.target.rel_alt_m for c in cmds if isinstance(c, Goto)] + [alt])
+        t += 0.1
+    assert ctl.phase == Phase.LAND and cmds == [Land()]
+    said = texts(ctl)
+    assert any("zone 1 out of view at 7.0 m, nobody seen within r0: landing committed" in x for x in said), said
+    assert not any("lost" in x for x in said)
+    ctl = LandingController(LOW)
+    t = _low_over_zone(ctl)
+    t, alt, _, _ = _descend_low(ctl, t, until_alt=7.5)
+    ctl.on_state(status(t, 10, 0, alt, mode="GUIDED"))
+    ctl.on_frame(t, [], pose(t, 10, 0, alt), GroundBelow(10, 0, 0.9, 3.0))  # somebody 0.9 m away
+    assert ctl.phase == Phase.HOLD
 
 
 def test_somebody_within_r0_during_the_low_descent_sends_it_back_up_and_the_zone_is_judged_again():
@@ -944,3 +982,15 @@ def test_prefer_unwalked_ranks_calm_zones_by_unwalked_time_before_age():
     assert off.choose([old_gap, young_lawn], 30.0).id == 1
     unmeasured = dataclasses.replace(young_lawn, unwalked_s=math.nan)
     assert on.choose([old_gap, unmeasured], 30.0).id == 1
+
+
+def test_a_small_all_free_view_behind_the_vehicle_is_nobody_within_r0():
+    # The view saw only free ground (r = r_view = 1.5 m) around a point 1 m from where the vehicle
+    # is now: carried to the vehicle only 0.5 m of it is left, which is the view's end, no person.
+    # The simulated PX4 reading its altitude 1.3 m low lost its judged zone so on every descent.
+    ctl = LandingController(CFG)
+    t = _in_land(ctl, r_view=3.0)
+    ctl.on_state(status(t, 10, 0, 5.9, mode="LAND"))
+    ctl.on_frame(t, [], pose(t, 10, 0, 5.9), GroundBelow(11.0, 0.0, 1.5, 1.5))
+    assert ctl.phase == Phase.LAND
+    assert any("nobody seen within r0: landing committed" in x for x in texts(ctl))

@@ -242,7 +242,7 @@ def test_no_target_is_ever_above_the_ceiling_and_rising_above_it_hands_back():
     assert f.ctl.ceiling_m == pytest.approx(13.0)
 
     def zones(fl: Flight) -> list[Track]:
-        return fixed_zone(4.0, 0.0)(fl) if fl.t < 3.0 else []  # lost: hold and climb to see
+        return fixed_zone(4.0, 0.0)(fl) if fl.t < 1.0 else []  # lost before the LAND: hold, climb to see
     f.run(zones, lambda fl: fl.ctl.phase == Phase.HOLD and fl.t > 12.0, t_max=14.0)
     assert f.ctl.phase == Phase.HOLD
     assert max(g.target.rel_alt_m for g in f.gotos()) == pytest.approx(12.0)

@@ -187,7 +187,13 @@ def test_statustext_chunks_respect_the_50_byte_limit():
     assert statustext_chunks("short") == [b"short"]
     long = "SLZ: landing at zone 3, 12.4 m away, radius 4.1 m, descending to 10 m"
     chunks = statustext_chunks(long)
-    assert all(len(c) <= 50 for c in chunks) and b"".join(chunks).decode() == long
+    assert all(len(c) <= 50 for c in chunks)
+    # Cut at a space; the continuation repeats the prefix; the words are all there.
+    assert [c.decode() for c in chunks] == ["SLZ: landing at zone 3, 12.4 m away, radius 4.1 m,",
+                                            "SLZ: descending to 10 m"]
+    chunks = statustext_chunks("SLZ: zone 17: landing point moved 2.0 m, 1.9 m from where people were seen")
+    assert [c.decode() for c in chunks] == ["SLZ: zone 17: landing point moved 2.0 m, 1.9 m".ljust(50),
+                                            "SLZ: from where people were seen"]
     assert b"".join(statustext_chunks("é" * 40)).decode() == "é" * 40
 
 

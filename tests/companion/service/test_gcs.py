@@ -12,7 +12,7 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion.control.events import HandedBack, Holding, Note, Phase, PhaseChanged, TargetChosen
 from companion.mavlink.link import LinkConfig, MavLink
-from companion.mavlink.statustext import STATUSTEXT_LEN, event_severity, shadow_text
+from companion.mavlink.statustext import STATUSTEXT_LEN, TextPacer, event_severity, shadow_text
 from companion.service.gcs import CONDITIONS, VALUE_NAMES, GroundStation, companion_state
 from companion.service.health import Fault, Health
 from tests.mavpeer import MavPeer
@@ -27,7 +27,9 @@ STUCK = Health((Fault("pipeline", "pipeline stuck for 6.1 s", internal=True),))
 @contextlib.asynccontextmanager
 async def ground_station():
     link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, **FAST))
-    gcs = GroundStation(link, frame_budget_ms=100.0, min_gap_s=0.0)  # the gap is tested on its own
+    # The gap and the pacing are tested on their own (tests/companion/mavlink/test_statustext_pacing.py).
+    gcs = GroundStation(link, frame_budget_ms=100.0, min_gap_s=0.0,
+                        pacer=TextPacer(max_per_window=100, min_gap_s=0.0, repeat_s=0.0))
     await link.start()
     peer = MavPeer()
     await peer.connect_udp(link.local_address)
@@ -68,19 +70,20 @@ async def test_the_heartbeat_says_standby_then_active_then_critical_while_the_ca
 async def test_each_state_change_arrives_once_with_its_severity():
     async with ground_station() as (gcs, peer):
         gcs.set_ready(["SLZ: ready, model slz-density, camera 640x480"])
+        await asyncio.sleep(0.05)  # the outbox sends from the event loop: let it, between changes
         for k in range(5):  # a fault lasting five health ticks is told once
             gcs.update(CAMERA_DOWN, 1.0 + k)
-        gcs.update(OK, 7.0)
-        gcs.update(LINK_DOWN, 8.0)
-        gcs.update(OK, 9.0)
-        gcs.update(STUCK, 10.0)
-        gcs.update(OK, 11.0)
-        for _ in range(20):  # frames twice over the 100 ms budget: the model is slow
-            gcs.frame(200.0, 230.0, 12.0)
-        gcs.update(OK, 12.0)
-        for _ in range(20):
-            gcs.frame(40.0, 60.0, 13.0)
-        gcs.update(OK, 13.0)
+        for health, t in ((OK, 7.0), (LINK_DOWN, 8.0), (OK, 9.0), (STUCK, 10.0), (OK, 11.0)):
+            await asyncio.sleep(0.05)
+            gcs.update(health, t)
+        for k in range(80):  # frames twice over the 100 ms budget for 6 s after a full window: slow
+            gcs.frame(200.0, 230.0, 12.0 + 0.1 * k)
+        await asyncio.sleep(0.05)
+        gcs.update(OK, 20.0)
+        for k in range(80):
+            gcs.frame(40.0, 60.0, 20.0 + 0.1 * k)
+        await asyncio.sleep(0.05)
+        gcs.update(OK, 28.0)
         await peer.wait_for_text("model speed ok")
         await asyncio.sleep(0.1)
         got = peer.statustexts()
@@ -181,3 +184,33 @@ def test_the_docs_table_lists_every_named_value_as_sent():
     rows = [line.split("|")[1:4] for line in doc.splitlines() if line.startswith("| `SLZ_")]
     assert [(n.strip().strip("`"), k.strip()) for n, k, _ in rows] == \
         [(name, f"NAMED_VALUE_{kind}") for name, kind, _, _ in VALUE_NAMES]
+
+
+def test_the_model_speed_is_told_with_a_band_and_a_hold_time():
+    """A median wandering around the 100 ms budget says nothing; over it for 5 s it is slow, and
+    it is fast again only once under 80 ms for 5 s."""
+    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, **FAST))
+    gcs = GroundStation(link, frame_budget_ms=100.0)
+    t, flips, was = 0.0, 0, False
+    for k in range(600):  # 60 s: 2 s at 110 ms, 2 s at 90 ms, ...
+        gcs.frame(110.0 if (k // 20) % 2 == 0 else 90.0, 120.0, t)
+        flips += gcs.slow != was
+        was = gcs.slow
+        t += 0.1
+    assert flips == 0
+    for _ in range(49):  # over budget for 4.9 s: not yet
+        gcs.frame(150.0, 160.0, t)
+        t += 0.1
+    assert not gcs.slow
+    for _ in range(12):
+        gcs.frame(150.0, 160.0, t)
+        t += 0.1
+    assert gcs.slow
+    for _ in range(100):  # 95 ms: under the budget, not under the band: still slow
+        gcs.frame(95.0, 100.0, t)
+        t += 0.1
+    assert gcs.slow
+    for _ in range(75):
+        gcs.frame(60.0, 70.0, t)
+        t += 0.1
+    assert not gcs.slow

@@ -258,3 +258,23 @@ def test_ardupilot_velocity_target_times_out_and_gcs_failsafe_fires_on_silence()
         v.step(DT)
         ap.tick(t)
     assert Failsafe.GCS_LOSS in ap.failsafes and ap.custom_mode == LAND
+
+
+def test_an_altitude_bias_is_what_px4_reports_and_flies_by_not_where_the_vehicle_is() -> None:
+    """PX4 SIH's relative altitude reads -1.3 to +1.8 m on the ground (issue 62): with
+    ``alt_bias_m`` the simulated PX4 believes, reports and flies altitudes that much high."""
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+
+    v = Vehicle()  # on the ground at home
+    ap = Px4Multicopter(v, AutopilotConfig(alt_bias_m=1.8))
+    gpi = ap.build(mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT)
+    assert gpi.relative_alt == 1800 and gpi.alt == round((488.0 + 1.8) * 1000)
+    assert ap.build(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED).z == pytest.approx(-1.8)
+    # A target 5 m above home in its belief is 3.2 m above the ground.
+    msg = mav.MAVLink_set_position_target_global_int_message(
+        0, 1, 1, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0b0000_1111_1111_1000, int(47.397742e7),
+        int(8.545594e7), 5.0, 0, 0, 0, 0, 0, 0, 0, 0)
+    sp = ap._parse_setpoint(msg)
+    assert sp is not None and sp.position is not None and -sp.position[2] == pytest.approx(3.2, abs=0.05)
+    with pytest.raises(ValueError, match="alt_bias_m"):
+        AutopilotConfig(alt_bias_m=math.nan)

@@ -313,7 +313,9 @@ def flown_apart(row: dict[str, Any]) -> list[Apart]:
     """How a row was flown apart from the scenarios' own, in key order: the LAND speed, the
     crossing window, the watch before the failsafe, and a lockstep flight's clock start when
     it is not :data:`LOCKSTEP_CLOCK_START_S` (``unknown`` for a lockstep row written before the
-    start was fixed). The one walk of those fields for keys and for comparisons."""
+    start was fixed), and the ground when it is not the drawn one (``ground``: ``photo``; rows of
+    the drawn ground carry no such field). The one walk of those fields for keys and for
+    comparisons."""
     out: list[Apart] = []
     land = other_land_speed(row)
     if land is not None:
@@ -327,6 +329,9 @@ def flown_apart(row: dict[str, Any]) -> list[Apart]:
     clock = other_clock_start(row)
     if clock is not None:
         out.append(Apart("clock", "clock_start_s", clock if isinstance(clock, str) else _exact(clock)))
+    ground = row.get("ground")
+    if ground is not None and ground != "procedural":
+        out.append(Apart("ground", "ground", str(ground)))
     return out
 
 

@@ -122,6 +122,7 @@ from sim.flights.results import (
     summarise_rows,
     summary_text,
 )
+from sim.flights.spec import GROUNDS
 from sim.flights.spec import service_settings as flight_settings
 
 
@@ -238,9 +239,15 @@ class FlightJob:
     #: Where a lockstep flight's simulated clock starts (s, ``--clock-start``; None: the fixed
     #: ``sim.flights.results.LOCKSTEP_CLOCK_START_S``); part of its key when it is another.
     clock_start: float | None = None
+    #: The ground (``--ground``): ``procedural`` or ``photo`` with its ``photos`` folder; part of
+    #: its key when it is not the drawn one.
+    ground: str = "procedural"
+    photos: str | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
+        if self.ground != "procedural":
+            spec = dataclasses.replace(spec, ground=self.ground, photos=self.photos)
         if self.baseline:
             spec = dataclasses.replace(spec, companion=False)
         if self.land_speed is not None:
@@ -280,7 +287,8 @@ class FlightJob:
         return row_key({"seed": self.seed, "flavour": spec.flavour, "baseline": self.baseline,
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
                         "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
-                        "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None})
+                        "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None,
+                        "ground": spec.ground})
 
 
 def _cpu_s() -> float:
@@ -485,6 +493,29 @@ def parse_clock_starts(text: str) -> list[float]:
     return starts
 
 
+def default_photos() -> Path:
+    """``../shared/data/semantic_drone/full`` beside the checkout the package runs from."""
+    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "semantic_drone" / "full"
+
+
+def photos_folder(ground: str, photos: Path | None) -> str | None:
+    """The checked photos folder (absolute) of a photo ground, None for the drawn one; raises
+    ValueError naming the folder when it is missing or malformed (``sim.world.photo_ground.check_photos``),
+    before anything flies."""
+    if ground != "photo":
+        if photos is not None:
+            raise ValueError("--photos needs --ground photo")
+        return None
+    from sim.world.photo_ground import PhotosError, check_photos
+
+    folder = (photos if photos is not None else default_photos()).resolve()
+    try:
+        check_photos(folder)
+    except PhotosError as exc:
+        raise ValueError(str(exc)) from None
+    return str(folder)
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", default="1-10", help="seeds, e.g. 1-50 or 1,4,9-12 (default 1-10)")
     parser.add_argument("--flavour", choices=("ardupilot", "px4"), default=None,
@@ -507,6 +538,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "wider window keeps the rate with more walkers, so that crossings come "
                              "at any time of a landing: to compare landings of different lengths "
                              "fairly; recorded in each row")
+    parser.add_argument("--ground", choices=GROUNDS, default="procedural",
+                        help="what the ground is: 'procedural' (drawn; the default, the regression world) or "
+                             "'photo' (the held-out semantic-drone photos as a mosaic, their class maps the "
+                             "truth, their people counted, real-looking walkers: docs/photo-world.md); "
+                             "recorded in each row of a photo world")
+    parser.add_argument("--photos", type=Path, default=None, metavar="DIR",
+                        help="the photos of --ground photo (images/ and labels/; default "
+                             "../shared/data/semantic_drone/full beside the checkout)")
     parser.add_argument("--watch-s", type=float, default=None, metavar="S",
                         help=f"seconds the service watches the crowd, the vehicle hovering, before the "
                              f"failsafe ({MIN_WATCH_S:g}-{MAX_WATCH_S:g}; default {SCENARIO_WATCH_S:g}): what its "
@@ -584,11 +623,16 @@ def run(args: argparse.Namespace) -> int:
         print("companion sim-scenarios: --clock-start needs --lockstep (a real-time flight's clock is the "
               "machine's)", file=sys.stderr)
         return 2
+    try:
+        photos = photos_folder(args.ground, args.photos)
+    except ValueError as exc:
+        print(f"companion sim-scenarios: --photos: {exc}", file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
                       land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch,
-                      clock_start=start)
+                      clock_start=start, ground=args.ground, photos=photos)
             for start in starts for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

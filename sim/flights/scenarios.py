@@ -76,6 +76,16 @@ chance, the yardstick for any comparison (docs/scale.md, "How far one flight is 
 Rows record ``clock_start_s`` and resume only from rows flown from the same start; lockstep rows
 written before the start was fixed (it was the machine's uptime) are never resumed from.
 
+``--ground photo`` flies every seed over real nadir photos instead of the drawn ground: the
+held-out semantic-drone photos of ``--photos DIR`` (``../shared/data/semantic_drone/full`` beside
+the checkout by default) laid as a mosaic at their own ground sampling distance
+(``sim.world.photo_ground``), the same worlds placed where the free circle is landable by the
+class maps with none of the photos' people in it, those people counted by the judge, the
+walkers drawn as real silhouettes and four more crossing open ground (``sim.world.photo_people``;
+docs/photo-world.md). ``touchdown_surfaces`` are then class-map names. A missing or malformed
+folder is exit 2 before anything flies. Rows say ``"ground": "photo"`` and resume only from such
+rows; the drawn ground's rows carry no such field (``--ground procedural``, the default).
+
 ``--set KEY=VALUE`` (repeatable) flies every seed with that service setting, as ``companion run
 --set`` takes it (``--set model.path=my.onnx`` flies a researcher's own model in closed loop). A bad
 key or value, or a model file that is not there, is exit 2 before anything flies. Rows record the
@@ -122,7 +132,7 @@ from sim.flights.results import (
     summarise_rows,
     summary_text,
 )
-from sim.flights.spec import GROUNDS
+from sim.flights.spec import GROUNDS, photos_folder
 from sim.flights.spec import service_settings as flight_settings
 
 
@@ -491,29 +501,6 @@ def parse_clock_starts(text: str) -> list[float]:
             raise ValueError(f"{part.strip()!r} is given twice")
         starts.append(value)
     return starts
-
-
-def default_photos() -> Path:
-    """``../shared/data/semantic_drone/full`` beside the checkout the package runs from."""
-    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "semantic_drone" / "full"
-
-
-def photos_folder(ground: str, photos: Path | None) -> str | None:
-    """The checked photos folder (absolute) of a photo ground, None for the drawn one; raises
-    ValueError naming the folder when it is missing or malformed (``sim.world.photo_ground.check_photos``),
-    before anything flies."""
-    if ground != "photo":
-        if photos is not None:
-            raise ValueError("--photos needs --ground photo")
-        return None
-    from sim.world.photo_ground import PhotosError, check_photos
-
-    folder = (photos if photos is not None else default_photos()).resolve()
-    try:
-        check_photos(folder)
-    except PhotosError as exc:
-        raise ValueError(str(exc)) from None
-    return str(folder)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -18,7 +18,7 @@ from pathlib import Path
 from sim.flights.results import LOCKSTEP_CLOCK_START_S, SCENARIO_LAND_SPEED, SCENARIO_WATCH_S
 from sim.world.crowd import CROSSING_WINDOW_S
 from sim.world.ground import LANDABLE_SURFACES
-from sim.world.photo_ground import PHOTO_LANDABLE
+from sim.world.photo_ground import PHOTO_LANDABLE, PhotosError, check_photos
 
 WORLDS = ("free_area", "dense", "dense_beyond", "intrusion", "crossing", "dronecrowd", "uniform")
 #: What the ground is made of: ``procedural`` (drawn, ``sim.world.ground``; the default and the
@@ -237,3 +237,24 @@ def service_command(spec: FlightSpec, link_port: int, camera_url: str, record_di
     for item in service_settings(spec):
         cmd += ["--set", item]
     return cmd
+
+
+def default_photos() -> Path:
+    """``../shared/data/semantic_drone/full`` beside the checkout the package runs from."""
+    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "semantic_drone" / "full"
+
+
+def photos_folder(ground: str, photos: Path | None) -> str | None:
+    """The checked photos folder (absolute) of a photo ground, None for the drawn one; raises
+    ValueError naming the folder when it is missing or malformed (``sim.world.photo_ground.check_photos``),
+    before anything flies."""
+    if ground != "photo":
+        if photos is not None:
+            raise ValueError("--photos needs --ground photo")
+        return None
+    folder = (photos if photos is not None else default_photos()).resolve()
+    try:
+        check_photos(folder)
+    except PhotosError as exc:
+        raise ValueError(str(exc)) from None
+    return str(folder)

@@ -249,9 +249,11 @@ class PhotoGround:
             self._pyr[key] = self.patches[i].bgr if level == 0 else cv2.pyrDown(self._pyramid(i, level - 1))
         return self._pyr[key]
 
-    def _paint(self, dst: np.ndarray, n0: float, e0: float, res: float, labels: bool) -> None:
+    def _paint(self, dst: np.ndarray, n0: float, e0: float, res: float, labels: bool,
+               blocked: bool = False) -> None:
         """Draw every patch copy over the rectangle of ``dst`` (rows north from ``n0``, columns
-        east from ``e0``, ``res`` m/px): the photos (BGR) or their classes (``labels``)."""
+        east from ``e0``, ``res`` m/px): the photos (BGR), their classes (``labels``), or 255
+        wherever any of a destination pixel's photo pixels is not landable (``blocked``)."""
         rows, cols = dst.shape[:2]
         n1, e1 = n0 + rows * res, e0 + cols * res
         on, oe = self.origin
@@ -263,7 +265,10 @@ class PhotoGround:
                     pn, pe = bn + p.north, be + p.east
                     if pn >= n1 or pn + hm <= n0 or pe >= e1 or pe + wm <= e0:
                         continue
-                    if labels:
+                    if blocked:
+                        src, g, interp = self._blocked(i, res), 0.0, cv2.INTER_NEAREST
+                        g = p.gsd * p.classes.shape[0] / src.shape[0]
+                    elif labels:
                         src, g, interp = p.classes, p.gsd, cv2.INTER_NEAREST
                     else:
                         level = max(0, int(math.floor(math.log2(max(res / p.gsd, 1.0)))))
@@ -276,6 +281,16 @@ class PhotoGround:
                                   [0.0, -g / res, (pn + (H - 0.5) * g - n0) / res - 0.5]])
                     cv2.warpAffine(src, M, (cols, rows), dst=dst, flags=interp,
                                    borderMode=cv2.BORDER_TRANSPARENT)
+
+    def _blocked(self, i: int, res: float) -> np.ndarray:
+        """Patch ``i``'s ground that is not landable (255), pooled to about ``res`` m/px so that
+        a coarse pixel is blocked when any photo pixel under it is (nothing is lost by sampling)."""
+        p = self.patches[i]
+        bad = (~np.isin(p.classes, _LANDABLE_IDX)).astype(np.float32)
+        k = max(1.0, res / p.gsd)
+        size = (max(1, int(round(bad.shape[1] / k))), max(1, int(round(bad.shape[0] / k))))
+        pooled = cv2.resize(bad, size, interpolation=cv2.INTER_AREA) if k > 1 else bad
+        return np.where(pooled > 0, 255, 0).astype(np.uint8)
 
     # -- tiles (the texture) ------------------------------------------------------------------
     def res(self, level: int) -> float:
@@ -365,14 +380,20 @@ class PhotoGround:
     def landable_clearance(self, res: float = 0.1, person_margin_m: float = 1.0) -> np.ndarray:
         """Over one block (rows north, columns east from the block's corner, ``res`` m/px): the
         distance (m) from each point to the nearest ground that is not landable or within
-        ``person_margin_m`` of a photo's person."""
+        ``person_margin_m`` of a photo's person (a person's centroid grown by 0.5 m more, the half
+        of a body seen from above); a point counts as not landable when any photo pixel under it
+        is not."""
         on, oe = self.origin
-        cls = self.class_map(on, on + self.block_n, oe, oe + self.block_e, res)
-        ok = np.isin(cls, _LANDABLE_IDX)
-        person = (cls == PERSON).astype(np.uint8)
-        k = int(math.ceil(person_margin_m / res))
-        person = cv2.dilate(person, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1)))
-        free = (ok & (person == 0)).astype(np.uint8)
+        rows, cols = int(math.ceil(self.block_n / res)), int(math.ceil(self.block_e / res))
+        bad = np.full((rows, cols), 255, np.uint8)  # between patches: unlabelled, not landable
+        self._paint(bad, on, oe, res, labels=False, blocked=True)
+        bad = cv2.dilate(bad, np.ones((3, 3), np.uint8))  # a pixel's worth of placement error
+        people = np.zeros((rows, cols), np.uint8)
+        pts = self.people((on + self.block_n / 2, oe + self.block_e / 2), max(self.block_n, self.block_e))
+        for north, east in pts:
+            cv2.circle(people, (int((east - oe) / res), int((north - on) / res)),
+                       int(math.ceil((person_margin_m + 0.5) / res)), 255, -1)
+        free = ((bad == 0) & (people == 0)).astype(np.uint8)
         free[0, :] = free[-1, :] = 0  # the block's edges: what lies beyond is another copy, unknown here
         free[:, 0] = free[:, -1] = 0
         return cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res

@@ -387,7 +387,7 @@ class PhotoGround:
         is not."""
         on, oe = self.origin
         rows, cols = int(math.ceil(self.block_n / res)), int(math.ceil(self.block_e / res))
-        bad = np.full((rows, cols), 255, np.uint8)  # between patches: unlabelled, not landable
+        bad: np.ndarray = np.full((rows, cols), 255, np.uint8)  # between patches: unlabelled, not landable
         self._paint(bad, on, oe, res, labels=False, blocked=True)
         bad = cv2.dilate(bad, np.ones((3, 3), np.uint8))  # a pixel's worth of placement error
         people = np.zeros((rows, cols), np.uint8)

@@ -163,14 +163,16 @@ def _lab_stats(bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lab.mean(axis=0), np.maximum(lab.std(axis=0), 1e-3)
 
 
-def cutouts_from(image: np.ndarray, classes: np.ndarray, source: str) -> list[Cutout]:
-    """Every whole person (8-connected class-15 component) of one photo, with its mask as alpha."""
-    n, cc, stats, _ = cv2.connectedComponentsWithStats((classes == PERSON).astype(np.uint8), connectivity=8)
+def cutouts_from(image: np.ndarray, classes: np.ndarray, source: str,
+                 stats: tuple[np.ndarray, np.ndarray] | None = None) -> list[Cutout]:
+    """Every whole person (8-connected class-15 component) of one photo, with its mask as alpha;
+    ``stats``: the photo's Lab mean and std when the caller has them (else computed here)."""
+    n, cc, stats_, _ = cv2.connectedComponentsWithStats((classes == PERSON).astype(np.uint8), connectivity=8)
     h, w = classes.shape
-    mean, std = _lab_stats(image)
+    mean, std = _lab_stats(image) if stats is None else stats
     out = []
     for k in range(1, n):
-        x, y, bw, bh, _area = (int(v) for v in stats[k])
+        x, y, bw, bh, _area = (int(v) for v in stats_[k])
         if max(bw, bh) < MIN_CUTOUT_PX or x == 0 or y == 0 or x + bw == w or y + bh == h:
             continue
         alpha = (cc[y:y + bh, x:x + bw] == k).astype(np.float32)

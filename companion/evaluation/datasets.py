@@ -62,7 +62,25 @@ class Sample:
         return self.pixels if self.pixels is not None else read_image(self.path)
 
 
+#: The held-out semantic-drone photos at full size (``../shared/data/semantic_drone/full``): the
+#: simulator's photo ground (``sim.world.photo_ground``), kept out of every training set.
+HELD_OUT_FULL = ("semantic_drone", "full")
+
+
+def refuse_held_out(path: Path) -> None:
+    """Raise DatasetError for a path inside ``semantic_drone/full``: those photos are the held-out
+    fifth at full size, the simulator's photo ground, and no loader here may read them (so no
+    training or calibration set can hold them)."""
+    parts = Path(path).resolve().parts
+    for i in range(len(parts) - 1):
+        if parts[i:i + 2] == HELD_OUT_FULL:
+            raise DatasetError(f"{path} is one of the held-out full-size semantic-drone photos (the "
+                               "simulator's photo ground): never read for training or calibration")
+
+
 def read_image(path: Path) -> np.ndarray:
+    """A photo of a data set (BGR uint8); refuses the held-out ``semantic_drone/full`` photos."""
+    refuse_held_out(path)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise DatasetError(f"cannot read image {path}")

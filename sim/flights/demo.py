@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from sim.flights.flight import FlightResult, FlightSpec, fly, reserve_port
-from sim.flights.spec import parse_camera
+from sim.flights.spec import GROUNDS, parse_camera, photos_folder
 
 #: Event kinds printed live: the failsafe trigger and the controller's decisions.
 LIVE_KINDS = ("trigger", "controller")
@@ -51,6 +51,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", default="pinhole:70", metavar="MODEL:HFOV",
                         help="the camera of the simulator and of the service as one: pinhole or fisheye "
                              "and the horizontal field of view in degrees (default pinhole:70; e.g. fisheye:160)")
+    parser.add_argument("--ground", choices=GROUNDS, default="procedural",
+                        help="'procedural' (drawn; default) or 'photo': real nadir photos as the ground "
+                             "(docs/photo-world.md)")
+    parser.add_argument("--photos", type=Path, default=None, metavar="DIR",
+                        help="the photos of --ground photo (default ../shared/data/semantic_drone/full "
+                             "beside the checkout)")
     parser.add_argument("--model", type=Path, default=None,
                         help="ONNX density model for the service (default: the shipped one)")
 
@@ -212,6 +218,11 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"companion: demo: --camera: {exc}", file=sys.stderr)
         return 2
+    try:
+        photos = photos_folder(args.ground, args.photos)
+    except ValueError as exc:
+        print(f"companion: demo: --photos: {exc}", file=sys.stderr)
+        return 2
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     rec = out / "recording"
@@ -223,8 +234,9 @@ def run(args: argparse.Namespace) -> int:
                           home_origin_offset_m=offset, camera_model=lens, hfov_deg=hfov,
                           record_dir=rec, service_log=out / "service.log",
                           service_set=() if args.model is None else (f"model.path={args.model}",),
-                          gcs_port=gcs.port)
-        print(f"demo: {args.flavour} vehicle hovering {args.altitude:.0f} m over a crowd; the service "
+                          gcs_port=gcs.port, ground=args.ground, photos=photos)
+        print(f"demo: {args.flavour} vehicle hovering {args.altitude:.0f} m over a crowd"
+              + (" on real photos" if args.ground == "photo" else "") + "; the service "
               f"watches for {spec.watch_s:.0f} s, then the battery failsafe fires. The service's "
               f"decisions, as it makes them (seconds from the trigger):", flush=True)
         print(ground_station_line(gcs.port), flush=True)

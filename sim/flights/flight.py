@@ -38,6 +38,7 @@ import asyncio
 import bisect
 import contextlib
 import fcntl
+import functools
 import logging
 import math
 import os
@@ -71,7 +72,9 @@ from sim.world.crowd import (
     dronecrowd_world,
 )
 from sim.world.ground import FlatGround, ProceduralGround
-from sim.world.walkers import Circle
+from sim.world.photo_ground import PhotoGround
+from sim.world.photo_people import PhotoGroundWithPeople, open_ground_walkers
+from sim.world.walkers import Bounds, Circle
 
 log = logging.getLogger("sim.flights.flight")
 
@@ -254,10 +257,51 @@ def scene_centre(spec: FlightSpec) -> tuple[float, float]:
     return ProceduralGround(spec.seed).lawn_near(80.0, 80.0)
 
 
+@functools.lru_cache(maxsize=2)
+def photo_ground(folder: str) -> PhotoGroundWithPeople:
+    """The photo ground of ``folder`` with its real-looking people (one per process)."""
+    return PhotoGroundWithPeople(folder)
+
+
+#: Metres of landable ground, by the class maps, that a photo world keeps beyond its free
+#: circle's edge: the crowd's keep-out margin (0.3 m) and a vehicle's footprint (FOOTPRINT_M).
+PHOTO_FREE_MARGIN_M = 1.0
+#: Half the side (m) of the square around the scene whose photo people the judge counts.
+PHOTO_PEOPLE_HALF_M = 150.0
+
+
+def photo_scene_centre(spec: FlightSpec) -> tuple[float, float]:
+    """Where a photo world's scenario happens: a point drawn from the seed (its own stream) where
+    the free circle (grown by ``PHOTO_FREE_MARGIN_M``) is landable ground by the class maps with
+    no photo's person within 1 m of it; for a world without a free circle, any point of the
+    photo block."""
+    assert spec.photos is not None
+    ground = photo_ground(spec.photos)
+    rng = np.random.default_rng([int(spec.seed), 0x9407])
+    if spec.world in ("dense", "uniform", "dronecrowd"):
+        return (float(rng.uniform(0, ground.block_n)), float(rng.uniform(0, ground.block_e)))
+    return ground.free_centre(spec.free_radius_m + PHOTO_FREE_MARGIN_M, rng)
+
+
 def build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, float]]:
     """The scenario's world, the free circle it guarantees (None when there is none), and the
-    vehicle's start (north, east): ``start_offset_m`` from the circle's centre."""
-    cn, ce = scene_centre(spec)
+    vehicle's start (north, east): ``start_offset_m`` from the circle's centre. On the photo
+    ground (``spec.ground``) the photos' people stand in the world (``World.fixed_people``) and
+    walkers who cross open ground join the crowd (``sim.world.photo_people``)."""
+    world, free, start = _build_world(spec)
+    if spec.ground == "photo":
+        assert spec.photos is not None
+        centre = start if free is None else (free.north, free.east)
+        world.fixed_people = photo_ground(spec.photos).people(centre, PHOTO_PEOPLE_HALF_M)
+        if spec.world not in ("uniform", "dronecrowd"):
+            half = 45.0 if spec.world in ("dense", "dense_beyond") else 40.0
+            around = start if spec.world in ("dense", "dense_beyond") else centre
+            world.add_source(open_ground_walkers(Bounds.around(around, half), free, spec.seed))
+    return world, free, start
+
+
+def _build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, float]]:
+    cn, ce = photo_scene_centre(spec) if spec.ground == "photo" else scene_centre(spec)
     start = (cn + spec.start_offset_m[0], ce + spec.start_offset_m[1])
     if spec.world == "uniform":
         return World(seed=spec.seed), None, start
@@ -484,15 +528,21 @@ def build_scene(spec: FlightSpec, link_port: int, cam_port: int
                                                         rangefinder_max_m=spec.rangefinder_max_m),
                               seed=spec.seed), world=world)
     K = Intrinsics.from_fov(640, 480, spec.hfov_deg, spec.camera_model)  # the service's camera (service_settings)
-    ground = FlatGround(UNIFORM_GROUND_BGR) if spec.world == "uniform" else None
+    ground: object | None = None
+    if spec.world == "uniform":
+        ground = FlatGround(UNIFORM_GROUND_BGR)
+    elif spec.ground == "photo":
+        assert spec.photos is not None
+        ground = photo_ground(spec.photos)
     camera = CameraServer(sim.pose, world, K, Mount(), fps=spec.fps, port=cam_port, ground=ground)
     return world, free, sim, camera
 
 
 def touchdown_surfaces(ground: object, point: tuple[float, float]) -> list[str] | None:
     """The surfaces under a vehicle's footprint (``FOOTPRINT_M`` around ``point``, world NED
-    metres) on ``ground``'s truth, sorted; None for a ground that does not say (``FlatGround``)."""
-    if not isinstance(ground, ProceduralGround):
+    metres) on ``ground``'s truth, sorted (the photo ground's: its class maps' class names); None
+    for a ground that does not say (``FlatGround``)."""
+    if not isinstance(ground, (ProceduralGround, PhotoGround)):
         return None
     return sorted(ground.surfaces_within(point[0], point[1], FOOTPRINT_M))
 

@@ -317,8 +317,9 @@ def flown_apart(row: dict[str, Any]) -> list[Apart]:
     crossing window, the watch before the failsafe, the camera (``--camera``), a lockstep
     flight's clock start when
     it is not :data:`LOCKSTEP_CLOCK_START_S` (``unknown`` for a lockstep row written before the
-    start was fixed), and the link latency added each way (``link_latency_s``, ``--link-latency``).
-    The one walk of those fields for keys and for comparisons."""
+    start was fixed), the link latency added each way (``link_latency_s``, ``--link-latency``),
+    and the ground when it is not the drawn one (``ground``: ``photo``; rows of the drawn
+    ground carry no such field). The one walk of those fields for keys and for comparisons."""
     out: list[Apart] = []
     land = other_land_speed(row)
     if land is not None:
@@ -338,6 +339,9 @@ def flown_apart(row: dict[str, Any]) -> list[Apart]:
     latency = row.get("link_latency_s")
     if latency:  # rows flown without added latency have no such field
         out.append(Apart("latency", "link_latency_s", _exact(float(latency))))
+    ground = row.get("ground")
+    if ground is not None and ground != "procedural":
+        out.append(Apart("ground", "ground", str(ground)))
     return out
 
 

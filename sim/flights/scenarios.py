@@ -76,6 +76,16 @@ chance, the yardstick for any comparison (docs/scale.md, "How far one flight is 
 Rows record ``clock_start_s`` and resume only from rows flown from the same start; lockstep rows
 written before the start was fixed (it was the machine's uptime) are never resumed from.
 
+``--ground photo`` flies every seed over real nadir photos instead of the drawn ground: the
+held-out semantic-drone photos of ``--photos DIR`` (``../shared/data/semantic_drone/full`` beside
+the checkout by default) laid as a mosaic at their own ground sampling distance
+(``sim.world.photo_ground``), the same worlds placed where the free circle is landable by the
+class maps with none of the photos' people in it, those people counted by the judge, the
+walkers drawn as real silhouettes and four more crossing open ground (``sim.world.photo_people``;
+docs/photo-world.md). ``touchdown_surfaces`` are then class-map names. A missing or malformed
+folder is exit 2 before anything flies. Rows say ``"ground": "photo"`` and resume only from such
+rows; the drawn ground's rows carry no such field (``--ground procedural``, the default).
+
 ``--set KEY=VALUE`` (repeatable) flies every seed with that service setting, as ``companion run
 --set`` takes it (``--set model.path=my.onnx`` flies a researcher's own model in closed loop). A bad
 key or value, or a model file that is not there, is exit 2 before anything flies. Rows record the
@@ -122,7 +132,7 @@ from sim.flights.results import (
     summarise_rows,
     summary_text,
 )
-from sim.flights.spec import camera_name, parse_camera
+from sim.flights.spec import GROUNDS, camera_name, parse_camera, photos_folder
 from sim.flights.spec import service_settings as flight_settings
 
 
@@ -248,9 +258,15 @@ class FlightJob:
     #: The camera (``--camera``: lens model and horizontal field of view in degrees) of the simulator
     #: and the service as one (None: the scenarios' own, pinhole:70); part of its key when it is another.
     camera: tuple[str, float] | None = None
+    #: The ground (``--ground``): ``procedural`` or ``photo`` with its ``photos`` folder; part of
+    #: its key when it is not the drawn one.
+    ground: str = "procedural"
+    photos: str | None = None
 
     def spec(self) -> FlightSpec:
         spec = scenario(self.seed, self.flavour)
+        if self.ground != "procedural":
+            spec = dataclasses.replace(spec, ground=self.ground, photos=self.photos)
         if self.baseline:
             spec = dataclasses.replace(spec, companion=False)
         if self.land_speed is not None:
@@ -295,7 +311,7 @@ class FlightJob:
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
                         "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
                         "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None,
-                        "camera": camera_name(spec), **link_latency_field(spec)})
+                        "camera": camera_name(spec), **link_latency_field(spec), "ground": spec.ground})
 
 
 def _cpu_s() -> float:
@@ -529,6 +545,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "wider window keeps the rate with more walkers, so that crossings come "
                              "at any time of a landing: to compare landings of different lengths "
                              "fairly; recorded in each row")
+    parser.add_argument("--ground", choices=GROUNDS, default="procedural",
+                        help="what the ground is: 'procedural' (drawn; the default, the regression world) or "
+                             "'photo' (the held-out semantic-drone photos as a mosaic, their class maps the "
+                             "truth, their people counted, real-looking walkers: docs/photo-world.md); "
+                             "recorded in each row of a photo world")
+    parser.add_argument("--photos", type=Path, default=None, metavar="DIR",
+                        help="the photos of --ground photo (images/ and labels/; default "
+                             "../shared/data/semantic_drone/full beside the checkout)")
     parser.add_argument("--watch-s", type=float, default=None, metavar="S",
                         help=f"seconds the service watches the crowd, the vehicle hovering, before the "
                              f"failsafe ({MIN_WATCH_S:g}-{MAX_WATCH_S:g}; default {SCENARIO_WATCH_S:g}): what its "
@@ -626,11 +650,17 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"companion sim-scenarios: --camera: {exc}", file=sys.stderr)
         return 2
+    try:
+        photos = photos_folder(args.ground, args.photos)
+    except ValueError as exc:
+        print(f"companion sim-scenarios: --photos: {exc}", file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
                       land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch,
-                      clock_start=start, link_latency=latency or None, camera=camera)
+                      clock_start=start, link_latency=latency or None, camera=camera,
+                      ground=args.ground, photos=photos)
             for start in starts for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

@@ -18,8 +18,12 @@ from pathlib import Path
 from sim.flights.results import DEFAULT_CAMERA, LOCKSTEP_CLOCK_START_S, SCENARIO_LAND_SPEED, SCENARIO_WATCH_S
 from sim.world.crowd import CROSSING_WINDOW_S
 from sim.world.ground import LANDABLE_SURFACES
+from sim.world.photo_ground import PHOTO_LANDABLE, PhotosError, check_photos
 
 WORLDS = ("free_area", "dense", "dense_beyond", "intrusion", "crossing", "dronecrowd", "uniform")
+#: What the ground is made of: ``procedural`` (drawn, ``sim.world.ground``; the default and the
+#: regression world) or ``photo`` (real nadir photos, ``sim.world.photo_ground``).
+GROUNDS = ("procedural", "photo")
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,12 @@ class FlightSpec:
     gcs_port: when set, the simulator also binds ``udpin:127.0.0.1:<gcs_port>`` for a ground
         station to watch the flight, and forwards between it and the companion's link as the
         autopilot does (PX4: both links with forwarding on, ``MAV_X_FORWARD``).
+    ground: ``procedural`` (the drawn ground) or ``photo``: the held-out semantic-drone photos of
+        ``photos`` laid as a mosaic (``sim.world.photo_ground``), the scene placed where its free
+        circle is landable ground by their class maps and none of their people stands in it,
+        their people counted by the judge, the walkers drawn as real silhouettes and a few of
+        them crossing open ground (``sim.world.photo_people``).
+    photos: the photos folder of a ``photo`` ground (``images/``, ``labels/``).
     lockstep: fly on the simulated clock (``sim.flights.lockstep``): the service runs in the flight's own
         process, every piece of work takes a fixed simulated time, and the same spec flies the
         same flight every time, however loaded the machine. Only ``sim.flights.lockstep.fly_lockstep``
@@ -99,8 +109,14 @@ class FlightSpec:
     gcs_port: int | None = None
     lockstep: bool = False
     clock_start_s: float = LOCKSTEP_CLOCK_START_S
+    ground: str = "procedural"
+    photos: str | None = None
 
     def __post_init__(self) -> None:
+        if self.ground not in GROUNDS:
+            raise ValueError(f"ground must be one of {GROUNDS}, got {self.ground!r}")
+        if self.ground == "photo" and not self.photos:
+            raise ValueError("a photo ground needs its photos folder (photos)")
         if self.world not in WORLDS:
             raise ValueError(f"world must be one of {WORLDS}, got {self.world!r}")
         if self.flavour not in ("ardupilot", "px4"):
@@ -146,10 +162,12 @@ class FlightResult:
     @property
     def unlandable_touchdown(self) -> bool | None:
         """Touched down with part of its footprint on ground that is not landable (a tree, a
-        bench, a car, a roof), whoever landed; None where the ground does not say."""
+        bench, a car, a roof; on the photo ground, any class but paved area, dirt, grass and
+        gravel), whoever landed; None where the ground does not say."""
         if self.touchdown_surfaces is None:
             return None
-        return not set(self.touchdown_surfaces) <= LANDABLE_SURFACES
+        landable = PHOTO_LANDABLE if self.spec.ground == "photo" else LANDABLE_SURFACES
+        return not set(self.touchdown_surfaces) <= landable
 
     @property
     def took_control(self) -> bool:
@@ -193,6 +211,8 @@ class FlightResult:
                                     for z in self.zone_losses],
             # Only a camera other than the scenarios' own: rows flown with it stay as they were.
             **({} if camera_name(self.spec) == DEFAULT_CAMERA else {"camera": camera_name(self.spec)}),
+            # Only when not the drawn ground: the procedural rows stay as the yardstick has them.
+            **({} if self.spec.ground == "procedural" else {"ground": self.spec.ground}),
         }
 
 
@@ -255,3 +275,24 @@ def service_command(spec: FlightSpec, link_port: int, camera_url: str, record_di
     for item in service_settings(spec):
         cmd += ["--set", item]
     return cmd
+
+
+def default_photos() -> Path:
+    """``../shared/data/semantic_drone/full`` beside the checkout the package runs from."""
+    return Path(__file__).resolve().parents[2].parent / "shared" / "data" / "semantic_drone" / "full"
+
+
+def photos_folder(ground: str, photos: Path | None) -> str | None:
+    """The checked photos folder (absolute) of a photo ground, None for the drawn one; raises
+    ValueError naming the folder when it is missing or malformed (``sim.world.photo_ground.check_photos``),
+    before anything flies."""
+    if ground != "photo":
+        if photos is not None:
+            raise ValueError("--photos needs --ground photo")
+        return None
+    folder = (photos if photos is not None else default_photos()).resolve()
+    try:
+        check_photos(folder)
+    except PhotosError as exc:
+        raise ValueError(str(exc)) from None
+    return str(folder)

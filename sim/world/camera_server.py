@@ -201,7 +201,7 @@ class CameraServer:
         pos, hd, mv, t, seed, ids = positions
         img = render(pos, pose, self.intrinsics, self.mount, self.ground,  # type: ignore[arg-type]
                      headings=hd, moving=mv, t=t, seed=seed,
-                     looks=looks_for(ids, seed) if ids is not None else None)
+                     looks=looks_for(ids, seed) if ids is not None else None, ids=ids)
         img = self.noise(img)  # the sensor: read noise before the encoder
         if self.stamp:
             stamp_index(img, index)

@@ -75,6 +75,11 @@ class World:
     seed: int = 0
     t: float = 0.0
     paused: bool = False
+    #: (M, 2) people who stand still where the ground shows them (north, east m): the people of
+    #: the photo ground's photos. The judge counts them (``nearest_person_distance``,
+    #: ``people_within``) like everyone else; they are not in ``positions()``, which lists the
+    #: people the renderer draws (these are in the ground's pixels already).
+    fixed_people: np.ndarray | None = None
     _ticks: int = field(default=0, init=False, repr=False)
     _pending: float = field(default=0.0, init=False, repr=False)
     _t0: float = field(default=0.0, init=False, repr=False)
@@ -130,7 +135,7 @@ class World:
 
     def nearest_person_distance(self, point: tuple[float, float] | np.ndarray) -> float:
         """Horizontal distance (m) from ``point`` (north, east) to the nearest person; inf if none."""
-        p = self.positions()
+        p = self._everyone()
         if len(p) == 0:
             return math.inf
         q = np.asarray(point, float).ravel()[:2]
@@ -138,17 +143,25 @@ class World:
 
     def people_within(self, circle: Circle) -> int:
         """How many people stand inside ``circle`` now."""
-        p = self.positions()
+        p = self._everyone()
         return int(np.count_nonzero(circle.distance(p) < circle.radius)) if len(p) else 0
+
+    def _everyone(self) -> np.ndarray:
+        """The people who move and those fixed in the ground (:attr:`fixed_people`), (N, 2)."""
+        p = self.positions()
+        if self.fixed_people is None or len(self.fixed_people) == 0:
+            return p
+        return np.vstack([p, np.asarray(self.fixed_people, float).reshape(-1, 2)])
 
     def nobody_walks_at(self, point: tuple[float, float]) -> bool | None:
         """Whether ``point`` (north, east, m) is ground nobody walks into: inside a free area, or
-        outside the bounds every crowd keeps to. Scripted crossers and intruders do not count (they
-        are the test). None when a source has no bounds to tell by (real DroneCrowd motion)."""
+        outside the bounds every crowd keeps to. Scripted crossers and intruders, and walkers who
+        cross open ground (``crosses_open_ground``), do not count (they are the test). None when a source has no bounds to tell by (real DroneCrowd motion)."""
         q = np.asarray(point, float).reshape(1, 2)
         if any(float(c.distance(q)[0]) <= c.radius for c in self.free_areas):
             return True
-        crowds = [s for s in self.sources if not isinstance(s, ScriptedWalkers)]
+        crowds = [s for s in self.sources
+                  if not isinstance(s, ScriptedWalkers) and not getattr(s, "crosses_open_ground", False)]
         if any(not hasattr(s, "bounds") for s in crowds):
             return None
         return not any(bool(s.bounds.contains(q)[0]) for s in crowds)  # type: ignore[attr-defined]

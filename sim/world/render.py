@@ -315,7 +315,7 @@ def _to_fixed(uv: np.ndarray) -> np.ndarray:
 def render(world_positions: np.ndarray, pose: Pose, intrinsics: Intrinsics, mount: Mount,
            ground: Ground, headings: np.ndarray | None = None, moving: np.ndarray | None = None,
            looks: Looks | None = None, t: float = 0.0, seed: int = 0, blur: float = 0.6,
-           ) -> np.ndarray:
+           ids: np.ndarray | None = None) -> np.ndarray:
     """One camera frame: BGR uint8 of ``intrinsics.height x intrinsics.width`` (640x480 by default
     intrinsics of the simulator).
 
@@ -327,6 +327,8 @@ def render(world_positions: np.ndarray, pose: Pose, intrinsics: Intrinsics, moun
     looks: per-person colours (default: ``people_looks(N, seed)``).
     t: seconds, drives the walking gait phase.
     blur: Gaussian sigma in pixels of the lens/motion softness applied at the end (0 = none).
+    ids: (N,) the people's stable ids; a ground that carries its own ``people_painter`` (the photo
+    ground's real silhouettes, ``sim.world.photo_people``) draws the people instead, by id.
     """
     img = render_ground(pose, intrinsics, mount, ground)
     pos = np.asarray(world_positions, float).reshape(-1, 2)
@@ -335,7 +337,11 @@ def render(world_positions: np.ndarray, pose: Pose, intrinsics: Intrinsics, moun
         hd = np.zeros(n) if headings is None else np.asarray(headings, float).ravel()
         mv = np.zeros(n, bool) if moving is None else np.asarray(moving, bool).ravel()
         lk = looks if looks is not None and len(looks) >= n else people_looks(n, seed)
-        _draw_people(img, pos, hd, mv, lk, t, pose, intrinsics, mount)
+        painter = getattr(ground, "people_painter", None)
+        if painter is not None:
+            painter.paint(img, pos, hd, lk, pose, intrinsics, mount, ids)
+        else:
+            _draw_people(img, pos, hd, mv, lk, t, pose, intrinsics, mount)
     if blur > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur)
     return img
@@ -406,7 +412,8 @@ def render_world(world: WorldView, pose: Pose, intrinsics: Intrinsics, mount: Mo
     """:func:`render` of a :class:`sim.world.crowd.World` at its current time (positions, headings,
     walking state and the world's seed for the people's looks)."""
     seed = getattr(world, "seed", 0)
-    looks = looks_for(world.ids(), seed) if hasattr(world, "ids") else None
+    ids = world.ids() if hasattr(world, "ids") else None
+    looks = looks_for(ids, seed) if ids is not None else None
     return render(world.positions(), pose, intrinsics, mount, ground,
                   headings=world.headings(), moving=world.moving(),
-                  looks=looks, t=world.t, seed=seed, **kwargs)
+                  looks=looks, t=world.t, seed=seed, ids=ids, **kwargs)

@@ -1,0 +1,437 @@
+"""Ground made of real nadir photographs: the held-out semantic-drone photos as a mosaic.
+
+**Held out of every training set.** The photos read here are ``../shared/data/semantic_drone/full``:
+the held-out fifth of the ICG Semantic Drone Dataset (sorted index % 5 == 0) at its published
+1500x1000, with a class map each. No training code of this project reads that folder (the
+training and evaluation loaders read ``semantic_drone/images`` and split it by index, and
+``companion.evaluation.datasets.refuse_held_out`` refuses the ``full`` folder by name); the
+simulator only shows these photos to the service in closed loop, as a test.
+
+Each photo is a patch of ground at its own **ground sampling distance** (GSD, metres per photo
+pixel), estimated from what the class map shows (:func:`estimate_gsd`):
+
+- from the cars (class 17) when the photo holds a whole one: the median longer side of the whole
+  car components' minimum-area rectangles is :data:`CAR_LENGTH_M` (4.5 m, a typical European car);
+- else from the people (class 15): the median longer side of the whole person components'
+  minimum-area rectangles is :data:`PERSON_EXTENT_M` (0.85 m). That figure is measured on the
+  five photos that hold both (071, 103, 440, 526 and 194: 0.86, 0.75, 0.88, 0.88 and 1.32 m by
+  their cars; median 0.88, 0.85 taken to err toward a coarser, not finer, ground): a person
+  seen from straight above is shoulders, head and the shadowless body foreshortened toward the
+  edge of the frame, longer than a shoulder width (0.45 m) and far shorter than a body;
+- else (10 photos with neither) the median GSD of the others.
+
+The resulting GSDs on the 80 photos: 8 set by cars, 62 by people, 10 by the median;
+0.0045-0.037 m/px, median 0.0114 (quartiles 0.0068 and 0.0172), so a photo covers 6.7 m x 4.5 m
+to 55 m x 37 m of ground, 17 m x 11 m at the median (``python -m sim.world.photo_ground`` lists
+each photo's). Finer
+patches are stored at :data:`FINEST_M` (0.01 m/px): the camera sees no finer detail than that
+from the last metres of a landing.
+
+Layout (:class:`PhotoGround`): the patches sorted by height (tallest first) are packed in
+shelves, left to right, into a block about as wide as it is tall, north-up and unmirrored (the
+photo's top edge faces north). The ground repeats that block in both directions (endless, as the
+procedural ground). What a shelf leaves between patches is **unlabelled** ground (class 0, drawn
+a dull grey): not landable. Every ground point's truth is its photo's class
+(:data:`PHOTO_CLASSES`, ``labels/classes.txt``); landable are paved area, dirt, grass and gravel
+(:data:`PHOTO_LANDABLE`), everything else (water, pool, roof, wall, tree, vegetation, car,
+bicycle, obstacles, ...) is not. The people of the photos are people: :meth:`PhotoGround.people`
+gives their ground positions for the judge.
+
+Frames: world NED metres (north, east) on the ground plane z = 0. Mosaic convention of
+:meth:`PhotoGround.view` is the procedural ground's: pixel ``(col, row)`` =
+``((east - e0) / res, (north - n0) / res)``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+#: The semantic-drone classes (``labels/classes.txt``), index -> name.
+PHOTO_CLASSES = ("unlabeled", "paved-area", "dirt", "grass", "gravel", "water", "rocks", "pool",
+                 "vegetation", "roof", "wall", "window", "door", "fence", "fence-pole", "person", "dog",
+                 "car", "bicycle", "tree", "bald-tree", "ar-marker", "obstacle", "conflicting")
+#: The classes a vehicle may touch down on: flat, firm, open ground.
+PHOTO_LANDABLE = frozenset({"paved-area", "dirt", "grass", "gravel"})
+_LANDABLE_IDX = np.array([PHOTO_CLASSES.index(n) for n in sorted(PHOTO_LANDABLE)])
+PERSON = 15
+CAR = 17
+#: A typical car's length (m): the cars of the photos set their scale.
+CAR_LENGTH_M = 4.5
+#: The longer side (m) of a person's silhouette seen from above in these photos (see the module
+#: docstring for how it was measured).
+PERSON_EXTENT_M = 0.85
+#: The finest ground resolution kept (m/px).
+FINEST_M = 0.01
+#: A component smaller than this (px across) is a fragment, not a whole car or person.
+MIN_COMPONENT_PX = 8
+#: BGR of unlabelled ground between patches.
+GAP_BGR = (112, 116, 118)
+#: Expected size of every photo and its class map (width, height).
+PHOTO_WH = (1500, 1000)
+#: The fewest photos a folder must hold to make a ground of.
+MIN_PHOTOS = 8
+
+
+class PhotosError(ValueError):
+    """The photos folder is missing or not in the documented layout (``images/NNN.jpg`` with
+    ``labels/NNN.png`` of the same 1500x1000 size)."""
+
+
+def check_photos(folder: Path) -> list[str]:
+    """The photo names (stems) of ``folder``, checked without decoding every photo: ``images/``
+    and ``labels/`` exist, every image has its class map, at least :data:`MIN_PHOTOS`, and the
+    first photo and its map decode at :data:`PHOTO_WH`. Raises :class:`PhotosError` naming the
+    folder otherwise."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise PhotosError(f"photos folder {folder} does not exist")
+    images, labels = folder / "images", folder / "labels"
+    if not images.is_dir() or not labels.is_dir():
+        raise PhotosError(f"photos folder {folder} has no images/ and labels/ folders")
+    names = sorted(p.stem for p in images.glob("*.jpg"))
+    if len(names) < MIN_PHOTOS:
+        raise PhotosError(f"photos folder {folder} holds {len(names)} photos in images/, fewer than {MIN_PHOTOS}")
+    missing = [n for n in names if not (labels / f"{n}.png").is_file()]
+    if missing:
+        raise PhotosError(f"photos folder {folder}: no class map labels/{missing[0]}.png "
+                          f"({len(missing)} photos without one)")
+    img = cv2.imread(str(images / f"{names[0]}.jpg"), cv2.IMREAD_COLOR)
+    lab = cv2.imread(str(labels / f"{names[0]}.png"), cv2.IMREAD_UNCHANGED)
+    if img is None or lab is None or lab.ndim != 2 or img.shape[1::-1] != PHOTO_WH or lab.shape[::-1] != PHOTO_WH:
+        raise PhotosError(f"photos folder {folder}: {names[0]} is not a {PHOTO_WH[0]}x{PHOTO_WH[1]} photo "
+                          "with an 8-bit class map of its size")
+    return names
+
+
+def _component_extents(classes: np.ndarray, cls: int) -> list[float]:
+    """Longer sides (px) of the minimum-area rectangles of the whole components of ``cls``
+    (those touching the border are cut off and left out)."""
+    n, cc, stats, _ = cv2.connectedComponentsWithStats((classes == cls).astype(np.uint8), connectivity=8)
+    h, w = classes.shape
+    out = []
+    for k in range(1, n):
+        x, y, bw, bh, _a = (int(v) for v in stats[k])
+        if max(bw, bh) < MIN_COMPONENT_PX or x == 0 or y == 0 or x + bw == w or y + bh == h:
+            continue
+        ys, xs = np.nonzero(cc[y:y + bh, x:x + bw] == k)
+        (_c, (rw, rh), _ang) = cv2.minAreaRect(np.column_stack([xs, ys]).astype(np.float32))
+        out.append(float(max(rw, rh)))
+    return out
+
+
+def estimate_gsd(classes: np.ndarray) -> tuple[float | None, str]:
+    """The photo's ground sampling distance (m/px) from its class map and what set it ("car",
+    "person"), or (None, "none") when it holds neither whole."""
+    cars = _component_extents(classes, CAR)
+    if cars:
+        return CAR_LENGTH_M / float(np.median(cars)), "car"
+    people = _component_extents(classes, PERSON)
+    if people:
+        return PERSON_EXTENT_M / float(np.median(people)), "person"
+    return None, "none"
+
+
+@dataclass(frozen=True)
+class Patch:
+    """One photo laid on the ground: ``bgr`` (H, W, 3) and ``classes`` (H, W) at ``gsd`` m/px,
+    its south-west corner at (``north``, ``east``) metres of the block; ``gsd_from``: what set
+    its GSD ("car", "person", "median"); ``people_px``: (N, 2) centroids (x, y) of its person
+    components in its own pixels."""
+
+    name: str
+    bgr: np.ndarray
+    classes: np.ndarray
+    gsd: float
+    gsd_from: str
+    north: float
+    east: float
+    people_px: np.ndarray
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        """(north extent, east extent) in metres."""
+        return self.classes.shape[0] * self.gsd, self.classes.shape[1] * self.gsd
+
+
+def _people_centroids(classes: np.ndarray) -> np.ndarray:
+    n, _cc, stats, cent = cv2.connectedComponentsWithStats((classes == PERSON).astype(np.uint8), connectivity=8)
+    keep = [k for k in range(1, n) if stats[k, cv2.CC_STAT_AREA] >= 12]
+    return cent[keep].astype(np.float64).reshape(-1, 2)
+
+
+@functools.lru_cache(maxsize=2)
+def load_patches(folder: str) -> tuple[tuple[Patch, ...], float, float]:
+    """The photos of ``folder`` as patches laid out in a block, and the block's (north, east)
+    size in metres. Cached per process (a flight's process loads them once)."""
+    root = Path(folder)
+    names = check_photos(root)
+    raw = []
+    for name in names:
+        bgr = cv2.imread(str(root / "images" / f"{name}.jpg"), cv2.IMREAD_COLOR)
+        cls = cv2.imread(str(root / "labels" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+        if bgr is None or cls is None or cls.ndim != 2 or bgr.shape[:2] != cls.shape:
+            raise PhotosError(f"photos folder {root}: {name} and its class map do not decode at one size")
+        gsd, src = estimate_gsd(cls)
+        raw.append((name, bgr, cls, gsd, src))
+    known = [g for *_r, g, _s in raw if g is not None]
+    median = float(np.median(known)) if known else 0.01
+    items = []
+    for name, bgr, cls, gsd, src in raw:
+        g = median if gsd is None else gsd
+        people = _people_centroids(cls)
+        if g < FINEST_M:  # keep no finer ground than the camera can see
+            k = g / FINEST_M
+            size = (max(1, round(cls.shape[1] * k)), max(1, round(cls.shape[0] * k)))
+            people = people * (size[0] / cls.shape[1])
+            g *= cls.shape[1] / size[0]  # the exact GSD of the resized photo (about FINEST_M)
+            bgr = cv2.resize(bgr, size, interpolation=cv2.INTER_AREA)
+            cls = cv2.resize(cls, size, interpolation=cv2.INTER_NEAREST)
+        items.append((name, bgr, cls, g, src if gsd is not None else "median", people))
+    # Shelf packing, tallest first; of a range of block widths, the one that leaves least gap.
+    items.sort(key=lambda it: (-it[2].shape[0] * it[3], it[0]))
+    area = sum(it[2].shape[0] * it[3] * it[2].shape[1] * it[3] for it in items)
+    best: tuple[float, list[Patch], float, float] | None = None
+    for f in np.linspace(0.7, 1.6, 37):
+        patches, bn, be = _shelves(items, math.sqrt(area) * float(f))
+        if best is None or bn * be < best[0] - 1e-9:
+            best = (bn * be, patches, bn, be)
+    assert best is not None
+    return tuple(best[1]), best[2], best[3]
+
+
+def _shelves(items: list, width: float) -> tuple[list[Patch], float, float]:
+    """Patches packed in shelves no wider than ``width`` m (a patch wider than it gets its own)."""
+    patches, north, east, shelf_h, block_e = [], 0.0, 0.0, 0.0, 0.0
+    for name, bgr, cls, g, src, people in items:
+        h_m, w_m = cls.shape[0] * g, cls.shape[1] * g
+        if east > 0 and east + w_m > width:
+            north += shelf_h
+            east, shelf_h = 0.0, 0.0
+        patches.append(Patch(name, bgr, cls, g, src, north, east, people))
+        east += w_m
+        shelf_h = max(shelf_h, h_m)
+        block_e = max(block_e, east)
+    return patches, north + shelf_h, block_e
+
+
+class PhotoGround:
+    """An endless ground of real photos (a block of patches repeated), served as cached tiles
+    like :class:`sim.world.ground.ProceduralGround`, with its truth per point.
+
+    folder: the photos folder (``images/``, ``labels/``). base_res: finest tile resolution (m/px).
+    origin: where the block's south-west corner lies (world north, east m): a scenario moves
+    the block, not the scene.
+    """
+
+    def __init__(self, folder: Path | str, origin: tuple[float, float] = (0.0, 0.0), base_res: float = 0.02,
+                 tile_px: int = 256, max_tiles: int = 192) -> None:
+        self.folder = str(Path(folder).resolve())
+        self.patches, self.block_n, self.block_e = load_patches(self.folder)
+        self.origin = (float(origin[0]), float(origin[1]))
+        self.base_res = float(base_res)
+        self.tile_px = int(tile_px)
+        self._tile = functools.lru_cache(maxsize=max_tiles)(self._make_tile)
+        self._pyr: dict[tuple[int, int], np.ndarray] = {}
+        self._mosaic_key: tuple | None = None
+        self._mosaic: np.ndarray | None = None
+        self._lock = threading.Lock()
+
+    # -- painting ----------------------------------------------------------------------------
+    def _pyramid(self, i: int, level: int) -> np.ndarray:
+        """Patch ``i``'s photo halved ``level`` times (pre-filtered, so a coarse tile does not alias)."""
+        key = (i, level)
+        if key not in self._pyr:
+            self._pyr[key] = self.patches[i].bgr if level == 0 else cv2.pyrDown(self._pyramid(i, level - 1))
+        return self._pyr[key]
+
+    def _paint(self, dst: np.ndarray, n0: float, e0: float, res: float, labels: bool,
+               blocked: bool = False) -> None:
+        """Draw every patch copy over the rectangle of ``dst`` (rows north from ``n0``, columns
+        east from ``e0``, ``res`` m/px): the photos (BGR), their classes (``labels``), or 255
+        wherever any of a destination pixel's photo pixels is not landable (``blocked``)."""
+        rows, cols = dst.shape[:2]
+        n1, e1 = n0 + rows * res, e0 + cols * res
+        on, oe = self.origin
+        for bi in range(math.floor((n0 - on) / self.block_n), math.floor((n1 - on) / self.block_n) + 1):
+            for bj in range(math.floor((e0 - oe) / self.block_e), math.floor((e1 - oe) / self.block_e) + 1):
+                bn, be = on + bi * self.block_n, oe + bj * self.block_e
+                for i, p in enumerate(self.patches):
+                    hm, wm = p.size_m
+                    pn, pe = bn + p.north, be + p.east
+                    if pn >= n1 or pn + hm <= n0 or pe >= e1 or pe + wm <= e0:
+                        continue
+                    if blocked:
+                        src, g, interp = self._blocked(i, res), 0.0, cv2.INTER_NEAREST
+                        g = p.gsd * p.classes.shape[0] / src.shape[0]
+                    elif labels:
+                        src, g, interp = p.classes, p.gsd, cv2.INTER_NEAREST
+                    else:
+                        level = max(0, int(math.floor(math.log2(max(res / p.gsd, 1.0)))))
+                        src = self._pyramid(i, level)
+                        g, interp = p.gsd * p.bgr.shape[0] / src.shape[0], cv2.INTER_LINEAR
+                    H = src.shape[0]
+                    # Photo pixel (x, y) centre: east = pe + (x + .5) g, north = pn + (H - y - .5) g
+                    # (top edge north); dst pixel (c, r) centre: east = e0 + (c + .5) res, ...
+                    M = np.array([[g / res, 0.0, (pe - e0 + 0.5 * g) / res - 0.5],
+                                  [0.0, -g / res, (pn + (H - 0.5) * g - n0) / res - 0.5]])
+                    cv2.warpAffine(src, M, (cols, rows), dst=dst, flags=interp,
+                                   borderMode=cv2.BORDER_TRANSPARENT)
+
+    def _blocked(self, i: int, res: float) -> np.ndarray:
+        """Patch ``i``'s ground that is not landable (255), pooled to about ``res`` m/px so that
+        a coarse pixel is blocked when any photo pixel under it is (nothing is lost by sampling)."""
+        p = self.patches[i]
+        bad = (~np.isin(p.classes, _LANDABLE_IDX)).astype(np.float32)
+        k = max(1.0, res / p.gsd)
+        size = (max(1, int(round(bad.shape[1] / k))), max(1, int(round(bad.shape[0] / k))))
+        pooled = cv2.resize(bad, size, interpolation=cv2.INTER_AREA) if k > 1 else bad
+        return np.where(pooled > 0, 255, 0).astype(np.uint8)
+
+    # -- tiles (the texture) ------------------------------------------------------------------
+    def res(self, level: int) -> float:
+        return self.base_res * (1 << level)
+
+    def tile_size_m(self, level: int) -> float:
+        return self.tile_px * self.res(level)
+
+    def _make_tile(self, level: int, ti: int, tj: int) -> np.ndarray:
+        res, px = self.res(level), self.tile_px
+        img = np.empty((px, px, 3), np.uint8)
+        img[:] = GAP_BGR
+        self._paint(img, ti * px * res, tj * px * res, res, labels=False)
+        return img
+
+    def view(self, n_min: float, n_max: float, e_min: float, e_max: float, res: float,
+             max_px: int = 3072) -> tuple[np.ndarray, np.ndarray]:
+        """A mosaic covering the rectangle, as :meth:`sim.world.ground.ProceduralGround.view`."""
+        level = max(0, int(math.floor(math.log2(max(res, self.base_res) / self.base_res))))
+        while True:
+            S = self.tile_size_m(level)
+            ti0, ti1 = math.floor(n_min / S), math.floor(n_max / S)
+            tj0, tj1 = math.floor(e_min / S), math.floor(e_max / S)
+            if max(ti1 - ti0 + 1, tj1 - tj0 + 1) * self.tile_px <= max_px or level >= 12:
+                break
+            level += 1
+        key = (level, ti0, ti1, tj0, tj1)
+        with self._lock:
+            if key != self._mosaic_key:
+                rows = [np.hstack([self._tile(level, ti, tj) for tj in range(tj0, tj1 + 1)])
+                        for ti in range(ti0, ti1 + 1)]
+                self._mosaic = np.vstack(rows)
+                self._mosaic_key = key
+            mosaic = self._mosaic
+        r = self.res(level)
+        A = np.array([[0.0, 1.0 / r, -tj0 * S / r], [1.0 / r, 0.0, -ti0 * S / r], [0.0, 0.0, 1.0]])
+        assert mosaic is not None
+        return mosaic, A
+
+    # -- the truth ----------------------------------------------------------------------------
+    def class_map(self, n_min: float, n_max: float, e_min: float, e_max: float, res: float) -> np.ndarray:
+        """Class indices (:data:`PHOTO_CLASSES`; 0 between patches) over a rectangle at ``res``
+        m/px, rows north from ``n_min``, columns east from ``e_min``."""
+        rows, cols = int(math.ceil((n_max - n_min) / res)), int(math.ceil((e_max - e_min) / res))
+        if not (res > 0 and rows > 0 and cols > 0) or rows * cols > 8192 * 8192:
+            raise ValueError(f"class_map: bad rectangle or resolution (n {n_min}..{n_max}, e {e_min}..{e_max}, res {res})")
+        out = np.zeros((rows, cols), np.uint8)
+        self._paint(out, n_min, e_min, res, labels=True)
+        return out
+
+    def surfaces_within(self, north: float, east: float, radius: float = 0.0, res: float = 0.02) -> set[str]:
+        """The classes on the disc of ``radius`` m around (north, east) (their names)."""
+        half = max(float(radius), 0.0) + 2 * res
+        labels = self.class_map(north - half, north + half, east - half, east + half, res)
+        c = (np.arange(labels.shape[0]) + 0.5) * res - half
+        nn, ee = np.meshgrid(c, (np.arange(labels.shape[1]) + 0.5) * res - half, indexing="ij")
+        d = np.hypot(nn, ee)
+        if radius <= 0:
+            return {PHOTO_CLASSES[int(labels.flat[int(np.argmin(d))])]}
+        return {PHOTO_CLASSES[int(v)] for v in np.unique(labels[d <= radius])}
+
+    def surface_at(self, north: float, east: float) -> str:
+        (name,) = self.surfaces_within(north, east, 0.0)
+        return name
+
+    def people(self, centre: tuple[float, float], half_size: float) -> np.ndarray:
+        """(N, 2) ground positions (north, east) of the photos' people within the square of side
+        ``2 * half_size`` around ``centre``: every person component's centroid, every copy."""
+        n0, n1 = centre[0] - half_size, centre[0] + half_size
+        e0, e1 = centre[1] - half_size, centre[1] + half_size
+        on, oe = self.origin
+        out = []
+        for bi in range(math.floor((n0 - on) / self.block_n), math.floor((n1 - on) / self.block_n) + 1):
+            for bj in range(math.floor((e0 - oe) / self.block_e), math.floor((e1 - oe) / self.block_e) + 1):
+                bn, be = on + bi * self.block_n, oe + bj * self.block_e
+                for p in self.patches:
+                    if len(p.people_px) == 0:
+                        continue
+                    H = p.classes.shape[0]
+                    north = bn + p.north + (H - p.people_px[:, 1]) * p.gsd
+                    east = be + p.east + p.people_px[:, 0] * p.gsd
+                    out.append(np.column_stack([north, east]))
+        pts = np.vstack(out) if out else np.empty((0, 2))
+        ok = (pts[:, 0] >= n0) & (pts[:, 0] <= n1) & (pts[:, 1] >= e0) & (pts[:, 1] <= e1)
+        return pts[ok]
+
+    def landable_clearance(self, res: float = 0.1, person_margin_m: float = 1.0) -> np.ndarray:
+        """Over one block (rows north, columns east from the block's corner, ``res`` m/px): the
+        distance (m) from each point to the nearest ground that is not landable or within
+        ``person_margin_m`` of a photo's person (a person's centroid grown by 0.5 m more, the half
+        of a body seen from above); a point counts as not landable when any photo pixel under it
+        is not."""
+        on, oe = self.origin
+        rows, cols = int(math.ceil(self.block_n / res)), int(math.ceil(self.block_e / res))
+        bad: np.ndarray = np.full((rows, cols), 255, np.uint8)  # between patches: unlabelled, not landable
+        self._paint(bad, on, oe, res, labels=False, blocked=True)
+        bad = cv2.dilate(bad, np.ones((3, 3), np.uint8))  # a pixel's worth of placement error
+        people = np.zeros((rows, cols), np.uint8)
+        pts = self.people((on + self.block_n / 2, oe + self.block_e / 2), max(self.block_n, self.block_e))
+        for north, east in pts:
+            cv2.circle(people, (int((east - oe) / res), int((north - on) / res)),
+                       int(math.ceil((person_margin_m + 0.5) / res)), 255, -1)
+        free = ((bad == 0) & (people == 0)).astype(np.uint8)
+        free[0, :] = free[-1, :] = 0  # the block's edges: what lies beyond is another copy, unknown here
+        free[:, 0] = free[:, -1] = 0
+        return cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
+
+    def free_centre(self, radius: float, rng: np.random.Generator, res: float = 0.1) -> tuple[float, float]:
+        """A point (world north, east) whose disc of ``radius`` m is landable ground by the class
+        maps with no photo's person within 1 m of it, drawn from ``rng`` among all such points of
+        the block. Raises ValueError when the block holds none."""
+        dist = _clearance_cached(self.folder, self.origin, res)
+        ii, jj = np.nonzero(dist >= radius)
+        if len(ii) == 0:
+            raise ValueError(f"no landable disc of {radius:.1f} m on the photo ground ({self.folder})")
+        k = int(rng.integers(len(ii)))
+        return float(self.origin[0] + (ii[k] + 0.5) * res), float(self.origin[1] + (jj[k] + 0.5) * res)
+
+
+@functools.lru_cache(maxsize=4)
+def _clearance_cached(folder: str, origin: tuple[float, float], res: float) -> np.ndarray:
+    return PhotoGround(folder, origin).landable_clearance(res)
+
+
+def main() -> None:
+    """Print each photo's GSD and what set it, and the block's size (the module docstring's figures)."""
+    import sys
+
+    folder = sys.argv[1] if len(sys.argv) > 1 else str(Path(__file__).resolve().parents[3] / "shared" / "data" /
+                                                     "semantic_drone" / "full")
+    patches, bn, be = load_patches(folder)
+    g = np.array([p.gsd for p in patches])
+    for p in sorted(patches, key=lambda p: p.name):
+        print(f"{p.name}: {p.gsd:.4f} m/px ({p.gsd_from}), {p.size_m[1]:.1f} x {p.size_m[0]:.1f} m, "
+              f"{len(p.people_px)} people")
+    src = {s: sum(p.gsd_from == s for p in patches) for s in ("car", "person", "median")}
+    print(f"{len(patches)} photos, GSD {g.min():.4f}-{g.max():.4f} m/px (median {np.median(g):.4f}), set by {src}; "
+          f"block {be:.1f} m east x {bn:.1f} m north")
+
+
+if __name__ == "__main__":
+    main()

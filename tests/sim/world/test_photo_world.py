@@ -1,0 +1,203 @@
+"""The photo world (issue 59): real nadir photos as the simulator's ground, their class maps the
+truth, their people counted by the judge, walkers drawn as real silhouettes and some crossing open
+ground. Needs ``../shared`` (the held-out full-size semantic-drone photos); skips without it."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.evaluation.datasets import DatasetError, read_image, refuse_held_out
+from companion.geometry.camera import Intrinsics, Mount, Pose
+from sim.flights.flight import build_world, photo_ground, touchdown_surfaces
+from sim.flights.results import row_key
+from sim.flights.scenarios import FlightJob
+from sim.flights.spec import FlightResult, FlightSpec
+from sim.world.crowd import World
+from sim.world.photo_ground import (
+    PERSON,
+    PHOTO_CLASSES,
+    PHOTO_LANDABLE,
+    PhotosError,
+    check_photos,
+    estimate_gsd,
+)
+from sim.world.photo_people import open_ground_walkers
+from sim.world.render import render_world
+from sim.world.walkers import Bounds, Circle
+
+
+@pytest.fixture(scope="module")
+def photos(shared_dir: Path) -> str:
+    folder = shared_dir / "data" / "semantic_drone" / "full"
+    if not (folder / "images").is_dir():
+        pytest.skip(f"needs the held-out full-size photos at {folder}")
+    return str(folder.resolve())
+
+
+@pytest.fixture(scope="module")
+def ground(photos: str):
+    return photo_ground(photos)
+
+
+def test_every_photo_gets_a_plausible_gsd_most_from_their_people_or_cars(ground) -> None:
+    g = np.array([p.gsd for p in ground.patches])
+    assert len(ground.patches) == 80
+    # 5-30 m above ground with the data set's camera: about 0.004-0.04 m/px (finer ones kept at 0.01).
+    assert g.min() >= 0.0099 and g.max() <= 0.04
+    src = [p.gsd_from for p in ground.patches]
+    assert src.count("car") >= 5 and src.count("person") >= 50 and src.count("median") <= 15
+
+
+def test_a_car_sets_the_scale_when_there_is_one() -> None:
+    classes = np.zeros((400, 600), np.uint8)
+    classes[100:150, 100:325] = 17  # a car 225 px long
+    classes[300:320, 400:420] = PERSON
+    gsd, src = estimate_gsd(classes)
+    assert src == "car" and gsd == pytest.approx(4.5 / 225, rel=0.02)
+    classes[classes == 17] = 3
+    gsd, src = estimate_gsd(classes)
+    assert src == "person" and gsd == pytest.approx(0.85 / 20, rel=0.1)
+    assert estimate_gsd(np.zeros((50, 50), np.uint8)) == (None, "none")
+
+
+def test_each_ground_point_is_its_photos_pixel_and_class_north_up(ground) -> None:
+    p = max(ground.patches, key=lambda p: p.gsd)  # a coarse patch: stored at its own pixels
+    H, W = p.classes.shape
+    rng = np.random.default_rng(5)
+    on, oe = ground.origin
+    for _ in range(20):
+        x, y = int(rng.integers(2, W - 2)), int(rng.integers(2, H - 2))
+        north = on + p.north + (H - y - 0.5) * p.gsd  # the photo's top edge faces north
+        east = oe + p.east + (x + 0.5) * p.gsd
+        assert ground.surface_at(north, east) == PHOTO_CLASSES[int(p.classes[y, x])]
+    # The texture at the patch's own resolution is its photo.
+    y, x = H // 2, W // 2
+    north, east = on + p.north + (H - y - 0.5) * p.gsd, oe + p.east + (x + 0.5) * p.gsd
+    mosaic, A = ground.view(north - 1, north + 1, east - 1, east + 1, 0.02)
+    col, row, _ = A @ np.array([north, east, 1.0])
+    got = mosaic[int(row), int(col)].astype(int)
+    want = p.bgr[max(0, y - 2):y + 3, max(0, x - 2):x + 3].reshape(-1, 3).astype(int)
+    assert np.abs(want - got).min(axis=0).max() <= 40
+
+
+def test_the_ground_repeats_endlessly_and_gaps_are_unlabelled(ground) -> None:
+    on, oe = ground.origin
+    for n, e in ((3.3, 7.7), (40.0, 90.0)):
+        assert ground.surface_at(on + n, oe + e) == ground.surface_at(on + n + ground.block_n, oe + e - 2 * ground.block_e)
+    cls = ground.class_map(on, on + ground.block_n, oe, oe + ground.block_e, 0.2)
+    assert (cls == 0).mean() < 0.2  # shelves leave some ground between photos, not much
+    assert "unlabeled" not in PHOTO_LANDABLE
+
+
+def test_the_photos_people_are_people_at_their_ground_positions(ground) -> None:
+    on, oe = ground.origin
+    centre, half = (on + ground.block_n / 2, oe + ground.block_e / 2), max(ground.block_n, ground.block_e) / 2 - 1e-6
+    people = ground.people(centre, half)
+    inside = ((people[:, 0] >= on) & (people[:, 0] < on + ground.block_n)
+              & (people[:, 1] >= oe) & (people[:, 1] < oe + ground.block_e))
+    assert inside.sum() == sum(len(p.people_px) for p in ground.patches)  # one block: each once
+    people = people[inside]
+    for north, east in people[:40]:
+        assert "person" in ground.surfaces_within(float(north), float(east), 0.4)
+
+
+@pytest.mark.parametrize("seed", range(1, 25))
+def test_each_worlds_free_circle_is_landable_and_nobody_stands_in_it(photos: str, ground, seed: int) -> None:
+    spec = FlightJob(seed, ground="photo", photos=photos).spec()
+    world, free, start = build_world(spec)
+    assert world.fixed_people is not None and len(world.fixed_people) > 100
+    if spec.world == "dense":
+        assert free is None
+        return
+    assert free is not None
+    assert ground.surfaces_within(free.north, free.east, free.radius + 0.5) <= PHOTO_LANDABLE
+    assert world.people_within(Circle(free.north, free.east, free.radius + 0.3)) == 0
+    assert world.nearest_person_distance((free.north, free.east)) > free.radius
+
+
+def test_the_photos_people_count_for_the_judge_as_walkers_do() -> None:
+    w = World(seed=1, fixed_people=np.array([[10.0, 0.0]]))
+    assert w.nearest_person_distance((10.0, 1.5)) == pytest.approx(1.5)
+    assert w.people_within(Circle(10.0, 0.0, 1.0)) == 1 and len(w.positions()) == 0
+    assert World(seed=1).nearest_person_distance((0.0, 0.0)) == math.inf
+
+
+def test_touchdowns_are_judged_on_the_class_maps(ground, photos: str) -> None:
+    roof = PHOTO_CLASSES.index("roof")
+    p = max(ground.patches, key=lambda p: int((p.classes == roof).sum()))
+    H, W = p.classes.shape
+    on, oe = ground.origin
+    ys, xs = np.nonzero(p.classes == roof)
+    k = len(ys) // 2
+    point = (on + p.north + (H - ys[k] - 0.5) * p.gsd, oe + p.east + (xs[k] + 0.5) * p.gsd)
+    surfaces = touchdown_surfaces(ground, point)
+    assert surfaces is not None and "roof" in surfaces
+    spec = FlightSpec(ground="photo", photos=photos)
+    assert FlightResult(spec, "safe", touchdown_surfaces=surfaces).unlandable_touchdown
+    assert not FlightResult(spec, "safe", touchdown_surfaces=["dirt", "grass"]).unlandable_touchdown
+
+
+def test_photo_rows_say_so_and_are_keyed_apart_drawn_rows_do_not_change(photos: str) -> None:
+    drawn = FlightResult(FlightSpec(), "safe").as_dict()
+    photo = FlightResult(FlightSpec(ground="photo", photos=photos), "safe").as_dict()
+    assert "ground" not in drawn and photo["ground"] == "photo"
+    assert row_key(drawn) != row_key(photo)
+    assert FlightJob(3, "px4").key() != FlightJob(3, "px4", ground="photo", photos=photos).key()
+    assert FlightJob(3, "px4").key() == row_key({"seed": 3, "flavour": "px4"})
+    with pytest.raises(ValueError, match="photos"):
+        FlightSpec(ground="photo")
+
+
+def test_walkers_are_drawn_as_real_silhouettes_the_same_every_time(photos: str, ground) -> None:
+    spec = FlightJob(3, ground="photo", photos=photos).spec()
+    world, free, start = build_world(spec)
+    world.step(3.0)
+    K = Intrinsics.from_fov(640, 480, 70.0)
+    first = world.positions()[0]  # over a walker
+    pose = Pose(0.0, float(first[0]) + 1.0, float(first[1]) + 1.0, -12.0, 0.0, 0.0, 0.0)
+    a = render_world(world, pose, K, Mount(), ground)
+    b = render_world(world, pose, K, Mount(), ground)
+    assert np.array_equal(a, b)
+    empty = World(seed=world.seed, free_areas=world.free_areas)
+    bare = render_world(empty, pose, K, Mount(), ground)
+    changed = np.abs(a.astype(int) - bare.astype(int)).max(axis=2) > 30
+    # A walker in view from 12 m, and the silhouettes are person-sized, not blobs of paint.
+    assert 50 < changed.sum() < 0.2 * changed.size
+
+
+def test_open_ground_walkers_start_outside_the_circle_and_cross_it() -> None:
+    free = Circle(0.0, 0.0, 6.0)
+    crowd = open_ground_walkers(Bounds.around((0.0, 0.0), 20.0), free, seed=4, count=30)
+    assert (free.distance(crowd.positions()) >= free.radius).all()
+    world = World([crowd], [free], seed=4)
+    entered = 0
+    for _ in range(600):
+        world.step(0.2)
+        entered = max(entered, world.people_within(free))
+    assert entered > 0  # they walk across the free circle, as people do
+    assert world.nobody_walks_at((0.0, 0.0)) is True  # the circle is still the scene's free area
+
+
+def test_a_missing_or_malformed_photos_folder_is_named(tmp_path: Path, photos: str) -> None:
+    with pytest.raises(PhotosError, match=str(tmp_path / "nowhere")):
+        check_photos(tmp_path / "nowhere")
+    (tmp_path / "images").mkdir()
+    with pytest.raises(PhotosError, match="labels"):
+        check_photos(tmp_path)
+    (tmp_path / "labels").mkdir()
+    for name in sorted(os.listdir(Path(photos) / "images"))[:3]:
+        (tmp_path / "images" / name).symlink_to(Path(photos) / "images" / name)
+    with pytest.raises(PhotosError, match="fewer than"):
+        check_photos(tmp_path)
+
+
+def test_the_held_out_photos_are_refused_by_the_data_set_loaders(photos: str) -> None:
+    first = sorted((Path(photos) / "images").glob("*.jpg"))[0]
+    with pytest.raises(DatasetError, match="held-out"):
+        read_image(first)
+    refuse_held_out(Path(photos).parent / "images" / "000.jpg")  # the training folder is fine

@@ -176,10 +176,17 @@ def test_help_shows_no_restructuredtext(command: str | None) -> None:
 
 
 def test_a_missing_optional_package_names_its_extra(tmp_path: Path) -> None:
-    # sys.modules[name] = None makes the import fail exactly as an absent package does.
+    # sys.modules[name] = None makes the import fail exactly as an absent package does. A replay
+    # without a progress bar needs no tqdm (the container image has none); one with it does.
+    import cv2
+    import numpy as np
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "000.png"), np.full((48, 64, 3), 90, np.uint8))
     codes = [("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
               f"sys.exit(main({argv!r}))")
-             for argv in (["replay", "--help"], ["replay", str(tmp_path)], ["sim-scenarios", "--seeds", "1-3", "--json"])]
+             for argv in (["replay", "--help"], ["replay", str(frames), "--nadir", "--gsd", "0.05", "--progress"],
+                          ["sim-scenarios", "--seeds", "1-3", "--json"])]
     r, *runs = _side_by_side([[sys.executable, "-c", code] for code in codes], cwd=tmp_path)
     assert "Traceback" not in r.stderr
     for r in runs:

@@ -128,7 +128,10 @@ def downward_range_m(current_cm: int, min_cm: int, max_cm: int) -> float | None:
     """A downward DISTANCE_SENSOR's fields (``DOWNWARD_ORIENTATION``; callers skip the others,
     which leave the height as it was) as metres above the ground, or None outside the sensor's
     own valid range. One rule for the live state and for replay, which reads the recorded
-    messages."""
+    messages. A sensor whose range is empty or beyond any rangefinder's (``MAX_RANGEFINDER_CM``)
+    gives None: replay believes no more of it than the live state does."""
+    if min_cm >= max_cm or max_cm > MAX_RANGEFINDER_CM or current_cm > MAX_RANGEFINDER_CM:
+        return None
     return current_cm / 100.0 if min_cm <= current_cm <= max_cm else None
 
 

@@ -143,8 +143,11 @@ def send_statustext(link: MavLink, text: str, severity: int = m.MAV_SEVERITY_INF
     chunks back to back. ``last``: the service's last words (it is stopping and nothing could
     send them later): at once, past the queue."""
     outbox = _outboxes.get(link)
-    if outbox is not None and not last:
-        outbox.offer(text, severity, key)
+    if outbox is not None:
+        if last:
+            outbox.told(text, severity)  # at once, whatever the pace: it counts in it all the same
+        else:
+            outbox.offer(text, severity, key)
         return
     for msg in statustext_messages(link, text, severity):
         link.send(msg)
@@ -206,6 +209,16 @@ class TextPacer:
         if len(recent) >= self.max_per_window:
             at = max(at, recent[-self.max_per_window] + self.window_s)
         return max(at, min(self._free_at(q) for q in self._queue))
+
+    def allowance(self, now: float) -> int:
+        """How many texts may go at once at ``now`` without passing ``max_per_window`` in the
+        last ``window_s`` (the service's last words at stop, which cannot wait their turn)."""
+        return max(0, self.max_per_window - sum(1 for ts, _ in self._sent if now - ts < self.window_s))
+
+    def told(self, text: str, now: float) -> None:
+        """``text`` went out at ``now`` past the queue (the stop's own text): it counts in the window."""
+        self._sent = [(ts, t) for ts, t in self._sent if now - ts < max(self.window_s, self.repeat_s)]
+        self._sent.append((now, fit_text(text)))
 
     def take(self, now: float) -> tuple[int, str] | None:
         """The most severe queued text free to go (the oldest of those) when one may go at
@@ -271,19 +284,29 @@ class TextOutbox:
 
 
     def flush_all(self) -> int:
-        """The service is stopping: send every text still waiting now, most severe first, past
-        the pace (nothing could send them later); the number sent."""
+        """The service is stopping: send at once the texts still waiting that the pace allows in
+        the last ``window_s`` (most severe first; nothing could send them later), and drop the
+        rest (counted in the pacer's ``dropped``): a stop must not burst past the 4 texts in any
+        10 s a ground station is promised. The number sent."""
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
         waiting = sorted(self.pacer._queue, key=lambda q: (q[0], q[1]))
         self.pacer._queue = []
         now = self.clock()
-        for severity, _, _, text, _ in waiting:
-            self.sent.append((now, severity, text))
-            for msg in statustext_messages(self.link, text, severity):
-                self.link.send(msg)
-        return len(waiting)
+        room = self.pacer.allowance(now)
+        self.pacer.dropped += max(0, len(waiting) - room)
+        for severity, _, _, text, _ in waiting[:room]:
+            self.told(text, severity)
+        return min(room, len(waiting))
+
+    def told(self, text: str, severity: int) -> None:
+        """Send ``text`` now, past the queue, and count it in the pace."""
+        now = self.clock()
+        self.pacer.told(text, now)
+        self.sent.append((now, severity, fit_text(text)))
+        for msg in statustext_messages(self.link, text, severity):
+            self.link.send(msg)
 
 
 _outboxes: weakref.WeakKeyDictionary[MavLink, TextOutbox] = weakref.WeakKeyDictionary()

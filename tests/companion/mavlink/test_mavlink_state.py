@@ -295,3 +295,14 @@ def test_an_implausible_home_altitude_or_rangefinder_is_counted_and_dropped():
         s.update(bad, 1.1)
     assert s.rejected == 4
     assert s.altitude_above_ground(1.2) == pytest.approx(3.0)  # the last plausible reading, aged as before
+
+
+def test_replays_rangefinder_rule_refuses_what_the_live_state_refuses() -> None:
+    """``downward_range_m`` is the rule replay reads recorded DISTANCE_SENSORs with: a range that is
+    empty or beyond any rangefinder's gives no height, as the live state drops such a message."""
+    from companion.mavlink.state import MAX_RANGEFINDER_CM, downward_range_m
+    assert downward_range_m(350, 20, 4000) == 3.5
+    assert downward_range_m(10, 20, 4000) is None  # below the sensor's own minimum
+    assert downward_range_m(350, 4000, 4000) is None  # an empty range
+    assert downward_range_m(350, 20, MAX_RANGEFINDER_CM + 1) is None  # no rangefinder's range
+    assert downward_range_m(MAX_RANGEFINDER_CM + 1, 0, MAX_RANGEFINDER_CM + 1) is None

@@ -180,3 +180,38 @@ async def test_a_burst_arrives_whole_over_mavlink_paced_and_in_severity_order():
         await peer.close()
         await link.close()
     await asyncio.sleep(0)
+
+
+def test_a_stop_sends_what_waits_only_as_far_as_the_pace_allows():
+    """At stop the texts still queued go at once (nothing could send them later), most severe
+    first, but no more than the window has room for: a stop must not burst past 4 texts in 10 s
+    (a shadow landing's last texts and the stop's did so in a ground-station flight). The stop's
+    own text (``last``) goes whatever the pace, and counts in it."""
+    now = [0.0]
+
+    class Wire:
+        def __init__(self) -> None:
+            from pymavlink.dialects.v20 import ardupilotmega as dialect
+            self.mav = dialect.MAVLink(None, 1, 191)
+            self.sent: list[object] = []
+
+        def send(self, msg: object) -> None:
+            self.sent.append(msg)
+
+    wire = Wire()
+    box = TextOutbox(wire, TextPacer(), clock=lambda: now[0])  # type: ignore[arg-type]
+    box.told("SLZ: landing at zone 1, 0.0 m away, radius 6.1 m", m.MAV_SEVERITY_NOTICE)
+    now[0] = 1.0
+    box.told("SLZ: over zone 1, descending from 13.3 m", m.MAV_SEVERITY_NOTICE)
+    for k, sev in enumerate([m.MAV_SEVERITY_INFO, m.MAV_SEVERITY_NOTICE, m.MAV_SEVERITY_WARNING, m.MAV_SEVERITY_INFO]):
+        box.pacer.offer(f"SLZ: queued text {k}", sev, now[0])
+    now[0] = 2.0
+    assert box.flush_all() == 2  # 2 told in the last 10 s: room for 2 more
+    assert [t for _, _, t in box.sent[2:]] == ["SLZ: queued text 2", "SLZ: queued text 1"]  # most severe first
+    assert box.pacer.dropped == 2 and box.pacer.allowance(now[0]) == 0
+    attach_outbox(wire, box)  # type: ignore[arg-type]
+    send_statustext(wire, "SLZ: companion stopping; handing back (LAND)", m.MAV_SEVERITY_WARNING,  # type: ignore[arg-type]
+                    last=True)
+    assert box.sent[-1][2] == "SLZ: companion stopping; handing back (LAND)"
+    now[0] = 12.5
+    assert box.pacer.allowance(now[0]) == 4  # the window has moved on

@@ -20,6 +20,7 @@ import contextlib
 import importlib
 import io
 import json
+import socket
 import sys
 import time
 from pathlib import Path
@@ -39,6 +40,17 @@ def ground_station_line(port: int) -> str:
             "[docs/ground-station.md]")
 
 
+def live_page_line(port: int) -> str:
+    """The one line that tells where to watch the service's own page during the demo."""
+    return (f"demo: the service's status page and live view: http://127.0.0.1:{port}/ "
+            f"(open it in a browser now; it serves while the service runs)")
+
+
+def live_settings(port: int) -> tuple[str, ...]:
+    """The service settings that serve its page on loopback ``port`` (``companion run --set``)."""
+    return ("live.enabled=true", "live.address=127.0.0.1", f"live.port={port}")
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flavour", choices=("ardupilot", "px4"), default="ardupilot",
                         help="autopilot the simulator behaves as (default ardupilot)")
@@ -48,6 +60,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("demo-out"),
                         help="output folder (default ./demo-out; git ignores it in a clone)")
     parser.add_argument("--no-video", action="store_true", help="skip the video")
+    parser.add_argument("--live", action="store_true",
+                        help="serve the service's status page and live view on loopback during the flight "
+                             "and print its URL (docs/ground-station.md, \"The status page\")")
     parser.add_argument("--camera", default="pinhole:70", metavar="MODEL:HFOV",
                         help="the camera of the simulator and of the service as one: pinhole or fisheye "
                              "and the horizontal field of view in degrees (default pinhole:70; e.g. fisheye:160)")
@@ -229,17 +244,22 @@ def run(args: argparse.Namespace) -> int:
     # A PX4 flies with its home 1.48 m below its estimator's origin, as PX4's own SIH did.
     offset = -1.48 if args.flavour == "px4" else 0.0
     # A port for a ground station, claimed node-wide like the flight's own (sim.flights.flight.reserve_port).
-    with reserve_port() as gcs:
+    with reserve_port() as gcs, contextlib.ExitStack() as stack:
+        service_set: tuple[str, ...] = () if args.model is None else (f"model.path={args.model}",)
+        page = stack.enter_context(reserve_port(socket.SOCK_STREAM)) if args.live else None
+        if page is not None:
+            service_set = (*service_set, *live_settings(page.port))
         spec = FlightSpec(flavour=args.flavour, seed=args.seed, altitude_m=args.altitude,
                           home_origin_offset_m=offset, camera_model=lens, hfov_deg=hfov,
-                          record_dir=rec, service_log=out / "service.log",
-                          service_set=() if args.model is None else (f"model.path={args.model}",),
+                          record_dir=rec, service_log=out / "service.log", service_set=service_set,
                           gcs_port=gcs.port, ground=args.ground, photos=photos)
         print(f"demo: {args.flavour} vehicle hovering {args.altitude:.0f} m over a crowd"
               + (" on real photos" if args.ground == "photo" else "") + "; the service "
               f"watches for {spec.watch_s:.0f} s, then the battery failsafe fires. The service's "
               f"decisions, as it makes them (seconds from the trigger):", flush=True)
         print(ground_station_line(gcs.port), flush=True)
+        if page is not None:
+            print(live_page_line(page.port), flush=True)
         follower = EventFollower(rec, since=time.time())
         try:
             result = asyncio.run(_fly_following(spec, follower))

@@ -72,6 +72,7 @@ from companion.service.health import PIPELINE_STUCK_S, FaultLog, FrameCounters, 
 from companion.service.landing_runner import LandingRunner
 from companion.service.notify import Notifier
 from companion.service.parts import build_camera, build_pipeline
+from companion.service.pilot_view import clearance_note, vehicle_fields
 from companion.service.web import LiveView, Snapshot, WebServer, live_video_stream, stream_uri
 
 log = logging.getLogger("companion.service")
@@ -473,15 +474,15 @@ class Service:
                 # Stale is unsafe: without a pose at capture time the frame can't be placed on
                 # the ground, and must not confirm or move any zone.
                 self.counters.no_pose += 1
-                self.frame_use.refused(pose_reason(self.state), time.monotonic())
+                self._refused(image, pose_reason(self.state))
                 continue
             self.busy_since = time.monotonic()
             try:
                 result = await asyncio.to_thread(self.pipeline.process, image, frame.t, pose)
             except (FrameError, GeometryError) as exc:
                 self.counters.bad += 1
-                self.frame_use.refused(UNUSABLE if isinstance(exc, FrameError) else geometry_reason(
-                    self.state, pose, self.mount, self.cfg.pipeline.head_height_m), time.monotonic())
+                self._refused(image, UNUSABLE if isinstance(exc, FrameError) else geometry_reason(
+                    self.state, pose, self.mount, self.cfg.pipeline.head_height_m))
                 # First one visible (e.g. "camera is not above the head plane" on the ground),
                 # then only now and then: a stream of identical warnings helps nobody.
                 level = logging.INFO if self.counters.bad == 1 or self.counters.bad % 500 == 0 else logging.DEBUG
@@ -489,7 +490,7 @@ class Service:
                 continue
             except (DensityModelError, ValueError) as exc:
                 self.counters.errors += 1
-                self.frame_use.refused(UNUSABLE, time.monotonic())
+                self._refused(image, UNUSABLE)
                 if self.counters.errors <= 10 or self.counters.errors % 100 == 0:
                     log.warning("frame %d: pipeline failed: %s", frame.index, exc)
                 continue
@@ -519,6 +520,13 @@ class Service:
                                target=None if target is None else target.id,
                                timings_ms=result.timings_ms)
 
+    def _refused(self, image: np.ndarray, reason: str) -> None:
+        """A frame not decided with: counted for health, and shown raw with ``reason`` in the live view."""
+        now = time.monotonic()
+        self.frame_use.refused(reason, now)
+        if self.live is not None and self.live.wants(now):
+            self.live.offer(Snapshot(image, None, None, self._caption(None, None), reason), now)
+
     def _record_event(self, kind: str, t: float, **data: Any) -> None:
         if self.recorder is not None:
             self.recorder.add_event(kind, t, **data)
@@ -531,11 +539,6 @@ class Service:
         return assess(link_connected=self.link.connected, camera_delivering=self.camera.delivering(now),
                       busy_s=None if busy is None else now - busy, stuck_after_s=PIPELINE_STUCK_S,
                       camera_frozen=self.camera.frozen(now), frames=self.frame_use.state(now))
-
-    def healthy(self, now: float) -> tuple[bool, str]:
-        """Link alive, camera delivering, pipeline not stuck; with the reason when not."""
-        h = self.health(now)
-        return h.ok, h.reason
 
     def _status_line(self) -> str:
         target = None if self.controller is None else self.controller.zone_target()
@@ -588,10 +591,11 @@ class Service:
         target = None if c is None else c.zone_target()
         return target, None if c is None or target is None else c.touchdown_clearance(target)
 
-    def _caption(self, result: FrameResult, target: Track | None) -> str:
+    def _caption(self, result: FrameResult | None, target: Track | None) -> str:
         shadow = "SHADOW  " if self.shadow else ""
         aim = "no target" if target is None else f"target #{target.id} r {target.r:.1f} m"
-        return (f"{shadow}{self.phase}  zones {len(result.tracks)}  {aim}  "
+        zones = "" if result is None else f"zones {len(result.tracks)}  "
+        return (f"{shadow}{self.phase}  {zones}{aim}  "
                 f"{time.strftime('%H:%M:%S')}")
 
     def _send_values(self, phase: Phase) -> None:
@@ -629,7 +633,10 @@ class Service:
             "shadow": self.shadow,
             "phase": self.phase,
             "phase_code": PHASE_CODES[Phase(self.phase)],
-            "health": {"ok": health.ok, "reason": health.reason, "system_status": self.link.system_status},
+            "health": {"ok": health.ok, "standby": health.standby, "reason": health.reason,
+                       "system_status": self.link.system_status},
+            "vehicle": vehicle_fields(self.state, self.autopilot, c, self.events, now),
+            "clearance_note": clearance_note(c),
             "zones": zones,
             "target": None if target is None else {"id": target.id, "r_m": finite(target.r),
                                                    "clearance_m": finite(clearance)},
@@ -639,8 +646,7 @@ class Service:
             "decisions": [{"age_s": round(now - t, 1), "severity": sev, "text": text}
                           for t, sev, text in reversed(self.decisions)],
             "live": None if self.live is None else {"stream": "/stream.mjpg", "clients": self.live.clients,
-                                                    "drawn": self.live.stats.drawn,
-                                                    "dropped": self.live.stats.dropped},
+                                                    "drawn": self.live.stats.drawn, "dropped": self.live.stats.dropped},
         }
 
     async def _health_loop(self) -> None:

@@ -5,7 +5,9 @@
 - ``GET /status.json``: the same as JSON (:meth:`Service.status_json`);
 - ``GET /stream.mjpg``: the live view, ``multipart/x-mixed-replace`` JPEG frames (HTTP MJPEG, which
   browsers, VLC, ffmpeg and MAVProxy open): the paper's figure of each frame the pipeline
-  processed (``companion.replay.live_figure``).
+  processed (``companion.replay.live_figure``); a frame the pipeline cannot use (on the ground,
+  under the head plane, no pose) as the camera gave it, with the reason; with no frame at all for
+  ``IDLE_S``, a placeholder saying why, once per ``IDLE_S``: a client never waits on a silent stream.
 
 Standard library asyncio only. Off by default (``live.enabled``) and on loopback by default
 (``live.address``). The figure is drawn only while a stream client is connected, at most
@@ -34,7 +36,8 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 from companion.config import LiveSettings
 from companion.mavlink.gcs_commands import VideoStream
 from companion.pipeline.slz import FrameResult
-from companion.replay.live_figure import live_jpeg
+from companion.replay.live_figure import encode_jpeg, live_figure, placeholder_figure, raw_figure
+from companion.service.page import PAGE
 
 log = logging.getLogger(__name__)
 
@@ -49,17 +52,24 @@ STREAM_PATH = "/stream.mjpg"
 
 @dataclass(frozen=True)
 class Snapshot:
-    """What one live frame shows: the image the pipeline saw, its result, the target, a caption."""
+    """What one live frame shows: the image the pipeline saw, its result, the target, a caption;
+    ``result`` None and ``reason`` set for a frame the pipeline could not use (drawn raw)."""
 
     image: np.ndarray
-    result: FrameResult
+    result: FrameResult | None
     target_id: int | None
     caption: str
+    reason: str | None = None
 
 
 #: Most frames a second drawn for the live view (drawn only while a client watches): enough to
 #: follow the decision, at one JPEG encode each on the CPU the pipeline needs.
 LIVE_MAX_FPS = 5.0
+#: With no frame for this long (s), a stream client gets a placeholder saying why, and again at
+#: this period: a browser waiting for a first or next part never finishes loading the page.
+IDLE_S = 1.0
+#: The placeholder's size before any frame was drawn (px): the figure of a 640 x 480 camera.
+DEFAULT_FIGURE = (640 + 4 + 480, 480 + 28)
 
 
 @dataclass
@@ -82,6 +92,8 @@ class LiveView:
         self._latest: Snapshot | None = None
         self._new = asyncio.Event()
         self._last_offer = -math.inf
+        self.size = DEFAULT_FIGURE  # (width, height) of the last figure drawn (px)
+        self.drawing = False  # a frame is being drawn: a placeholder would only overtake it
 
     @property
     def clients(self) -> int:
@@ -126,17 +138,29 @@ class LiveView:
             if snap is None or not self._clients:
                 continue
             t0 = time.perf_counter()
+            self.drawing = True
             try:
-                jpeg = await asyncio.to_thread(live_jpeg, snap.image, snap.result, snap.target_id, snap.caption,
-                                               self.quality)
+                if snap.result is None:
+                    fig = await asyncio.to_thread(raw_figure, snap.image, snap.caption, snap.reason or "unknown")
+                else:
+                    fig = await asyncio.to_thread(live_figure, snap.image, snap.result, snap.target_id, snap.caption)
+                self.size = (fig.shape[1], fig.shape[0])
+                jpeg = await asyncio.to_thread(encode_jpeg, fig, self.quality)
             except Exception as exc:  # a drawing bug must cost the live view a frame, nothing more
                 self.stats.errors += 1
                 if self.stats.errors <= 3:
                     log.warning("live view: frame not drawn: %r", exc)
                 continue
+            finally:
+                self.drawing = False
             self.draw_ms = (self.draw_ms + [(time.perf_counter() - t0) * 1000.0])[-50:]
             self.stats.drawn += 1
             self.publish(jpeg)
+
+    async def placeholder(self, reason: str) -> bytes:
+        """A frame of the last figure's size saying ``reason`` (JPEG)."""
+        img = await asyncio.to_thread(placeholder_figure, *self.size, reason)
+        return await asyncio.to_thread(encode_jpeg, img, self.quality)
 
 
 def stream_uri(settings: LiveSettings) -> str:
@@ -259,7 +283,12 @@ class WebServer:
                          b"Content-Type: multipart/x-mixed-replace; boundary=" + BOUNDARY.encode() + b"\r\n\r\n")
             await asyncio.wait_for(writer.drain(), SEND_TIMEOUT_S)
             while True:
-                jpeg = await q.get()
+                try:
+                    jpeg = await asyncio.wait_for(q.get(), IDLE_S)
+                except (TimeoutError, asyncio.TimeoutError):  # no frame: say why rather than go silent
+                    if self.live.drawing or self.live._latest is not None:
+                        continue  # one is on its way
+                    jpeg = await self.live.placeholder(self._idle_reason())
                 writer.write(f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
                              .encode() + jpeg + b"\r\n")
                 try:
@@ -271,55 +300,11 @@ class WebServer:
         finally:
             self.live.remove_client(q)
 
+    def _idle_reason(self) -> str:
+        """Why no frame comes: the service's health, as the page shows it."""
+        try:
+            health = self.status().get("health", {})
+        except Exception:  # the status is the page's; the stream goes on without it
+            health = {}
+        return f"no camera frame: {health.get('reason', 'unknown')}"
 
-#: The status page: the live view and what /status.json says, refreshed once a second. Text is set
-#: with textContent only (nothing from the JSON is parsed as HTML).
-PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>companion: safe landing zones</title>
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<style>
-body{font-family:sans-serif;margin:1em;background:#111;color:#eee}
-img{max-width:100%;background:#333;min-height:120px}
-table{border-collapse:collapse}td,th{padding:2px 8px;border-bottom:1px solid #444;text-align:right}
-.bad{color:#f66}.ok{color:#6f6}.shadow{color:#fc3}#decisions li{font-family:monospace}
-</style></head><body>
-<h1>companion <span id="shadow" class="shadow"></span></h1>
-<p>Phase: <b id="phase">-</b> &middot; Health: <b id="health">-</b> &middot;
-Zones: <b id="zone-count">-</b> &middot; Target: <b id="target">-</b> &middot;
-<span id="rates"></span></p>
-<img id="live" src="/stream.mjpg" alt="live view (people red, unlandable ground magenta, proposals green, zones blue, target yellow)">
-<h2>Zones</h2>
-<table id="zones"><thead><tr><th>id</th><th>north m</th><th>east m</th><th>radius m</th><th>age</th>
-<th>clearance at touchdown m</th></tr></thead><tbody></tbody></table>
-<h2>Last decisions</h2><ol id="decisions"></ol>
-<script>
-function txt(id, v) { document.getElementById(id).textContent = v; }
-function num(v, d) { return v === null || v === undefined ? "-" : Number(v).toFixed(d); }
-async function refresh() {
-  try {
-    const s = await (await fetch("/status.json", {cache: "no-store"})).json();
-    txt("phase", s.phase);
-    const h = document.getElementById("health");
-    h.textContent = s.health.ok ? "ok" : s.health.reason;
-    h.className = s.health.ok ? "ok" : "bad";
-    txt("shadow", s.shadow ? "SHADOW MODE: no commands sent" : "");
-    txt("zone-count", s.zones.length);
-    txt("target", s.target === null ? "none" : "#" + s.target.id + " r " + num(s.target.r_m, 1) + " m");
-    txt("rates", num(s.fps, 1) + " frames/s, " + num(s.frame_ms, 0) + " ms/frame");
-    const body = document.querySelector("#zones tbody");
-    body.replaceChildren(...s.zones.map(z => {
-      const tr = document.createElement("tr");
-      for (const v of [z.id, num(z.north_m, 1), num(z.east_m, 1), num(z.r_m, 1), z.age, num(z.clearance_m, 1)]) {
-        const td = document.createElement("td"); td.textContent = v; tr.appendChild(td);
-      }
-      return tr;
-    }));
-    const ol = document.getElementById("decisions");
-    ol.replaceChildren(...s.decisions.map(d => {
-      const li = document.createElement("li"); li.textContent = num(d.age_s, 0) + " s ago: " + d.text; return li;
-    }));
-  } catch (e) { txt("health", "no answer from the service"); }
-}
-refresh(); setInterval(refresh, 1000);
-</script></body></html>
-"""

@@ -1,12 +1,13 @@
 """Health tells when frames cannot be decided with (issue 61 item 6, issue 62 item 2): with no
 pose, a stale pose, the vehicle on the ground or a frozen camera, health is never "ok"; the state's
 name reaches the ground station (HEARTBEAT system_status, one STATUSTEXT per change) and systemd's
-status line. The service runs in-process with the real model and pipeline against a pymavlink peer
+status line; the status page's numbers and the live view on the ground. The service runs in-process with the real model and pipeline against a pymavlink peer
 on loopback that streams a vehicle's telemetry the test controls."""
 
 from __future__ import annotations
 
 import asyncio
+import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,9 +19,11 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion import config
 from companion.mavlink.link import MavLink
+from companion.replay.live_figure import CAPTION_PX
 from companion.service.app import Service
 from companion.service.freshness import HISTORY
 from companion.service.parts import load_model
+from sim.flights.flight import PortClaim, reserve_port
 from tests.companion.service.test_freshness import _clock_frames
 from tests.companion.service.test_landing_runner import Vehicle
 from tests.mavpeer import MavPeer
@@ -57,12 +60,31 @@ class Rig:
             await asyncio.sleep(0.05)
 
 
+async def _first_part(port: int) -> np.ndarray:
+    """The first image of the live view's MJPEG stream, decoded (BGR)."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(b"GET /stream.mjpg HTTP/1.1\r\nHost: x\r\n\r\n")
+    try:
+        await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 5.0)
+        part = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 5.0)
+        size = int(part.split(b"Content-Length: ")[1].split(b"\r\n")[0])
+        data = await asyncio.wait_for(reader.readexactly(size), 5.0)
+    finally:
+        writer.close()
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+
+
 async def _run(tmp_path: Path, frames: Path, body, telemetry: bool = True) -> None:
+    with reserve_port(socket.SOCK_STREAM) as page:  # the status page's port, claimed meanwhile
+        await _run_on(page, frames, body, telemetry)
+
+
+async def _run_on(page: PortClaim, frames: Path, body, telemetry: bool) -> None:
     peer = MavPeer(custom_mode=5)
     host, port = await peer.listen_udp()
     cfg = config.load(None, {"link.url": f"udpout:{host}:{port}", "link.flavour": "ardupilot",
                              "camera.source": str(frames), "camera.loop": True, "camera.fps": 5.0,
-                             "camera.stall_timeout_s": 1.0})
+                             "camera.stall_timeout_s": 1.0, "live.enabled": True, "live.port": page.port})
     svc = Service(cfg, load_model(cfg), link=MavLink(config.link_config(cfg)))
     task = asyncio.create_task(svc.run())
     vehicle = Vehicle(peer)
@@ -108,11 +130,26 @@ async def test_health_names_why_frames_cannot_be_used_and_tells_the_pilot(tmp_pa
         await rig.until(lambda: "SLZ: standby, on the ground" in rig.texts(), "its STATUSTEXT")
         await rig.until(lambda: rig.system_status() == m.MAV_STATE_STANDBY, "STANDBY")
         await rig.until(lambda: svc.notifier.last_status.startswith("standby: on the ground; MONITOR"), "STATUS=")
-        assert svc.status_json()["health"]["reason"] == "on the ground"
+        s = svc.status_json()
+        assert s["health"]["reason"] == "on the ground" and s["health"]["standby"] and not s["health"]["ok"]
+        # The page's numbers on the ground: height, the autopilot's mode, armed, no trigger, no
+        # handback, and no clearance figure from 0 m (the judging height is 10 m: shown below it).
+        v = s["vehicle"]
+        assert abs(v["height_m"]) < 0.5 and v["mode"] == "LOITER" and v["armed"] is True, v
+        assert v["trigger"] is None and v["handback"] is None and v["height_agl_m"] is None, v
+        assert s["clearance_note"] is None
+        # The live view on the ground: the raw camera frame with the reason, not a blank stream.
+        image = await _first_part(svc.web.port)
+        assert image.shape == (480 + CAPTION_PX, 640 + 4 + 480, 3)
+        # The left part is the camera's frame (80..120 grey noise), not a placeholder's dark fill.
+        assert 80 <= float(image[CAPTION_PX:, :640].mean()) <= 120
+        assert svc.live is not None and svc.live.stats.drawn >= 1
 
         # Airborne again: frames used, ok, ACTIVE, and the pilot is told.
         rig.vehicle.alt, rig.vehicle.on_ground = 30.0, False
         await rig.until(lambda: svc.health(time.monotonic()).ok, "ok again", 15)
+        s = svc.status_json()
+        assert abs(s["vehicle"]["height_m"] - 30.0) < 1.0 and s["clearance_note"] == "n/a above 10 m (judged there)"
         await rig.until(lambda: "SLZ: airborne, frames used" in rig.texts(), "its STATUSTEXT")
         await rig.until(lambda: rig.system_status() == m.MAV_STATE_ACTIVE, "ACTIVE again")
         # One text per change, not one per frame.

@@ -208,3 +208,45 @@ def test_companion_run_exits_2_on_a_wrong_live_setting():
     proc = subprocess.run([sys.executable, "-m", "companion", "run", "--set", "live.port=99999"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "live.port" in proc.stderr, proc.stderr
+
+
+async def _parts(reader: asyncio.StreamReader, n: int, timeout: float) -> list[np.ndarray]:
+    out = []
+    for _ in range(n):
+        part = (await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), timeout)).lstrip(b"\r\n")
+        assert part.startswith(b"--slzframe\r\nContent-Type: image/jpeg")
+        size = int(part.split(b"Content-Length: ")[1].split(b"\r\n")[0])
+        out.append(cv2.imdecode(np.frombuffer(await reader.readexactly(size), np.uint8), cv2.IMREAD_COLOR))
+    return out
+
+
+async def test_a_frame_the_pipeline_cannot_use_is_shown_raw_and_no_frame_at_all_gives_a_placeholder(results):
+    """On the ground the pipeline refuses every frame: the stream shows the camera's frame with
+    the reason; with no frame at all a placeholder comes every IDLE_S, so a browser never waits on
+    a silent stream (a headless Chromium screenshot after landing never finished before)."""
+    frame, _ = results
+    live = LiveView(max_fps=100.0)
+    server = WebServer(LiveSettings(enabled=True, port=0), live,
+                       lambda: {"health": {"ok": False, "reason": "camera not delivering"}})
+    await server.start()
+    drawer = asyncio.create_task(live.run())
+    try:
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(b"GET /stream.mjpg HTTP/1.1\r\nHost: x\r\n\r\n")
+        await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 2.0)
+        t0 = time.monotonic()
+        placeholders = await _parts(reader, 2, 5.0)  # nothing offered: placeholders, at IDLE_S
+        assert time.monotonic() - t0 < 2 * web.IDLE_S + 2.0
+        assert all(p.shape == (480 + CAPTION_PX, 640 + 4 + 480, 3) for p in placeholders)
+        assert all(p.mean() < 40 for p in placeholders) and live.stats.drawn == 0
+        live.offer(Snapshot(frame, None, None, "MONITOR  no target", "on the ground"), 100.0)
+        (raw,) = await _parts(reader, 1, 10.0)
+        assert live.stats.drawn == 1 and raw.shape == placeholders[0].shape
+        # The camera's frame as it came, beside a dark panel with the reason.
+        diff = np.abs(raw[CAPTION_PX:, :640].astype(int) - frame.astype(int)).mean()
+        assert diff < 8, diff
+        assert raw[CAPTION_PX:, 644:].mean() < 40
+        writer.close()
+    finally:
+        drawer.cancel()
+        await server.close()

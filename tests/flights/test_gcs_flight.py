@@ -16,6 +16,7 @@ import socket
 import tempfile
 import time
 from dataclasses import dataclass, field
+from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
 
@@ -63,17 +64,24 @@ class Flight:
     dom_error: str | None = None
     page_status: dict[str, Any] | None = None  # /status.json fetched at the same moment
     mjpeg_part: bytes = b""
+    #: The page's screenshot at "flight" and "landed": (the PNG or None, seconds taken, why none)
+    shots: dict[str, tuple[Path | None, float, str | None]] = field(default_factory=dict)
+    #: The page at "landed": (DOM or None, why none, /status.json)
+    looks: dict[str, tuple[str | None, str | None, dict[str, Any]]] = field(default_factory=dict)
     record_dir: Path | None = None
 
 
-async def _dump_dom(port: int) -> tuple[str | None, str | None]:
+async def _dump_dom(port: int, *args: str) -> tuple[str | None, str | None]:
+    """The page as headless Chromium renders it (``--dump-dom``, or ``args`` instead, e.g. a
+    screenshot), or None and why not. A page whose live view never sends a frame never finishes
+    loading: the 60 s timeout is what such a hang runs into."""
     exe = chromium()
     if exe is None:
         return None, "no chromium binary (apt-get install chromium; .ci/run installs it when it can)"
     with tempfile.TemporaryDirectory() as profile:
         proc = await asyncio.create_subprocess_exec(
-            exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--dump-dom", f"http://127.0.0.1:{port}/",
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", *(args or ("--dump-dom",)),
+            f"http://127.0.0.1:{port}/", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         try:
             out, err = await asyncio.wait_for(proc.communicate(), 60.0)
         except (TimeoutError, asyncio.TimeoutError):  # one class from 3.11 on
@@ -83,6 +91,18 @@ async def _dump_dom(port: int) -> tuple[str | None, str | None]:
     if proc.returncode != 0:
         return None, f"chromium exited {proc.returncode}: {err.decode(errors='replace')[-500:]}"
     return out.decode(errors="replace"), None
+
+
+async def _look(flight: Flight, port: int, when: str) -> None:
+    """The page at ``when``: its DOM, /status.json and a 1280 x 900 screenshot (time to take it)."""
+    assert flight.record_dir is not None
+    shot = flight.record_dir.parent / f"page-{when}.png"
+    t0 = time.monotonic()
+    _, err = await _dump_dom(port, "--window-size=1280,900", f"--screenshot={shot}")
+    flight.shots[when] = (shot if err is None and shot.exists() else None, time.monotonic() - t0, err)
+    dom, dom_err = await _dump_dom(port)
+    body = (await _get(port, "/status.json")).split(b"\r\n\r\n", 1)[1]
+    flight.looks[when] = (dom, dom_err, json.loads(body))
 
 
 async def _get(port: int, path: str, limit: int | None = None) -> bytes:
@@ -143,6 +163,7 @@ async def _fly_on(record_dir: Path, link_port: int, cam_port: int, page_port: in
         flight.dom, flight.dom_error = await _dump_dom(page_port)
         body = (await _get(page_port, "/status.json")).split(b"\r\n\r\n", 1)[1]
         flight.page_status = json.loads(body)
+        await _look(flight, page_port, "flight")
         sim.inject_failsafe("battery_critical")
         end = time.monotonic() + 60
         while not flight.touchdown and time.monotonic() < end and not task.done():
@@ -151,6 +172,8 @@ async def _fly_on(record_dir: Path, link_port: int, cam_port: int, page_port: in
                 flight.modes.append(mode)
             await asyncio.sleep(0.1)
         await asyncio.sleep(1.0)
+        if flight.touchdown:  # on the ground, frames refused: the page and its live view still load
+            await _look(flight, page_port, "landed")
     finally:
         svc.request_stop("test over")
         flight.code = await asyncio.wait_for(task, 10.0)
@@ -240,6 +263,43 @@ def test_the_recording_labels_every_decision_shadow(flight):
     assert withheld and withheld[0]["command"] == "Goto"
 
 
+class Ids(HTMLParser):
+    """The text under each element with an id, and the zones table's rows."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.text: dict[str, str] = {}
+        self.rows = 0
+        self._open: list[str | None] = []
+        self._in_zones = False
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        a = dict(attrs)
+        self._open.append(a.get("id"))
+        if a.get("id") == "zones":
+            self._in_zones = True
+        if tag == "tr" and self._in_zones:
+            self.rows += 1
+
+    def handle_endtag(self, tag: str) -> None:
+        if self._open:
+            ident = self._open.pop()
+            if ident == "zones":
+                self._in_zones = False
+
+    def handle_data(self, data: str) -> None:
+        for ident in self._open:
+            if ident:
+                self.text[ident] = self.text.get(ident, "") + data
+
+
+
+def page_text(dom: str) -> Ids:
+    page = Ids()
+    page.feed(dom)
+    return page
+
+
 def test_the_status_page_in_headless_chromium_shows_the_phase_the_zones_and_the_live_view(flight):
     assert flight.mjpeg_part.startswith(b"HTTP/1.1 200 OK") and b"--slzframe\r\nContent-Type: image/jpeg" \
         in flight.mjpeg_part
@@ -248,37 +308,7 @@ def test_the_status_page_in_headless_chromium_shows_the_phase_the_zones_and_the_
     assert (info.width, info.height) == (640 + 4 + 480, 480 + 28)
     if flight.dom is None:
         pytest.skip(f"no headless browser: {flight.dom_error}")
-    from html.parser import HTMLParser
-
-    class Ids(HTMLParser):
-        def __init__(self) -> None:
-            super().__init__()
-            self.text: dict[str, str] = {}
-            self.rows = 0
-            self._open: list[str | None] = []
-            self._in_zones = False
-
-        def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
-            a = dict(attrs)
-            self._open.append(a.get("id"))
-            if a.get("id") == "zones":
-                self._in_zones = True
-            if tag == "tr" and self._in_zones:
-                self.rows += 1
-
-        def handle_endtag(self, tag: str) -> None:
-            if self._open:
-                ident = self._open.pop()
-                if ident == "zones":
-                    self._in_zones = False
-
-        def handle_data(self, data: str) -> None:
-            for ident in self._open:
-                if ident:
-                    self.text[ident] = self.text.get(ident, "") + data
-
-    page = Ids()
-    page.feed(flight.dom)
+    page = page_text(flight.dom)
     status = flight.page_status
     assert status is not None
     assert page.text.get("phase") == "MONITOR" == status["phase"], page.text
@@ -288,6 +318,35 @@ def test_the_status_page_in_headless_chromium_shows_the_phase_the_zones_and_the_
     assert zones >= 1 and page.rows == zones + 1  # the header row and one per zone
     assert page.text["target"].startswith("#")
     assert '<img id="live" src="/stream.mjpg"' in flight.dom
+    # What a pilot reads first: the height, the autopilot's mode, armed, no trigger yet, and no
+    # clearance figure from 14 m (judged at 10 m: a walker's distance from up here, not the zone's).
+    mode = status["vehicle"]["mode"]
+    assert "m above home" in page.text["height"] and page.text["mode"] == mode and mode, page.text
+    assert page.text["armed"] == "armed" and page.text["trigger"] == "none" and page.text["handback"] == "none"
+    assert page.text["clearance"].startswith("n/a above 10 m"), page.text
+    for key in ("people", "unlandable ground", "proposals", "zones", "target"):  # the legend
+        assert f"&#9632; {key}</span>" in flight.dom or f"\u25a0 {key}</span>" in flight.dom, key
+
+
+def test_the_page_loads_and_screenshots_in_flight_and_after_landing(flight):
+    """Headless Chromium at 1280 x 900 takes the page's screenshot in flight and on the ground
+    after landing (before the placeholder frames, one after landing never finished); on the ground
+    health says why frames are not used, never "ok", and the trigger's time shows."""
+    assert flight.touchdown
+    for when in ("flight", "landed"):
+        shot, took, err = flight.shots[when]
+        if err is not None and err.startswith("no chromium"):
+            pytest.skip(f"no headless browser: {err}")
+        assert shot is not None and shot.stat().st_size > 10_000, (when, err)
+        assert took < 30.0, (when, took)
+    dom, err, status = flight.looks["landed"]
+    assert dom is not None, err
+    page = page_text(dom)
+    assert page.text["health"] == status["health"]["reason"] != "ok", page.text
+    assert status["health"]["reason"] in ("on the ground", "below the head plane"), status["health"]
+    assert " s ago (" in page.text["trigger"], page.text
+    assert "m above home" in page.text["height"] and page.text["mode"] == status["vehicle"]["mode"], page.text
+    assert status["clearance_note"] is None or status["target"] is None
 
 
 def test_the_ground_station_gets_at_most_4_texts_in_any_10_s_none_repeated_within_5_s(flight):

@@ -104,6 +104,11 @@ class LiveView:
         the rate allows it. The frame loop asks before building a snapshot."""
         return bool(self._clients) and now - self._last_offer >= self.period_s
 
+    @property
+    def pending(self) -> bool:
+        """A frame is waiting to be drawn or being drawn: a placeholder would only overtake it."""
+        return self.drawing or self._latest is not None
+
     def offer(self, snapshot: Snapshot, now: float) -> None:
         """The newest frame; drawn later, unless a newer one replaces it first."""
         if not self.wants(now):
@@ -286,7 +291,7 @@ class WebServer:
                 try:
                     jpeg = await asyncio.wait_for(q.get(), IDLE_S)
                 except (TimeoutError, asyncio.TimeoutError):  # no frame: say why rather than go silent
-                    if self.live.drawing or self.live._latest is not None:
+                    if self.live.pending:
                         continue  # one is on its way
                     jpeg = await self.live.placeholder(self._idle_reason())
                 writer.write(f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"

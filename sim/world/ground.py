@@ -21,8 +21,9 @@ from __future__ import annotations
 import functools
 import math
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -345,26 +346,7 @@ class ProceduralGround:
 
         Returns the BGR mosaic and the 3x3 matrix ``A`` with ``(col, row, 1) ~ A @ (north, east, 1)``.
         """
-        level = max(0, int(math.floor(math.log2(max(res, self.base_res) / self.base_res))))
-        while True:
-            S = self.tile_size_m(level)
-            ti0, ti1 = math.floor(n_min / S), math.floor(n_max / S)
-            tj0, tj1 = math.floor(e_min / S), math.floor(e_max / S)
-            if max(ti1 - ti0 + 1, tj1 - tj0 + 1) * self.tile_px <= max_px or level >= 12:
-                break
-            level += 1
-        key = (level, ti0, ti1, tj0, tj1)
-        with self._lock:
-            if key != self._mosaic_key:
-                rows = [np.hstack([self.tile(level, ti, tj) for tj in range(tj0, tj1 + 1)])
-                        for ti in range(ti0, ti1 + 1)]
-                self._mosaic = np.vstack(rows)
-                self._mosaic_key = key
-            mosaic = self._mosaic
-        r = self.res(level)
-        A = np.array([[0.0, 1.0 / r, -tj0 * S / r], [1.0 / r, 0.0, -ti0 * S / r], [0.0, 0.0, 1.0]])
-        assert mosaic is not None
-        return mosaic, A
+        return tiled_view(self, self.tile, n_min, n_max, e_min, e_max, res, max_px)
 
 
 class FlatGround:
@@ -381,3 +363,31 @@ class FlatGround:
         se = max(e_max - e_min, 1e-6) / 4
         A = np.array([[0.0, 1.0 / se, -e_min / se], [1.0 / sn, 0.0, -n_min / sn], [0.0, 0.0, 1.0]])
         return self._img, A
+
+
+def tiled_view(ground: Any, tile: Callable[[int, int, int], np.ndarray], n_min: float, n_max: float,
+               e_min: float, e_max: float, res: float, max_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mosaic of ``ground``'s tiles (``tile(level, ti, tj)``) covering the rectangle at the
+    coarsest level no finer than ``res`` that fits ``max_px``, cached on ``ground`` (its ``_lock``,
+    ``_mosaic_key``, ``_mosaic``), and ``A`` with ``(col, row, 1) ~ A @ (north, east, 1)``: the one
+    walk of a tiled ground's view, procedural or photographed."""
+    level = max(0, int(math.floor(math.log2(max(res, ground.base_res) / ground.base_res))))
+    while True:
+        S = ground.tile_size_m(level)
+        ti0, ti1 = math.floor(n_min / S), math.floor(n_max / S)
+        tj0, tj1 = math.floor(e_min / S), math.floor(e_max / S)
+        if max(ti1 - ti0 + 1, tj1 - tj0 + 1) * ground.tile_px <= max_px or level >= 12:
+            break
+        level += 1
+    key = (level, ti0, ti1, tj0, tj1)
+    with ground._lock:
+        if key != ground._mosaic_key:
+            rows = [np.hstack([tile(level, ti, tj) for tj in range(tj0, tj1 + 1)])
+                    for ti in range(ti0, ti1 + 1)]
+            ground._mosaic = np.vstack(rows)
+            ground._mosaic_key = key
+        mosaic = ground._mosaic
+    r = ground.res(level)
+    A = np.array([[0.0, 1.0 / r, -tj0 * S / r], [1.0 / r, 0.0, -ti0 * S / r], [0.0, 0.0, 1.0]])
+    assert mosaic is not None
+    return mosaic, A

@@ -53,6 +53,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from sim.world.ground import tiled_view
+
 #: The semantic-drone classes (``labels/classes.txt``), index -> name.
 PHOTO_CLASSES = ("unlabeled", "paved-area", "dirt", "grass", "gravel", "water", "rocks", "pool",
                  "vegetation", "roof", "wall", "window", "door", "fence", "fence-pole", "person", "dog",
@@ -311,26 +313,7 @@ class PhotoGround:
     def view(self, n_min: float, n_max: float, e_min: float, e_max: float, res: float,
              max_px: int = 3072) -> tuple[np.ndarray, np.ndarray]:
         """A mosaic covering the rectangle, as :meth:`sim.world.ground.ProceduralGround.view`."""
-        level = max(0, int(math.floor(math.log2(max(res, self.base_res) / self.base_res))))
-        while True:
-            S = self.tile_size_m(level)
-            ti0, ti1 = math.floor(n_min / S), math.floor(n_max / S)
-            tj0, tj1 = math.floor(e_min / S), math.floor(e_max / S)
-            if max(ti1 - ti0 + 1, tj1 - tj0 + 1) * self.tile_px <= max_px or level >= 12:
-                break
-            level += 1
-        key = (level, ti0, ti1, tj0, tj1)
-        with self._lock:
-            if key != self._mosaic_key:
-                rows = [np.hstack([self._tile(level, ti, tj) for tj in range(tj0, tj1 + 1)])
-                        for ti in range(ti0, ti1 + 1)]
-                self._mosaic = np.vstack(rows)
-                self._mosaic_key = key
-            mosaic = self._mosaic
-        r = self.res(level)
-        A = np.array([[0.0, 1.0 / r, -tj0 * S / r], [1.0 / r, 0.0, -ti0 * S / r], [0.0, 0.0, 1.0]])
-        assert mosaic is not None
-        return mosaic, A
+        return tiled_view(self, self._tile, n_min, n_max, e_min, e_max, res, max_px)
 
     # -- the truth ----------------------------------------------------------------------------
     def class_map(self, n_min: float, n_max: float, e_min: float, e_max: float, res: float) -> np.ndarray:

@@ -257,7 +257,7 @@ def outcome_card(shape: tuple[int, ...], outcome: Outcome) -> np.ndarray:
     cv2.circle(img, (cx, cy), max(1, int(round(outcome.r0_m * scale))), draw.WHITE, 1, cv2.LINE_AA)
     draw._label(img, f"r0 {outcome.r0_m:.1f} m", (cx - int(outcome.r0_m * scale) - 4,
                                                  cy + int(outcome.r0_m * scale) + 16), draw.WHITE, 0.42)
-    for k, p in enumerate(people):
+    for p in people:
         u, v = px(p)
         if 0 <= u < w and top <= v < h:  # the map only, not over the words
             _person(img, (u, v))

@@ -276,3 +276,44 @@ def test_the_evidence_video_is_h264_and_draws_the_flights_own_zones(tmp_path: Pa
 
     assert yellow_on_target(decoded[2], 2) == 0  # before the flight chose it: not the target
     assert yellow_on_target(decoded[8], 8) >= 18  # the flight's target from t = 100.6 s
+
+
+def test_the_replay_counts_the_frames_whose_zone_ids_are_not_the_flights(tmp_path: Path) -> None:
+    # A recording whose zones events are what the pipeline tracks on its frames (as a flight's
+    # are: the same frames, times and settings) replays with the same ids on every frame; one
+    # frame recorded with another id is counted.
+    import json
+
+    from companion.cli import main
+
+    grey = np.full((240, 320, 3), 90, np.uint8)
+    first = FlightRecorder(tmp_path / "a", fps=10, queue_size=12, intrinsics=K, mount=Mount())
+    a = first.start()
+    poses = [Pose(100.0 + 0.1 * i, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0) for i in range(8)]
+    for i, pose in enumerate(poses):
+        assert first.add_frame(i, pose.t, grey, pose)
+    first.close()
+    assert main(["replay", str(a), "--jsonl", str(tmp_path / "a.jsonl"), "--no-progress"]) == 0
+    tracked = {r["frame"]: r["tracks"] for r in map(json.loads, (tmp_path / "a.jsonl").read_text().splitlines())}
+    assert any(tracked.values())  # the plain ground is one free zone, tracked from the second frame
+
+    def flown(root: Path, wrong_frame: int | None) -> Path:
+        rec = FlightRecorder(root, fps=10, queue_size=12, intrinsics=K, mount=Mount())
+        path = rec.start()
+        for i, pose in enumerate(poses):
+            assert rec.add_frame(i, pose.t, grey, pose)
+            # As the service records them: each track whole (dataclasses.asdict), by its id.
+            tracks = [asdict(_track(t["id"] + (100 if i == wrong_frame else 0), t["x"], t["y"], t["r"]))
+                      for t in tracked.get(i, [])]
+            rec.add_event("zones", pose.t, frame=i, tracks=tracks, target=None)
+        rec.close()
+        return path
+
+    for wrong, differ in ((None, 0), (5, 1)):
+        path = flown(tmp_path / f"rec{wrong}", wrong)
+        summary_path = tmp_path / f"s{wrong}.json"
+        assert main(["replay", str(path), "--flight-zones", "--video-out", str(tmp_path / f"e{wrong}.mp4"),
+                     "--summary-json", str(summary_path), "--no-progress"]) == 0
+        assert json.loads(summary_path.read_text())["flight_zones"] == {"frames": 8, "ids_differ": differ}
+    # Not a recording: refused, naming the option.
+    assert main(["replay", str(tmp_path / "e0.mp4"), "--flight-zones", "--nadir", "--gsd", "0.05"]) == 2

@@ -30,6 +30,8 @@ BLUE = (255, 80, 0)
 YELLOW = (0, 230, 255)
 MAGENTA = (220, 0, 220)
 WHITE = (255, 255, 255)
+#: A zone's label: its circle's blue, lighter, to read on the label's dark box.
+LABEL_BLUE = (255, 170, 90)
 BLACK = (0, 0, 0)
 POLYGON_POINTS = 72
 
@@ -149,7 +151,7 @@ def draw_image_view(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlanePr
             u, v = int(round(centre[0])), int(round(centre[1]))
             cv2.drawMarker(img, (u, v), color, cv2.MARKER_CROSS, 10, thick)
             text = _track_text(tr, None if clearances is None else clearances.get(tr.id))
-            _label(img, text + (" TARGET" if target else ""), (u + 6, v - 10), color)  # the box ends above the centre row
+            _label(img, text + (" TARGET" if target else ""), (u + 6, v - 10), color if target else LABEL_BLUE)  # the box ends above the centre row
     return img
 
 
@@ -200,7 +202,7 @@ def draw_plane_view(free_grid: np.ndarray, grid: GridSpec, proposals: Sequence[C
         color, thick = (YELLOW, 3) if target else (BLUE, 2)
         cv2.polylines(img, [poly_of(tr.x, tr.y, tr.r)], True, color, thick, cv2.LINE_AA, shift=4)
         col, row = plane_to_north_up_px(grid, tr.x, tr.y, scale, off)
-        _label(img, f"#{tr.id}", (int(col) + 4, int(row) - 4), color)
+        _label(img, f"#{tr.id}", (int(col) + 4, int(row) - 4), color if target else LABEL_BLUE)
     cv2.arrowedLine(img, (20, 50), (20, 15), WHITE, 2, cv2.LINE_AA, tipLength=0.3)
     _label(img, "N", (28, 30), WHITE)
     # Scale bar of a round number of metres, about a fifth of the panel.

@@ -140,18 +140,21 @@ def _process(pipe: SLZPipeline, frame: ReplayFrame, use_pose: bool
 #: Skipped frames logged one by one per reason; the rest are only counted (a recording that ends
 #: on the ground would otherwise log every grounded frame).
 LOGGED_SKIPS = 5
-#: What a projection says of a frame from below the head plane: the vehicle on the ground, before
-#: its take-off or after its landing, where every recording of a flight starts or ends. Expected,
-#: so said once at INFO and counted, not warned about.
-ON_THE_GROUND = "not above the head plane"
+#: Skips every recording of a flight has, said once at INFO and counted, not warned about (what
+#: the pipeline says of the frame -> why it is expected): frames from below the head plane (the
+#: vehicle on the ground, before its take-off or after its landing) and frames recorded before the
+#: first pose arrived (the service did not use them either).
+EXPECTED_SKIPS = {"not above the head plane": "on the ground",
+                  "no pose and no fixed projection": "recorded without a pose: the flight did not use it either"}
 
 
 def _log_skip(counts: dict[str, int], reason: str, index: int, why: str) -> None:
-    if ON_THE_GROUND in why:
-        counts["on the ground"] = counts.get("on the ground", 0) + 1
-        if counts["on the ground"] == 1:
-            log.info("frame %d skipped: %s (on the ground); such frames are counted in the summary only", index, why)
-        return
+    for words, expected in EXPECTED_SKIPS.items():
+        if words in why:
+            counts[expected] = counts.get(expected, 0) + 1
+            if counts[expected] == 1:
+                log.info("frame %d skipped: %s (%s); such frames are counted in the summary only", index, why, expected)
+            return
     counts[reason] = counts.get(reason, 0) + 1
     if counts[reason] <= LOGGED_SKIPS:
         log.warning("frame %d skipped: %s", index, why)

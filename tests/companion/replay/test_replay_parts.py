@@ -262,5 +262,10 @@ def test_frames_from_the_ground_are_said_once_at_info_not_warned_about(caplog):
     with caplog.at_level(logging.INFO, logger="companion.replay.runner"):
         for i in range(LOGGED_SKIPS + 10):
             _log_skip(counts, "no valid head-plane projection for the frame", i, why)
-    assert [r.levelno for r in caplog.records] == [logging.INFO]
+        # A frame recorded before the first pose: the flight did not use it either.
+        for i in range(3):
+            _log_skip(counts, "no valid head-plane projection for the frame", 100 + i,
+                      "no pose and no fixed projection: cannot place the frame on the head plane")
+    assert [r.levelno for r in caplog.records] == [logging.INFO, logging.INFO]
     assert "(on the ground)" in caplog.records[0].getMessage()
+    assert "the flight did not use it either" in caplog.records[1].getMessage()

@@ -24,8 +24,10 @@ from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.density import DensityModel, DensityModelError
 from companion.pipeline.landability import LandabilityModel, UnlandableMap
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
+from companion.recording import RecordingError, RecordingReader
 from companion.replay import batch
 from companion.replay.homography import HomographyFileError, projection_from_file
+from companion.replay.records import flight_zones
 from companion.replay.runner import ReplayOutputError, ReplayOutputs, VideoOut, replay
 from companion.replay.sources import KINDS, ReplayInputError, ReplaySource, open_input
 from companion.replay.summary import format_summary
@@ -89,6 +91,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     out.add_argument("--video-out", type=Path, default=None, help="annotated video (.mp4 or .avi)")
     out.add_argument("--video-fps", type=float, default=None,
                      help="frame rate of --video-out (default: the input's)")
+    out.add_argument("--flight-zones", action="store_true",
+                     help="in --video-out, draw the zones and the target the flight recorded (its ids, the zone it "
+                          "flew to) over the replay's maps instead of the replay's own; the summary counts the "
+                          "frames whose replayed zone ids differ from the flight's (recordings only)")
     out.add_argument("--summary-json", type=Path, default=None, help="also write the summary as JSON")
     out.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                      help="progress bar on stderr (default: only when stderr is a terminal)")
@@ -243,6 +249,14 @@ def replay_input(args: argparse.Namespace, path: Path, out: OutputPaths,
     if use_pose and source.intrinsics is None:
         raise _Fail(f"recording {path} has no camera intrinsics: give --nadir --gsd M or "
                     "--homography FILE")
+    zones = None
+    if getattr(args, "flight_zones", False):
+        if source.kind != "recording":
+            raise _Fail(f"--flight-zones needs a flight recording; {path} is a {source.kind}")
+        try:
+            zones = flight_zones(RecordingReader(path).events("zones"))
+        except RecordingError as exc:
+            raise _Fail(f"--flight-zones: {exc}") from None
     cfg, origin = _settings(args, source)
     model = _load_model(args, cfg, origin.startswith("the recording"))
     surface = _load_surface(args, cfg, origin.startswith("the recording"))
@@ -270,7 +284,8 @@ def replay_input(args: argparse.Namespace, path: Path, out: OutputPaths,
         try:
             summary = replay(source, pipe, ReplayOutputs(jsonl, out.masks, video), use_pose,
                              max_frames=args.max_frames, progress=progress, planner=planner,
-                             descent=settings.descent_profile(cfg), land_agl_m=cfg.controller.land_agl_m)
+                             descent=settings.descent_profile(cfg), land_agl_m=cfg.controller.land_agl_m,
+                             flight_zones=zones)
         except ReplayOutputError as exc:
             raise _Fail(str(exc)) from None
     finally:

@@ -30,6 +30,8 @@ BLUE = (255, 80, 0)
 YELLOW = (0, 230, 255)
 MAGENTA = (220, 0, 220)
 WHITE = (255, 255, 255)
+#: A zone's label: its circle's blue, lighter, to read on the label's dark box.
+LABEL_BLUE = (255, 170, 90)
 BLACK = (0, 0, 0)
 POLYGON_POINTS = 72
 
@@ -76,11 +78,36 @@ def overlay_people(frame: np.ndarray, occupancy_free: np.ndarray, alpha: float =
     return out
 
 
+#: Label font and the dark box behind each label (px around the text, opacity).
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+LABEL_PAD_PX = 2
+LABEL_BOX_ALPHA = 0.6
+
+
+def label_box(img_shape: tuple[int, ...], text: str, org: tuple[int, int],
+              scale: float = 0.5) -> tuple[tuple[int, int], tuple[int, int, int, int]]:
+    """Where :func:`_label` draws ``text`` asked at ``org`` (its baseline's left end, px): the
+    text's origin moved inside the image (a zone near the edge keeps its whole label) and the
+    box behind it (x0, y0, x1, y1, inclusive pixels), both inside the image when it fits."""
+    (tw, th), base = cv2.getTextSize(text, FONT, scale, 1)
+    h, w = img_shape[:2]
+    pad = LABEL_PAD_PX
+    x = max(pad, min(int(org[0]), w - 1 - pad - tw))
+    y = max(pad + th, min(int(org[1]), h - 1 - pad - base))
+    return (x, y), (max(0, x - pad), max(0, y - th - pad), min(w - 1, x + tw + pad), min(h - 1, y + base + pad))
+
+
 def _label(img: np.ndarray, text: str, org: tuple[int, int], color: tuple[int, int, int],
-           scale: float = 0.5) -> None:
-    # Dark outline so the label stays readable on any background.
-    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, BLACK, 3, cv2.LINE_AA)
-    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
+           scale: float = 0.5) -> tuple[int, int, int, int]:
+    """``text`` in ``color`` on a dark translucent box, kept inside the image; the box (x0, y0,
+    x1, y1). One stroke of the text only: an outline drawn as thicker text is wider than the
+    text (OpenCV's glyph advance grows with the thickness) and shows as a ghost ("TARGETT")."""
+    org, (x0, y0, x1, y1) = label_box(img.shape, text, org, scale)
+    if x1 >= x0 and y1 >= y0:
+        roi = img[y0:y1 + 1, x0:x1 + 1]
+        roi[:] = (roi.astype(np.float32) * (1.0 - LABEL_BOX_ALPHA)).astype(np.uint8)
+    cv2.putText(img, text, org, FONT, scale, color, 1, cv2.LINE_AA)
+    return x0, y0, x1, y1
 
 
 def _track_text(tr: Track, clearance_m: float | None = None) -> str:
@@ -124,7 +151,7 @@ def draw_image_view(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlanePr
             u, v = int(round(centre[0])), int(round(centre[1]))
             cv2.drawMarker(img, (u, v), color, cv2.MARKER_CROSS, 10, thick)
             text = _track_text(tr, None if clearances is None else clearances.get(tr.id))
-            _label(img, text + (" TARGET" if target else ""), (u + 6, v - 6), color)
+            _label(img, text + (" TARGET" if target else ""), (u + 6, v - 10), color if target else LABEL_BLUE)  # the box ends above the centre row
     return img
 
 
@@ -175,7 +202,7 @@ def draw_plane_view(free_grid: np.ndarray, grid: GridSpec, proposals: Sequence[C
         color, thick = (YELLOW, 3) if target else (BLUE, 2)
         cv2.polylines(img, [poly_of(tr.x, tr.y, tr.r)], True, color, thick, cv2.LINE_AA, shift=4)
         col, row = plane_to_north_up_px(grid, tr.x, tr.y, scale, off)
-        _label(img, f"#{tr.id}", (int(col) + 4, int(row) - 4), color)
+        _label(img, f"#{tr.id}", (int(col) + 4, int(row) - 4), color if target else LABEL_BLUE)
     cv2.arrowedLine(img, (20, 50), (20, 15), WHITE, 2, cv2.LINE_AA, tipLength=0.3)
     _label(img, "N", (28, 30), WHITE)
     # Scale bar of a round number of metres, about a fifth of the panel.

@@ -18,6 +18,8 @@ camera sees); ``null`` without the landability model (``companion.pipeline.edges
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
+from dataclasses import fields
 from typing import Any
 
 import numpy as np
@@ -132,3 +134,27 @@ def frame_record(index: int, result: FrameResult, planner: ZonePlanner, height_m
         "target": None if target is None else int(target.id),
         "timing_ms": timing,
     }
+
+
+def recorded_track(d: dict[str, Any]) -> Track | None:
+    """A track of a flight recording's ``zones`` event, or None when its fields do not fit this
+    version's :class:`Track` (a recording from another version)."""
+    names = {f.name for f in fields(Track)}
+    try:
+        return Track(**{k: v for k, v in d.items() if k in names})
+    except TypeError:
+        return None
+
+
+def flight_zones(events: Iterable[dict[str, Any]]) -> dict[int, tuple[list[Track], int | None]]:
+    """What the flight decided on each frame it processed, by camera frame index: the zones it
+    tracked and the target it flew to (its ``zones`` events)."""
+    out: dict[int, tuple[list[Track], int | None]] = {}
+    for e in events:
+        if e.get("kind") != "zones" or not isinstance(e.get("frame"), int):
+            continue
+        tracks = [t for t in (recorded_track(d) for d in e.get("tracks") or [] if isinstance(d, dict))
+                  if t is not None]
+        target = e.get("target")
+        out[int(e["frame"])] = (tracks, target if isinstance(target, int) else None)
+    return out

@@ -12,7 +12,7 @@ import json
 import logging
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -25,7 +25,8 @@ from companion.control.touchdown import DescentProfile, touchdown_basis
 from companion.geometry.camera import GeometryError
 from companion.pipeline.density import DensityModelError
 from companion.pipeline.slz import FrameResult, SLZPipeline
-from companion.replay import draw
+from companion.pipeline.tracker import Track
+from companion.replay import draw, h264
 from companion.replay.records import frame_record, frame_target
 from companion.replay.sources import ReplayFrame, ReplaySource
 from companion.replay.summary import SummaryBuilder
@@ -59,36 +60,60 @@ def dumps_record(record: dict[str, Any]) -> str:
 
 
 class VideoOut:
-    """An annotated video file; the first frame fixes the size, later frames are fitted to it."""
+    """An annotated video file; the first frame fixes the size, later frames are fitted to it.
+
+    ``.mp4`` is H.264 through PyAV (``companion.replay.h264``: browsers play it) when the tools
+    extra is installed, else OpenCV's MPEG-4 Part 2 (said once in the log: browsers do not play
+    it); ``.avi`` is OpenCV's Motion JPEG."""
 
     def __init__(self, path: Path, fps: float):
         self.path = path
         self.fps = fps
         self._writer: cv2.VideoWriter | None = None
+        self._h264: h264.H264Writer | None = None
         self._size: tuple[int, int] | None = None
         self.frames = 0
 
+    def _open(self, w: int, h: int) -> None:
+        # Codecs want even sizes.
+        self._size = (w + (w & 1), h + (h & 1))
+        if self.path.suffix.lower() == ".mp4" and h264.available():
+            try:
+                self._h264 = h264.H264Writer(self.path, self.fps)
+            except (OSError, ValueError) as exc:  # PyAV's errors are OSErrors and ValueErrors
+                raise ReplayOutputError(f"cannot write the video {self.path}: {exc}") from None
+            return
+        if self.path.suffix.lower() == ".mp4":
+            log.warning("PyAV (the tools extra) is not installed: %s is MPEG-4 Part 2, which browsers do not "
+                        "play; pip install 'companion-slz[tools]' for H.264", self.path)
+        codec = "MJPG" if self.path.suffix.lower() == ".avi" else "mp4v"
+        fourcc = cv2.VideoWriter_fourcc(*codec)  # type: ignore[attr-defined]  # missing from the cv2 stubs
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = cv2.VideoWriter(str(self.path), fourcc, self.fps, self._size)
+        if not self._writer.isOpened():
+            raise ReplayOutputError(f"cannot write the video {self.path} (no encoder for "
+                                    f"{self.path.suffix or 'this file type'}; try .mp4 or .avi)")
+
     def write(self, image: np.ndarray) -> None:
         h, w = image.shape[:2]
-        if self._writer is None:
-            codec = "MJPG" if self.path.suffix.lower() == ".avi" else "mp4v"
-            fourcc = cv2.VideoWriter_fourcc(*codec)  # type: ignore[attr-defined]  # missing from the cv2 stubs
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            # Codecs want even sizes.
-            self._size = (w + (w & 1), h + (h & 1))
-            self._writer = cv2.VideoWriter(str(self.path), fourcc, self.fps, self._size)
-            if not self._writer.isOpened():
-                raise ReplayOutputError(f"cannot write the video {self.path} (no encoder for "
-                                        f"{self.path.suffix or 'this file type'}; try .mp4 or .avi)")
+        if self._size is None:
+            self._open(w, h)
+        assert self._size is not None
         if (w, h) != self._size:
             image = cv2.resize(image, self._size, interpolation=cv2.INTER_AREA)
-        self._writer.write(image)
+        if self._h264 is not None:
+            self._h264.write(image)
+        elif self._writer is not None:
+            self._writer.write(image)
         self.frames += 1
 
     def close(self) -> None:
         if self._writer is not None:
             self._writer.release()
             self._writer = None
+        if self._h264 is not None:
+            self._h264.close()
+            self._h264 = None
 
 
 @dataclass
@@ -115,9 +140,21 @@ def _process(pipe: SLZPipeline, frame: ReplayFrame, use_pose: bool
 #: Skipped frames logged one by one per reason; the rest are only counted (a recording that ends
 #: on the ground would otherwise log every grounded frame).
 LOGGED_SKIPS = 5
+#: Skips every recording of a flight has, said once at INFO and counted, not warned about (what
+#: the pipeline says of the frame -> why it is expected): frames from below the head plane (the
+#: vehicle on the ground, before its take-off or after its landing) and frames recorded before the
+#: first pose arrived (the service did not use them either).
+EXPECTED_SKIPS = {"not above the head plane": "on the ground",
+                  "no pose and no fixed projection": "recorded without a pose: the flight did not use it either"}
 
 
 def _log_skip(counts: dict[str, int], reason: str, index: int, why: str) -> None:
+    for words, expected in EXPECTED_SKIPS.items():
+        if words in why:
+            counts[expected] = counts.get(expected, 0) + 1
+            if counts[expected] == 1:
+                log.info("frame %d skipped: %s (%s); such frames are counted in the summary only", index, why, expected)
+            return
     counts[reason] = counts.get(reason, 0) + 1
     if counts[reason] <= LOGGED_SKIPS:
         log.warning("frame %d skipped: %s", index, why)
@@ -148,7 +185,8 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
            max_frames: int | None = None, progress: bool | None = None,
            on_result: Callable[[ReplayFrame, FrameResult], None] | None = None,
            planner: ZonePlanner | None = None, descent: DescentProfile | None = None,
-           land_agl_m: float = 0.0) -> dict[str, Any]:
+           land_agl_m: float = 0.0,
+           flight_zones: Mapping[int, tuple[list[Track], int | None]] | None = None) -> dict[str, Any]:
     """Run ``pipe`` over ``source``; returns the summary (see summary.SummaryBuilder.build).
 
     descent: the time to touchdown from a frame's height, for each track's ``clearance_m`` in the
@@ -161,6 +199,10 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
     the summary's switches) by the landing controller's rule; default: the default settings with
     the pipeline's ``r0_m``.
     use_pose: project with each frame's recorded pose (else the pipeline's fixed projection).
+    flight_zones: what the flight decided, by frame index (``records.flight_zones`` of its
+    recording): the video draws these zones and target over the replay's maps instead of the
+    replay's own, so its ids and target are the flight's; the summary's ``flight_zones`` counts
+    the frames whose replayed zone ids differ from the flight's.
     progress: show a tqdm bar; default only when stderr is a terminal.
     """
     if progress is None:
@@ -170,6 +212,7 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
     total = source.total if max_frames is None else min(source.total or max_frames, max_frames)
     summary = SummaryBuilder()
     skip_logs: dict[str, int] = {}
+    compared = {"frames": 0, "ids_differ": 0}
     if outputs.masks is not None:
         outputs.masks.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -198,11 +241,17 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
                 path = outputs.masks / mask_name(frame.index)
                 if not cv2.imwrite(str(path), occupied_mask_image(result.occupancy)):
                     raise ReplayOutputError(f"cannot write the mask {path}")
+            shown, shown_target = result.tracks, target_id
+            if flight_zones is not None:
+                shown, shown_target = flight_zones.get(frame.index, ([], None))
+                compared["frames"] += 1
+                if sorted(t.id for t in shown) != sorted(t.id for t in result.tracks):
+                    compared["ids_differ"] += 1
             if outputs.video is not None:
-                clearances = None if height is None else draw.touchdown_clearances(result.tracks, profile, height)
+                clearances = None if height is None else draw.touchdown_clearances(shown, profile, height)
                 outputs.video.write(draw.figure(
                     frame.image, result.occupancy, result.projection, result.proposals,
-                    result.tracks, target_id,
+                    shown, shown_target,
                     result.free_grid if posed else None, result.grid if posed else None,
                     result.surface, result.people_free, clearances))
             if on_result is not None:
@@ -220,4 +269,7 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
         if outputs.video is not None:
             outputs.video.close()
     wall = time.perf_counter() - start
-    return summary.build(wall, pipe.tracker.born, pipe.tracker.ended)
+    built = summary.build(wall, pipe.tracker.born, pipe.tracker.ended)
+    if flight_zones is not None:
+        built["flight_zones"] = compared
+    return built

@@ -2,20 +2,28 @@
 
 Starts the simulator (a multicopter speaking MAVLink as ArduPilot Copter or PX4, hovering over a
 crowd of walking people) and its camera, starts the real service as a subprocess against them with
-the flight recorder on, raises a battery failsafe, and waits for the touchdown. The service's
-decisions are printed as it records them (trigger, target, hold, handback, landing). Then the
-recording becomes an H.264 video of what the service decided (zones, target, phase, height, time,
-each zone's predicted clearance at touchdown), an evidence video (``companion replay`` of the
-recording with the ground risk map: the people seen, the head-plane view with the ground the map
-still holds in orange, the zones and their clearance at touchdown) and a summary judged on the
-simulator's truth: where it touched down, the distance from there to
-the nearest person at touchdown, and the time from the failsafe to touchdown.
+the flight recorder on, makes the simulated battery go critical (the autopilot reports it in its
+system status and starts its own LAND), and waits for the touchdown. The service's decisions are
+printed as it records them (trigger, target, hold, handback, landing). Then the recording becomes
+an H.264 video of what the service decided (zones, target, phase, height, time, each zone's
+predicted clearance at touchdown), with the simulator's people marked as the truth, as long as the
+flight, and a last card with the outcome and the nearest person; an H.264 evidence video
+(``companion replay`` of the recording with its own settings: the people seen, the head-plane
+view with the ground the map still holds, and the flight's own zones and target); and a summary
+judged on the simulator's truth: where it touched down, the distance from there to the nearest
+person at touchdown, and the time from the failsafe to touchdown.
+
+The demo flies in real time beside whatever else this machine runs. When its service could not
+keep the camera's rate (a **starved** flight, ``sim.flights.flight.starved``), the demo says so and
+what it means: the decisions ran on fewer, later frames than on a vehicle, and the flight is no
+measure of the method (the yardstick's flights fly in lockstep, where no CPU can starve them).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import contextlib
 import importlib
 import io
@@ -23,11 +31,27 @@ import json
 import socket
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
-from sim.flights.flight import FlightResult, FlightSpec, fly, reserve_port
+import numpy as np
+
+from sim.flights.flight import (
+    STARVED_FRAME_SHARE,
+    STARVED_SHARE,
+    TRUTH_PERIOD_S,
+    FlightResult,
+    FlightSpec,
+    fly,
+    reserve_port,
+)
 from sim.flights.spec import GROUNDS, parse_camera, photos_folder
+
+if TYPE_CHECKING:
+    from companion.replay.flight_video import Outcome
+    from sim.vehicle.simulator import Simulator
+    from sim.world.crowd import World
 
 #: Event kinds printed live: the failsafe trigger and the controller's decisions.
 LIVE_KINDS = ("trigger", "controller")
@@ -84,8 +108,8 @@ class EventFollower:
     are shown from the trigger (the recording's clock is this machine's monotonic clock).
     """
 
-    def __init__(self, record_dir: Path, since: float, out: TextIO = sys.stdout) -> None:
-        self.record_dir, self.since, self.out = record_dir, since, out
+    def __init__(self, record_dir: Path, since: float, out: TextIO = sys.stdout, cause: str | None = None) -> None:
+        self.record_dir, self.since, self.out, self.cause = record_dir, since, out, cause
         self._offsets: dict[Path, int] = {}
         self._partial: dict[Path, bytes] = {}
         self.trigger_t: float | None = None
@@ -128,6 +152,8 @@ class EventFollower:
         if ev["kind"] == "trigger":
             self.trigger_t = t if self.trigger_t is None else self.trigger_t
             text = f"failsafe trigger: {ev.get('reason', '?')} (from {ev.get('source', '?')})"
+            if self.cause:
+                text += f": {self.cause}"
         else:
             text = str(ev.get("text") or f"{ev.get('old')} -> {ev.get('phase')}")
         when = "" if self.trigger_t is None else f"{t - self.trigger_t:+6.1f} s "
@@ -140,13 +166,101 @@ class EventFollower:
             await asyncio.sleep(period_s)
 
 
-async def _fly_following(spec: FlightSpec, follower: EventFollower) -> FlightResult:
+async def _fly_following(spec: FlightSpec, follower: EventFollower, truth: Truth | None = None) -> FlightResult:
     task = asyncio.create_task(follower.follow())
     try:
-        return await fly(spec)
+        return await fly(spec, None if truth is None else truth.attach)
     finally:
         task.cancel()
         follower.poll()  # the last events (LANDED), written before the service stopped
+
+
+#: What the demo says its trigger was: the failsafe the simulator raises (``FlightSpec.failsafe``),
+#: as the README tells it; the service's own trigger line says which sign of it it acted on.
+CAUSES = {"battery_critical": "the simulated battery went critical",
+          "battery_low": "the simulated battery went low",
+          "rc_loss": "the simulated RC link was lost", "gcs_loss": "the simulated ground-station link was lost"}
+
+
+@dataclass
+class Truth:
+    """The simulator's people through the flight, on the recording's clock (this host's
+    ``time.monotonic()``): sampled every ``TRUTH_PERIOD_S`` and at the touchdown, for the video's
+    markers and its last card. Sampling only reads the world: the flight is unchanged."""
+
+    t: list[float] = field(default_factory=list)
+    people: list[np.ndarray] = field(default_factory=list)
+    at_touchdown: np.ndarray | None = None
+
+    def attach(self, world: World, sim: Simulator) -> None:
+        def everyone() -> np.ndarray:
+            fixed = world.fixed_people
+            moving = world.positions()
+            if fixed is None or len(fixed) == 0:
+                return moving.copy()
+            return np.vstack([moving, np.asarray(fixed, float).reshape(-1, 2)])
+
+        def step(_dt: float) -> None:
+            now = time.monotonic()
+            if not self.t or now - self.t[-1] >= TRUTH_PERIOD_S:
+                self.t.append(now)
+                self.people.append(everyone())
+
+        def touchdown() -> None:
+            if self.at_touchdown is None:
+                self.at_touchdown = everyone()
+
+        sim.add_stepper(step)
+        sim.on_touchdown(touchdown)
+
+    def at(self, t: float) -> np.ndarray:
+        """The people (N, 2 north, east m) at the last sample at or before ``t`` (the first
+        sample before it)."""
+        if not self.t:
+            return np.empty((0, 2))
+        i = max(0, bisect.bisect_right(self.t, t) - 1)
+        return self.people[i]
+
+
+def starved_lines(result: FlightResult) -> list[str]:
+    """What the demo says of a starved flight (none for one that was not): the figures against
+    their budget, and what they mean for the outcome."""
+    if not result.starved:
+        return []
+    fps = result.spec.fps
+    figures = []
+    if result.processed_fps is not None:
+        figures.append(f"{result.processed_fps:.1f} frames/s processed of the camera's {fps:g} "
+                       f"(a flight needs {STARVED_SHARE * fps:g})")
+    if result.frame_ms_p95 is not None:
+        figures.append(f"{result.frame_ms_p95:.0f} ms a frame at the 95th percentile "
+                       f"(budget {STARVED_FRAME_SHARE * 1000.0 / fps:.0f} ms)")
+    return [f"STARVED: this machine did not give the service the CPU a vehicle's companion has: {'; '.join(figures)}.",
+            "The service decided on fewer and later frames than it would on a vehicle, so this outcome and its times",
+            "say what a starved companion does, not what the method does; the yardstick's figures come from lockstep",
+            "flights (companion sim-scenarios --lockstep, docs/scale.md). Close other work and run the demo again."]
+
+
+_VERDICTS = {"safe": ("LANDED SAFE", (0, 200, 0)), "unsafe": ("LANDED UNSAFE: someone within r0", (0, 0, 255)),
+             "handback": ("HANDED BACK to the autopilot", (0, 140, 255)),
+             "timeout": ("NO TOUCHDOWN in the flight's time", (0, 0, 255))}
+
+
+def video_outcome(result: FlightResult, truth: Truth | None) -> Outcome:
+    """The last card of the demo's video: the verdict, the touchdown lines, why it handed back,
+    whether it was starved, and everyone where they stood at touchdown."""
+    from companion.replay.flight_video import Outcome
+
+    verdict, colour = _VERDICTS.get(result.outcome, (result.outcome.upper(), (255, 255, 255)))
+    lines = list(touchdown_lines(result))
+    reason = handback_reason(result)
+    if reason is not None:
+        lines.append(reason if len(reason) <= 90 else reason[:87] + "...")
+    if result.starved:
+        lines.append(f"STARVED flight ({result.processed_fps or 0:.1f} frames/s, p95 {result.frame_ms_p95 or 0:.0f} ms): "
+                     "not a measure of the method")
+    people = np.empty((0, 2)) if truth is None or truth.at_touchdown is None else truth.at_touchdown
+    return Outcome(verdict, colour, tuple(lines), result.touchdown, people, result.spec.r0_m)
 
 
 def handback_reason(result: FlightResult) -> str | None:
@@ -186,6 +300,8 @@ def labelled_summary(result: FlightResult, r0_m: float) -> dict[str, Any]:
     summary["free_circle"] = None if fc is None else {"north_m": round(fc[0], 3), "east_m": round(fc[1], 3),
                                                       "radius_m": round(fc[2], 3)}
     summary["handback_reason"] = handback_reason(result)
+    # The starved flag's meaning beside it (None when it was not): summary.json says what the console says.
+    summary["starved_note"] = " ".join(starved_lines(result)) or None
     return summary
 
 
@@ -202,14 +318,15 @@ def _write_zones(recording: Path, path: Path) -> int:
 
 
 def evidence_video(recording: Path, out: Path) -> Path | None:
-    """``companion replay`` of ``recording`` with the settings it was flown with into the video
-    ``out`` (each frame beside its head-plane view): the evidence behind the decisions, beside the
-    decision video. None when the replay failed (said on stderr)."""
+    """``companion replay`` of ``recording`` with the settings it was flown with into the H.264
+    video ``out`` (each frame beside its head-plane view): the evidence behind the decisions,
+    beside the decision video, with the flight's own zones and target drawn (``--flight-zones``:
+    the ids the console printed). None when the replay failed (said on stderr)."""
     from companion.cli import main as companion_main
 
     # Its summary goes to the JSON file; the demo's own lines stay the ones on the terminal.
     with contextlib.redirect_stdout(io.StringIO()):
-        code = companion_main(["replay", str(recording), "--video-out", str(out),
+        code = companion_main(["replay", str(recording), "--video-out", str(out), "--flight-zones",
                                "--summary-json", str(out.with_suffix(".json")), "--no-progress"])
     return out if code == 0 and out.is_file() else None
 
@@ -255,14 +372,16 @@ def run(args: argparse.Namespace) -> int:
                           gcs_port=gcs.port, ground=args.ground, photos=photos)
         print(f"demo: {args.flavour} vehicle hovering {args.altitude:.0f} m over a crowd"
               + (" on real photos" if args.ground == "photo" else "") + "; the service "
-              f"watches for {spec.watch_s:.0f} s, then the battery failsafe fires. The service's "
-              f"decisions, as it makes them (seconds from the trigger):", flush=True)
+              f"watches for {spec.watch_s:.0f} s, then the simulated battery goes critical (the autopilot "
+              "reports it and starts its own LAND). The service's decisions, as it makes them (seconds "
+              "from the trigger):", flush=True)
         print(ground_station_line(gcs.port), flush=True)
         if page is not None:
             print(live_page_line(page.port), flush=True)
-        follower = EventFollower(rec, since=time.time())
+        follower = EventFollower(rec, since=time.time(), cause=CAUSES.get(spec.failsafe))
+        truth = Truth()
         try:
-            result = asyncio.run(_fly_following(spec, follower))
+            result = asyncio.run(_fly_following(spec, follower, truth))
         except RuntimeError as exc:
             print(f"demo: {exc}", file=sys.stderr)
             return 1
@@ -280,7 +399,8 @@ def run(args: argparse.Namespace) -> int:
 
         video = out / "demo.mp4"
         print("demo: drawing the video of what the service decided, from its flight recording ...", flush=True)
-        written = write_h264(recordings[-1], video, progress=print_progress())
+        written = write_h264(recordings[-1], video, progress=print_progress(), people=truth.at,
+                             outcome=video_outcome(result, truth))
         summary["video"] = str(written.path)
         print("demo: replaying the recording with the ground risk map for the evidence video ...", flush=True)
         evidence = evidence_video(recordings[-1], out / "evidence.mp4")
@@ -292,6 +412,8 @@ def run(args: argparse.Namespace) -> int:
         line += f"; the companion {reason}"
     print(line)
     for text in touchdown_lines(result):
+        print(f"  {text}")
+    for text in starved_lines(result):
         print(f"  {text}")
     print(f"  summary: {out / 'summary.json'}; service log: {out / 'service.log'}"
           + (f"; video: {summary.get('video')}" if summary.get("video") else "")

@@ -48,7 +48,7 @@ import socket
 import subprocess
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, TextIO
@@ -502,13 +502,19 @@ async def _pump(stream: asyncio.StreamReader, lines: list[str], sink: TextIO | N
             sink.flush()
 
 
-async def fly(spec: FlightSpec) -> FlightResult:
+#: Given the flight's world and simulator before they start (e.g. to add a stepper that samples
+#: the truth, as the demo does to mark people in its video); it must not change the flight.
+Observer = Callable[[World, Simulator], None]
+
+
+async def fly(spec: FlightSpec, observe: Observer | None = None) -> FlightResult:
     """Fly one scenario end to end and judge it (see the module docstring). Its two loopback
-    ports are claimed node-wide for the flight (:func:`reserve_port`), so flights may run at once."""
+    ports are claimed node-wide for the flight (:func:`reserve_port`), so flights may run at once.
+    ``observe`` sees the world and the simulator before the flight starts."""
     if spec.lockstep and not getattr(asyncio.get_running_loop(), "lockstep", False):
         raise ValueError("a lockstep flight flies on the simulated clock: sim.flights.lockstep.fly_lockstep(spec)")
     with reserve_port() as link, reserve_port(socket.SOCK_STREAM) as cam:
-        return await _fly(spec, link.port, cam.port)
+        return await _fly(spec, link.port, cam.port, observe)
 
 
 def build_scene(spec: FlightSpec, link_port: int, cam_port: int
@@ -547,8 +553,10 @@ def touchdown_surfaces(ground: object, point: tuple[float, float]) -> list[str] 
     return sorted(ground.surfaces_within(point[0], point[1], FOOTPRINT_M))
 
 
-async def _fly(spec: FlightSpec, link_port: int, cam_port: int) -> FlightResult:
+async def _fly(spec: FlightSpec, link_port: int, cam_port: int, observe: Observer | None = None) -> FlightResult:
     world, free, sim, camera = build_scene(spec, link_port, cam_port)
+    if observe is not None:
+        observe(world, sim)
     # The world's clock starts when the service is ready (at once for the baseline), so the
     # people at the failsafe are where they are in every run of the seed, however long the
     # service took to start on a loaded machine, and the baseline meets the same crowd.

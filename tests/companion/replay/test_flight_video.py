@@ -163,3 +163,157 @@ def test_the_video_figures_clearance_from_the_recorded_rangefinder_as_the_contro
     expect = flight_video.annotate(fr.frame_bgr, tracks, None, proj, "MONITOR", "", -fr.pose.down, None,
                                    profile, 15.0)
     assert np.array_equal(expect, ranged[4])
+
+
+def _decode(path: Path) -> tuple[str, list[np.ndarray]]:
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        return stream.codec_context.name, [f.to_ndarray(format="bgr24") for f in container.decode(stream)]
+
+
+def _magenta(img: np.ndarray) -> np.ndarray:
+    """The truth's person markers (PERSON, magenta): high blue and red, low green."""
+    b, g, r = (img[..., k].astype(int) for k in range(3))
+    return (b > 180) & (r > 180) & (g < 90)
+
+
+def test_a_starved_recording_still_lasts_as_long_as_the_flight(tmp_path: Path) -> None:
+    # Issue 62: a starved service records 6 frames a second, not 10; the video at 10 frames a
+    # second showed them faster than they happened and ended before the flight did.
+    rec = FlightRecorder(tmp_path / "rec", fps=10, queue_size=40, intrinsics=K, mount=Mount())
+    path = rec.start()
+    times = [100.0 + k / 6.0 for k in range(24)]  # 4 s of flight at 6 frames/s
+    for i, t in enumerate(times):
+        assert rec.add_frame(i, t, np.full((240, 320, 3), 90, np.uint8), Pose(t, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    rec.close()
+    summary = flight_video.write_h264(path, tmp_path / "v.mp4")
+    codec, decoded = _decode(summary.path)
+    assert codec == "h264" and summary.recorded_frames == 24
+    span = times[-1] - times[0]
+    assert len(decoded) == summary.frames and abs(len(decoded) / 10.0 - span) <= 0.15  # not 2.4 s
+    assert summary.duration_s >= span
+
+
+def test_people_of_the_truth_are_marked_and_the_last_card_tells_the_outcome(tmp_path: Path) -> None:
+    path = _recording(tmp_path / "rec", n=10)
+    person = np.array([[4.0, -3.0]])  # north, east of home: in view from 20 m
+
+    def people(t: float) -> np.ndarray:
+        return person
+
+    outcome = flight_video.Outcome("LANDED SAFE", (0, 200, 0), ("nearest person at touchdown: 5.0 m",),
+                                   (0.0, 0.0), np.array([[3.0, 4.0], [20.0, 20.0]]), 2.0)
+    summary = flight_video.write_h264(path, tmp_path / "v.mp4", people=people, outcome=outcome)
+    codec, decoded = _decode(summary.path)
+    assert codec == "h264" and len(decoded) == 10 + round(flight_video.OUTCOME_HOLD_S * 10)
+    # Frame 0: the person is marked where the ground plane puts them (the marker, magenta, is no
+    # colour the service's overlays use), and the legend names the sign.
+    h = flight_video.HEADER_PX
+    ground = PlaneProjection.from_pose(K, Mount(), Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0), 0.0)
+    u, v = (int(round(c)) for c in ground.plane_to_image(person)[0])
+    frame0 = decoded[0]
+    assert _magenta(frame0[h + v - 6:h + v + 7, u - 6:u + 7]).sum() >= 6
+    legend = frame0[h:h + 80, 320 - 232:]
+    assert _magenta(legend).sum() >= 6
+    without = next(flight_video.frames(path))
+    assert _magenta(without).sum() == 0  # no truth given, nothing marked
+    # The last frame is the outcome card: the verdict in green, the nearest person ringed.
+    last = decoded[-1]
+    expected = flight_video.outcome_card(decoded[0].shape, outcome)
+    assert np.abs(last.astype(int) - expected.astype(int)).mean() < 6  # as drawn, through the codec
+    green = (expected[..., 1] > 150) & (expected[..., 0] < 80) & (expected[..., 2] < 80)
+    assert green[h:h + 40].sum() > 40  # the verdict's words
+    assert _magenta(expected).sum() > 100  # the nearest person's ring and line, the others' crosses
+
+
+def test_labels_stay_inside_the_frame_and_do_not_ghost() -> None:
+    from companion.replay import draw
+
+    img = np.full((240, 320, 3), 90, np.uint8)
+    text = "#15 age 64, 4.7 / -14.4 m TARGET"
+    # Asked to start 20 px from the right edge: moved left so that all of it is inside.
+    box = draw._label(img, text, (300, 120), draw.YELLOW)
+    x0, y0, x1, y1 = box
+    assert 0 <= x0 < x1 <= 319 and 0 <= y0 < y1 <= 239
+    (tw, th), _ = __import__("cv2").getTextSize(text, draw.FONT, 0.5, 1)
+    assert x1 - x0 >= tw  # the whole text, not cut at the edge
+    yellow = (img[..., 2] > 150) & (img[..., 1] > 150) & (img[..., 0] < 120)
+    cols = np.flatnonzero(yellow.any(axis=0))
+    assert cols.min() >= x0 and cols.max() <= x1
+    # One stroke: nothing dark drawn outside the box (the old outline, thicker and so wider
+    # text, ran past the coloured text and showed as a second copy: "TARGETT").
+    dark = img.sum(axis=2) < 90 * 3 - 30
+    outside = dark.copy()
+    outside[y0:y1 + 1, x0:x1 + 1] = False
+    assert not outside.any()
+    # Near the top-left corner too.
+    x0, y0, _, _ = draw._label(img, "N", (-5, 2), draw.WHITE)
+    assert x0 >= 0 and y0 >= 0
+
+
+def test_the_evidence_video_is_h264_and_draws_the_flights_own_zones(tmp_path: Path) -> None:
+    # Issue 62: evidence.mp4 was MPEG-4 Part 2 (browsers do not play it) and drew the replay's
+    # own zones, whose ids and target were not the ones the flight printed.
+    import json
+
+    from sim.flights.demo import evidence_video
+
+    path = _recording(tmp_path / "rec", n=10)
+    out = evidence_video(path, tmp_path / "evidence.mp4")
+    assert out is not None
+    codec, decoded = _decode(out)
+    assert codec == "h264" and len(decoded) == 10
+    summary = json.loads((tmp_path / "evidence.json").read_text())
+    assert summary["flight_zones"]["frames"] == 10  # every frame drawn with the flight's zones
+
+    def yellow_on_target(img: np.ndarray, i: int) -> int:
+        # The flight's target, zone 3, on the image view (frame i's pose): yellow once it was chosen.
+        proj = PlaneProjection.from_pose(K, Mount(), Pose(0.0, 0.0, 0.0, -20.0 + 0.2 * i, 0.0, 0.0, 0.0), 1.7)
+        uv = proj.plane_to_image(np.array([[2.0 + 4.0 * np.cos(a), 1.0 + 4.0 * np.sin(a)]
+                                           for a in np.linspace(0, 2 * np.pi, 36, endpoint=False)]))
+        return sum(int(img[int(round(v)), int(round(u)), 2] > 150 and img[int(round(v)), int(round(u)), 1] > 150
+                       and img[int(round(v)), int(round(u)), 0] < 120) for u, v in uv)
+
+    assert yellow_on_target(decoded[2], 2) == 0  # before the flight chose it: not the target
+    assert yellow_on_target(decoded[8], 8) >= 18  # the flight's target from t = 100.6 s
+
+
+def test_the_replay_counts_the_frames_whose_zone_ids_are_not_the_flights(tmp_path: Path) -> None:
+    # A recording whose zones events are what the pipeline tracks on its frames (as a flight's
+    # are: the same frames, times and settings) replays with the same ids on every frame; one
+    # frame recorded with another id is counted.
+    import json
+
+    from companion.cli import main
+
+    grey = np.full((240, 320, 3), 90, np.uint8)
+    first = FlightRecorder(tmp_path / "a", fps=10, queue_size=12, intrinsics=K, mount=Mount())
+    a = first.start()
+    poses = [Pose(100.0 + 0.1 * i, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0) for i in range(8)]
+    for i, pose in enumerate(poses):
+        assert first.add_frame(i, pose.t, grey, pose)
+    first.close()
+    assert main(["replay", str(a), "--jsonl", str(tmp_path / "a.jsonl"), "--no-progress"]) == 0
+    tracked = {r["frame"]: r["tracks"] for r in map(json.loads, (tmp_path / "a.jsonl").read_text().splitlines())}
+    assert any(tracked.values())  # the plain ground is one free zone, tracked from the second frame
+
+    def flown(root: Path, wrong_frame: int | None) -> Path:
+        rec = FlightRecorder(root, fps=10, queue_size=12, intrinsics=K, mount=Mount())
+        path = rec.start()
+        for i, pose in enumerate(poses):
+            assert rec.add_frame(i, pose.t, grey, pose)
+            # As the service records them: each track whole (dataclasses.asdict), by its id.
+            tracks = [asdict(_track(t["id"] + (100 if i == wrong_frame else 0), t["x"], t["y"], t["r"]))
+                      for t in tracked.get(i, [])]
+            rec.add_event("zones", pose.t, frame=i, tracks=tracks, target=None)
+        rec.close()
+        return path
+
+    for wrong, differ in ((None, 0), (5, 1)):
+        path = flown(tmp_path / f"rec{wrong}", wrong)
+        summary_path = tmp_path / f"s{wrong}.json"
+        assert main(["replay", str(path), "--flight-zones", "--video-out", str(tmp_path / f"e{wrong}.mp4"),
+                     "--summary-json", str(summary_path), "--no-progress"]) == 0
+        assert json.loads(summary_path.read_text())["flight_zones"] == {"frames": 8, "ids_differ": differ}
+    # Not a recording: refused, naming the option.
+    assert main(["replay", str(tmp_path / "e0.mp4"), "--flight-zones", "--nadir", "--gsd", "0.05"]) == 2

@@ -248,3 +248,24 @@ def test_each_track_is_labelled_with_its_predicted_clearance_at_touchdown() -> N
     # The longer label writes further right of the zone's centre (150, 100) than the plain one.
     right = (slice(80, 100), slice(230, 300))
     assert (labelled[right] != 100).any() and not (plain[right] != 100).any()
+
+
+def test_frames_from_the_ground_are_said_once_at_info_not_warned_about(caplog):
+    # Issue 62: the demo's evidence replay printed six WARNING lines for the frames after the
+    # landing, which every recording of a flight ends with.
+    import logging
+
+    from companion.replay.runner import LOGGED_SKIPS, _log_skip
+
+    why = "camera at down=-1.41 m is not above the head plane (z = -1.70 m)"
+    counts: dict[str, int] = {}
+    with caplog.at_level(logging.INFO, logger="companion.replay.runner"):
+        for i in range(LOGGED_SKIPS + 10):
+            _log_skip(counts, "no valid head-plane projection for the frame", i, why)
+        # A frame recorded before the first pose: the flight did not use it either.
+        for i in range(3):
+            _log_skip(counts, "no valid head-plane projection for the frame", 100 + i,
+                      "no pose and no fixed projection: cannot place the frame on the head plane")
+    assert [r.levelno for r in caplog.records] == [logging.INFO, logging.INFO]
+    assert "(on the ground)" in caplog.records[0].getMessage()
+    assert "the flight did not use it either" in caplog.records[1].getMessage()

@@ -10,6 +10,8 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
@@ -35,18 +37,31 @@ def impostor_socket() -> socket.socket:
     return s
 
 
+@asynccontextmanager
+async def link_autopilot_impostor(cfg: LinkConfig) -> AsyncIterator[tuple[MavLink, MavPeer, socket.socket]]:
+    """The link started on ``cfg``, an autopilot peer not yet connected, and an impostor's
+    socket; all closed afterwards, whatever happened."""
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer()
+    impostor = impostor_socket()
+    try:
+        yield link, autopilot, impostor
+    finally:
+        impostor.close()
+        await autopilot.close()
+        await link.close()
+
+
 def packed(msg, system_id: int = 1, component_id: int = 1) -> bytes:
     return bytes(msg.pack(m.MAVLink(None, system_id, component_id)))
 
 
 async def test_once_the_autopilot_is_heard_udpin_hears_and_talks_to_it_alone():
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05))
-    await link.start()
-    autopilot = MavPeer()
-    impostor = impostor_socket()
     got = []
-    link.subscribe("ATTITUDE", lambda msg, t: got.append(msg.roll))
-    try:
+    async with link_autopilot_impostor(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={},
+                                                  heartbeat_period_s=0.05)) as (link, autopilot, impostor):
+        link.subscribe("ATTITUDE", lambda msg, t: got.append(msg.roll))
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         await link.wait_connected(2.0)
@@ -62,10 +77,6 @@ async def test_once_the_autopilot_is_heard_udpin_hears_and_talks_to_it_alone():
         with pytest.raises(BlockingIOError):
             impostor.recv(4096)  # nothing was sent to it
         assert autopilot.of_type("HEARTBEAT")  # while the autopilot hears the companion
-    finally:
-        impostor.close()
-        await autopilot.close()
-        await link.close()
 
 
 async def test_udpout_hears_only_the_address_it_sends_to():
@@ -330,29 +341,17 @@ async def test_a_forger_who_speaks_first_is_not_pinned_and_the_autopilot_is():
 
 
 async def _forger_first(cfg: LinkConfig) -> None:
-    link = MavLink(cfg)
-    await link.start()
-    autopilot = MavPeer()
-    impostor = impostor_socket()
-    try:
+    async with link_autopilot_impostor(cfg) as (link, autopilot, impostor):
         impostor.sendto(forged_heartbeat(), link.local_address)  # first, once
         await until(lambda: link.connected)
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         await _until_pinned_to(link, autopilot, impostor)
-    finally:
-        impostor.close()
-        await autopilot.close()
-        await link.close()
 
 
 async def test_after_a_link_loss_the_autopilot_is_pinned_again_not_a_newcomer():
     cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
-    link = MavLink(cfg)
-    await link.start()
-    autopilot = MavPeer()
-    impostor = impostor_socket()
-    try:
+    async with link_autopilot_impostor(cfg) as (link, autopilot, impostor):
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         await _until_pinned_to(link, autopilot, impostor)
@@ -366,26 +365,14 @@ async def test_after_a_link_loss_the_autopilot_is_pinned_again_not_a_newcomer():
         assert link.transport.pinned is None  # three heartbeats, but in a burst
         autopilot.start_heartbeats(0.05)
         await until(lambda: link.transport.pinned == autopilot.udp_address)  # on its first heartbeat
-    finally:
-        impostor.close()
-        await autopilot.close()
-        await link.close()
 
 
 async def test_two_senders_that_keep_claiming_the_autopilot_leave_the_link_unpinned():
     cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
-    link = MavLink(cfg)
-    await link.start()
-    autopilot = MavPeer()
-    impostor = impostor_socket()
-    try:
+    async with link_autopilot_impostor(cfg) as (link, autopilot, impostor):
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         for _ in range(20):
             impostor.sendto(forged_heartbeat(), link.local_address)
             await asyncio.sleep(0.05)
         assert link.transport.pinned is None and link.connected  # both heard, neither pinned (warned)
-    finally:
-        impostor.close()
-        await autopilot.close()
-        await link.close()

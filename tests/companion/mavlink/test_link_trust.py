@@ -12,6 +12,7 @@ import sys
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
@@ -49,6 +50,23 @@ async def link_autopilot_impostor(cfg: LinkConfig) -> AsyncIterator[tuple[MavLin
         yield link, autopilot, impostor
     finally:
         impostor.close()
+        await autopilot.close()
+        await link.close()
+
+
+@asynccontextmanager
+async def connected_autopilot(cfg: LinkConfig, **peer: Any) -> AsyncIterator[tuple[MavLink, MavPeer]]:
+    """The link started on ``cfg`` and an autopilot peer (``MavPeer(**peer)``) it has heard one
+    heartbeat from; both closed afterwards, whatever happened."""
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer(**peer)
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.heartbeat()
+        await link.wait_connected(2.0)
+        yield link, autopilot
+    finally:
         await autopilot.close()
         await link.close()
 
@@ -166,13 +184,7 @@ async def test_a_flood_from_another_sender_does_not_take_the_link_down():
 
 
 async def test_unknown_message_ids_are_not_received_and_do_not_count_as_drops():
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}))
-    await link.start()
-    autopilot = MavPeer()
-    try:
-        await autopilot.connect_udp(link.local_address)
-        autopilot.heartbeat()
-        await link.wait_connected(2.0)
+    async with connected_autopilot(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={})) as (link, autopilot):
         received, dropped = link.stats.received, link.stats.dropped
         # A well-framed MAVLink 2 packet of message id 60000 (not in the dialect) with a wild
         # sequence number: random bytes can frame like this.
@@ -184,9 +196,6 @@ async def test_unknown_message_ids_are_not_received_and_do_not_count_as_drops():
         autopilot.heartbeat()
         await until(lambda: link.stats.received == received + 1)
         assert link.stats.dropped == dropped
-    finally:
-        await autopilot.close()
-        await link.close()
 
 
 def test_require_signing_without_a_key_is_a_config_error():
@@ -230,13 +239,7 @@ async def test_an_autopilot_with_another_system_id_is_ignored_and_named(caplog):
 async def test_other_systems_sequence_numbers_do_not_count_as_drops():
     """The audit: 10,000 datagrams of other systems added 108,546 to ``dropped``. Here a router
     forwards other systems' packets from the autopilot's address, their sequence numbers wild."""
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}))
-    await link.start()
-    autopilot = MavPeer()
-    try:
-        await autopilot.connect_udp(link.local_address)
-        autopilot.heartbeat()
-        await link.wait_connected(2.0)
+    async with connected_autopilot(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={})) as (link, autopilot):
         received = link.stats.received
         for k in range(2000):
             sysid = 2 + k % 5
@@ -253,20 +256,11 @@ async def test_other_systems_sequence_numbers_do_not_count_as_drops():
         autopilot.mav.seq = (autopilot.mav.seq + 5) % 256
         autopilot.heartbeat()
         await until(lambda: link.stats.dropped == 5)
-    finally:
-        await autopilot.close()
-        await link.close()
 
 
 async def test_a_wrong_length_byte_counts_once_as_bad():
     """The audit: a wrong length byte was counted 1.41 times (a CRC error, then stray bytes)."""
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}))
-    await link.start()
-    autopilot = MavPeer()
-    try:
-        await autopilot.connect_udp(link.local_address)
-        autopilot.heartbeat()
-        await link.wait_connected(2.0)
+    async with connected_autopilot(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={})) as (link, autopilot):
         sent = 0
         for length in range(256):
             raw = bytearray(packed(m.MAVLink_attitude_message(1000, 0.1, 0.2, 0.3, 0, 0, 0)))
@@ -279,9 +273,6 @@ async def test_a_wrong_length_byte_counts_once_as_bad():
         await until(lambda: link.stats.received >= 2)
         await asyncio.sleep(0.1)
         assert link.stats.bad == sent
-    finally:
-        await autopilot.close()
-        await link.close()
 
 
 async def test_unsigned_unknown_ids_on_a_signed_link_are_rejected_unsigned():
@@ -290,13 +281,8 @@ async def test_unsigned_unknown_ids_on_a_signed_link_are_rejected_unsigned():
     from companion.mavlink.link import parse_signing_key
 
     key = parse_signing_key("correct horse battery staple")
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, signing_key=key))
-    await link.start()
-    autopilot = MavPeer(signing_key=key)
-    try:
-        await autopilot.connect_udp(link.local_address)
-        autopilot.heartbeat()
-        await link.wait_connected(2.0)
+    cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, signing_key=key)
+    async with connected_autopilot(cfg, signing_key=key) as (link, autopilot):
         raw = bytearray(packed(m.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3)))  # unsigned
         raw[7:10] = (60000).to_bytes(3, "little")
         for _ in range(10):
@@ -311,9 +297,6 @@ async def test_unsigned_unknown_ids_on_a_signed_link_are_rejected_unsigned():
         autopilot.send_raw(bytes(buf))
         await until(lambda: link.stats.unsigned_rejected == 11)
         assert link.stats.unknown == 0
-    finally:
-        await autopilot.close()
-        await link.close()
 
 
 # -- issue 61, item 5: the autopilot's address is pinned on evidence, not on one packet ---------

@@ -82,7 +82,12 @@ async def _setup() -> tuple[MavLink, VehicleState, Autopilot]:
     await link.wait_connected(2.0)
     ap = Autopilot(peer)
     ap.task = asyncio.create_task(ap.stream())
-    await asyncio.sleep(0.6)
+    # Until a frame has its pose (the home and the stream's first samples), not a fixed 0.6 s:
+    # each test's first window then shows the pose steady before anything is forged.
+    deadline = time.monotonic() + 2.0
+    while state.pose_at(time.monotonic() - 0.05) is None:
+        assert time.monotonic() < deadline, "the autopilot's stream gave no pose"
+        await asyncio.sleep(0.01)
     return link, state, ap
 
 

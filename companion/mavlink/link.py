@@ -18,6 +18,8 @@
 - hands received messages to subscribers by type: callbacks ``(msg, t)`` or asyncio queues.
 
 Times ``t`` given to subscribers are the receive time on ``time.monotonic()`` in seconds.
+Its settings (``LinkConfig``, the telemetry rates, the signing key's spellings) live in
+``link_config`` and are imported from here too.
 """
 
 from __future__ import annotations
@@ -25,23 +27,27 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
-import math
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from types import MappingProxyType
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from companion.invariant import FieldError, require
 from companion.logs import warn_every
+from companion.mavlink.link_config import DEFAULT_MESSAGE_RATES_HZ as DEFAULT_MESSAGE_RATES_HZ
+from companion.mavlink.link_config import MAV_COMP_ID_AUTOPILOT1 as MAV_COMP_ID_AUTOPILOT1
+from companion.mavlink.link_config import MAV_COMP_ID_ONBOARD_COMPUTER as MAV_COMP_ID_ONBOARD_COMPUTER
+from companion.mavlink.link_config import POSE_RATE_HZ as POSE_RATE_HZ
+from companion.mavlink.link_config import LinkConfig as LinkConfig
+from companion.mavlink.link_config import PeersError as PeersError
+from companion.mavlink.link_config import message_rates as message_rates
+from companion.mavlink.link_config import parse_signing_key as parse_signing_key
 from companion.mavlink.transports import (
     TcpServerTransport,
     Transport,
-    TransportError,
     UdpTransport,
     make_transport,
     parse_peers,
@@ -56,39 +62,8 @@ log = logging.getLogger(__name__)
 
 mav = mavlink2  # the dialect module: constants and message classes, re-exported for users
 
-MAV_COMP_ID_ONBOARD_COMPUTER = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
-MAV_COMP_ID_AUTOPILOT1 = mavlink2.MAV_COMP_ID_AUTOPILOT1  # 1
-
 Message = Any  # pymavlink's MAVLink_message subclasses; they carry no useful static types
 MessageCallback = Callable[[Message, float], None]
-
-# Rates (Hz) of the telemetry the service needs: the pose (ATTITUDE, GLOBAL_POSITION_INT) fast
-# enough to interpolate at a frame's capture time, the rest for the state and the failsafe monitor.
-DEFAULT_MESSAGE_RATES_HZ: Mapping[str, float] = MappingProxyType(
-    {
-        "ATTITUDE": 25.0,
-        "GLOBAL_POSITION_INT": 10.0,
-        "HOME_POSITION": 0.5,
-        "EXTENDED_SYS_STATE": 2.0,
-        "SYS_STATUS": 2.0,
-        "BATTERY_STATUS": 1.0,
-        "DISTANCE_SENSOR": 10.0,
-        "GIMBAL_DEVICE_ATTITUDE_STATUS": 10.0,
-    }
-)
-
-#: The rate the service asks for the pose messages (ATTITUDE, GLOBAL_POSITION_INT), Hz: twice the
-#: camera's 10 frames a second, so that a frame's capture time always lies between two samples
-#: and its pose is interpolated, not held.
-POSE_RATE_HZ = 20.0
-
-
-def message_rates(telemetry_rate_hz: float = POSE_RATE_HZ) -> dict[str, float]:
-    """The default rates with the pose messages (ATTITUDE, GLOBAL_POSITION_INT) at ``telemetry_rate_hz``."""
-    rates = dict(DEFAULT_MESSAGE_RATES_HZ)
-    rates["ATTITUDE"] = rates["GLOBAL_POSITION_INT"] = float(telemetry_rate_hz)
-    return rates
-
 
 # MAVLink 2 signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC.
 _SIGNING_EPOCH = 1420070400
@@ -128,79 +103,6 @@ def result_name(result: int) -> str:
     entry = mavlink2.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else f"MAV_RESULT {result}"
 
-
-def parse_signing_key(text: str) -> bytes:
-    """A 32-byte signing key from 64 hex digits, or the SHA-256 of a passphrase (as MAVProxy does)."""
-    text = text.strip()
-    if not text:
-        raise ValueError("the MAVLink signing key is empty")
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text)
-        except ValueError:
-            pass
-    return hashlib.sha256(text.encode()).digest()
-
-
-class PeersError(FieldError, TransportError):
-    """``LinkConfig.peers`` holds an entry that is no IP address or network: the transport's error
-    (``parse_peers``), and a field the settings name (``link.peers``)."""
-
-
-@dataclass(frozen=True)
-class LinkConfig:
-    """How to reach the flight controller and how to present ourselves.
-
-    ``url``: see ``transports.parse_url``; ``peers`` its UDP allow-list of addresses or networks
-    (empty: any address until the autopilot is heard, then its address alone).
-    ``target_system`` None (or 0) = the first autopilot heard.
-    ``signing_key``: 32 bytes (see ``parse_signing_key``) or None for no signing; with a key,
-    outgoing packets are signed and unsigned incoming packets are rejected (counted as bad) unless
-    ``accept_unsigned`` is True.
-    """
-
-    url: str
-    system_id: int = 1
-    component_id: int = MAV_COMP_ID_ONBOARD_COMPUTER
-    target_system: int | None = None
-    target_component: int = MAV_COMP_ID_AUTOPILOT1
-    heartbeat_period_s: float = 1.0
-    heartbeat_timeout_s: float = 3.0
-    message_rates_hz: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_MESSAGE_RATES_HZ))
-    command_timeout_s: float = 1.0
-    command_retries: int = 3
-    signing_key: bytes | None = None
-    signing_link_id: int = 0
-    accept_unsigned: bool = False
-    peers: tuple[str, ...] = ()
-
-    def __post_init__(self) -> None:
-        if self.target_system == 0:
-            object.__setattr__(self, "target_system", None)  # 0 is "any" in the service config
-        # The one place these rules live (the settings name the key of a field refused here).
-        for name in ("system_id", "component_id"):
-            require(1 <= getattr(self, name) <= 255, "mavlink", name, "must be 1..255", getattr(self, name))
-        require(self.target_system is None or 1 <= self.target_system <= 255, "mavlink", "target_system",
-                "must be 0 (the first autopilot heard) or 1..255", self.target_system)
-        if self.signing_key is not None and len(self.signing_key) != 32:
-            raise ValueError("mavlink signing_key must be 32 bytes (use parse_signing_key)")
-        if not 0 <= self.signing_link_id <= 255:
-            raise ValueError(f"mavlink signing_link_id {self.signing_link_id} must be 0..255")
-        for name in ("heartbeat_period_s", "heartbeat_timeout_s", "command_timeout_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"mavlink {name} must be a positive number of seconds, not {value!r}")
-        if self.command_retries < 0:
-            raise ValueError("mavlink command_retries must be >= 0")
-        try:
-            parse_peers(self.peers)
-        except TransportError as exc:  # it names the bad entry
-            raise PeersError("mavlink", "peers", f"must list IP addresses or networks ({exc})") from None
-        for name, hz in self.message_rates_hz.items():
-            if f"MAVLINK_MSG_ID_{name}" not in vars(mavlink2):
-                raise ValueError(f"mavlink message_rates_hz: unknown message {name!r}")
-            if not (math.isfinite(hz) and hz >= 0):
-                raise ValueError(f"mavlink message_rates_hz[{name}] must be >= 0 Hz, not {hz!r}")
 
 
 @dataclass

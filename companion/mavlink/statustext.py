@@ -234,6 +234,16 @@ class TextPacer:
             self._key_t[best[4]] = now
         return best[0], best[3]
 
+    def drain(self, now: float) -> list[tuple[int, str]]:
+        """Empty the queue (the service is stopping): the (severity, text) that ``allowance``
+        lets go at ``now``, most severe first and the oldest of a severity first; the rest are
+        dropped (counted in ``dropped``)."""
+        waiting = sorted(self._queue, key=lambda q: (q[0], q[1]))
+        self._queue = []
+        room = self.allowance(now)
+        self.dropped += max(0, len(waiting) - room)
+        return [(severity, text) for severity, _, _, text, _ in waiting[:room]]
+
 
 class TextOutbox:
     """The link's texts, paced (:class:`TextPacer`) and sent from the event loop: ``offer``
@@ -291,14 +301,10 @@ class TextOutbox:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
-        waiting = sorted(self.pacer._queue, key=lambda q: (q[0], q[1]))
-        self.pacer._queue = []
-        now = self.clock()
-        room = self.pacer.allowance(now)
-        self.pacer.dropped += max(0, len(waiting) - room)
-        for severity, _, _, text, _ in waiting[:room]:
+        last = self.pacer.drain(self.clock())
+        for severity, text in last:
             self.told(text, severity)
-        return min(room, len(waiting))
+        return len(last)
 
     def told(self, text: str, severity: int) -> None:
         """Send ``text`` now, past the queue, and count it in the pace."""

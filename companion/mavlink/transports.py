@@ -329,13 +329,35 @@ class UdpTransport(Transport):
             self._transport = None
 
 
-class TcpTransport(Transport):
+class _TcpStream(Transport):
+    """What the TCP client and server share: they send on the one stream they talk to now
+    (``_writer``; None while there is none, and then nothing is sent)."""
+
+    def __init__(self, endpoint: Endpoint, on_data: DataCallback) -> None:
+        super().__init__(endpoint, on_data)
+        self._writer: asyncio.StreamWriter | None = None
+
+    @property
+    def can_send(self) -> bool:
+        return self._writer is not None
+
+    def send(self, data: bytes) -> None:
+        if self._writer is None:
+            return
+        try:
+            self._writer.write(data)
+            self.bytes_sent += len(data)
+        except (OSError, RuntimeError) as exc:
+            self.send_errors += 1
+            log.debug("tcp send failed: %s", exc)
+
+
+class TcpTransport(_TcpStream):
     """TCP client that keeps reconnecting: a router or SITL restarting must not end the service."""
 
     def __init__(self, endpoint: Endpoint, on_data: DataCallback, reconnect_s: float = 1.0) -> None:
         super().__init__(endpoint, on_data)
         self._reconnect_s = reconnect_s
-        self._writer: asyncio.StreamWriter | None = None
         self._task: asyncio.Task[None] | None = None
         self._connected = asyncio.Event()
 
@@ -367,20 +389,6 @@ class TcpTransport(Transport):
                 writer.close()
             await asyncio.sleep(self._reconnect_s)
 
-    @property
-    def can_send(self) -> bool:
-        return self._writer is not None
-
-    def send(self, data: bytes) -> None:
-        if self._writer is None:
-            return
-        try:
-            self._writer.write(data)
-            self.bytes_sent += len(data)
-        except (OSError, RuntimeError) as exc:
-            self.send_errors += 1
-            log.debug("tcp send failed: %s", exc)
-
     async def close(self) -> None:
         if self._task is not None:
             self._task.cancel()
@@ -394,13 +402,12 @@ class TcpTransport(Transport):
             self._writer = None
 
 
-class TcpServerTransport(Transport):
+class TcpServerTransport(_TcpStream):
     """TCP server: the newest client is the one we talk to; an older one is closed."""
 
     def __init__(self, endpoint: Endpoint, on_data: DataCallback) -> None:
         super().__init__(endpoint, on_data)
         self._server: asyncio.Server | None = None
-        self._writer: asyncio.StreamWriter | None = None
 
     async def start(self) -> None:
         try:
@@ -427,20 +434,6 @@ class TcpServerTransport(Transport):
             if self._writer is writer:
                 self._writer = None
             writer.close()
-
-    @property
-    def can_send(self) -> bool:
-        return self._writer is not None
-
-    def send(self, data: bytes) -> None:
-        if self._writer is None:
-            return
-        try:
-            self._writer.write(data)
-            self.bytes_sent += len(data)
-        except (OSError, RuntimeError) as exc:
-            self.send_errors += 1
-            log.debug("tcp send failed: %s", exc)
 
     async def close(self) -> None:
         if self._writer is not None:

@@ -382,13 +382,9 @@ def export(net: LandabilityNet, out: Path, threshold: float, note: str) -> Path:
 
 
 def train(args: argparse.Namespace) -> Path:
-    from companion.training.train import resolve_device
+    from companion.training.train import start_run, warm_cosine
 
-    device = resolve_device(args.device)
-    torch.manual_seed(args.seed)
-    torch.set_num_threads(args.threads)
-    cv2.setNumThreads(1)
-    rng = np.random.default_rng(args.seed)
+    device, rng = start_run(args)
     t0 = time.monotonic()
     train_set, val_set = load_photos(Path(args.shared), args.max_images)
     log.info("loaded %d training and %d validation photos in %.0f s", len(train_set.images),
@@ -403,8 +399,7 @@ def train(args: argparse.Namespace) -> Path:
     budget = float(args.seconds)
     # By steps: the LambdaLR of the shipped model, as it was (its rounding reproduces the file);
     # by seconds: the distillation run's Phase and lr_factor, the same shape over the time spent.
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda k: min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(k, args.steps) / args.steps)))
+    sched = warm_cosine(opt, warm, args.steps)
     batches = None
     crops: TensorCrops | None = None
     if args.tensor_crops:

@@ -239,21 +239,32 @@ def resolve_device(name: str) -> torch.device:
     return dev
 
 
-def train(args: argparse.Namespace) -> Path:
+def start_run(args: argparse.Namespace) -> tuple[torch.device, np.random.Generator]:
+    """A training run's start, the same for every model trained here: the device of ``--device``,
+    torch seeded with ``--seed`` on ``--threads`` threads (OpenCV on one), and the numpy
+    generator of the crops seeded alike."""
     device = resolve_device(args.device)
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(1)
-    rng = np.random.default_rng(args.seed)
+    return device, np.random.default_rng(args.seed)
+
+
+def warm_cosine(opt: torch.optim.Optimizer, warm: int, steps: int) -> torch.optim.lr_scheduler.LambdaLR:
+    """The learning rate by step: a linear warm-up over ``warm`` steps, then a cosine down to 0
+    at ``steps`` (the shipped models' schedule, as it was: its rounding reproduces their files)."""
+    return torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda k: min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(k, steps) / steps)))
+
+
+def train(args: argparse.Namespace) -> Path:
+    device, rng = start_run(args)
     sources = all_sources(Path(args.shared), args.synthetic_share, args.negative_share, args.max_images, args.seed,
                           args.negative_kinds)
     net = M.SLZDensityNet().to(device)
     log.info("parameters: %d", M.count_parameters(net))
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=1e-4)
-    warm = 100
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda k: min(1.0, (k + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(k, args.steps) / args.steps))
-    )
+    sched = warm_cosine(opt, 100, args.steps)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()

@@ -46,7 +46,7 @@ from sim.flights.flight import (
     fly,
     reserve_port,
 )
-from sim.flights.spec import GROUNDS, parse_camera, photos_folder
+from sim.flights.spec import GROUNDS, parse_camera_and_photos
 
 if TYPE_CHECKING:
     from companion.replay.flight_video import Outcome
@@ -345,16 +345,12 @@ def run(args: argparse.Namespace) -> int:
         print("companion: demo: the video needs the optional package 'av': pip install 'companion-slz[tools]' "
               "(or run with --no-video)", file=sys.stderr)
         return 2
-    try:
-        lens, hfov = parse_camera(args.camera)
-    except ValueError as exc:
-        print(f"companion: demo: --camera: {exc}", file=sys.stderr)
+    checked = parse_camera_and_photos("companion: demo", args.camera, args.ground, args.photos)
+    if isinstance(checked, str):
+        print(checked, file=sys.stderr)
         return 2
-    try:
-        photos = photos_folder(args.ground, args.photos)
-    except ValueError as exc:
-        print(f"companion: demo: --photos: {exc}", file=sys.stderr)
-        return 2
+    assert checked.camera is not None  # --camera has a default
+    (lens, hfov), photos = checked.camera, checked.photos
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     rec = out / "recording"

@@ -132,7 +132,7 @@ from sim.flights.results import (
     summarise_rows,
     summary_text,
 )
-from sim.flights.spec import GROUNDS, camera_name, parse_camera, photos_folder
+from sim.flights.spec import GROUNDS, camera_name, parse_camera_and_photos
 from sim.flights.spec import service_settings as flight_settings
 
 
@@ -645,16 +645,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"companion sim-scenarios: --link-latency must be 0-{MAX_LINK_LATENCY_S:g} s, not {latency:g}",
               file=sys.stderr)
         return 2
-    try:
-        camera = None if args.camera is None else parse_camera(args.camera)
-    except ValueError as exc:
-        print(f"companion sim-scenarios: --camera: {exc}", file=sys.stderr)
+    checked = parse_camera_and_photos("companion sim-scenarios", args.camera, args.ground, args.photos)
+    if isinstance(checked, str):
+        print(checked, file=sys.stderr)
         return 2
-    try:
-        photos = photos_folder(args.ground, args.photos)
-    except ValueError as exc:
-        print(f"companion sim-scenarios: --photos: {exc}", file=sys.stderr)
-        return 2
+    camera, photos = checked.camera, checked.photos
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,

@@ -296,3 +296,29 @@ def photos_folder(ground: str, photos: Path | None) -> str | None:
     except PhotosError as exc:
         raise ValueError(str(exc)) from None
     return str(folder)
+
+
+@dataclass(frozen=True)
+class CameraAndPhotos:
+    """``--camera`` and ``--photos`` checked: camera (model, horizontal field of view in degrees),
+    None where no ``--camera`` was given; photos the absolute photos folder of a photo ground, None
+    for the drawn one."""
+
+    camera: tuple[str, float] | None
+    photos: str | None
+
+
+def parse_camera_and_photos(prog: str, camera: str | None, ground: str,
+                            photos: Path | None) -> CameraAndPhotos | str:
+    """The flight commands' ``--camera`` (``parse_camera``) and ``--photos`` (``photos_folder``)
+    checked before anything flies, or the message to print before exit 2: ``"{prog}: --camera:
+    ..."`` or ``"{prog}: --photos: ..."``."""
+    try:
+        lens = None if camera is None else parse_camera(camera)
+    except ValueError as exc:
+        return f"{prog}: --camera: {exc}"
+    try:
+        folder = photos_folder(ground, photos)
+    except ValueError as exc:
+        return f"{prog}: --photos: {exc}"
+    return CameraAndPhotos(lens, folder)

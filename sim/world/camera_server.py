@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import io
 import math
 import socket
 import threading
@@ -328,6 +329,18 @@ class MjpegFrame:
     received: float  # time.time() seconds when the last byte arrived
 
 
+def _read_headers(fp: io.IOBase) -> tuple[dict[str, str], bool]:
+    """HTTP header lines up to the blank line (keys lower case), and whether the stream ended
+    before it (the headers read until then are kept)."""
+    headers: dict[str, str] = {}
+    while True:
+        h = fp.readline()
+        if not h or h in (b"\r\n", b"\n"):
+            return headers, not h
+        k, _, v = h.decode("latin-1").partition(":")
+        headers[k.strip().lower()] = v.strip()
+
+
 def read_mjpeg(url: str, timeout: float = 5.0, recv_buffer: int = RECV_BUFFER) -> Iterator[MjpegFrame]:
     """Frames of an MJPEG-over-HTTP stream (``multipart/x-mixed-replace``), as they arrive.
 
@@ -347,13 +360,7 @@ def read_mjpeg(url: str, timeout: float = 5.0, recv_buffer: int = RECV_BUFFER) -
         sock.sendall(f"GET {path} HTTP/1.0\r\nHost: {u.netloc}\r\n\r\n".encode())
         fp = sock.makefile("rb", buffering=16 * 1024)
         status = fp.readline().decode("latin-1").split()
-        head: dict[str, str] = {}
-        while True:
-            h = fp.readline()
-            if not h or h in (b"\r\n", b"\n"):
-                break
-            k, _, v = h.decode("latin-1").partition(":")
-            head[k.strip().lower()] = v.strip()
+        head, _ = _read_headers(fp)
         ctype = head.get("content-type", "")
         if len(status) < 2 or status[1] != "200" or "boundary=" not in ctype:
             raise ConnectionError(f"{url}: {' '.join(status)!r} {ctype!r}, not an MJPEG stream")
@@ -364,14 +371,8 @@ def read_mjpeg(url: str, timeout: float = 5.0, recv_buffer: int = RECV_BUFFER) -
                 return
             if not line.strip().startswith(boundary):
                 continue
-            headers: dict[str, str] = {}
-            while True:
-                h = fp.readline()
-                if not h or h in (b"\r\n", b"\n"):
-                    break
-                k, _, v = h.decode("latin-1").partition(":")
-                headers[k.strip().lower()] = v.strip()
-            if not h:
+            headers, ended = _read_headers(fp)
+            if ended:
                 return
             n = int(headers.get("content-length", "-1"))
             if n < 0:

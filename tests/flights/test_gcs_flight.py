@@ -10,13 +10,9 @@ the autopilot's own LAND bringing the vehicle down while the companion watches a
 from __future__ import annotations
 
 import asyncio
-import json
-import shutil
 import socket
-import tempfile
 import time
 from dataclasses import dataclass, field
-from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +27,7 @@ from companion.service.app import Service
 from companion.service.gcs import CONDITIONS, PHASE_CODES
 from companion.service.parts import load_model
 from sim.flights.flight import FlightSpec, build_scene, reserve_port
+from tests.flights.status_page import check_screenshot, http_get, page_now, page_text, screenshot
 from tests.mavpeer import join_statustexts
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
@@ -42,14 +39,6 @@ ALLOWED_TYPES = {"HEARTBEAT", "STATUSTEXT", "NAMED_VALUE_FLOAT", "NAMED_VALUE_IN
                  "COMMAND_LONG", "COMMAND_INT", "PARAM_REQUEST_READ", "PARAM_REQUEST_LIST"}
 ALLOWED_COMMANDS = {m.MAV_CMD_SET_MESSAGE_INTERVAL, m.MAV_CMD_REQUEST_MESSAGE, m.MAV_CMD_GET_MESSAGE_INTERVAL,
                     m.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, m.MAV_CMD_GET_HOME_POSITION}
-
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--virtual-time-budget=3000"]
-
-
-def chromium() -> str | None:
-    return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
 @dataclass
@@ -71,55 +60,13 @@ class Flight:
     record_dir: Path | None = None
 
 
-async def _dump_dom(port: int, *args: str) -> tuple[str | None, str | None]:
-    """The page as headless Chromium renders it (``--dump-dom``, or ``args`` instead, e.g. a
-    screenshot), or None and why not. A page whose live view never sends a frame never finishes
-    loading: the 60 s timeout is what such a hang runs into."""
-    exe = chromium()
-    if exe is None:
-        return None, "no chromium binary (apt-get install chromium; .ci/run installs it when it can)"
-    with tempfile.TemporaryDirectory() as profile:
-        proc = await asyncio.create_subprocess_exec(
-            exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", *(args or ("--dump-dom",)),
-            f"http://127.0.0.1:{port}/", stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
-        try:
-            out, err = await asyncio.wait_for(proc.communicate(), 60.0)
-        except (TimeoutError, asyncio.TimeoutError):  # one class from 3.11 on
-            proc.kill()
-            await proc.wait()
-            return None, "chromium did not finish within 60 s"
-    if proc.returncode != 0:
-        return None, f"chromium exited {proc.returncode}: {err.decode(errors='replace')[-500:]}"
-    return out.decode(errors="replace"), None
-
-
 async def _look(flight: Flight, port: int, when: str) -> None:
     """The page at ``when``: its DOM, /status.json and a 1280 x 900 screenshot (time to take it)."""
     assert flight.record_dir is not None
     shot = flight.record_dir.parent / f"page-{when}.png"
-    t0 = time.monotonic()
-    _, err = await _dump_dom(port, "--window-size=1280,900", f"--screenshot={shot}")
-    flight.shots[when] = (shot if err is None and shot.exists() else None, time.monotonic() - t0, err)
-    dom, dom_err = await _dump_dom(port)
-    body = (await _get(port, "/status.json")).split(b"\r\n\r\n", 1)[1]
-    flight.looks[when] = (dom, dom_err, json.loads(body))
-
-
-async def _get(port: int, path: str, limit: int | None = None) -> bytes:
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
-    writer.write(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
-    await writer.drain()
-    if limit is None:
-        data = await asyncio.wait_for(reader.read(), 5.0)
-    else:
-        data = b""
-        while len(data) < limit:
-            chunk = await asyncio.wait_for(reader.read(limit - len(data)), 10.0)
-            if not chunk:
-                break
-            data += chunk
-    writer.close()
-    return data
+    took, err = await screenshot(port, shot)
+    flight.shots[when] = (shot if err is None and shot.exists() else None, took, err)
+    flight.looks[when] = await page_now(port)
 
 
 async def _fly(record_dir: Path) -> Flight:
@@ -159,10 +106,8 @@ async def _fly_on(record_dir: Path, link_port: int, cam_port: int, page_port: in
         assert svc.gcs.ready and svc.controller is not None and svc.controller.zone_target() is not None, \
             "the service never saw a landing zone"
         # The page while it watches: real zones, a target, the live view.
-        flight.mjpeg_part = await _get(page_port, "/stream.mjpg", limit=4000)
-        flight.dom, flight.dom_error = await _dump_dom(page_port)
-        body = (await _get(page_port, "/status.json")).split(b"\r\n\r\n", 1)[1]
-        flight.page_status = json.loads(body)
+        flight.mjpeg_part = await http_get(page_port, "/stream.mjpg", limit=4000)
+        flight.dom, flight.dom_error, flight.page_status = await page_now(page_port)
         await _look(flight, page_port, "flight")
         sim.inject_failsafe("battery_critical")
         end = time.monotonic() + 60
@@ -263,43 +208,6 @@ def test_the_recording_labels_every_decision_shadow(flight):
     assert withheld and withheld[0]["command"] == "Goto"
 
 
-class Ids(HTMLParser):
-    """The text under each element with an id, and the zones table's rows."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.text: dict[str, str] = {}
-        self.rows = 0
-        self._open: list[str | None] = []
-        self._in_zones = False
-
-    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
-        a = dict(attrs)
-        self._open.append(a.get("id"))
-        if a.get("id") == "zones":
-            self._in_zones = True
-        if tag == "tr" and self._in_zones:
-            self.rows += 1
-
-    def handle_endtag(self, tag: str) -> None:
-        if self._open:
-            ident = self._open.pop()
-            if ident == "zones":
-                self._in_zones = False
-
-    def handle_data(self, data: str) -> None:
-        for ident in self._open:
-            if ident:
-                self.text[ident] = self.text.get(ident, "") + data
-
-
-
-def page_text(dom: str) -> Ids:
-    page = Ids()
-    page.feed(dom)
-    return page
-
-
 def test_the_status_page_in_headless_chromium_shows_the_phase_the_zones_and_the_live_view(flight):
     assert flight.mjpeg_part.startswith(b"HTTP/1.1 200 OK") and b"--slzframe\r\nContent-Type: image/jpeg" \
         in flight.mjpeg_part
@@ -334,11 +242,7 @@ def test_the_page_loads_and_screenshots_in_flight_and_after_landing(flight):
     health says why frames are not used, never "ok", and the trigger's time shows."""
     assert flight.touchdown
     for when in ("flight", "landed"):
-        shot, took, err = flight.shots[when]
-        if err is not None and err.startswith("no chromium"):
-            pytest.skip(f"no headless browser: {err}")
-        assert shot is not None and shot.stat().st_size > 10_000, (when, err)
-        assert took < 30.0, (when, took)
+        check_screenshot(when, *flight.shots[when])
     dom, err, status = flight.looks["landed"]
     assert dom is not None, err
     page = page_text(dom)

@@ -65,7 +65,8 @@ async def _frames_without_pose(state: VehicleState, seconds: float) -> tuple[int
     return frames, missing, longest
 
 
-async def _setup() -> tuple[MavLink, VehicleState, Autopilot]:
+async def _link_state_peer() -> tuple[MavLink, VehicleState, MavPeer]:
+    """The link started with the vehicle state on it, and the autopilot's peer sending heartbeats."""
     link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, **FAST))
     state = VehicleState(max_extrapolation_s=0.25)
     state.attach(link)
@@ -73,10 +74,20 @@ async def _setup() -> tuple[MavLink, VehicleState, Autopilot]:
     peer = MavPeer()
     await peer.connect_udp(link.local_address)
     peer.start_heartbeats(0.1)
+    return link, state, peer
+
+
+async def _setup() -> tuple[MavLink, VehicleState, Autopilot]:
+    link, state, peer = await _link_state_peer()
     await link.wait_connected(2.0)
     ap = Autopilot(peer)
     ap.task = asyncio.create_task(ap.stream())
-    await asyncio.sleep(0.6)
+    # Until a frame has its pose (the home and the stream's first samples), not a fixed 0.6 s:
+    # each test's first window then shows the pose steady before anything is forged.
+    deadline = time.monotonic() + 2.0
+    while state.pose_at(time.monotonic() - 0.05) is None:
+        assert time.monotonic() < deadline, "the autopilot's stream gave no pose"
+        await asyncio.sleep(0.01)
     return link, state, ap
 
 
@@ -137,13 +148,7 @@ async def test_a_flood_of_replayed_old_attitudes_is_no_reboot_and_the_genuine_po
 async def test_a_forged_pose_packet_before_the_autopilots_first_costs_a_few_frames_not_an_hour():
     """The forger speaks before the autopilot's first pose sample: its clock is the first
     estimate. The genuine streams, all late against it, replace it within 0.25 s."""
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, **FAST))
-    state = VehicleState(max_extrapolation_s=0.25)
-    state.attach(link)
-    await link.start()
-    peer = MavPeer()
-    await peer.connect_udp(link.local_address)
-    peer.start_heartbeats(0.1)
+    link, state, peer = await _link_state_peer()
     ap = Autopilot(peer)
     try:
         await link.wait_connected(2.0)

@@ -10,6 +10,9 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as m
@@ -35,18 +38,48 @@ def impostor_socket() -> socket.socket:
     return s
 
 
+@asynccontextmanager
+async def link_autopilot_impostor(cfg: LinkConfig) -> AsyncIterator[tuple[MavLink, MavPeer, socket.socket]]:
+    """The link started on ``cfg``, an autopilot peer not yet connected, and an impostor's
+    socket; all closed afterwards, whatever happened."""
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer()
+    impostor = impostor_socket()
+    try:
+        yield link, autopilot, impostor
+    finally:
+        impostor.close()
+        await autopilot.close()
+        await link.close()
+
+
+@asynccontextmanager
+async def connected_autopilot(cfg: LinkConfig, **peer: Any) -> AsyncIterator[tuple[MavLink, MavPeer]]:
+    """The link started on ``cfg`` and an autopilot peer (``MavPeer(**peer)``) it has heard one
+    heartbeat from; both closed afterwards, whatever happened."""
+    link = MavLink(cfg)
+    await link.start()
+    autopilot = MavPeer(**peer)
+    try:
+        await autopilot.connect_udp(link.local_address)
+        autopilot.heartbeat()
+        await link.wait_connected(2.0)
+        yield link, autopilot
+    finally:
+        await autopilot.close()
+        await link.close()
+
+
 def packed(msg, system_id: int = 1, component_id: int = 1) -> bytes:
     return bytes(msg.pack(m.MAVLink(None, system_id, component_id)))
 
 
 async def test_once_the_autopilot_is_heard_udpin_hears_and_talks_to_it_alone():
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05))
-    await link.start()
-    autopilot = MavPeer()
-    impostor = impostor_socket()
     got = []
-    link.subscribe("ATTITUDE", lambda msg, t: got.append(msg.roll))
-    try:
+    async with link_autopilot_impostor(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={},
+                                                  heartbeat_period_s=0.05)) as (link, autopilot, impostor):
+        link.subscribe("ATTITUDE", lambda msg, t: got.append(msg.roll))
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         await link.wait_connected(2.0)
@@ -62,10 +95,6 @@ async def test_once_the_autopilot_is_heard_udpin_hears_and_talks_to_it_alone():
         with pytest.raises(BlockingIOError):
             impostor.recv(4096)  # nothing was sent to it
         assert autopilot.of_type("HEARTBEAT")  # while the autopilot hears the companion
-    finally:
-        impostor.close()
-        await autopilot.close()
-        await link.close()
 
 
 async def test_udpout_hears_only_the_address_it_sends_to():
@@ -155,13 +184,7 @@ async def test_a_flood_from_another_sender_does_not_take_the_link_down():
 
 
 async def test_unknown_message_ids_are_not_received_and_do_not_count_as_drops():
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}))
-    await link.start()
-    autopilot = MavPeer()
-    try:
-        await autopilot.connect_udp(link.local_address)
-        autopilot.heartbeat()
-        await link.wait_connected(2.0)
+    async with connected_autopilot(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={})) as (link, autopilot):
         received, dropped = link.stats.received, link.stats.dropped
         # A well-framed MAVLink 2 packet of message id 60000 (not in the dialect) with a wild
         # sequence number: random bytes can frame like this.
@@ -173,9 +196,6 @@ async def test_unknown_message_ids_are_not_received_and_do_not_count_as_drops():
         autopilot.heartbeat()
         await until(lambda: link.stats.received == received + 1)
         assert link.stats.dropped == dropped
-    finally:
-        await autopilot.close()
-        await link.close()
 
 
 def test_require_signing_without_a_key_is_a_config_error():
@@ -219,13 +239,7 @@ async def test_an_autopilot_with_another_system_id_is_ignored_and_named(caplog):
 async def test_other_systems_sequence_numbers_do_not_count_as_drops():
     """The audit: 10,000 datagrams of other systems added 108,546 to ``dropped``. Here a router
     forwards other systems' packets from the autopilot's address, their sequence numbers wild."""
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}))
-    await link.start()
-    autopilot = MavPeer()
-    try:
-        await autopilot.connect_udp(link.local_address)
-        autopilot.heartbeat()
-        await link.wait_connected(2.0)
+    async with connected_autopilot(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={})) as (link, autopilot):
         received = link.stats.received
         for k in range(2000):
             sysid = 2 + k % 5
@@ -242,20 +256,11 @@ async def test_other_systems_sequence_numbers_do_not_count_as_drops():
         autopilot.mav.seq = (autopilot.mav.seq + 5) % 256
         autopilot.heartbeat()
         await until(lambda: link.stats.dropped == 5)
-    finally:
-        await autopilot.close()
-        await link.close()
 
 
 async def test_a_wrong_length_byte_counts_once_as_bad():
     """The audit: a wrong length byte was counted 1.41 times (a CRC error, then stray bytes)."""
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}))
-    await link.start()
-    autopilot = MavPeer()
-    try:
-        await autopilot.connect_udp(link.local_address)
-        autopilot.heartbeat()
-        await link.wait_connected(2.0)
+    async with connected_autopilot(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={})) as (link, autopilot):
         sent = 0
         for length in range(256):
             raw = bytearray(packed(m.MAVLink_attitude_message(1000, 0.1, 0.2, 0.3, 0, 0, 0)))
@@ -268,9 +273,6 @@ async def test_a_wrong_length_byte_counts_once_as_bad():
         await until(lambda: link.stats.received >= 2)
         await asyncio.sleep(0.1)
         assert link.stats.bad == sent
-    finally:
-        await autopilot.close()
-        await link.close()
 
 
 async def test_unsigned_unknown_ids_on_a_signed_link_are_rejected_unsigned():
@@ -279,13 +281,8 @@ async def test_unsigned_unknown_ids_on_a_signed_link_are_rejected_unsigned():
     from companion.mavlink.link import parse_signing_key
 
     key = parse_signing_key("correct horse battery staple")
-    link = MavLink(LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, signing_key=key))
-    await link.start()
-    autopilot = MavPeer(signing_key=key)
-    try:
-        await autopilot.connect_udp(link.local_address)
-        autopilot.heartbeat()
-        await link.wait_connected(2.0)
+    cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, signing_key=key)
+    async with connected_autopilot(cfg, signing_key=key) as (link, autopilot):
         raw = bytearray(packed(m.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3)))  # unsigned
         raw[7:10] = (60000).to_bytes(3, "little")
         for _ in range(10):
@@ -300,9 +297,6 @@ async def test_unsigned_unknown_ids_on_a_signed_link_are_rejected_unsigned():
         autopilot.send_raw(bytes(buf))
         await until(lambda: link.stats.unsigned_rejected == 11)
         assert link.stats.unknown == 0
-    finally:
-        await autopilot.close()
-        await link.close()
 
 
 # -- issue 61, item 5: the autopilot's address is pinned on evidence, not on one packet ---------
@@ -330,29 +324,17 @@ async def test_a_forger_who_speaks_first_is_not_pinned_and_the_autopilot_is():
 
 
 async def _forger_first(cfg: LinkConfig) -> None:
-    link = MavLink(cfg)
-    await link.start()
-    autopilot = MavPeer()
-    impostor = impostor_socket()
-    try:
+    async with link_autopilot_impostor(cfg) as (link, autopilot, impostor):
         impostor.sendto(forged_heartbeat(), link.local_address)  # first, once
         await until(lambda: link.connected)
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         await _until_pinned_to(link, autopilot, impostor)
-    finally:
-        impostor.close()
-        await autopilot.close()
-        await link.close()
 
 
 async def test_after_a_link_loss_the_autopilot_is_pinned_again_not_a_newcomer():
     cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
-    link = MavLink(cfg)
-    await link.start()
-    autopilot = MavPeer()
-    impostor = impostor_socket()
-    try:
+    async with link_autopilot_impostor(cfg) as (link, autopilot, impostor):
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         await _until_pinned_to(link, autopilot, impostor)
@@ -366,26 +348,14 @@ async def test_after_a_link_loss_the_autopilot_is_pinned_again_not_a_newcomer():
         assert link.transport.pinned is None  # three heartbeats, but in a burst
         autopilot.start_heartbeats(0.05)
         await until(lambda: link.transport.pinned == autopilot.udp_address)  # on its first heartbeat
-    finally:
-        impostor.close()
-        await autopilot.close()
-        await link.close()
 
 
 async def test_two_senders_that_keep_claiming_the_autopilot_leave_the_link_unpinned():
     cfg = LinkConfig("udpin:127.0.0.1:0", message_rates_hz={}, heartbeat_period_s=0.05, heartbeat_timeout_s=0.4)
-    link = MavLink(cfg)
-    await link.start()
-    autopilot = MavPeer()
-    impostor = impostor_socket()
-    try:
+    async with link_autopilot_impostor(cfg) as (link, autopilot, impostor):
         await autopilot.connect_udp(link.local_address)
         autopilot.start_heartbeats(0.05)
         for _ in range(20):
             impostor.sendto(forged_heartbeat(), link.local_address)
             await asyncio.sleep(0.05)
         assert link.transport.pinned is None and link.connected  # both heard, neither pinned (warned)
-    finally:
-        impostor.close()
-        await autopilot.close()
-        await link.close()

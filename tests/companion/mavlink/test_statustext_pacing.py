@@ -135,6 +135,15 @@ def test_a_full_queue_drops_the_least_severe_oldest_text():
     assert [t[1] for t in told if t] == ["SLZ: d", "SLZ: b", "SLZ: c"]
 
 
+def test_drain_empties_the_queue_giving_what_the_window_has_room_for_most_severe_first():
+    pacer = TextPacer()
+    pacer.told("SLZ: told 0", 0.0)
+    pacer.told("SLZ: told 1", 0.5)
+    for k, sev in enumerate([m.MAV_SEVERITY_INFO, m.MAV_SEVERITY_WARNING, m.MAV_SEVERITY_INFO]):
+        pacer.offer(f"SLZ: queued {k}", sev, 1.0)
+    assert pacer.drain(2.0) == [(m.MAV_SEVERITY_WARNING, "SLZ: queued 1"), (m.MAV_SEVERITY_INFO, "SLZ: queued 0")]
+    assert pacer.dropped == 1 and pacer.next_at(2.0) is None and pacer.drain(2.0) == []
+
 async def test_a_burst_arrives_whole_over_mavlink_paced_and_in_severity_order():
     """The real outbox on a real link, a pymavlink ground station on loopback: every text of a
     burst arrives, whole (its chunks joined), most severe first, at the pace set (here scaled 10

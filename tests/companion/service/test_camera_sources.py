@@ -5,6 +5,8 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
@@ -302,6 +304,21 @@ class _ScriptedMjpegServer:
         self.httpd.server_close()
 
 
+@contextmanager
+def scripted_camera(script, stamp=None, **camera) -> Iterator[tuple[_ScriptedMjpegServer, CameraSource, list]]:
+    """A ``_ScriptedMjpegServer`` playing ``script`` (``stamp`` its X-Timestamp), a camera on it
+    (``CameraSource(url, **camera)``, not started) and the list of the frames it delivers; the
+    camera stopped and the server closed afterwards, whatever happened."""
+    server = _ScriptedMjpegServer(script, stamp=stamp)
+    cam = CameraSource(server.url, **camera)
+    got = _collect(cam)
+    try:
+        yield server, cam, got
+    finally:
+        cam.stop()
+        server.close()
+
+
 def _jpeg(i: int) -> bytes:
     return cv2.imencode(".jpg", _frame(i))[1].tobytes()
 
@@ -327,10 +344,7 @@ def test_a_camera_repeating_one_frame_is_not_delivering() -> None:
         while True:
             yield _jpeg(2)
 
-    server = _ScriptedMjpegServer(script)
-    cam = CameraSource(server.url, stall_timeout_s=0.5, max_backoff_s=0.2)
-    got = _collect(cam)
-    try:
+    with scripted_camera(script, stall_timeout_s=0.5, max_backoff_s=0.2) as (_, cam, got):
         cam.start()
         assert _wait_until(lambda: cam.stats.frames >= 3, 5)
         # Frames keep arriving, all repeats: the camera is not delivering, and it is treated as
@@ -346,9 +360,6 @@ def test_a_camera_repeating_one_frame_is_not_delivering() -> None:
         assert cam.stats.frames == 3 and len(got) == 3
         f = cam.take()
         assert f is not None and f.index == 2 and cam.take() is None
-    finally:
-        cam.stop()
-        server.close()
 
 
 def test_frozen_camera_reserving_its_last_frame_after_reconnect_is_not_fresh() -> None:
@@ -361,10 +372,7 @@ def test_frozen_camera_reserving_its_last_frame_after_reconnect_is_not_fresh() -
             yield _jpeg(4)
         yield None
 
-    server = _ScriptedMjpegServer(script)
-    cam = CameraSource(server.url, stall_timeout_s=0.4, max_backoff_s=0.2)
-    got = _collect(cam)
-    try:
+    with scripted_camera(script, stall_timeout_s=0.4, max_backoff_s=0.2) as (_, cam, got):
         cam.start()
         assert _wait_until(lambda: cam.stats.frames >= 5, 5)
         # The served repeats are counted by the reader thread a moment after they are sent.
@@ -372,9 +380,6 @@ def test_frozen_camera_reserving_its_last_frame_after_reconnect_is_not_fresh() -
         assert [_which(f.image) for f in got] == list(range(5))  # no stale frame after a reconnect
         assert cam.stats.frames == 5
         assert not cam.delivering()
-    finally:
-        cam.stop()
-        server.close()
 
 
 def test_camera_that_resumes_after_reserving_its_last_frame_delivers_only_new_frames() -> None:
@@ -388,10 +393,7 @@ def test_camera_that_resumes_after_reserving_its_last_frame_delivers_only_new_fr
             yield from (_jpeg(i) for i in range(10, 40))
             yield None
 
-    server = _ScriptedMjpegServer(script)
-    cam = CameraSource(server.url, stall_timeout_s=0.4, max_backoff_s=0.2)
-    got = _collect(cam)
-    try:
+    with scripted_camera(script, stall_timeout_s=0.4, max_backoff_s=0.2) as (_, cam, got):
         cam.start()
         assert _wait_until(lambda: cam.stats.frames >= 10, 6)
         which = [_which(f.image) for f in got]
@@ -399,9 +401,6 @@ def test_camera_that_resumes_after_reserving_its_last_frame_delivers_only_new_fr
         assert all(i >= 10 for i in which[4:])
         assert cam.stats.repeated == 1 and cam.stats.reopens >= 1
         assert cam.delivering()
-    finally:
-        cam.stop()
-        server.close()
 
 
 # ---- capture timestamps ----------------------------------------------------------------------
@@ -415,15 +414,10 @@ def test_mjpeg_x_timestamp_on_our_clock_is_the_capture_time() -> None:
         sent[data] = t
         return f"{t:.6f}"
 
-    server = _ScriptedMjpegServer(lambda conn: (_jpeg(i) for i in range(8)), stamp=stamp)
-    cam = CameraSource(server.url, stall_timeout_s=2.0)
-    got = _collect(cam)
-    try:
+    with scripted_camera(lambda conn: (_jpeg(i) for i in range(8)), stamp=stamp,
+                         stall_timeout_s=2.0) as (_, cam, got):
         cam.start()
         assert _wait_until(lambda: len(got) >= 8, 5)
-    finally:
-        cam.stop()
-        server.close()
     for f in got:
         assert f.t_source == "header"
         assert f.t == pytest.approx(sent[_jpeg(_which(f.image))], abs=2e-6)
@@ -436,18 +430,12 @@ def test_mjpeg_x_timestamp_on_our_clock_is_the_capture_time() -> None:
 
 def test_mjpeg_timestamp_on_another_clock_falls_back_to_grab_time(caplog: pytest.LogCaptureFixture) -> None:
     # mjpg-streamer-like servers may stamp wall-clock time (or another machine's clock): unusable.
-    server = _ScriptedMjpegServer(lambda conn: (_jpeg(i) for i in range(6)),
-                                  stamp=lambda data: f"{time.time():.6f}")
-    cam = CameraSource(server.url, stall_timeout_s=2.0)
-    got = _collect(cam)
-    try:
+    with scripted_camera(lambda conn: (_jpeg(i) for i in range(6)), stamp=lambda data: f"{time.time():.6f}",
+                         stall_timeout_s=2.0) as (_, cam, got):
         with caplog.at_level("WARNING", logger="companion.service.camera"):
             before = time.monotonic()
             cam.start()
             assert _wait_until(lambda: len(got) >= 6, 5)
-    finally:
-        cam.stop()
-        server.close()
     assert all(f.t_source == "grab" and before <= f.t <= time.monotonic() for f in got)
     warned = [r for r in caplog.records if "not on this machine's monotonic clock" in r.getMessage()]
     assert len(warned) == 1  # said once, not per frame

@@ -47,3 +47,20 @@ def test_photos_need_the_photo_ground_and_procedural_is_the_default(tmp_path) ->
     assert FlightJob(1).spec().ground == "procedural" and FlightJob(1).spec().photos is None
     assert default_photos().parts[-4:] == ("shared", "data", "semantic_drone", "full")
     assert default_photos().parent.parent.parent.parent == Path(scenarios.__file__).resolve().parents[3]
+
+
+@pytest.mark.parametrize("command", ["sim-scenarios", "demo"])
+def test_both_commands_name_themselves_and_the_option_in_the_exit_2_message(command, tmp_path, monkeypatch, capsys):
+    # One check of --camera and --photos serves both commands (spec.parse_camera_and_photos); the
+    # message still says which command and which option.
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    monkeypatch.setattr(demo, "fly", lambda spec: pytest.fail("nothing may fly"))
+    args = ["--seeds", "1", "--workers", "1", "--no-progress"] if command == "sim-scenarios" else \
+        ["--no-video", "--out", str(tmp_path / "demo")]
+    prog = "companion sim-scenarios" if command == "sim-scenarios" else "companion: demo"
+    assert main([command, *args, "--camera", "fish:160"]) == 2
+    assert capsys.readouterr().err.startswith(f"{prog}: --camera: want MODEL:HFOV")
+    assert main([command, *args, "--photos", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == f"{prog}: --photos: --photos needs --ground photo\n"

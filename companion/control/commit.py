@@ -41,6 +41,11 @@ from companion.pipeline.circles import GroundBelow
 FAST_AGL_M = 1.0
 #: The commit height is searched in steps of this (m), upward from the LAND height.
 STEP_M = 0.1
+#: The footprint must reach this much (m) past r0 plus the walker's reach at the commit height:
+#: the frame measures the free ground on its grid, to the view's edge less its cells, from where
+#: the vehicle is (up to ``arrive_radius_m``, 1 m, off the landing point), so a footprint just
+#: covering the reach would never be seen free that far.
+MARGIN_M = 1.0
 
 
 def fast_agl(c: LandingConfig) -> float:
@@ -62,9 +67,10 @@ def reach_m(profile: DescentProfile, height_m: float) -> float:
 
 
 def guarantees(c: LandingConfig, profile: DescentProfile, height_m: float) -> bool:
-    """Whether the footprint at ``height_m`` reaches past r0 plus a walker's reach to touchdown."""
+    """Whether the footprint at ``height_m`` reaches ``MARGIN_M`` past r0 plus a walker's reach to
+    touchdown."""
     seen = c.view_ratio * max(0.0, height_m - HEAD_M)
-    return seen - reach_m(profile, height_m) >= c.planner.r0_m
+    return seen - reach_m(profile, height_m) >= c.planner.r0_m + MARGIN_M
 
 
 def commit_height(c: LandingConfig, profile: DescentProfile, land_at: float, judge: float) -> float | None:
@@ -96,14 +102,17 @@ def reach_wait(c: LandingConfig, profile: DescentProfile, s: VehicleStatus, belo
             f"before touchdown ({need:.1f} m): holding the LAND")
 
 
-def land_plan(c: LandingConfig, profile: DescentProfile, s: VehicleStatus,
-              judge: float) -> tuple[float, DescentProfile | None]:
+def land_plan(c: LandingConfig, profile: DescentProfile, s: VehicleStatus, judge: float,
+              held_s: float) -> tuple[float, DescentProfile | None]:
     """The height (m) of the LAND over a zone judged at ``judge``, and the descent committed there
     (``committed_profile``) where the footprint guarantees at that height, else None: the LAND at
-    ``descent.land_height``, as for a narrow camera."""
+    ``descent.land_height``, as for a narrow camera. ``held_s``: how long the LAND has been held
+    at the commit height for people within reach (``reach_wait``); past ``calm_wait_s`` the
+    landing goes on as a narrow camera's would (people who stay near, a crowd round the zone, are
+    no reason to give up a zone the narrow camera lands in: they do not all head for it)."""
     base = land_height(c, judge)
     fast = committed_profile(c, profile, s)
-    h = commit_height(c, fast, base, judge)
+    h = None if held_s > c.calm_wait_s else commit_height(c, fast, base, judge)
     return (base, None) if h is None else (h, fast)
 
 
@@ -123,7 +132,7 @@ class Waits:
         self._since[kind] = (zone_id, now)
         return True
 
-    def waited(self, kind: str, now: float) -> float:
-        """Seconds the present wait for ``kind`` has run at ``now`` (0 when none runs)."""
+    def waited(self, kind: str, zone_id: int, now: float) -> float:
+        """Seconds the wait for ``kind`` over ``zone_id`` has run at ``now`` (0 when none runs for it)."""
         since = self._since.get(kind)
-        return 0.0 if since is None else now - since[1]
+        return 0.0 if since is None or since[0] != zone_id else now - since[1]

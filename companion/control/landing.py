@@ -336,9 +336,9 @@ class LandingController(PhaseMachine):
         if reached and not s.on_ground and not judged:
             calm = ground.calm_verdict(track, self.below, self._over_steady(track), c.planner)
             if not calm.ok:
-                return self._wait_for("calm", zone_id, f"{calm.why}: waiting before the LAND", aim,
-                                      "not calm", "people keep passing near it")
-        land_at, fast = commit.land_plan(c, self.descent, s, judge)  # fast: a footprint that guarantees
+                return self._hover_while("calm", zone_id, f"{calm.why}: waiting before the LAND", aim)
+        # fast: the footprint guarantees, and the landing is committed from land_at (``commit``).
+        land_at, fast = commit.land_plan(c, self.descent, s, judge, self._waits.waited("reach", zone_id, self.now))
         if not s.on_ground and reached and s.height > land_at + c.alt_tolerance_m:
             # Judged (calm): the companion's own descent goes on to land_at by the plan's steps
             # below, the ground under the vehicle re-checked every frame (``_confirmed``).
@@ -348,7 +348,7 @@ class LandingController(PhaseMachine):
                 self._event(ground.judged_text(zone_id, s.height, ground.calm_s(self.below), steady, land_at))
         elif s.on_ground or reached:
             if fast and not s.on_ground and (why := commit.reach_wait(c, fast, s, self.below)):
-                return self._wait_for("reach", zone_id, why, aim, "not clear", "people keep coming within reach")
+                return self._hover_while("reach", zone_id, why, aim)  # no longer than calm_wait_s: land_plan
             # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
             calm_s = ground.calm_s(self.below)
             agl = commit.fast_agl(c) if fast else c.land_agl_m
@@ -368,13 +368,13 @@ class LandingController(PhaseMachine):
         self._level = plan.next_level(self._level, s, over.dist, floor, c, self._cap())
         return self._goto(aim[0], aim[1], self._level, zone_id)
 
-    def _wait_for(self, kind: str, zone_id: int, why: str, aim: tuple[float, float], what: str, keeps: str) -> list[Command]:
-        """Hover over the landing point while ``why`` (told once); after ``calm_wait_s`` the zone is given up."""
+    def _hover_while(self, kind: str, zone_id: int, why: str, aim: tuple[float, float]) -> list[Command]:
+        """Hover over the landing point while ``why`` (told once); not calm after ``calm_wait_s``, the zone is given up."""
         if self._waits.begin(kind, zone_id, self.now):
             self._event(f"zone {zone_id}: {why}")
-        elif self._waits.waited(kind, self.now) > self.config.calm_wait_s:
+        elif kind == "calm" and self._waits.waited(kind, zone_id, self.now) > self.config.calm_wait_s:
             self._restless.add(zone_id)
-            return self._lost(f"{what} after {self.config.calm_wait_s:g} s over it: {keeps}")
+            return self._lost(f"not calm after {self.config.calm_wait_s:g} s over it: people keep passing near it")
         return self._goto(aim[0], aim[1], self._level, zone_id)
 
     def _on_news(self, news: watch.News) -> list[Command]:

@@ -63,7 +63,7 @@ def _keys(section: str, *names: str, **renamed: str) -> dict[str, str]:
 LANDING_KEYS = _keys("controller", "select_timeout_s", "hold_timeout_s", "descend_alt_m", "land_abort_above_m", "hold_height_m", "max_takeover_s",
                      "land_alt_m", "land_agl_m", "handback_action", "search_climb_m", "max_alt_m", "search_s",
                      "search_radius_m", "search_reserve_s",
-                     view_ratio="the camera's footprint (camera.model, hfov_deg or the calibration)",
+                     view_ratio="camera.cx / camera.fx and camera.cy / camera.fy through camera.model (the camera's footprint)",
                      trust_height_m="the height people are trusted below (controller.min_person_px)",
                      ceiling_margin_m="LandingConfig.ceiling_margin_m")
 PLANNER_KEYS = _keys("controller", "radius_margin_m", "min_track_age_s", "min_calm_s", "steady_s",

@@ -107,13 +107,17 @@ def land_plan(c: LandingConfig, profile: DescentProfile, s: VehicleStatus, judge
     """The height (m) of the LAND over a zone judged at ``judge``, and the descent committed there
     (``committed_profile``) where the footprint guarantees at that height, else None: the LAND at
     ``descent.land_height``, as for a narrow camera. ``held_s``: how long the LAND has been held
-    at the commit height for people within reach (``reach_wait``); past ``calm_wait_s`` the
-    landing goes on as a narrow camera's would (people who stay near, a crowd round the zone, are
-    no reason to give up a zone the narrow camera lands in: they do not all head for it)."""
+    at the commit height for people within reach (``reach_wait``). Past the time to touchdown from
+    there (at most ``calm_wait_s``), the landing goes on as a narrow camera's would: anybody seen
+    within reach who headed for the point has come within r0 by then (and the zone is lost), and
+    people who stay near, a crowd round a small lawn, are no reason to give up a zone the narrow
+    camera lands in: they do not all head for it."""
     base = land_height(c, judge)
     fast = committed_profile(c, profile, s)
-    h = None if held_s > c.calm_wait_s else commit_height(c, fast, base, judge)
-    return (base, None) if h is None else (h, fast)
+    h = commit_height(c, fast, base, judge)
+    if h is None or held_s > min(c.calm_wait_s, fast.time_to_touchdown(h)):
+        return base, None
+    return h, fast
 
 
 class Waits:

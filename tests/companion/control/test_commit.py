@@ -113,7 +113,7 @@ def test_a_fisheye_holds_the_land_while_someone_seen_could_reach_then_lands_as_t
     assert ctl.phase == Phase.DESCEND and alt >= 8.7 and not any(isinstance(c, Land) for c in cmds)
     held = [x for x in texts(ctl) if "holding the LAND" in x]
     assert len(held) == 1 and "free around the vehicle 6.0 m" in held[0]
-    # After calm_wait_s (3 s here) of people within reach, on down to 4 m and the LAND there.
+    # After the time to touchdown from there (at most calm_wait_s, 3 s here), on down to 4 m and the LAND.
     _t, alt, cmds = _down(ctl, free_m=6.0, until=30.0, t=t, alt=alt)
     assert ctl.phase == Phase.LAND and alt == pytest.approx(4.0) and cmds == [Land()]
 
@@ -123,3 +123,15 @@ def test_the_narrow_pinhole_lands_as_before_whatever_it_sees():
     _t, alt, _cmds = _down(ctl, free_m=6.0)
     assert ctl.phase == Phase.LAND and alt == pytest.approx(4.0)
     assert not any("holding the LAND" in x for x in texts(ctl))
+
+
+def test_the_hold_lasts_as_long_as_touchdown_would_take_from_the_commit_height():
+    """Anybody seen within reach who heads for the point comes within r0 in that time (and the
+    zone is lost); people who stay near do not hold the landing for all of calm_wait_s."""
+    ctl = LandingController(dataclasses.replace(WIDE, calm_wait_s=15.0))
+    t, alt, _cmds = _down(ctl, free_m=6.0, until=1.0)
+    assert any("holding the LAND" in x for x in texts(ctl))  # held from within a second of the start
+    t, alt, cmds = _down(ctl, free_m=6.0, until=30.0, t=t, alt=alt)
+    assert ctl.phase == Phase.LAND and alt == pytest.approx(4.0) and cmds == [Land()]
+    to_touchdown = by_rangefinder(SIM, commit.FAST_AGL_M).time_to_touchdown(8.9)  # 6.3 s
+    assert to_touchdown < t - 0.2 < to_touchdown + 1.5

@@ -65,7 +65,7 @@ def spacing(level: float, s: VehicleStatus, view_ratio: float, radius_m: float =
     a corner to be a glimpse worth flying over (``Search.lead``); at 1.0 a circle just beyond the
     first corner showed a strip too thin to be one, and the search flew away from it (at least
     4 m). ``view_ratio``: the lens's footprint (``LandingConfig.view_ratio``). At most the
-    search's ``radius_m``: a wide lens's legs (fisheye:160 from 25 m: 60 m) would otherwise leave
+    search's ``radius_m``: a wide lens's legs (pinhole:110 from 28.5 m: 43 m) would otherwise leave
     the square no waypoint inside it, and the search would end where it starts."""
     height = level - (s.alt - s.height)
     return max(4.0, min(1.5 * view_ratio * max(0.0, height - 1.7), radius_m))

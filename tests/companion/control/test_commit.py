@@ -11,7 +11,7 @@ import pytest
 from companion.control import commit
 from companion.control import descent as plan
 from companion.control.landing import Goto, Land, LandingController, Phase
-from companion.control.search import spacing
+from companion.control.search import expanding_square, spacing
 from companion.control.touchdown import DescentProfile, by_rangefinder
 from companion.geometry.camera import GeometryError, Intrinsics
 from companion.pipeline.circles import GroundBelow
@@ -59,6 +59,10 @@ def test_the_judging_height_and_the_searchs_spacing_are_todays_for_the_pinhole_a
     assert spacing(25.0, s, PINHOLE_70, 40.0) == 1.5 * PINHOLE_70 * (25.0 - 1.7)
     assert spacing(25.0, s, FISHEYE_160, 40.0) == 40.0  # 60 m legs would leave no waypoint within 40 m
     assert spacing(12.0, s, FISHEYE_160, 40.0) == pytest.approx(1.5 * FISHEYE_160 * 10.3)
+    # pinhole:110 searching from 28.5 m: 43 m legs left the square no waypoint within 40 m.
+    high = status(0.0, alt=28.5)
+    assert expanding_square((0.0, 0.0), 1.5 * 1.0689 * (28.5 - 1.7), 40.0) == []
+    assert len(expanding_square((0.0, 0.0), spacing(28.5, high, 1.0689, 40.0), 40.0)) == 4
 
 
 def test_the_narrow_pinhole_never_commits_higher_the_fisheye_does_with_a_rangefinder():

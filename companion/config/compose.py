@@ -63,7 +63,7 @@ def _keys(section: str, *names: str, **renamed: str) -> dict[str, str]:
 LANDING_KEYS = _keys("controller", "select_timeout_s", "hold_timeout_s", "descend_alt_m", "land_abort_above_m", "hold_height_m", "max_takeover_s",
                      "land_alt_m", "land_agl_m", "handback_action", "search_climb_m", "max_alt_m", "search_s",
                      "search_radius_m", "search_reserve_s",
-                     view_ratio="camera.cx / camera.fx and camera.cy / camera.fy (the view ratio)",
+                     view_ratio="camera.cx / camera.fx and camera.cy / camera.fy through camera.model (the camera's footprint)",
                      trust_height_m="the height people are trusted below (controller.min_person_px)",
                      ceiling_margin_m="LandingConfig.ceiling_margin_m")
 PLANNER_KEYS = _keys("controller", "radius_margin_m", "min_track_age_s", "min_calm_s", "steady_s",
@@ -196,6 +196,10 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
     c = cfg.controller
     min_px = c.min_person_px or (model_spec.min_person_px if model_spec is not None else None)
     k = intrinsics(cfg)
+    try:
+        ratio = k.seen_ratio()
+    except GeometryError as exc:
+        raise ConfigError(f"camera: {exc}") from None
     return _made(
         LANDING_KEYS, LandingConfig,
         planner=planner_config(cfg),
@@ -209,7 +213,7 @@ def landing_config(cfg: Config, model_spec: DensitySpec | None = None) -> Landin
         descent=descent_profile(cfg),
         search_s=c.search_s, search_radius_m=c.search_radius_m, search_reserve_s=c.search_reserve_s,
         place_lookback_s=PLACE_LOOKBACK_S,
-        view_ratio=min(k.cx / k.fx, k.cy / k.fy),
+        view_ratio=ratio,
         trust_height_m=person_trust_height(min(k.fx, k.fy), min_px or None, head_m=cfg.pipeline.head_height_m),
     )
 

@@ -50,9 +50,17 @@ def raised(level: float, alt: float, cap: float) -> float:
     return min(cap, max(level, alt))
 
 
+#: The head plane (m above the ground) the camera's footprint is measured on.
+HEAD_M = 1.7
+
+
 def judging_height(c: LandingConfig) -> float:
-    """The height (m above the ground) at which a zone is judged."""
-    return min(c.descend_alt_m, c.trust_height_m)
+    """The height (m above the ground) at which a zone is judged: ``descend_alt_m``, or higher
+    where the lens's footprint (``view_ratio``) would not hold r0 plus ``radius_margin_m`` all
+    round there (the 70-degree pinhole holds 4.4 m at 10 m, over the 4 m it needs: 10 m; a
+    narrower lens judges higher), and never above the trust height."""
+    need = c.planner.large_r_m / c.view_ratio + HEAD_M
+    return min(max(c.descend_alt_m, need), c.trust_height_m)
 
 
 def land_height(c: LandingConfig, judge: float) -> float:
@@ -82,26 +90,26 @@ def next_level(level: float, s: VehicleStatus, dist: float, floor: float, c: Lan
     return level
 
 
-def low_target(c: LandingConfig, s: VehicleStatus) -> float | None:
+def low_target(c: LandingConfig, s: VehicleStatus, agl_m: float | None = None) -> float | None:
     """Where the companion's own descent to ``land_agl_m`` goes (m above home: the ground the
     rangefinder measures under the vehicle, plus ``land_agl_m``), or None when the LAND is to be
     commanded now: the setting off, no fresh rangefinder, or already that low. The target is
     fixed once, from one reading at the LAND height (a few metres at most), so no later reading
-    can move it."""
-    agl = s.measured_agl
-    if c.land_agl_m <= 0 or agl is None or agl <= c.land_agl_m + LAND_AGL_REACHED_M:
+    can move it. ``agl_m``: that height when not ``land_agl_m`` (a committed landing's, ``commit``)."""
+    agl, to = s.measured_agl, c.land_agl_m if agl_m is None else agl_m
+    if to <= 0 or agl is None or agl <= to + LAND_AGL_REACHED_M:
         return None
-    return s.alt - agl + c.land_agl_m
+    return s.alt - agl + to
 
 
-def low_land_reason(c: LandingConfig, s: VehicleStatus, target_alt: float) -> str | None:
+def low_land_reason(c: LandingConfig, s: VehicleStatus, target_alt: float, agl_m: float | None = None) -> str | None:
     """Why the companion's low descent (to ``target_alt``, m above home) ends now and the
     autopilot's LAND takes over, or None to fly on: the rangefinder says the vehicle is there,
-    or no longer gives a height (stale or out of range)."""
+    or no longer gives a height (stale or out of range). ``agl_m`` as for ``low_target``."""
     agl = s.measured_agl
     if agl is None:
         return f"no rangefinder height at {s.height:.1f} m above home"
-    if agl <= c.land_agl_m + LAND_AGL_REACHED_M or s.alt <= target_alt + LAND_AGL_REACHED_M:
+    if agl <= (c.land_agl_m if agl_m is None else agl_m) + LAND_AGL_REACHED_M or s.alt <= target_alt + LAND_AGL_REACHED_M:
         return f"{agl:.1f} m above the ground by the rangefinder"
     return None
 

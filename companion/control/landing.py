@@ -34,8 +34,8 @@ import math
 from collections.abc import Callable, Sequence
 
 from companion.control import aim as aiming
+from companion.control import commit, ground, watch
 from companion.control import descent as plan
-from companion.control import ground, watch
 from companion.control.aim import Aimed
 from companion.control.commands import Command, Goto, GotoSender, Handback, Land
 from companion.control.events import HandedBack, Holding, Phase, TargetChosen
@@ -84,9 +84,9 @@ class LandingController(PhaseMachine):
         self._aim: tuple[float, float] | None = None  # landing point, north/east metres
         self._blind = False  # in LAND, the zone went out of view: committed
         # In LAND, the target of the companion's own descent to land_agl_m (``descent.low_target``).
-        self._low_to: tuple[float, float, float] | None = None
+        self._low_to: tuple[float, float, float, float] | None = None  # north, east, alt, agl
         self._restless: set[int] = set()  # zones given up because they never became calm
-        self._calm_wait: tuple[int, float] | None = None  # (zone id, since when) waiting for calm
+        self._waits = commit.Waits()  # over the zone before the LAND: for calm, for nobody within reach
         # The zone judged at the judging height: below it the calm disc no longer fits in the
         # view, so the judgement is kept down to land_alt_m, not asked again.
         self._judged: int | None = None
@@ -135,8 +135,8 @@ class LandingController(PhaseMachine):
                                 warning=True, event=HandedBack, reason=f"mode changed to {status.mode}")
                 return []
         if self.phase == Phase.LAND and self._low_to is not None:
-            north, east, alt = self._low_to
-            why = plan.low_land_reason(self.config, status, alt)
+            north, east, alt, agl = self._low_to
+            why = plan.low_land_reason(self.config, status, alt, agl)
             return self._goto(north, east, alt, self._zone_id_or_none()) if why is None else self._low_land(why)
         return []
 
@@ -167,9 +167,7 @@ class LandingController(PhaseMachine):
                             self._search_over() if self.phase == Phase.SEARCH else None,
                             None if self.trigger is None else self.trigger.t,
                             None if self.status is None else self.status.t, self.last_valid_frame_t)
-        if due is None:
-            return []
-        return (self._start_search if due.search else self._handback)(due.why)
+        return [] if due is None else (self._start_search if due.search else self._handback)(due.why)
 
     def on_command_result(self, command: Command, error: Exception | None) -> list[Command]:
         if error is None:
@@ -203,9 +201,7 @@ class LandingController(PhaseMachine):
         after the flight: what the recording, the status line and the ground station call the target."""
         if self.phase in ACTIVE:
             return self.target
-        if self.phase != Phase.MONITOR:
-            return None
-        return self.planner.choose(self.tracks, self.now)
+        return self.planner.choose(self.tracks, self.now) if self.phase == Phase.MONITOR else None
 
     # -- SELECT, HOLD, SEARCH: choosing a zone ------------------------------------------------
 
@@ -214,9 +210,7 @@ class LandingController(PhaseMachine):
         if not self._status_fresh() or self.ceiling_m is None:
             return []
         zone = self.planner.choose(self.tracks, self.now, exclude=tuple(self._restless))
-        if zone is None:
-            return []
-        return self._approach(zone, "landing at")
+        return [] if zone is None else self._approach(zone, "landing at")
 
     def _frame_search(self) -> list[Command]:
         """SEARCH: a zone if one is eligible, else the search's next move (``search``)."""
@@ -237,8 +231,7 @@ class LandingController(PhaseMachine):
         if c.search_s <= 0 or s is None or not self._status_fresh() or self.ceiling_m is None:
             return self._handback(why)
         self.search.start(self.now)
-        over = self._search_over()
-        if over is not None:
+        if (over := self._search_over()) is not None:
             return self._handback(f"{why}; {over}")
         # Climb to the ceiling first, over where the vehicle is: a wider view for free.
         self._level = plan.raised(self._level, self._cap(), self._cap())
@@ -343,14 +336,9 @@ class LandingController(PhaseMachine):
         if reached and not s.on_ground and not judged:
             calm = ground.calm_verdict(track, self.below, self._over_steady(track), c.planner)
             if not calm.ok:
-                if self._calm_wait is None or self._calm_wait[0] != zone_id:
-                    self._calm_wait = (zone_id, self.now)
-                    self._event(f"zone {zone_id}: {calm.why}: waiting before the LAND")
-                elif self.now - self._calm_wait[1] > c.calm_wait_s:
-                    self._restless.add(zone_id)
-                    return self._lost(f"not calm after {c.calm_wait_s:g} s over it: people keep passing near it")
-                return self._goto(aim[0], aim[1], self._level, zone_id)
-        land_at = plan.land_height(c, judge)
+                return self._hover_while("calm", zone_id, f"{calm.why}: waiting before the LAND", aim)
+        # fast: the footprint guarantees, and the landing is committed from land_at (``commit``).
+        land_at, fast = commit.land_plan(c, self.descent, s, judge, self._waits.waited("reach", zone_id, self.now))
         if not s.on_ground and reached and s.height > land_at + c.alt_tolerance_m:
             # Judged (calm): the companion's own descent goes on to land_at by the plan's steps
             # below, the ground under the vehicle re-checked every frame (``_confirmed``).
@@ -359,22 +347,34 @@ class LandingController(PhaseMachine):
                 steady = track.steady_s if self._over_steady(track) else None
                 self._event(ground.judged_text(zone_id, s.height, ground.calm_s(self.below), steady, land_at))
         elif s.on_ground or reached:
+            if fast and not s.on_ground and (why := commit.reach_wait(c, fast, s, self.below)):
+                return self._hover_while("reach", zone_id, why, aim)  # no longer than calm_wait_s: land_plan
             # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
             calm_s = ground.calm_s(self.below)
-            low_alt = None if s.on_ground else plan.low_target(c, s)
-            how = "" if low_alt is None else f", first down to {c.land_agl_m:g} m by the rangefinder"
+            agl = commit.fast_agl(c) if fast else c.land_agl_m
+            low_alt = None if s.on_ground else plan.low_target(c, s, agl)
+            how = "" if low_alt is None else f", first down to {agl:g} m by the rangefinder"
             self._set_phase(Phase.LAND, f"LAND over zone {zone_id} at {s.height:.1f} m, radius {track.r:.1f} m"
                             + how, zone_id=zone_id, touchdown_clearance_m=self.touchdown_clearance(track),
                             calm_s=round(calm_s, 1) if math.isfinite(calm_s) else None)
             if low_alt is None:
                 return [Land()]
             # Straight down over the landing point as it is now: the committed descent chases no zone.
-            self._low_to = (aim[0], aim[1], low_alt)
+            self._low_to = (aim[0], aim[1], low_alt, agl)
             self.sender.forget()
             return self._goto(aim[0], aim[1], low_alt, zone_id)
         # The plan's next step, never below the judging (judged: LAND) height; off the point it re-centres.
         floor = s.alt - s.height + (land_at if judged else judge)
         self._level = plan.next_level(self._level, s, over.dist, floor, c, self._cap())
+        return self._goto(aim[0], aim[1], self._level, zone_id)
+
+    def _hover_while(self, kind: str, zone_id: int, why: str, aim: tuple[float, float]) -> list[Command]:
+        """Hover over the landing point while ``why`` (told once); not calm after ``calm_wait_s``, the zone is given up."""
+        if self._waits.begin(kind, zone_id, self.now):
+            self._event(f"zone {zone_id}: {why}")
+        elif kind == "calm" and self._waits.waited(kind, zone_id, self.now) > self.config.calm_wait_s:
+            self._restless.add(zone_id)
+            return self._lost(f"not calm after {self.config.calm_wait_s:g} s over it: people keep passing near it")
         return self._goto(aim[0], aim[1], self._level, zone_id)
 
     def _on_news(self, news: watch.News) -> list[Command]:

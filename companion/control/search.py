@@ -1,7 +1,7 @@
 """The search: where to fly when no zone is in view at the SELECT/HOLD timeout.
 
 The vehicle climbs to the ceiling over where it is and flies an ``expanding_square`` (legs 1.5
-view radii apart, hovering at each corner while the tracker looks), flying first over free ground
+radii of the lens's footprint apart, hovering at each corner while the tracker looks), flying first over free ground
 glimpsed at the edge of the view (a zone of at least r0 that may not be chosen yet, most often one
 cut by the edge of the view), so the camera sees it whole; any zone that becomes eligible is
 flown to (the phase machine checks the zones first on every frame). It hands back after
@@ -58,15 +58,17 @@ def expanding_square(centre: tuple[float, float], spacing_m: float, radius_m: fl
         k += 1
 
 
-def spacing(level: float, s: VehicleStatus, view_ratio: float) -> float:
+def spacing(level: float, s: VehicleStatus, view_ratio: float, radius_m: float = math.inf) -> float:
     """Metres between the search's legs at the planned ``level`` (m above home): 1.5 times the
     ground radius the camera sees there along its narrower side. Ground between two legs is then
     within 0.75 of that radius of one of them, so a free circle there shows enough of itself from
     a corner to be a glimpse worth flying over (``Search.lead``); at 1.0 a circle just beyond the
     first corner showed a strip too thin to be one, and the search flew away from it (at least
-    4 m)."""
+    4 m). ``view_ratio``: the lens's footprint (``LandingConfig.view_ratio``). At most the
+    search's ``radius_m``: a wide lens's legs (pinhole:110 from 28.5 m: 43 m) would otherwise leave
+    the square no waypoint inside it, and the search would end where it starts."""
     height = level - (s.alt - s.height)
-    return max(4.0, 1.5 * view_ratio * max(0.0, height - 1.7))
+    return max(4.0, min(1.5 * view_ratio * max(0.0, height - 1.7), radius_m))
 
 
 def dwell_s(p: PlannerConfig) -> float:
@@ -93,8 +95,8 @@ class Search:
 
     def fly_square(self, centre: tuple[float, float], level: float, s: VehicleStatus) -> None:
         """The square's waypoints around ``centre``, spaced for the view at ``level``."""
-        self.waypoints = expanding_square(centre, spacing(level, s, self.config.view_ratio),
-                                          self.config.search_radius_m)
+        c = self.config
+        self.waypoints = expanding_square(centre, spacing(level, s, c.view_ratio, c.search_radius_m), c.search_radius_m)
 
     def over(self, now: float, tracks: list[Track], s: VehicleStatus | None, to_touchdown_s: float) -> str | None:
         """Why the search must stop now, or None: its time (unless it is finishing a steady look,

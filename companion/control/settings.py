@@ -73,8 +73,10 @@ class LandingConfig:
     search_s: float = 45.0
     search_radius_m: float = 40.0
     search_reserve_s: float = 30.0
-    #: Ground radius the camera sees per metre of height above the head plane (the tangent of half
-    #: its narrower field of view): the search's legs are spaced so that their views overlap.
+    #: The camera's footprint: ground radius it sees all round per metre of height above the head
+    #: plane (``Intrinsics.seen_ratio``, through the lens and its trusted cone; 0.524 for the
+    #: 70-degree pinhole). It spaces the search's legs, raises the judging height of a narrow lens
+    #: and gives a wide one its commit height (``descent.judging_height``, ``commit``).
     view_ratio: float = 0.5
     #: With ``planner.min_calm_s`` > 0: over the zone, low enough to LAND, the vehicle waits at
     #: most this long (s) for the ground under it to be calm; then the zone is given up for the

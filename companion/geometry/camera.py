@@ -132,6 +132,34 @@ class Intrinsics:
     def is_fisheye(self) -> bool:
         return self.model == "fisheye"
 
+    def seen_ratio(self, samples: int = 64) -> float:
+        """The camera's footprint looking straight down: the ground radius (m) it sees all round
+        the point below it per metre of height above the head plane, i.e. the tangent of the
+        smallest angle from the optical axis to the edge of what counts as seen (the image border,
+        or ``lens.TRUSTED_THETA`` where the lens sees wider). An undistorted pinhole answers from
+        its matrix alone (``min(cx, w-1-cx) / fx`` and the same across: 0.525 for the 70-degree
+        4:3 camera, the figure the landing rules were first written for); any other lens walks
+        ``samples`` pixels of each side of the border through the lens (fisheye:160 at 4:3:
+        tan 60 degrees, 1.73)."""
+        w, h = self.width - 1.0, self.height - 1.0
+        trusted = math.tan(lens.TRUSTED_THETA)
+        if self.model == "pinhole" and not self.has_distortion:
+            return min(self.cx / self.fx, self.cy / self.fy, (w - self.cx) / self.fx, (h - self.cy) / self.fy,
+                       trusted)
+        s = np.linspace(0.0, 1.0, samples)
+        border = np.concatenate([np.column_stack([s * w, np.zeros(samples)]), np.column_stack([s * w, np.full(samples, h)]),
+                                 np.column_stack([np.zeros(samples), s * h]), np.column_stack([np.full(samples, w), s * h])])
+        rays = self.unproject(border)
+        with np.errstate(invalid="ignore"):
+            theta = np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2])
+        # A border pixel no seen ray reaches (outside a fisheye's image circle) ends the view
+        # nearer than the border: its ray's angle is unknown, so the circle through the border's
+        # seen pixels nearest the axis bounds the view (rule 1: what is not known is not seen).
+        ok = np.isfinite(theta)
+        if not ok.any():
+            raise GeometryError("the lens sees none of its image border")
+        return float(min(math.tan(min(float(theta[ok].min()), math.radians(89.9))), trusted))
+
     def project(self, xc: np.ndarray) -> np.ndarray:
         """Camera-frame points (N, 3) -> pixels (N, 2), NaN where the lens does not see them."""
         return lens.project(self.model, self.K, self.dist, xc)

@@ -621,7 +621,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int, observe: Observe
                                 speed=1.4)
         elif spec.world == "crossing" and free is not None:
             # Walkers cross the free circle (the zone the companion lands in) during the descent.
-            add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window)
+            add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window, runners=spec.runners)
         end = t_trigger + spec.timeout_s
         while not touchdown and time.monotonic() < end:
             if service is not None and not service.running:

@@ -314,8 +314,8 @@ class Apart:
 
 def flown_apart(row: dict[str, Any]) -> list[Apart]:
     """How a row was flown apart from the scenarios' own, in key order: the LAND speed, the
-    crossing window, the watch before the failsafe, the camera (``--camera``), a lockstep
-    flight's clock start when
+    crossing window, the watch before the failsafe, the camera (``--camera``), the share of
+    runners in the crossing world (``--runners``), a lockstep flight's clock start when
     it is not :data:`LOCKSTEP_CLOCK_START_S` (``unknown`` for a lockstep row written before the
     start was fixed), the link latency added each way (``link_latency_s``, ``--link-latency``),
     and the ground when it is not the drawn one (``ground``: ``photo``; rows of the drawn
@@ -333,6 +333,9 @@ def flown_apart(row: dict[str, Any]) -> list[Apart]:
     camera = row.get("camera")
     if camera and camera != DEFAULT_CAMERA:
         out.append(Apart("camera", "camera", str(camera)))
+    runners = row.get("runners")
+    if runners:  # rows flown without runners have no such field
+        out.append(Apart("runners", "runners", f"{float(runners):g}"))
     clock = other_clock_start(row)
     if clock is not None:
         out.append(Apart("clock", "clock_start_s", clock if isinstance(clock, str) else _exact(clock)))

@@ -244,6 +244,9 @@ class FlightJob:
     #: The crossing world's window (s after the failsafe, ``--crossing-window``; None: the
     #: world's own, ``sim.world.crowd.CROSSING_WINDOW_S``); part of its key when it is another.
     crossing_window: tuple[float, float] | None = None
+    #: The share of the crossing world's walkers who run or cycle (``--runners``, 0-1; 0: none, the
+    #: scenarios' own until the yardstick is flown with them); part of its key when it is not 0.
+    runners: float = 0.0
     #: Fly on the simulated clock (``sim.flights.lockstep``); part of its key.
     lockstep: bool = False
     #: How long the service watches before the failsafe (s, ``--watch-s``; None: the scenarios'
@@ -273,6 +276,8 @@ class FlightJob:
             spec = dataclasses.replace(spec, land_speed=self.land_speed)
         if self.crossing_window is not None:
             spec = dataclasses.replace(spec, crossing_window=self.crossing_window)
+        if self.runners:
+            spec = dataclasses.replace(spec, runners=self.runners)
         if self.watch_s is not None:
             spec = dataclasses.replace(spec, watch_s=self.watch_s)
         if self.link_latency is not None:
@@ -311,7 +316,8 @@ class FlightJob:
                         "settings": list(self.service_set), "land_speed": spec.land_speed,
                         "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
                         "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None,
-                        "camera": camera_name(spec), **link_latency_field(spec), "ground": spec.ground})
+                        "camera": camera_name(spec), **link_latency_field(spec), "ground": spec.ground,
+                        **({"runners": spec.runners} if spec.runners else {})})
 
 
 def _cpu_s() -> float:
@@ -568,6 +574,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "(pinhole or fisheye) and horizontal field of view in degrees, e.g. "
                              "pinhole:110 or fisheye:160 (default pinhole:70, the scenarios' own); "
                              "recorded in each row when it is another")
+    parser.add_argument("--runners", type=float, default=0.0, metavar="SHARE",
+                        help="the share (0-1) of the crossing world's walkers who run or cycle across the "
+                             "landing zone at 2.4-3 m/s (default 0, the scenarios' own for now: the default "
+                             "changes when the yardstick is flown again); recorded in each row when not 0")
     scale = parser.add_argument_group("at scale (docs/scale.md)")
     scale.add_argument("--workers", type=int, default=None, metavar="N",
                        help="flights at once on this machine (default: its CPUs / --cpus-per-flight, "
@@ -650,12 +660,15 @@ def run(args: argparse.Namespace) -> int:
         print(checked, file=sys.stderr)
         return 2
     camera, photos = checked.camera, checked.photos
+    if not (math.isfinite(args.runners) and 0.0 <= args.runners <= 1.0):
+        print(f"companion sim-scenarios: --runners must be a share within 0-1, not {args.runners:g}", file=sys.stderr)
+        return 2
     threads = model_threads(args.cpus_per_flight)
     kinds = (False, True) if args.baseline else (False,)
     jobs = [FlightJob(seed, args.flavour, baseline=baseline, threads=threads, service_set=service_set,
                       land_speed=land, crossing_window=window, lockstep=args.lockstep, watch_s=watch,
                       clock_start=start, link_latency=latency or None, camera=camera,
-                      ground=args.ground, photos=photos)
+                      runners=args.runners, ground=args.ground, photos=photos)
             for start in starts for seed in dict.fromkeys(seeds) for baseline in kinds]
     return run_jobs(jobs, workers=workers, ray_address=args.ray, cpus_per_flight=args.cpus_per_flight,
                     out=args.out, as_json=args.json, verbose=args.verbose, progress=not args.no_progress,

@@ -98,6 +98,8 @@ class FlightSpec:
     fps: float = 10.0
     land_speed: float = SCENARIO_LAND_SPEED
     crossing_window: tuple[float, float] = CROSSING_WINDOW_S
+    #: The share of the crossing world's walkers who run or cycle (``sim.world.crowd.RUNNER_SPEEDS``).
+    runners: float = 0.0
     record_dir: Path | None = None
     service_log: Path | None = None
     service_set: tuple[str, ...] = ()
@@ -211,6 +213,8 @@ class FlightResult:
                                     for z in self.zone_losses],
             # Only a camera other than the scenarios' own: rows flown with it stay as they were.
             **({} if camera_name(self.spec) == DEFAULT_CAMERA else {"camera": camera_name(self.spec)}),
+            # Only with runners in the crossing world: rows without stay as the yardstick has them.
+            **({"runners": self.spec.runners} if self.spec.runners else {}),
             # Only when not the drawn ground: the procedural rows stay as the yardstick has them.
             **({} if self.spec.ground == "procedural" else {"ground": self.spec.ground}),
         }

@@ -44,11 +44,15 @@ from sim.world.walkers import (
 
 __all__ = ["World", "Bounds", "Circle", "Crossing", "Intrusion", "default_world", "crowd_with_free_area",
            "dense_crowd", "dronecrowd_world", "largest_free_circle", "add_crossing_walkers",
-           "CROSSING_SPEEDS", "CROSSING_WINDOW_S", "TICK_S"]
+           "CROSSING_SPEEDS", "CROSSING_WINDOW_S", "RUNNER_SPEEDS", "TICK_S"]
 
 #: Walking speeds of the ``crossing`` world's walkers, m/s, drawn uniformly: adults' preferred
 #: speeds are about 1.2-1.5 m/s (Bohannon 1997, Mohler et al. 2007), slower in a crowd.
 CROSSING_SPEEDS = (1.0, 1.5)
+#: Speeds of the crossing world's runners and cyclists (m/s, drawn uniformly; ``runners`` of
+#: :func:`add_crossing_walkers`): a jogger's 2.4 m/s up to a slow cyclist's 3 m/s, the upper bound
+#: the landing rules are tested against (issue 60, item 5).
+RUNNER_SPEEDS = (2.4, 3.0)
 #: When they cross the circle's edge, seconds after the failsafe, drawn uniformly: the companion
 #: descends into its zone from about 5 s after the trigger to touchdown at 21-34 s when it lands
 #: without holding (seeds 1-8 of docs/scale.md, "Measured"), and a walker at these speeds is
@@ -233,18 +237,24 @@ def largest_free_circle(positions: np.ndarray, centre: tuple[float, float], half
 
 def add_crossing_walkers(world: World, circle: Circle, t_from: float, seed: int,
                          count: int | None = None,
-                         window: tuple[float, float] = CROSSING_WINDOW_S) -> list[Crossing]:
+                         window: tuple[float, float] = CROSSING_WINDOW_S, runners: float = 0.0) -> list[Crossing]:
     """Walkers who cross ``circle`` (a landing zone) during the descent: ``count`` of them (2-4
     drawn when None), each at a speed drawn from :data:`CROSSING_SPEEDS`, from a bearing drawn
     all round, along a chord within half the radius of the centre, crossing the edge at world
     time ``t_from`` plus a delay drawn from ``window`` (:data:`CROSSING_WINDOW_S`), then walking
     on out of it. A wider window keeps the default's rate: the drawn count is multiplied by its
     width over the default's, rounded (at least 1). Drawn from ``seed`` alone (its own stream:
-    the scene's other draws are not touched; the default window draws what it always drew)."""
+    the scene's other draws are not touched; the default window draws what it always drew).
+    ``runners``: the share (0-1) of them who run or cycle instead, at a speed drawn from
+    :data:`RUNNER_SPEEDS`; who does is drawn from a stream of its own, so every walker keeps its
+    bearing, chord and time, and 0 draws exactly what the scenarios always drew."""
     lo, hi = window
     if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo < hi):
         raise ValueError(f"crossing window must be 0 <= from < to seconds, not {window!r}")
+    if not (math.isfinite(runners) and 0.0 <= runners <= 1.0):
+        raise ValueError(f"the share of runners must be within 0-1, not {runners!r}")
     rng = np.random.default_rng([int(seed), 0xC405])
+    fast = np.random.default_rng([int(seed), 0xC405, 1])
     n = int(rng.integers(2, 5)) if count is None else int(count)
     if count is None:
         n *= max(1, round((hi - lo) / (CROSSING_WINDOW_S[1] - CROSSING_WINDOW_S[0])))
@@ -254,6 +264,8 @@ def add_crossing_walkers(world: World, circle: Circle, t_from: float, seed: int,
         bearing = float(rng.uniform(0.0, 2 * math.pi))
         offset = float(rng.uniform(-0.5, 0.5)) * circle.radius
         t_enter = t_from + float(rng.uniform(lo, hi))
+        runner, run_speed = float(fast.uniform()) < runners, float(fast.uniform(*RUNNER_SPEEDS))
+        speed = run_speed if runner else speed
         out.append(world.add_crossing(Crossing(circle, t_enter, speed, bearing, offset)))
     return out
 

@@ -188,7 +188,7 @@ def test_every_bound_is_checked_once_and_names_the_key(key: str, value: float, r
         ("controller.descend_alt_m", 3.0, r"^controller\.land_alt_m \(4 m\) must not be above "
                                           r"controller\.descend_alt_m \(3 m\)"),
         ("controller.search_climb_m", 0.5, r"^controller\.search_climb_m must be >= LandingConfig\.ceiling_margin_m"),
-        ("camera.cx", 0.0, r"^camera\.cx / camera\.fx and camera\.cy / camera\.fy \(the view ratio\) must be > 0"),
+        ("camera.cx", 0.0, r"^camera\.cx / camera\.fx and camera\.cy / camera\.fy through camera\.model \(the camera.s footprint\) must be > 0"),
     ],
 )
 def test_a_part_rule_refuses_the_setting_naming_the_key(key: str, value: object, pattern: str) -> None:
@@ -196,6 +196,13 @@ def test_a_part_rule_refuses_the_setting_naming_the_key(key: str, value: object,
     file at start-up, with the settings key in the part's field's place."""
     with pytest.raises(ConfigError, match=pattern):
         config.load(None, {key: value})
+
+
+def test_a_lens_that_sees_none_of_its_border_is_refused_at_start_up() -> None:
+    """The footprint (issue 60, item 4) walks the image border through the lens: a fisheye whose
+    image circle lies inside the frame's border everywhere has no footprint to land by."""
+    with pytest.raises(ConfigError, match=r"^camera: the lens sees none of its image border"):
+        config.load(None, {"camera.model": "fisheye", "camera.fx": 50.0})
 
 
 def test_the_parts_keep_their_own_rules_when_built_directly() -> None:

@@ -578,3 +578,42 @@ def test_a_camera_flies_both_cameras_as_one_and_is_keyed_apart(monkeypatch, caps
     monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
     assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--camera", "fish:160"]) == 2
     assert "--camera" in capsys.readouterr().err
+
+
+def test_runners_cross_at_their_speed_drawn_apart_and_are_keyed_apart(monkeypatch, capsys):
+    # Issue 60 item 5: a share of the crossing world's walkers run or cycle (2.4-3 m/s). Who does is
+    # drawn from a stream of its own: with no runners the world is what it always was, and with
+    # them every walker keeps its bearing, chord and time.
+    from sim.world.crowd import RUNNER_SPEEDS, World, add_crossing_walkers
+    from sim.world.walkers import Circle
+
+    circle = Circle(10.0, -4.0, 6.0)
+    fast_seen = 0
+    for seed in range(1, 20):
+        plain = add_crossing_walkers(World(), circle, 0.0, seed)
+        assert add_crossing_walkers(World(), circle, 0.0, seed, runners=0.0) == plain
+        everyone = add_crossing_walkers(World(), circle, 0.0, seed, runners=1.0)
+        assert all(RUNNER_SPEEDS[0] <= w.speed <= RUNNER_SPEEDS[1] for w in everyone)
+        assert [(w.bearing, w.offset_m, w.t_enter) for w in everyone] == \
+               [(w.bearing, w.offset_m, w.t_enter) for w in plain]
+        half = add_crossing_walkers(World(), circle, 0.0, seed, runners=0.5)
+        fast_seen += sum(w.speed >= RUNNER_SPEEDS[0] for w in half)
+        assert all(w.speed in (a.speed, b.speed) for w, a, b in zip(half, plain, everyone))
+    assert fast_seen > 0
+    for bad in (-0.1, 1.5, math.nan):
+        with pytest.raises(ValueError, match="runners"):
+            add_crossing_walkers(World(), circle, 0.0, 1, runners=bad)
+
+    plain_job = FlightJob(2, "px4", lockstep=True)
+    run = FlightJob(2, "px4", lockstep=True, runners=0.3)
+    assert run.spec().runners == 0.3 and plain_job.spec().runners == 0.0
+    assert run.key() == (2, "px4", "runners:0.3", "lockstep") and plain_job.key() == (2, "px4", "lockstep")
+    assert "runners" not in FlightResult(plain_job.spec(), "safe").as_dict()
+    row = FlightResult(run.spec(), "safe").as_dict()
+    assert row["runners"] == 0.3 and row_key({**row, "seed": 2, "clock_start_s": 1000.0}) == run.key()
+
+    from companion.cli import main
+
+    monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
+    assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--runners", "1.5"]) == 2
+    assert "--runners" in capsys.readouterr().err

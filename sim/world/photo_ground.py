@@ -62,6 +62,12 @@ PHOTO_CLASSES = ("unlabeled", "paved-area", "dirt", "grass", "gravel", "water", 
 #: The classes a vehicle may touch down on: flat, firm, open ground.
 PHOTO_LANDABLE = frozenset({"paved-area", "dirt", "grass", "gravel"})
 _LANDABLE_IDX = np.array([PHOTO_CLASSES.index(n) for n in sorted(PHOTO_LANDABLE)])
+#: The classes people walk on: the landable ones (paths, squares, lawns, tracks). Not roofs,
+#: walls, water, pools, trees, vegetation, cars, nor the unlabelled ground between photos.
+PHOTO_WALKABLE = PHOTO_LANDABLE
+_WALKABLE_IDX = np.array([PHOTO_CLASSES.index(n) for n in sorted(PHOTO_WALKABLE)])
+#: Resolution (m/px) of the walkable map the photo worlds' walkers keep to.
+WALKABLE_RES_M = 0.1
 PERSON = 15
 CAR = 17
 #: A typical car's length (m): the cars of the photos set their scale.
@@ -223,6 +229,28 @@ def _shelves(items: list, width: float) -> tuple[list[Patch], float, float]:
     return patches, north + shelf_h, block_e
 
 
+@dataclass(frozen=True)
+class WalkableMap:
+    """Where people walk on the photo ground (``sim.world.walkers.Walkable``): ``mask`` (rows
+    north from ``n0``, columns east from ``e0``, ``res`` m/px) is True on :data:`PHOTO_WALKABLE`
+    ground. Outside the map nobody walks."""
+
+    n0: float
+    e0: float
+    res: float
+    mask: np.ndarray
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool for (N, 2) ground points (north, east)."""
+        p = np.asarray(points, float).reshape(-1, 2)
+        r = np.floor((p[:, 0] - self.n0) / self.res)
+        c = np.floor((p[:, 1] - self.e0) / self.res)
+        ok = (r >= 0) & (r < self.mask.shape[0]) & (c >= 0) & (c < self.mask.shape[1])
+        out = np.zeros(len(p), bool)
+        out[ok] = self.mask[r[ok].astype(int), c[ok].astype(int)]
+        return out
+
+
 class PhotoGround:
     """An endless ground of real photos (a block of patches repeated), served as cached tiles
     like :class:`sim.world.ground.ProceduralGround`, with its truth per point.
@@ -325,6 +353,14 @@ class PhotoGround:
         out = np.zeros((rows, cols), np.uint8)
         self._paint(out, n_min, e_min, res, labels=True)
         return out
+
+    def walkable(self, centre: tuple[float, float], half_size: float,
+                 res: float = WALKABLE_RES_M) -> WalkableMap:
+        """Where people walk in the square of side ``2 * half_size`` m around ``centre`` (world
+        north, east), by the class maps."""
+        n0, e0 = centre[0] - half_size, centre[1] - half_size
+        classes = self.class_map(n0, n0 + 2 * half_size, e0, e0 + 2 * half_size, res)
+        return WalkableMap(n0, e0, res, np.isin(classes, _WALKABLE_IDX))
 
     def surfaces_within(self, north: float, east: float, radius: float = 0.0, res: float = 0.02) -> set[str]:
         """The classes on the disc of ``radius`` m around (north, east) (their names)."""

@@ -183,6 +183,28 @@ def test_open_ground_walkers_start_outside_the_circle_and_cross_it() -> None:
     assert world.nobody_walks_at((0.0, 0.0)) is True  # the circle is still the scene's free area
 
 
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_walkers_keep_to_ground_people_walk_on(photos: str, ground, seed: int) -> None:
+    """Issue 59 item 2: walkers walk where people walk, not over roofs, water or trees: every
+    lone walker and standing person stays on walkable ground (by the class maps) for a minute."""
+    spec = FlightJob(seed, ground="photo", photos=photos).spec()
+    world, free, _start = build_world(spec)
+    crowds = [s for s in world.sources if getattr(getattr(s, "params", None), "walkable", None) is not None]
+    assert len(crowds) == 2  # the scene's crowd and the open-ground walkers
+    walkable = crowds[0].params.walkable
+    assert 0.2 < walkable.mask.mean() < 1.0  # the scene holds ground nobody walks on
+    moved = 0.0
+    for c in crowds:
+        assert walkable(c.lead_pos).all() and walkable(c.stand_pos).all()
+    for _ in range(300):
+        before = crowds[0].lead_pos.copy()
+        world.step(0.2)
+        for c in crowds:
+            assert walkable(c.lead_pos).all() and walkable(c.stand_pos).all()
+        moved += float(np.hypot(*(crowds[0].lead_pos - before).T).mean())
+    assert moved > 20.0  # they still walk (a metre or so a second, less their pauses and turns)
+
+
 def test_a_missing_or_malformed_photos_folder_is_named(tmp_path: Path, photos: str) -> None:
     with pytest.raises(PhotosError, match=str(tmp_path / "nowhere")):
         check_photos(tmp_path / "nowhere")

@@ -30,8 +30,10 @@ from the last metres of a landing.
 Layout (:class:`PhotoGround`): the patches sorted by height (tallest first) are packed in
 shelves, left to right, into a block about as wide as it is tall, north-up and unmirrored (the
 photo's top edge faces north). The ground repeats that block in both directions (endless, as the
-procedural ground). What a shelf leaves between patches is **unlabelled** ground (class 0, drawn
-a dull grey): not landable. Every ground point's truth is its photo's class
+procedural ground). What a shelf leaves above a patch or beyond its last patch is filled by that
+patch **mirrored** at its north and east edges (pixels, classes and people alike:
+``Patch.cell_m``): a flat grey band there looked like the cleanest ground in view and drew
+landings. Every ground point's truth is its photo's class
 (:data:`PHOTO_CLASSES`, ``labels/classes.txt``); landable are paved area, dirt, grass and gravel
 (:data:`PHOTO_LANDABLE`), everything else (water, pool, roof, wall, tree, vegetation, car,
 bicycle, obstacles, ...) is not. The people of the photos are people: :meth:`PhotoGround.people`
@@ -63,7 +65,7 @@ PHOTO_CLASSES = ("unlabeled", "paved-area", "dirt", "grass", "gravel", "water", 
 PHOTO_LANDABLE = frozenset({"paved-area", "dirt", "grass", "gravel"})
 _LANDABLE_IDX = np.array([PHOTO_CLASSES.index(n) for n in sorted(PHOTO_LANDABLE)])
 #: The classes people walk on: the landable ones (paths, squares, lawns, tracks). Not roofs,
-#: walls, water, pools, trees, vegetation, cars, nor the unlabelled ground between photos.
+#: walls, water, pools, trees, vegetation, cars, nor unlabelled ground.
 PHOTO_WALKABLE = PHOTO_LANDABLE
 _WALKABLE_IDX = np.array([PHOTO_CLASSES.index(n) for n in sorted(PHOTO_WALKABLE)])
 #: Resolution (m/px) of the walkable map the photo worlds' walkers keep to.
@@ -79,7 +81,7 @@ PERSON_EXTENT_M = 0.85
 FINEST_M = 0.01
 #: A component smaller than this (px across) is a fragment, not a whole car or person.
 MIN_COMPONENT_PX = 8
-#: BGR of unlabelled ground between patches.
+#: BGR of ground no patch covers (none inside the block: each patch fills its cell).
 GAP_BGR = (112, 116, 118)
 #: Expected size of every photo and its class map (width, height).
 PHOTO_WH = (1500, 1000)
@@ -450,7 +452,7 @@ class PhotoGround:
         is not."""
         on, oe = self.origin
         rows, cols = int(math.ceil(self.block_n / res)), int(math.ceil(self.block_e / res))
-        bad: np.ndarray = np.full((rows, cols), 255, np.uint8)  # between patches: unlabelled, not landable
+        bad: np.ndarray = np.full((rows, cols), 255, np.uint8)  # what no patch paints: not landable
         self._paint(bad, on, oe, res, labels=False, blocked=True)
         bad = cv2.dilate(bad, np.ones((3, 3), np.uint8))  # a pixel's worth of placement error
         people = np.zeros((rows, cols), np.uint8)

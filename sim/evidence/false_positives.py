@@ -1,6 +1,6 @@
 """How much of each scenario's lawn a density model marks as people when nobody is there.
 
-``python -m sim.evidence.false_positives --seeds 1-34 --heights 10,20 [--model FILE.onnx]``
+``python -m sim.evidence.false_positives --seeds 1-34 --heights 10,20 [--model FILE.onnx] [--ground photo]``
 
 For every seed with a free circle (``sim.flights.flight.build_world``), the seed's procedural ground is
 rendered straight down over the circle's centre from each height with *nobody* in the world, the
@@ -24,6 +24,14 @@ kind of model); ``unlandable_pct``, the share of the circle that is not landable
 benches); and ``unlandable_left_pct``, the share of that which is left unmarked (a miss for a
 landability model; for a density model, what the landability model is there for). The last is
 None where the circle holds nothing unlandable.
+
+``--ground photo`` (``--photos DIR``, default ``../shared/data/semantic_drone/full``) asks the same
+over the photo world (docs/photo-world.md): the seed's photo scene, its circle landable by the
+class maps with none of the photos' people in it, rendered with no walker (the photos' own people
+are in their pixels). The truth is the class maps'. Each row then also says
+``free_marked_pct``: the share of the whole frame's free ground (landable, and more than
+``PERSON_CLEAR_M`` from every person of the photos) that is marked, the frame-wide figure that
+compares a model's false alarms on real texture with the drawn ground's.
 """
 
 from __future__ import annotations
@@ -43,10 +51,12 @@ from companion.pipeline.density import DensityModel
 from companion.pipeline.landability import LandabilityModel
 from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.slz import PipelineConfig
-from sim.flights.flight import build_world
-from sim.flights.scenarios import parse_seeds, scenario
+from sim.flights.flight import build_world, photo_ground
+from sim.flights.scenarios import FlightJob, parse_seeds
+from sim.flights.spec import default_photos
 from sim.world.crowd import World
 from sim.world.ground import LANDABLE_SURFACES, SURFACES, ProceduralGround
+from sim.world.photo_ground import PHOTO_CLASSES, PHOTO_LANDABLE, PhotoGround, PhotosError, check_photos
 from sim.world.render import render_world
 from sim.world.walkers import Circle
 
@@ -58,6 +68,10 @@ STEP = 4
 #: The truth's resolution (m/px) when judging marks on the ground plane.
 TRUTH_RES = 0.04
 _LANDABLE = np.array([name in LANDABLE_SURFACES for name in SURFACES])
+_PHOTO_LANDABLE = np.array([name in PHOTO_LANDABLE for name in PHOTO_CLASSES])
+#: Metres from a person of the photos within which photo ground does not count as free: half a
+#: body (0.5 m) and the marks a real person's density rightly spreads.
+PERSON_CLEAR_M = 1.5
 
 
 @dataclass(frozen=True)
@@ -73,6 +87,8 @@ class LawnFigure:
     landable_marked_pct: float | None = None
     unlandable_pct: float | None = None
     unlandable_left_pct: float | None = None
+    ground: str = "procedural"
+    free_marked_pct: float | None = None
 
 
 def marked_map(model: DensityModel, img: np.ndarray) -> np.ndarray:
@@ -86,14 +102,19 @@ def marked_map(model: DensityModel, img: np.ndarray) -> np.ndarray:
     return occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
 
 
-def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[float]) -> list[LawnFigure]:
+def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[float],
+                         photos: str | None = None) -> list[LawnFigure]:
     """The figures of ``seed`` from each of ``heights_m`` (m above the ground); none for a world
-    without a free circle."""
-    spec = scenario(seed, "ardupilot")  # the scene does not depend on the flavour
-    _world, free, _start = build_world(spec)
+    without a free circle. ``photos``: measure the seed's photo world over that folder's photos
+    instead of its drawn world."""
+    job = FlightJob(seed, "ardupilot") if photos is None else FlightJob(seed, "ardupilot", ground="photo", photos=photos)
+    spec = job.spec()  # the scene does not depend on the flavour
+    world, free, _start = build_world(spec)
     if free is None:
         return []
-    empty, ground = World(seed=seed), ProceduralGround(seed)
+    ground: ProceduralGround | PhotoGround = ProceduralGround(seed) if photos is None else photo_ground(photos)
+    people = np.empty((0, 2)) if world.fixed_people is None else np.asarray(world.fixed_people, float)
+    empty = World(seed=seed)
     vv, uu = np.mgrid[0:K.height:STEP, 0:K.width:STEP]
     pixels = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)
     figures = []
@@ -106,12 +127,34 @@ def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[flo
         marked = occ[vv.ravel(), uu.ravel()]
         circle = float(marked[inside].mean()) if inside.any() else float("nan")
         truth = _truth_figures(ground, pose, pixels, marked, free)
+        free_pct = None if photos is None else _free_marked(ground, pose, pixels, marked, people)
         figures.append(LawnFigure(seed, spec.world, height_m, round(100 * circle, 2),
-                                  round(100 * float(marked.mean()), 2), *truth))
+                                  round(100 * float(marked.mean()), 2), *truth,
+                                  ground=spec.ground, free_marked_pct=free_pct))
     return figures
 
 
-def _truth_figures(ground: ProceduralGround, pose: Pose, pixels: np.ndarray, marked: np.ndarray,
+def _landable_at(ground: ProceduralGround | PhotoGround, xy: np.ndarray) -> np.ndarray:
+    """(N,) bool: is the ground at each (north, east) point landable, by ``ground``'s truth
+    (sampled at ``TRUTH_RES``)."""
+    n0, e0 = float(xy[:, 0].min()) - TRUTH_RES, float(xy[:, 1].min()) - TRUTH_RES
+    n1, e1 = float(xy[:, 0].max()) + TRUTH_RES, float(xy[:, 1].max()) + TRUTH_RES
+    if isinstance(ground, PhotoGround):
+        labels = ground.class_map(n0, n1, e0, e1, TRUTH_RES)
+        row = ((xy[:, 0] - n0) / TRUTH_RES).astype(int)
+        col = ((xy[:, 1] - e0) / TRUTH_RES).astype(int)
+        table = _PHOTO_LANDABLE
+    else:
+        labels, A = ground.surface_labels(n0, n1, e0, e1, TRUTH_RES)
+        col = (A[0, 1] * xy[:, 1] + A[0, 2]).astype(int)
+        row = (A[1, 0] * xy[:, 0] + A[1, 2]).astype(int)
+        table = _LANDABLE
+    row = np.clip(row, 0, labels.shape[0] - 1)
+    col = np.clip(col, 0, labels.shape[1] - 1)
+    return table[labels[row, col]]
+
+
+def _truth_figures(ground: ProceduralGround | PhotoGround, pose: Pose, pixels: np.ndarray, marked: np.ndarray,
                    free: Circle) -> tuple[float | None, float | None, float | None]:
     """``(landable_marked_pct, unlandable_pct, unlandable_left_pct)`` of the free circle, judged
     on the ground's truth at the pixels' ground points (see the module docstring)."""
@@ -120,15 +163,27 @@ def _truth_figures(ground: ProceduralGround, pose: Pose, pixels: np.ndarray, mar
     inside = np.hypot(xy[:, 0] - cn, xy[:, 1] - ce) < r
     if not inside.any():
         return None, None, None
-    labels, A = ground.surface_labels(cn - r, cn + r, ce - r, ce + r, TRUTH_RES)
-    pts = xy[inside]
-    col = np.clip((A[0, 1] * pts[:, 1] + A[0, 2]).astype(int), 0, labels.shape[1] - 1)
-    row = np.clip((A[1, 0] * pts[:, 0] + A[1, 2]).astype(int), 0, labels.shape[0] - 1)
-    landable = _LANDABLE[labels[row, col]]
+    landable = _landable_at(ground, xy[inside])
     m = marked[inside]
     pct = lambda a: round(100 * float(a.mean()), 2)  # noqa: E731
     return (pct(m[landable]) if landable.any() else None, pct(~landable),
             pct(~m[~landable]) if (~landable).any() else None)
+
+
+def _free_marked(ground: ProceduralGround | PhotoGround, pose: Pose, pixels: np.ndarray, marked: np.ndarray,
+                 people: np.ndarray) -> float | None:
+    """The share (%) of the frame's free ground (landable, more than ``PERSON_CLEAR_M`` from every
+    one of ``people``, (N, 2) north, east) that is marked; None when the frame shows none."""
+    xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=0.0).image_to_plane(pixels)
+    ok = np.isfinite(xy).all(axis=1)
+    free = np.zeros(len(xy), bool)
+    free[ok] = _landable_at(ground, xy[ok])
+    if len(people):
+        near = np.full(len(xy), np.inf)
+        for p in people[np.hypot(people[:, 0] - pose.north, people[:, 1] - pose.east) < 4.0 * abs(pose.down) + 10.0]:
+            near = np.minimum(near, np.hypot(xy[:, 0] - p[0], xy[:, 1] - p[1]))
+        free &= near > PERSON_CLEAR_M
+    return round(100 * float(marked[free].mean()), 2) if free.any() else None
 
 
 def _pct(v: float | None) -> str:
@@ -142,8 +197,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--model", type=Path, default=SHIPPED_MODEL, help="ONNX density model (default: the shipped one)")
     ap.add_argument("--landability", type=Path, default=None,
                     help="measure this ONNX landability model's unlandable marks instead of --model's people")
+    ap.add_argument("--ground", choices=("procedural", "photo"), default="procedural",
+                    help="the drawn ground (default) or the photo world's (docs/photo-world.md)")
+    ap.add_argument("--photos", type=Path, default=None,
+                    help="the photos of --ground photo (default ../shared/data/semantic_drone/full)")
     ap.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     args = ap.parse_args(argv)
+    photos = None
+    if args.ground == "photo":
+        folder = args.photos or default_photos()
+        try:
+            check_photos(folder)
+        except PhotosError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        photos = str(folder.resolve())
     try:
         seeds = parse_seeds(args.seeds)
         heights = [float(h) for h in args.heights.split(",")]
@@ -163,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     for seed in seeds:
-        figures = lawn_false_positives(model, seed, heights)
+        figures = lawn_false_positives(model, seed, heights, photos)
         if not figures:
             continue
         if args.json:
@@ -172,7 +240,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             cells = "  ".join(f"{f.height_m:g} m: lawn {f.circle_pct:5.1f} %, frame {f.frame_pct:4.1f} %, "
                               f"landable ground {_pct(f.landable_marked_pct)}, unlandable {_pct(f.unlandable_pct)} "
-                              f"({_pct(f.unlandable_left_pct)} left)" for f in figures)
+                              f"({_pct(f.unlandable_left_pct)} left)"
+                              + ("" if f.free_marked_pct is None else f", free ground in frame {_pct(f.free_marked_pct)}")
+                              for f in figures)
             print(f"seed {seed:>3} {figures[0].world:<13} {cells}", flush=True)
     return 0
 

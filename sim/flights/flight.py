@@ -74,7 +74,7 @@ from sim.world.crowd import (
 from sim.world.ground import FlatGround, ProceduralGround
 from sim.world.photo_ground import PhotoGround
 from sim.world.photo_people import PhotoGroundWithPeople, open_ground_walkers
-from sim.world.walkers import Bounds, Circle
+from sim.world.walkers import Bounds, Circle, Walkable
 
 log = logging.getLogger("sim.flights.flight")
 
@@ -286,8 +286,9 @@ def photo_scene_centre(spec: FlightSpec) -> tuple[float, float]:
 def build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, float]]:
     """The scenario's world, the free circle it guarantees (None when there is none), and the
     vehicle's start (north, east): ``start_offset_m`` from the circle's centre. On the photo
-    ground (``spec.ground``) the photos' people stand in the world (``World.fixed_people``) and
-    walkers who cross open ground join the crowd (``sim.world.photo_people``)."""
+    ground (``spec.ground``) the photos' people stand in the world (``World.fixed_people``),
+    walkers who cross open ground join the crowd (``sim.world.photo_people``), and every walker
+    keeps to ground people walk on by the class maps (``PhotoGround.walkable``)."""
     world, free, start = _build_world(spec)
     if spec.ground == "photo":
         assert spec.photos is not None
@@ -296,8 +297,18 @@ def build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, fl
         if spec.world not in ("uniform", "dronecrowd"):
             half = 45.0 if spec.world in ("dense", "dense_beyond") else 40.0
             around = start if spec.world in ("dense", "dense_beyond") else centre
-            world.add_source(open_ground_walkers(Bounds.around(around, half), free, spec.seed))
+            world.add_source(open_ground_walkers(Bounds.around(around, half), free, spec.seed,
+                                                 walkable=_walkable(spec, around, half)))
     return world, free, start
+
+
+def _walkable(spec: FlightSpec, centre: tuple[float, float], half: float) -> Walkable | None:
+    """Where a crowd of ``half`` m around ``centre`` walks: anywhere on the drawn ground; on the
+    photo ground, the ground people walk on by the class maps (1 m beyond the crowd's square)."""
+    if spec.ground != "photo":
+        return None
+    assert spec.photos is not None
+    return photo_ground(spec.photos).walkable(centre, half + 1.0)
 
 
 def _build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, float]]:
@@ -306,16 +317,19 @@ def _build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, f
     if spec.world == "uniform":
         return World(seed=spec.seed), None, start
     if spec.world == "dense":
-        return dense_crowd(seed=spec.seed, centre=start, half_size=45.0, spacing=2.0), None, start
+        return dense_crowd(seed=spec.seed, centre=start, half_size=45.0, spacing=2.0,
+                           walkable=_walkable(spec, start, 45.0)), None, start
     if spec.world == "dense_beyond":
         # A dense crowd with one free circle, start_offset_m away: out of the first view, for
         # the search to find.
         free = Circle(cn, ce, spec.free_radius_m)
-        return dense_crowd(seed=spec.seed, centre=start, half_size=45.0, spacing=2.0, free=free), free, start
+        return dense_crowd(seed=spec.seed, centre=start, half_size=45.0, spacing=2.0, free=free,
+                           walkable=_walkable(spec, start, 45.0)), free, start
     if spec.world == "dronecrowd":
         return dronecrowd_world(centre=start, seed=spec.seed), None, start
     free = Circle(cn, ce, spec.free_radius_m)
-    world = crowd_with_free_area(seed=spec.seed, free=free, centre=(cn, ce), half_size=40.0)
+    world = crowd_with_free_area(seed=spec.seed, free=free, centre=(cn, ce), half_size=40.0,
+                                 walkable=_walkable(spec, (cn, ce), 40.0))
     return world, free, start
 
 

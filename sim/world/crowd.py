@@ -40,6 +40,7 @@ from sim.world.walkers import (
     MillingCrowd,
     MotionSource,
     ScriptedWalkers,
+    Walkable,
 )
 
 __all__ = ["World", "Bounds", "Circle", "Crossing", "Intrusion", "default_world", "crowd_with_free_area",
@@ -280,7 +281,7 @@ def default_world(seed: int = 0, half_size: float = 60.0, centre: tuple[float, f
 
 def crowd_with_free_area(seed: int = 0, free: Circle | None = None, half_size: float = 40.0,
                          centre: tuple[float, float] = (0.0, 0.0), n_walkers: int = 60,
-                         n_groups: int = 10, n_standing: int = 20) -> World:
+                         n_groups: int = 10, n_standing: int = 20, walkable: Walkable | None = None) -> World:
     """A crowd around ``centre`` that never enters the circle ``free`` (``world.free_areas[0]``).
 
     The default free circle is 5 m in radius, 12 m north-east of ``centre`` so that it is not
@@ -289,24 +290,26 @@ def crowd_with_free_area(seed: int = 0, free: Circle | None = None, half_size: f
     if free is None:
         free = Circle(centre[0] + 8.5, centre[1] + 8.5, 5.0)
     params = CrowdParams(n_walkers=n_walkers, n_groups=n_groups, n_standing=n_standing,
-                         keep_out=[free])
+                         keep_out=[free], walkable=walkable)
     w = World([GeneratedCrowd(Bounds.around(centre, half_size), params, seed)], [free], seed)
     return w
 
 
 def dense_crowd(seed: int = 0, centre: tuple[float, float] = (0.0, 0.0), half_size: float = 40.0,
-                spacing: float = 2.0, n_walkers: int = 20, free: Circle | None = None) -> World:
+                spacing: float = 2.0, n_walkers: int = 20, free: Circle | None = None,
+                walkable: Walkable | None = None) -> World:
     """People everywhere in a square of side ``2 * half_size`` m around ``centre``: a milling
     crowd on a ``spacing``-metre jittered grid plus some walkers crossing it. No circle of radius
     above about ``spacing`` metres is free anywhere inside (check with
     :meth:`World.largest_free_circle`), except ``free`` when given: a circle nobody enters
-    (``world.free_areas[0]``), for a search to find."""
+    (``world.free_areas[0]``), for a search to find. ``walkable``: where the walkers walk (the
+    milling crowd stands everywhere: a dense world has nobody's free ground)."""
     bounds = Bounds.around(centre, half_size)
     keep_out = [] if free is None else [free]
     sources: list[MotionSource] = [MillingCrowd(bounds, spacing=spacing, seed=seed, keep_out=keep_out)]
     if n_walkers:
-        sources.append(GeneratedCrowd(bounds, CrowdParams(n_walkers=n_walkers, n_groups=0,
-                                                          n_standing=0, keep_out=keep_out), seed + 1))
+        sources.append(GeneratedCrowd(bounds, CrowdParams(n_walkers=n_walkers, n_groups=0, n_standing=0,
+                                                          keep_out=keep_out, walkable=walkable), seed + 1))
     return World(sources, keep_out, seed=seed)
 
 

@@ -30,8 +30,10 @@ from the last metres of a landing.
 Layout (:class:`PhotoGround`): the patches sorted by height (tallest first) are packed in
 shelves, left to right, into a block about as wide as it is tall, north-up and unmirrored (the
 photo's top edge faces north). The ground repeats that block in both directions (endless, as the
-procedural ground). What a shelf leaves between patches is **unlabelled** ground (class 0, drawn
-a dull grey): not landable. Every ground point's truth is its photo's class
+procedural ground). What a shelf leaves above a patch or beyond its last patch is filled by that
+patch **mirrored** at its north and east edges (pixels, classes and people alike:
+``Patch.cell_m``): a flat grey band there looked like the cleanest ground in view and drew
+landings. Every ground point's truth is its photo's class
 (:data:`PHOTO_CLASSES`, ``labels/classes.txt``); landable are paved area, dirt, grass and gravel
 (:data:`PHOTO_LANDABLE`), everything else (water, pool, roof, wall, tree, vegetation, car,
 bicycle, obstacles, ...) is not. The people of the photos are people: :meth:`PhotoGround.people`
@@ -62,6 +64,12 @@ PHOTO_CLASSES = ("unlabeled", "paved-area", "dirt", "grass", "gravel", "water", 
 #: The classes a vehicle may touch down on: flat, firm, open ground.
 PHOTO_LANDABLE = frozenset({"paved-area", "dirt", "grass", "gravel"})
 _LANDABLE_IDX = np.array([PHOTO_CLASSES.index(n) for n in sorted(PHOTO_LANDABLE)])
+#: The classes people walk on: the landable ones (paths, squares, lawns, tracks). Not roofs,
+#: walls, water, pools, trees, vegetation, cars, nor unlabelled ground.
+PHOTO_WALKABLE = PHOTO_LANDABLE
+_WALKABLE_IDX = np.array([PHOTO_CLASSES.index(n) for n in sorted(PHOTO_WALKABLE)])
+#: Resolution (m/px) of the walkable map the photo worlds' walkers keep to.
+WALKABLE_RES_M = 0.1
 PERSON = 15
 CAR = 17
 #: A typical car's length (m): the cars of the photos set their scale.
@@ -73,7 +81,7 @@ PERSON_EXTENT_M = 0.85
 FINEST_M = 0.01
 #: A component smaller than this (px across) is a fragment, not a whole car or person.
 MIN_COMPONENT_PX = 8
-#: BGR of unlabelled ground between patches.
+#: BGR of ground no patch covers (none inside the block: each patch fills its cell).
 GAP_BGR = (112, 116, 118)
 #: Expected size of every photo and its class map (width, height).
 PHOTO_WH = (1500, 1000)
@@ -145,7 +153,9 @@ class Patch:
     """One photo laid on the ground: ``bgr`` (H, W, 3) and ``classes`` (H, W) at ``gsd`` m/px,
     its south-west corner at (``north``, ``east``) metres of the block; ``gsd_from``: what set
     its GSD ("car", "person", "median"); ``people_px``: (N, 2) centroids (x, y) of its person
-    components in its own pixels."""
+    components in its own pixels. ``cell_m``: the (north, east) extent of the ground the patch
+    owns in its shelf (its own size, or more where the shelf leaves room above it or beyond
+    it): the photo mirrored at its north and east edges fills it (:class:`PhotoGround`)."""
 
     name: str
     bgr: np.ndarray
@@ -155,6 +165,7 @@ class Patch:
     north: float
     east: float
     people_px: np.ndarray
+    cell_m: tuple[float, float] = (0.0, 0.0)
 
     @property
     def size_m(self) -> tuple[float, float]:
@@ -209,18 +220,65 @@ def load_patches(folder: str) -> tuple[tuple[Patch, ...], float, float]:
 
 
 def _shelves(items: list, width: float) -> tuple[list[Patch], float, float]:
-    """Patches packed in shelves no wider than ``width`` m (a patch wider than it gets its own)."""
-    patches, north, east, shelf_h, block_e = [], 0.0, 0.0, 0.0, 0.0
-    for name, bgr, cls, g, src, people in items:
-        h_m, w_m = cls.shape[0] * g, cls.shape[1] * g
+    """Patches packed in shelves no wider than ``width`` m (a patch wider than it gets its own),
+    each owning the cell from its south-west corner to its shelf's top and (the last of a
+    shelf) to the block's east edge."""
+    shelves: list[list[tuple]] = [[]]
+    east, block_e = 0.0, 0.0
+    for it in items:
+        w_m = it[2].shape[1] * it[3]
         if east > 0 and east + w_m > width:
-            north += shelf_h
-            east, shelf_h = 0.0, 0.0
-        patches.append(Patch(name, bgr, cls, g, src, north, east, people))
+            shelves.append([])
+            east = 0.0
+        shelves[-1].append(it)
         east += w_m
-        shelf_h = max(shelf_h, h_m)
         block_e = max(block_e, east)
-    return patches, north + shelf_h, block_e
+    patches, north = [], 0.0
+    for shelf in shelves:
+        shelf_h, east = max(it[2].shape[0] * it[3] for it in shelf), 0.0
+        for k, (name, bgr, cls, g, src, people) in enumerate(shelf):
+            w_m = cls.shape[1] * g
+            cell_e = (block_e - east) if k == len(shelf) - 1 else w_m
+            patches.append(Patch(name, bgr, cls, g, src, north, east, people, (shelf_h, cell_e)))
+            east += w_m
+        north += shelf_h
+    return patches, north, block_e
+
+
+def _mirror_images(v: np.ndarray, size: float, lo: float, hi: float) -> list[np.ndarray]:
+    """The images of photo coordinates ``v`` (pixels, 0..``size``) under the photo mirrored
+    endlessly at its edges (``cv2.BORDER_REFLECT``: period ``2 * size``), each an array of ``v``'s
+    length with the images outside [``lo``, ``hi``) set to NaN; only the arrays holding one inside.
+    Mirrored people stand where their mirrored pixels are."""
+    out = []
+    for k in range(math.floor(lo / (2 * size)) - 1, math.ceil(hi / (2 * size)) + 1):
+        for img in (v + 2 * k * size, 2 * k * size - v):
+            img = np.where((img >= lo) & (img < hi), img, np.nan)
+            if np.isfinite(img).any():
+                out.append(img)
+    return out
+
+
+@dataclass(frozen=True)
+class WalkableMap:
+    """Where people walk on the photo ground (``sim.world.walkers.Walkable``): ``mask`` (rows
+    north from ``n0``, columns east from ``e0``, ``res`` m/px) is True on :data:`PHOTO_WALKABLE`
+    ground. Outside the map nobody walks."""
+
+    n0: float
+    e0: float
+    res: float
+    mask: np.ndarray
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool for (N, 2) ground points (north, east)."""
+        p = np.asarray(points, float).reshape(-1, 2)
+        r = np.floor((p[:, 0] - self.n0) / self.res)
+        c = np.floor((p[:, 1] - self.e0) / self.res)
+        ok = (r >= 0) & (r < self.mask.shape[0]) & (c >= 0) & (c < self.mask.shape[1])
+        out = np.zeros(len(p), bool)
+        out[ok] = self.mask[r[ok].astype(int), c[ok].astype(int)]
+        return out
 
 
 class PhotoGround:
@@ -257,7 +315,11 @@ class PhotoGround:
                blocked: bool = False) -> None:
         """Draw every patch copy over the rectangle of ``dst`` (rows north from ``n0``, columns
         east from ``e0``, ``res`` m/px): the photos (BGR), their classes (``labels``), or 255
-        wherever any of a destination pixel's photo pixels is not landable (``blocked``)."""
+        wherever any of a destination pixel's photo pixels is not landable (``blocked``). Each
+        patch fills its cell (``Patch.cell_m``): beyond its north and east edges the photo is
+        mirrored (pixels and classes alike), so that every ground point is some photo's ground
+        and its truth that photo's class, and no flat grey band between photos looks like the
+        cleanest ground in view."""
         rows, cols = dst.shape[:2]
         n1, e1 = n0 + rows * res, e0 + cols * res
         on, oe = self.origin
@@ -265,12 +327,12 @@ class PhotoGround:
             for bj in range(math.floor((e0 - oe) / self.block_e), math.floor((e1 - oe) / self.block_e) + 1):
                 bn, be = on + bi * self.block_n, oe + bj * self.block_e
                 for i, p in enumerate(self.patches):
-                    hm, wm = p.size_m
+                    cn, ce = p.cell_m
                     pn, pe = bn + p.north, be + p.east
-                    if pn >= n1 or pn + hm <= n0 or pe >= e1 or pe + wm <= e0:
+                    if pn >= n1 or pn + cn <= n0 or pe >= e1 or pe + ce <= e0:
                         continue
                     if blocked:
-                        src, g, interp = self._blocked(i, res), 0.0, cv2.INTER_NEAREST
+                        src, interp = self._blocked(i, res), cv2.INTER_NEAREST
                         g = p.gsd * p.classes.shape[0] / src.shape[0]
                     elif labels:
                         src, g, interp = p.classes, p.gsd, cv2.INTER_NEAREST
@@ -279,12 +341,21 @@ class PhotoGround:
                         src = self._pyramid(i, level)
                         g, interp = p.gsd * p.bgr.shape[0] / src.shape[0], cv2.INTER_LINEAR
                     H = src.shape[0]
+                    # The cell's destination pixels (whole pixels whose centres lie in it).
+                    r0 = max(0, math.ceil((pn - n0) / res - 0.5))
+                    r1 = min(rows, math.ceil((pn + cn - n0) / res - 0.5))
+                    c0 = max(0, math.ceil((pe - e0) / res - 0.5))
+                    c1 = min(cols, math.ceil((pe + ce - e0) / res - 0.5))
+                    if r0 >= r1 or c0 >= c1:
+                        continue
                     # Photo pixel (x, y) centre: east = pe + (x + .5) g, north = pn + (H - y - .5) g
                     # (top edge north); dst pixel (c, r) centre: east = e0 + (c + .5) res, ...
-                    M = np.array([[g / res, 0.0, (pe - e0 + 0.5 * g) / res - 0.5],
-                                  [0.0, -g / res, (pn + (H - 0.5) * g - n0) / res - 0.5]])
-                    cv2.warpAffine(src, M, (cols, rows), dst=dst, flags=interp,
-                                   borderMode=cv2.BORDER_TRANSPARENT)
+                    # The inverse map (dst -> photo), so that the mirror is the source's border.
+                    Minv = np.array([[res / g, 0.0, (e0 + (c0 + 0.5) * res - pe) / g - 0.5],
+                                     [0.0, -res / g, H - (n0 + (r0 + 0.5) * res - pn) / g - 0.5]])
+                    dst[r0:r1, c0:c1] = cv2.warpAffine(src, Minv, (c1 - c0, r1 - r0),
+                                                       flags=interp | cv2.WARP_INVERSE_MAP,
+                                                       borderMode=cv2.BORDER_REFLECT)
 
     def _blocked(self, i: int, res: float) -> np.ndarray:
         """Patch ``i``'s ground that is not landable (255), pooled to about ``res`` m/px so that
@@ -326,6 +397,14 @@ class PhotoGround:
         self._paint(out, n_min, e_min, res, labels=True)
         return out
 
+    def walkable(self, centre: tuple[float, float], half_size: float,
+                 res: float = WALKABLE_RES_M) -> WalkableMap:
+        """Where people walk in the square of side ``2 * half_size`` m around ``centre`` (world
+        north, east), by the class maps."""
+        n0, e0 = centre[0] - half_size, centre[1] - half_size
+        classes = self.class_map(n0, n0 + 2 * half_size, e0, e0 + 2 * half_size, res)
+        return WalkableMap(n0, e0, res, np.isin(classes, _WALKABLE_IDX))
+
     def surfaces_within(self, north: float, east: float, radius: float = 0.0, res: float = 0.02) -> set[str]:
         """The classes on the disc of ``radius`` m around (north, east) (their names)."""
         half = max(float(radius), 0.0) + 2 * res
@@ -343,7 +422,8 @@ class PhotoGround:
 
     def people(self, centre: tuple[float, float], half_size: float) -> np.ndarray:
         """(N, 2) ground positions (north, east) of the photos' people within the square of side
-        ``2 * half_size`` around ``centre``: every person component's centroid, every copy."""
+        ``2 * half_size`` around ``centre``: every person component's centroid, every copy, and
+        every mirror image of it where its photo is mirrored into its cell (``_paint``)."""
         n0, n1 = centre[0] - half_size, centre[0] + half_size
         e0, e1 = centre[1] - half_size, centre[1] + half_size
         on, oe = self.origin
@@ -354,10 +434,12 @@ class PhotoGround:
                 for p in self.patches:
                     if len(p.people_px) == 0:
                         continue
-                    H = p.classes.shape[0]
-                    north = bn + p.north + (H - p.people_px[:, 1]) * p.gsd
-                    east = be + p.east + p.people_px[:, 0] * p.gsd
-                    out.append(np.column_stack([north, east]))
+                    H, W = p.classes.shape
+                    ys = _mirror_images(p.people_px[:, 1], H, -(p.cell_m[0] / p.gsd - H), H)
+                    xs = _mirror_images(p.people_px[:, 0], W, 0.0, p.cell_m[1] / p.gsd)
+                    for y in ys:
+                        for x in xs:
+                            out.append(np.column_stack([bn + p.north + (H - y) * p.gsd, be + p.east + x * p.gsd]))
         pts = np.vstack(out) if out else np.empty((0, 2))
         ok = (pts[:, 0] >= n0) & (pts[:, 0] <= n1) & (pts[:, 1] >= e0) & (pts[:, 1] <= e1)
         return pts[ok]
@@ -370,7 +452,7 @@ class PhotoGround:
         is not."""
         on, oe = self.origin
         rows, cols = int(math.ceil(self.block_n / res)), int(math.ceil(self.block_e / res))
-        bad: np.ndarray = np.full((rows, cols), 255, np.uint8)  # between patches: unlabelled, not landable
+        bad: np.ndarray = np.full((rows, cols), 255, np.uint8)  # what no patch paints: not landable
         self._paint(bad, on, oe, res, labels=False, blocked=True)
         bad = cv2.dilate(bad, np.ones((3, 3), np.uint8))  # a pixel's worth of placement error
         people = np.zeros((rows, cols), np.uint8)

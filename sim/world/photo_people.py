@@ -31,7 +31,7 @@ from companion.evaluation.compositor import Compositor, Cutout, _lab_stats, cuto
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from sim.world.photo_ground import PhotoGround
 from sim.world.render import SUN_SHADOW, Looks, project_points
-from sim.world.walkers import Bounds, Circle, CrowdParams, GeneratedCrowd
+from sim.world.walkers import Bounds, Circle, CrowdParams, GeneratedCrowd, Walkable
 
 #: Height (m above ground, NED z) at which a silhouette is centred: a standing person's middle.
 BODY_Z = -0.85
@@ -141,11 +141,12 @@ class PhotoGroundWithPeople(PhotoGround):
 
 
 def open_ground_walkers(bounds: Bounds, free: Circle | None, seed: int,
-                        count: int = OPEN_GROUND_WALKERS) -> GeneratedCrowd:
-    """``count`` walkers who walk from goal to goal straight across everything (no keep-out),
-    starting outside ``free`` (nobody stands in it at the start); drawn from their own stream of
-    ``seed``."""
-    params = CrowdParams(n_walkers=count, n_groups=0, n_standing=0, keep_out=[])
+                        count: int = OPEN_GROUND_WALKERS, walkable: Walkable | None = None) -> GeneratedCrowd:
+    """``count`` walkers who walk from goal to goal straight across open ground (no keep-out:
+    the free circle too), starting outside ``free`` (nobody stands in it at the start); drawn
+    from their own stream of ``seed``. ``walkable``: the ground they keep to (roofs, water and
+    trees turn them, as any walker; None: anywhere)."""
+    params = CrowdParams(n_walkers=count, n_groups=0, n_standing=0, keep_out=[], walkable=walkable)
     crowd = GeneratedCrowd(bounds, params, seed=int(np.random.SeedSequence([int(seed), 0x09E4]).generate_state(1)[0]))
     if free is not None:
         # Start them outside the free circle (they may walk into it at once, as people do).

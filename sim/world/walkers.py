@@ -13,6 +13,7 @@ here are deterministic for a given seed and call sequence.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -26,6 +27,10 @@ WALK_SPEED_RANGE = (1.0, 1.6)
 #: Metres beyond a keep-out circle (and its margin) that walkers' paths around it keep: room for
 #: the tangent line, so that walking it does not graze the circle.
 STEER_CLEARANCE_M = 0.5
+#: Where people walk: (N, 2) ground points (north, east) -> (N,) bool, True where a person can
+#: walk (open ground, not a roof, water or a tree). None in a crowd's parameters: anywhere (the
+#: drawn ground's crowds).
+Walkable = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -98,14 +103,17 @@ def push_out_of(p: np.ndarray, circles: list[Circle], margin: float = 0.0) -> np
 
 
 def _sample_outside(rng: np.random.Generator, bounds: Bounds, n: int, avoid: list[Circle],
-                    margin: float) -> np.ndarray:
-    """``n`` uniform points inside ``bounds`` and outside every ``avoid`` circle (+ margin)."""
+                    margin: float, walkable: Walkable | None = None) -> np.ndarray:
+    """``n`` uniform points inside ``bounds`` and outside every ``avoid`` circle (+ margin), on
+    ``walkable`` ground when given."""
     out = np.empty((0, 2))
     for _ in range(1000):
         p = bounds.sample(rng, max(2 * n, 16))
         ok = np.ones(len(p), bool)
         for c in avoid:
             ok &= c.distance(p) >= c.radius + margin
+        if walkable is not None:
+            ok &= walkable(p)
         out = np.vstack([out, p[ok]])
         if len(out) >= n:
             return out[:n]
@@ -121,6 +129,10 @@ class CrowdParams:
     pause_s: range of seconds a walker waits at a goal before picking the next one.
     keep_out: circles no generated person ever enters (the guaranteed free areas).
     keep_out_margin: extra metres kept clear around each keep-out circle (a body is ~0.5 m wide).
+    walkable: where people walk (:data:`Walkable`); None: anywhere. With it, people start, stand
+    and pick goals on walkable ground only, and a step from walkable ground onto ground that is
+    not is not taken: the walker stops there and picks another goal, as a person turns at a wall
+    or a pond.
     """
 
     n_walkers: int = 40
@@ -130,6 +142,7 @@ class CrowdParams:
     pause_s: tuple[float, float] = (0.0, 4.0)
     keep_out: list[Circle] = field(default_factory=list)
     keep_out_margin: float = 0.3
+    walkable: Walkable | None = None
 
 
 class GeneratedCrowd:
@@ -153,8 +166,8 @@ class GeneratedCrowd:
         sizes = [int(rng.integers(p.group_size[0], p.group_size[1] + 1)) for _ in range(p.n_groups)]
         n_lead = p.n_walkers + p.n_groups
         lo, hi = WALK_SPEED_RANGE
-        self.lead_pos = _sample_outside(rng, bounds, n_lead, self.keep_out, margin + 1.5)
-        self.lead_goal = _sample_outside(rng, bounds, n_lead, self.keep_out, margin + 1.5)
+        self.lead_pos = _sample_outside(rng, bounds, n_lead, self.keep_out, margin + 1.5, p.walkable)
+        self.lead_goal = _sample_outside(rng, bounds, n_lead, self.keep_out, margin + 1.5, p.walkable)
         speed = np.clip(rng.normal(WALK_SPEED_MEAN, WALK_SPEED_STD, n_lead), lo, hi)
         # Groups walk at the pace of their slowest: a little slower than people alone.
         speed[p.n_walkers:] = np.clip(speed[p.n_walkers:] - 0.1, lo, hi)
@@ -178,7 +191,7 @@ class GeneratedCrowd:
         self.fol_offset = np.array(fol_offset, dtype=float).reshape(-1, 2)
         self.fol_pos = self._follower_targets()
 
-        self.stand_pos = _sample_outside(rng, bounds, p.n_standing, self.keep_out, margin + 0.5)
+        self.stand_pos = _sample_outside(rng, bounds, p.n_standing, self.keep_out, margin + 0.5, p.walkable)
         self.stand_heading = rng.uniform(-math.pi, math.pi, p.n_standing)
         self._lead_moving = np.ones(n_lead, bool)
         self._enforce()
@@ -215,8 +228,15 @@ class GeneratedCrowd:
         step_len = np.minimum(self.lead_speed * dt, dist)
         move = ~waiting
         new = self.lead_pos + direction * (step_len * move)[:, None]
+        off = np.zeros(len(new), bool)
+        if p.walkable is not None:
+            # Off open ground (a roof, water, a tree, between photos): the step is not taken and
+            # the walker picks another goal. Only from walkable ground, so that nobody is stuck
+            # where an edge rule (bounds, keep-out) put them.
+            off = move & p.walkable(self.lead_pos) & ~p.walkable(new)
+            new[off] = self.lead_pos[off]
         self.lead_pos = new
-        turned = move & (step_len > 1e-6)
+        turned = move & ~off & (step_len > 1e-6)
         # Heading turns smoothly (people do not pivot instantly); ~0.3 s time constant.
         target_h = np.arctan2(direction[:, 1], direction[:, 0])
         dh = (target_h - self.lead_heading + math.pi) % (2 * math.pi) - math.pi
@@ -224,11 +244,11 @@ class GeneratedCrowd:
                                      self.lead_heading)
         self._lead_moving = turned
 
-        arrived = move & (dist <= self.lead_speed * dt + 1e-9)
+        arrived = (move & (dist <= self.lead_speed * dt + 1e-9)) | off
         if arrived.any():
             k = int(arrived.sum())
             self.lead_goal[arrived] = _sample_outside(rng, self.bounds, k, self.keep_out,
-                                                      p.keep_out_margin + 1.5)
+                                                      p.keep_out_margin + 1.5, p.walkable)
             self.lead_wait[arrived] = rng.uniform(p.pause_s[0], p.pause_s[1], k)
 
         if len(self.fol_pos):
@@ -237,7 +257,12 @@ class GeneratedCrowd:
             d = target - self.fol_pos
             dist = np.hypot(d[:, 0], d[:, 1])
             k = np.minimum(1.0, 1.8 * dt / np.maximum(dist, 1e-9))
-            self.fol_pos = self.fol_pos + d * k[:, None]
+            new = self.fol_pos + d * k[:, None]
+            if p.walkable is not None:
+                # A follower whose slot lies off open ground waits at its edge.
+                stay = p.walkable(self.fol_pos) & ~p.walkable(new)
+                new[stay] = self.fol_pos[stay]
+            self.fol_pos = new
 
         # Standing people turn now and then (their shoulders change orientation).
         if len(self.stand_pos):

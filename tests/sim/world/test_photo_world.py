@@ -85,13 +85,25 @@ def test_each_ground_point_is_its_photos_pixel_and_class_north_up(ground) -> Non
     assert np.abs(want - got).min(axis=0).max() <= 40
 
 
-def test_the_ground_repeats_endlessly_and_gaps_are_unlabelled(ground) -> None:
+def test_the_ground_repeats_endlessly_and_photos_fill_their_shelves_mirrored(ground) -> None:
+    """No flat grey band between photos (it looked like the cleanest ground in view, and a
+    companion landed on it): each photo is mirrored into the room its shelf leaves, pixels,
+    classes and people alike."""
     on, oe = ground.origin
     for n, e in ((3.3, 7.7), (40.0, 90.0)):
         assert ground.surface_at(on + n, oe + e) == ground.surface_at(on + n + ground.block_n, oe + e - 2 * ground.block_e)
     cls = ground.class_map(on, on + ground.block_n, oe, oe + ground.block_e, 0.2)
-    assert (cls == 0).mean() < 0.2  # shelves leave some ground between photos, not much
+    assert (cls == 0).mean() < 0.01  # only the photos' own unlabelled pixels
     assert "unlabeled" not in PHOTO_LANDABLE
+    # A patch with room above it: the ground just north of its top edge is its top row mirrored.
+    p = next(p for p in ground.patches if p.cell_m[0] > p.size_m[0] + 1.0)
+    H, W = p.classes.shape
+    for x in (W // 4, W // 2, 3 * W // 4):
+        east = oe + p.east + (x + 0.5) * p.gsd
+        for y in (0, 3):
+            inside = on + p.north + (H - y - 0.5) * p.gsd
+            mirrored = on + p.north + (H + y + 0.5) * p.gsd
+            assert ground.surface_at(mirrored, east) == ground.surface_at(inside, east) == PHOTO_CLASSES[int(p.classes[y, x])]
 
 
 def test_the_photos_people_are_people_at_their_ground_positions(ground) -> None:
@@ -100,9 +112,10 @@ def test_the_photos_people_are_people_at_their_ground_positions(ground) -> None:
     people = ground.people(centre, half)
     inside = ((people[:, 0] >= on) & (people[:, 0] < on + ground.block_n)
               & (people[:, 1] >= oe) & (people[:, 1] < oe + ground.block_e))
-    assert inside.sum() == sum(len(p.people_px) for p in ground.patches)  # one block: each once
+    # One block: each person once, and once more for each mirror image in its patch's cell.
+    assert inside.sum() >= sum(len(p.people_px) for p in ground.patches)
     people = people[inside]
-    for north, east in people[:40]:
+    for north, east in people[::max(1, len(people) // 60)]:
         assert "person" in ground.surfaces_within(float(north), float(east), 0.4)
 
 
@@ -181,6 +194,28 @@ def test_open_ground_walkers_start_outside_the_circle_and_cross_it() -> None:
         entered = max(entered, world.people_within(free))
     assert entered > 0  # they walk across the free circle, as people do
     assert world.nobody_walks_at((0.0, 0.0)) is True  # the circle is still the scene's free area
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_walkers_keep_to_ground_people_walk_on(photos: str, ground, seed: int) -> None:
+    """Issue 59 item 2: walkers walk where people walk, not over roofs, water or trees: every
+    lone walker and standing person stays on walkable ground (by the class maps) for a minute."""
+    spec = FlightJob(seed, ground="photo", photos=photos).spec()
+    world, free, _start = build_world(spec)
+    crowds = [s for s in world.sources if getattr(getattr(s, "params", None), "walkable", None) is not None]
+    assert len(crowds) == 2  # the scene's crowd and the open-ground walkers
+    walkable = crowds[0].params.walkable
+    assert 0.2 < walkable.mask.mean() < 1.0  # the scene holds ground nobody walks on
+    moved = 0.0
+    for c in crowds:
+        assert walkable(c.lead_pos).all() and walkable(c.stand_pos).all()
+    for _ in range(300):
+        before = crowds[0].lead_pos.copy()
+        world.step(0.2)
+        for c in crowds:
+            assert walkable(c.lead_pos).all() and walkable(c.stand_pos).all()
+        moved += float(np.hypot(*(crowds[0].lead_pos - before).T).mean())
+    assert moved > 20.0  # they still walk (a metre or so a second, less their pauses and turns)
 
 
 def test_a_missing_or_malformed_photos_folder_is_named(tmp_path: Path, photos: str) -> None:

@@ -23,7 +23,8 @@ from companion.geometry.camera import GeometryError, PlaneProjection
 @dataclass(frozen=True)
 class GridParams:
     """cell: side of a grid cell in metres. max_extent: half-width in metres of the largest grid
-    around the point under the camera (bounds the work when the view reaches the horizon)."""
+    around the point under the camera (bounds the work when the view reaches the horizon; through
+    a lens that is not a pinhole, the footprint's seen radius bounds it too, ``_footprint_bounds``)."""
 
     cell: float = 0.1
     max_extent: float = 40.0
@@ -68,10 +69,17 @@ def _footprint_bounds(proj: PlaneProjection, image_hw: tuple[int, int], params: 
     else:
         pts = proj.image_to_plane(corners)
     ok = np.isfinite(pts).all(axis=1)
+    extent = params.max_extent
+    if proj.lens is not None and proj.camera_xy is not None:
+        # A wide lens sees far along its image's long side (a fisheye:160 at 20 m: the trusted
+        # cone's 50 m, against 32 m across), and the cells there are most of the grid's cost. The
+        # landing rules count on the footprint's round part only (``LensView.seen_radius``: the
+        # search's spacing, the judging and commit heights), so the grid ends there: beyond it the
+        # ground is unseen, never free; people found there are still placed.
+        extent = min(extent, max(params.cell, proj.lens.seen_radius()))
     if proj.camera_xy is not None:
         cx, cy = proj.camera_xy
-        box = (cx - params.max_extent, cy - params.max_extent,
-               cx + params.max_extent, cy + params.max_extent)
+        box = (cx - extent, cy - extent, cx + extent, cy + extent)
     else:
         box = (-math.inf, -math.inf, math.inf, math.inf)
     if ok.all():
@@ -88,7 +96,7 @@ def _footprint_bounds(proj: PlaneProjection, image_hw: tuple[int, int], params: 
     if not all(math.isfinite(v) for v in (xmin, ymin, xmax, ymax)):
         raise GeometryError("head-plane footprint is not finite")
     # Keep grids no larger than 2 * max_extent on a side even without a camera position.
-    span = 2 * params.max_extent
+    span = 2 * extent
     xmax, ymax = min(xmax, xmin + span), min(ymax, ymin + span)
     return xmin, ymin, xmax, ymax
 

@@ -107,7 +107,7 @@ def test_occupied_pixels_reach_the_grid_through_the_fisheye() -> None:
     proj = PlaneProjection.from_pose(FISHEYE, Mount(), pose, 1.7)
     grid = grid_for_view(proj, (480, 640), GridParams())
     free = np.full((480, 640), 255, np.uint8)
-    people = np.array([[3.0, 4.0], [-9.0, 5.0], [8.0, -8.0]])  # near, far, at the edge (m)
+    people = np.array([[3.0, 4.0], [-6.5, 4.0], [8.0, -8.0]])  # near, far, at the edge (m)
     uv = proj.plane_to_image(people)
     assert ((uv > 10) & (uv < [630, 470])).all()
     for u, v in uv:
@@ -229,9 +229,46 @@ def test_ground_wider_than_the_trusted_angle_is_unseen_though_people_there_are_p
     limit = 10.0 * math.tan(TRUSTED_THETA)  # 27.5 m out on the head plane, 10 m below the camera
     jj, ii = np.meshgrid(np.arange(grid.cols), np.arange(grid.rows))
     x, y = grid.to_plane(ii, jj)
-    # Across the image (east) the cone ends the view; along it (north) the image's own edge at 60 deg.
+    # Nothing wider than the cone is seen; within it, the grid ends at the footprint's seen radius
+    # (the image's own edge at 60 deg along it, north; test_the_grid_ends_at_the_seen_radius).
     across = np.abs(x) < 0.5
-    assert view[across & (np.abs(y) < limit - 1.0)].all() and not view[np.hypot(x, y) > limit + 0.5].any()
+    seen_r = proj.lens.seen_radius() if proj.lens is not None else 0.0
+    assert 17.0 < seen_r < limit
+    assert view[across & (np.abs(y) < seen_r - 0.5)].all() and not view[np.hypot(x, y) > limit + 0.5].any()
     assert grid.y0 > -limit - 1.0  # the grid ends where the trusted ground does
     far = proj.image_to_plane(proj.plane_to_image(np.array([[0.0, limit + 5.0]])))
     assert far[0] == pytest.approx([0.0, limit + 5.0], abs=1e-6)
+
+
+def test_the_grid_ends_at_the_seen_radius_through_a_wide_lens() -> None:
+    # A fisheye:160 at 20 m sees trusted ground 50 m out along its image's long side but 32 m
+    # across; the landing rules count on the round 32 m (Intrinsics.seen_ratio), and the grid ends
+    # there: 633 cells a side instead of 802 (GridParams.max_extent). Beyond, the ground is unseen
+    # (never free) though the lens sees it, and a person found there is still on the plane.
+    K = Intrinsics.from_fov(640, 480, 160.0, "fisheye")
+    pose = Pose(0.0, 5.0, -2.0, -20.0, 0.0, 0.0, 0.0)
+    proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)
+    assert proj.lens is not None
+    seen_r = proj.lens.seen_radius()
+    assert seen_r == pytest.approx(18.3 * K.seen_ratio()) and 31.0 < seen_r < 32.0
+    grid = grid_for_view(proj, (480, 640), GridParams())
+    assert grid.rows <= 2 * seen_r / grid.cell + 2 and grid.cols <= 2 * seen_r / grid.cell + 2
+    out, view = sample_with_view(np.full((480, 640), 255, np.uint8), proj, grid)
+    x, y = grid.to_plane(*np.meshgrid(np.arange(grid.rows), np.arange(grid.cols), indexing="ij"))
+    # Along the image's long side (east, with yaw 0) the view runs to the grid's end.
+    assert view[(np.abs(x - 5.0) < 0.5) & (np.abs(y + 2.0) < seen_r - 0.5)].all()
+    assert out[(np.abs(x - 5.0) < 0.5) & (np.abs(y + 2.0) < seen_r - 0.5)].all()
+    beyond = np.array([[5.0, -2.0 + seen_r + 8.0]])  # 40 m out east: in the lens, off the grid
+    assert np.isfinite(proj.lens.seen_to_image(beyond)).all()
+    assert grid.y0 + (grid.rows - 1) * grid.cell < beyond[0, 1]
+    assert proj.image_to_plane(proj.plane_to_image(beyond))[0] == pytest.approx(beyond[0], abs=1e-6)
+    # A pinhole's grid is the one it always was: its whole image, the long side wider than its
+    # seen radius (0.525 x 18.3 m), not cut to it.
+    K70 = Intrinsics.from_fov(640, 480, 70.0)
+    pin = PlaneProjection.from_pose(K70, Mount(), pose, 1.7)
+    pg = grid_for_view(pin, (480, 640), GridParams())
+    corners = pin.image_to_plane(np.array([[0.0, 0.0], [639.0, 0.0], [639.0, 479.0], [0.0, 479.0]]))
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    assert pg.x0 <= lo[0] and pg.y0 <= lo[1]
+    assert pg.x0 + (pg.cols - 1) * pg.cell >= hi[0] - pg.cell and pg.y0 + (pg.rows - 1) * pg.cell >= hi[1] - pg.cell
+    assert (hi - lo).max() > 2 * 18.3 * K70.seen_ratio() + 2.0

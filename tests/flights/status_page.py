@@ -9,6 +9,7 @@ import json
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
@@ -65,6 +66,14 @@ async def http_get(port: int, path: str, limit: int | None = None) -> bytes:
     writer.close()
     return data
 
+
+
+async def until_while_running(task: asyncio.Task[Any], done: Callable[[], bool], timeout_s: float) -> None:
+    """Poll ``done`` every 0.1 s until it holds, the service's ``task`` ends or ``timeout_s``
+    passes; the caller asserts what it needs (this only waits)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not task.done() and not done():
+        await asyncio.sleep(0.1)
 
 
 async def screenshot(port: int, path: Path) -> tuple[float, str | None]:

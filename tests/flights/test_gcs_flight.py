@@ -27,7 +27,14 @@ from companion.service.app import Service
 from companion.service.gcs import CONDITIONS, PHASE_CODES
 from companion.service.parts import load_model
 from sim.flights.flight import FlightSpec, build_scene, reserve_port
-from tests.flights.status_page import check_screenshot, http_get, page_now, page_text, screenshot
+from tests.flights.status_page import (
+    check_screenshot,
+    http_get,
+    page_now,
+    page_text,
+    screenshot,
+    until_while_running,
+)
 from tests.mavpeer import join_statustexts
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
@@ -98,11 +105,9 @@ async def _fly_on(record_dir: Path, link_port: int, cam_port: int, page_port: in
     await camera.start()
     task = asyncio.create_task(svc.run())
     try:
-        end = time.monotonic() + 60
-        while time.monotonic() < end and not task.done() and not (
-                svc.gcs.ready and svc.last_result is not None and svc.controller is not None
-                and svc.controller.zone_target() is not None):
-            await asyncio.sleep(0.1)
+        await until_while_running(
+            task, lambda: (svc.gcs.ready and svc.last_result is not None and svc.controller is not None
+                           and svc.controller.zone_target() is not None), 60)
         assert svc.gcs.ready and svc.controller is not None and svc.controller.zone_target() is not None, \
             "the service never saw a landing zone"
         # The page while it watches: real zones, a target, the live view.

@@ -18,7 +18,7 @@ from companion.mavlink.link import MavLink
 from companion.service.app import Service
 from companion.service.parts import load_model
 from sim.flights.flight import FlightSpec, build_scene, reserve_port
-from tests.flights.status_page import check_screenshot, page_now, page_text, screenshot
+from tests.flights.status_page import check_screenshot, page_now, page_text, screenshot, until_while_running
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 
@@ -36,19 +36,15 @@ async def _ground_then_air(tmp: Path) -> dict:
         await camera.start()
         task = asyncio.create_task(svc.run())
         try:
-            end = time.monotonic() + 60
-            while time.monotonic() < end and not task.done() and not (
-                    svc.gcs.ready and svc.health(time.monotonic()).reason == "on the ground"):
-                await asyncio.sleep(0.1)
+            await until_while_running(
+                task, lambda: svc.gcs.ready and svc.health(time.monotonic()).reason == "on the ground", 60)
             out["ground_health"] = svc.health(time.monotonic()).reason
             out["ground_shot"] = await screenshot(page.port, tmp / "page-ground.png")
             out["ground"] = await page_now(page.port)
             sim.take_off(14.0)
-            end = time.monotonic() + 90
-            while time.monotonic() < end and not task.done() and not (
-                    svc.health(time.monotonic()).ok and svc.last_result is not None
-                    and (svc.state.altitude_above_home() or 0.0) > 12.0):
-                await asyncio.sleep(0.1)
+            await until_while_running(
+                task, lambda: (svc.health(time.monotonic()).ok and svc.last_result is not None
+                               and (svc.state.altitude_above_home() or 0.0) > 12.0), 90)
             out["air_shot"] = await screenshot(page.port, tmp / "page-air.png")
             out["air"] = await page_now(page.port)
         finally:

@@ -319,6 +319,13 @@ class DensityModel:
         self._offset = (-np.asarray(self.spec.mean, np.float64) / std).astype(np.float32)
 
     @property
+    def any_size(self) -> bool:
+        """Whether the model takes frames of any size at their own scale (a fully convolutional
+        model), so that a crop of a frame gives the density of that part of it; a model with a
+        fixed input resizes every frame, and a crop would change its scale."""
+        return not any(self._fixed_hw)
+
+    @property
     def min_person_px(self) -> float | None:
         """Smallest person size in input pixels (longer side of the person's box) at which this
         model finds 99.5 % of people at its threshold; None when the model does not say. Free area

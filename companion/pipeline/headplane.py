@@ -113,6 +113,51 @@ def grid_for_view(proj: PlaneProjection, image_hw: tuple[int, int], params: Grid
     return GridSpec(x0, y0, c, rows, cols)
 
 
+#: Real pixels kept round the image of the seen disk when a lens's frame is cropped for the density
+#: model (``lens_crop_box``): the shipped stride-4 models' maps of a crop equal the whole frame's
+#: except in the 8 cells (32 px) next to the crop's edges, so the disk's pixels get exactly the
+#: whole frame's density. It also covers the free map's erosion before sampling (3-5 px) and the
+#: interpolated lens maps (under a pixel).
+CROP_MARGIN_PX = 32
+#: A crop that keeps more of the frame than this is not made: it would save nothing worth a copy.
+CROP_MAX_SHARE = 0.95
+
+
+def lens_crop_box(proj: PlaneProjection, image_hw: tuple[int, int], multiple: int,
+                  max_extent: float = math.inf, margin_px: int = CROP_MARGIN_PX, n: int = 64) -> tuple[int, int, int, int] | None:
+    """The part of the image the landing rules can use through a lens that is not a pinhole, as
+    a pixel box ``(x0, y0, x1, y1)`` (x1, y1 exclusive; x0, y0 multiples of ``multiple``, x1, y1
+    too unless at the frame's edge): the image of the seen disk (``LensView.seen_radius`` round
+    the point below the camera, at most ``max_extent``, the grid's window; a cell more for the
+    grid's snapping) plus ``margin_px``. Pixels outside it map to ground the rules count as unseen, so
+    the density model need not run on them (a fisheye:160 looking down at 4:3: the disk touches
+    the short sides, and the box is 512 of the 640 columns). None: the whole frame (a pinhole,
+    no camera position, a disk edge the lens does not see, or a box of at least
+    ``CROP_MAX_SHARE`` of the frame)."""
+    lens = proj.lens
+    if lens is None or proj.camera_xy is None or multiple < 1:
+        return None
+    h, w = image_hw
+    # The grid's own radius (``_footprint_bounds``): the seen radius within the window.
+    radius = min(lens.seen_radius(), max_extent)
+    if not (math.isfinite(radius) and radius > 0):
+        return None
+    cx, cy = proj.camera_xy
+    phi = np.linspace(0.0, 2 * math.pi, n, endpoint=False)
+    r = radius + 0.1  # the grid snaps to whole cells: a cell's worth more
+    uv = lens.plane_to_image(np.column_stack([cx + r * np.cos(phi), cy + r * np.sin(phi)]))
+    if not np.isfinite(uv).all():
+        return None
+    m = multiple
+    x0 = max(0, int(math.floor((uv[:, 0].min() - margin_px) / m)) * m)
+    y0 = max(0, int(math.floor((uv[:, 1].min() - margin_px) / m)) * m)
+    x1 = min(w, int(math.ceil((uv[:, 0].max() + 1 + margin_px) / m)) * m)
+    y1 = min(h, int(math.ceil((uv[:, 1].max() + 1 + margin_px) / m)) * m)
+    if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) >= CROP_MAX_SHARE * w * h:
+        return None
+    return x0, y0, x1, y1
+
+
 def pixels_per_cell(proj: PlaneProjection, grid: GridSpec) -> float:
     """Largest image distance in pixels spanned by one grid cell over the grid (sampled at its
     corners and centre). Sampling a map whose cells span several pixels by nearest neighbour could
@@ -150,19 +195,33 @@ def sample_to_grid(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec) 
     return _sample(free_img, proj, grid, False)[0]
 
 
-def sample_with_view(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec) -> tuple[np.ndarray, np.ndarray]:
+def sample_with_view(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
+                     box: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``sample_to_grid``, and the view on the same cells: uint8, 255 where the camera sees the
-    cell (free or occupied), 0 where it is unknown."""
-    out, view = _sample(free_img, proj, grid, True)
+    cell (free or occupied), 0 where it is unknown. ``box`` (a lens's ``lens_crop_box``): only
+    the pixels inside it were looked at, so cells outside are unknown."""
+    out, view = _sample(free_img, proj, grid, True, box)
     assert view is not None
     return out, view
 
 
+def _box_view(h: int, w: int, k: int, box: tuple[int, int, int, int]) -> np.ndarray:
+    """``_whole_view`` for a frame of which only ``box`` was looked at."""
+    x0, y0, x1, y1 = box
+    view: np.ndarray = np.zeros((h, w), np.uint8)
+    view[y0:y1, x0:x1] = 255
+    if k > 1:
+        view = cv2.erode(view, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return view
+
+
 def _sample(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec,
-            with_view: bool) -> tuple[np.ndarray, np.ndarray | None]:
+            with_view: bool, box: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     ppc = pixels_per_cell(proj, grid)
     if proj.lens is not None:
-        return _sample_lens(free_img, proj, grid, ppc, with_view)
+        return _sample_lens(free_img, proj, grid, ppc, with_view, box)
+    if box is not None:
+        raise ValueError("a crop box is a lens's (lens_crop_box); a pinhole's frame is looked at whole")
     src = free_img
     kernel = None
     if ppc > 1.0:
@@ -233,7 +292,8 @@ def lens_maps(proj: PlaneProjection, grid: GridSpec) -> tuple[np.ndarray, np.nda
 
 
 def _sample_lens(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec, ppc: float,
-                 with_view: bool) -> tuple[np.ndarray, np.ndarray | None]:
+                 with_view: bool, box: tuple[int, int, int, int] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
     """``_sample`` through a lens that is not a pinhole: each cell looks up its pixel (``lens_maps``)."""
     k = int(math.ceil(ppc + 1.0)) | 1
     kernel = np.ones((k, k), np.uint8)
@@ -243,6 +303,9 @@ def _sample_lens(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec, pp
     view = None
     if with_view:
         h, w = free_img.shape[:2]
-        view = cv2.remap(_whole_view(h, w, k), mx, my, cv2.INTER_NEAREST,
+        whole = _whole_view(h, w, k) if box is None else _box_view(h, w, k, box)
+        view = cv2.remap(whole, mx, my, cv2.INTER_NEAREST,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        if box is not None:
+            np.minimum(out, view, out=out)  # what was not looked at is not free
     return out, view

@@ -28,7 +28,14 @@ from companion.invariant import require
 from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.density import resolve_threshold
 from companion.pipeline.edges import edge_reason
-from companion.pipeline.headplane import GridParams, GridSpec, grid_for_view, sample_to_grid, sample_with_view
+from companion.pipeline.headplane import (
+    GridParams,
+    GridSpec,
+    grid_for_view,
+    lens_crop_box,
+    sample_to_grid,
+    sample_with_view,
+)
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, propose
@@ -220,6 +227,11 @@ class SLZPipeline:
         needed = config.calm or config.unwalked
         self.risk = GroundRiskMap(config.risk) if needed else None
         self.people = PeopleTracker(config.people) if config.people is not None else None
+        # Through a fisheye the density model runs on the part of the frame the rules can use
+        # (``headplane.lens_crop_box``) when it takes frames of any size: its stride, else None.
+        spec = getattr(density, "spec", None)
+        self._crop_multiple: int | None = (int(spec.stride) if spec is not None
+                                           and getattr(density, "any_size", False) else None)
         # A pinhole's distortion is undone on the image, then the homography holds; a fisheye's
         # projection goes through the lens cell by cell (``PlaneProjection.lens``).
         self._undistort = (intrinsics.undistort_maps()
@@ -237,6 +249,23 @@ class SLZPipeline:
                                 "head plane")
         return self.fixed_projection
 
+    def _density(self, frame: np.ndarray, box: tuple[int, int, int, int] | None) -> np.ndarray:
+        """The density map of the whole ``frame``, or of ``box`` only: outside it the map holds the
+        box's least value (no people, and ``min(D)``, which the occupancy step subtracts, is the
+        least over the pixels looked at; the occupancy outside is then cleared by the caller)."""
+        if box is None:
+            return np.asarray(self.density(frame))
+        x0, y0, x1, y1 = box
+        part = np.asarray(self.density(np.ascontiguousarray(frame[y0:y1, x0:x1])))
+        s = self._crop_multiple
+        assert s is not None  # a box is made only for a model with a stride
+        h, w = frame.shape[:2]
+        fill = float(np.nanmin(part)) if np.isfinite(part).any() else 0.0
+        full = np.full((*part.shape[:-2], math.ceil(h / s), math.ceil(w / s)), fill, part.dtype)
+        r0, c0 = y0 // s, x0 // s
+        full[..., r0:r0 + part.shape[-2], c0:c0 + part.shape[-1]] = part
+        return full
+
     def process(self, frame: np.ndarray, t: float, pose: Pose | None = None) -> FrameResult:
         """One frame: BGR uint8 (H, W, 3) captured at ``t`` seconds, seen from ``pose``."""
         if not isinstance(frame, np.ndarray) or frame.ndim not in (2, 3) or frame.size == 0:
@@ -250,13 +279,22 @@ class SLZPipeline:
         proj = self.projection_for(pose)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        density = np.asarray(self.density(frame))
+        box = None
+        if self._crop_multiple is not None and pose is not None:
+            box = lens_crop_box(proj, (h, w), self._crop_multiple, self.config.grid.max_extent)
+        density = self._density(frame, box)
         t1 = time.perf_counter()
         unlandable = None
         if self.surface is not None:
             unlandable = np.asarray(self.surface(frame))
         t_surface = time.perf_counter()
         free = occupancy_map(density, (h, w), self.config.occupancy)
+        if box is not None:
+            # Not looked at is not free (the view says unseen there too).
+            x0, y0, x1, y1 = box
+            kept = free[y0:y1, x0:x1].copy()
+            free = np.zeros_like(free)
+            free[y0:y1, x0:x1] = kept
         people_free = surface = None
         if unlandable is not None:
             thr = self.config.surface_threshold
@@ -271,7 +309,7 @@ class SLZPipeline:
                 surface = cv2.remap(surface, *self._undistort, cv2.INTER_NEAREST,
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         grid = grid_for_view(proj, (h, w), self.config.grid)
-        free_grid, seen = sample_with_view(free, proj, grid)
+        free_grid, seen = sample_with_view(free, proj, grid, box)
         people_grid = surface_grid = None
         if surface is not None:
             # Sampling keeps a cell free only when all its pixels are (erosion, then nearest):

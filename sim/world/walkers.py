@@ -326,11 +326,18 @@ class MillingCrowd:
     with ``jitter`` metres of random displacement, shuffling at up to 0.4 m/s. The largest circle
     free of people anywhere inside the covered area is then bounded by about
     ``(spacing / sqrt(2) + jitter + wander)``.
+
+    ``walkable`` (:data:`Walkable`; None: anywhere): where people stand. With it, a home whose
+    jittered point is not walkable moves back to its grid point, and is dropped when that is not
+    walkable either (nobody stands on a roof, in a pond or a tree); a shuffle target off walkable
+    ground is the home instead, and a step from walkable ground onto ground that is not is not
+    taken, as for :class:`GeneratedCrowd`'s walkers. The bound above then holds on walkable
+    ground. None draws exactly the crowd it always drew (the drawn ground's rows).
     """
 
     def __init__(self, bounds: Bounds, spacing: float = 2.0, jitter: float = 0.4,
                  wander: float = 0.3, seed: int = 0, keep_out: list[Circle] | None = None,
-                 keep_out_margin: float = 0.3) -> None:
+                 keep_out_margin: float = 0.3, walkable: Walkable | None = None) -> None:
         if spacing <= 0:
             raise ValueError(f"spacing must be > 0 m, got {spacing}")
         self.bounds = bounds
@@ -339,8 +346,14 @@ class MillingCrowd:
         n_ = np.arange(bounds.north_min + spacing / 2, bounds.north_max, spacing)
         e_ = np.arange(bounds.east_min + spacing / 2, bounds.east_max, spacing)
         gn, ge = np.meshgrid(n_, e_, indexing="ij")
-        home = np.column_stack([gn.ravel(), ge.ravel()])
-        home = bounds.clip(home + self.rng.uniform(-jitter, jitter, home.shape))
+        grid = np.column_stack([gn.ravel(), ge.ravel()])
+        home = bounds.clip(grid + self.rng.uniform(-jitter, jitter, grid.shape))
+        self.walkable = walkable
+        if walkable is not None:
+            # After the jitter's draw, so the stream (headings, shuffles) is drawn the same way.
+            off = ~walkable(home)
+            home[off] = grid[off]
+            home = home[walkable(home)]
         # Nobody's home, nor where they shuffle to, lies in a keep-out circle (free ground).
         for c in keep_out or ():
             d = np.hypot(home[:, 0] - c.north, home[:, 1] - c.east)
@@ -360,12 +373,22 @@ class MillingCrowd:
         if k:
             a = rng.uniform(-math.pi, math.pi, k)
             r = self.wander * np.sqrt(rng.random(k))
-            self.target[new_t] = self.home[new_t] + np.column_stack([np.cos(a), np.sin(a)]) * r[:, None]
+            target = self.home[new_t] + np.column_stack([np.cos(a), np.sin(a)]) * r[:, None]
+            if self.walkable is not None:
+                off = ~self.walkable(target)
+                target[off] = self.home[new_t][off]
+            self.target[new_t] = target
         d = self.target - self.pos
         dist = np.hypot(d[:, 0], d[:, 1])
         k = np.minimum(1.0, 0.4 * dt / np.maximum(dist, 1e-9))
-        self.pos = self.bounds.clip(self.pos + d * k[:, None])
-        self._moving = dist > 0.05
+        new = self.bounds.clip(self.pos + d * k[:, None])
+        stay = np.zeros(len(new), bool)
+        if self.walkable is not None:
+            # The way to a walkable target can cut a corner of a roof or a pond: wait at its edge.
+            stay = self.walkable(self.pos) & ~self.walkable(new)
+            new[stay] = self.pos[stay]
+        self.pos = new
+        self._moving = (dist > 0.05) & ~stay
         h = np.arctan2(d[:, 1], d[:, 0])
         self.heading = np.where(self._moving, h, self.heading)
 

@@ -190,6 +190,11 @@ class GeneratedCrowd:
         self.fol_leader = np.array(fol_leader, dtype=int)
         self.fol_offset = np.array(fol_offset, dtype=float).reshape(-1, 2)
         self.fol_pos = self._follower_targets()
+        if p.walkable is not None and len(self.fol_pos):
+            # A follower whose slot lies off open ground starts beside its leader (on it), not on
+            # the roof or the water: the rule below keeps it there only if it starts there.
+            off = ~p.walkable(self.fol_pos)
+            self.fol_pos[off] = self.lead_pos[self.fol_leader[off]]
 
         self.stand_pos = _sample_outside(rng, bounds, p.n_standing, self.keep_out, margin + 0.5, p.walkable)
         self.stand_heading = rng.uniform(-math.pi, math.pi, p.n_standing)

@@ -333,8 +333,9 @@ class MillingCrowd:
     ``(spacing / sqrt(2) + jitter + wander)``.
 
     ``walkable`` (:data:`Walkable`; None: anywhere): where people stand. With it, a home whose
-    jittered point is not walkable moves back to its grid point, and is dropped when that is not
-    walkable either (nobody stands on a roof, in a pond or a tree); a shuffle target off walkable
+    jittered point is not walkable moves back to its grid point, else to the nearest walkable
+    point of its cell, and is dropped when the cell has none (nobody stands on a roof, in a pond
+    or a tree); a shuffle target off walkable
     ground is the home instead, and a step from walkable ground onto ground that is not is not
     taken, as for :class:`GeneratedCrowd`'s walkers. The bound above then holds on walkable
     ground. None draws exactly the crowd it always drew (the drawn ground's rows).
@@ -358,7 +359,7 @@ class MillingCrowd:
             # After the jitter's draw, so the stream (headings, shuffles) is drawn the same way.
             off = ~walkable(home)
             home[off] = grid[off]
-            home = home[walkable(home)]
+            home = home[self._onto_walkable(home, walkable)]
         # Nobody's home, nor where they shuffle to, lies in a keep-out circle (free ground).
         for c in keep_out or ():
             d = np.hypot(home[:, 0] - c.north, home[:, 1] - c.east)
@@ -368,6 +369,26 @@ class MillingCrowd:
         self.target = self.home.copy()
         self.heading = self.rng.uniform(-math.pi, math.pi, len(self.home))
         self._moving = np.zeros(len(self.home), bool)
+
+    def _onto_walkable(self, home: np.ndarray, walkable: Walkable) -> np.ndarray:
+        """Move each home (in place) that is not on walkable ground to the walkable point of its
+        grid cell nearest to it (a 5 x 5 lattice across the cell, no random draw), so a strip of
+        open ground narrower than a cell still has its people; (N,) bool, False where the cell
+        holds no walkable point (the home is dropped)."""
+        ok = walkable(home)
+        off = np.flatnonzero(~ok)
+        if len(off) == 0:
+            return ok
+        a = np.linspace(-0.45, 0.45, 5) * self.spacing
+        lattice = np.stack(np.meshgrid(a, a, indexing="ij"), axis=-1).reshape(-1, 2)
+        lattice = lattice[np.argsort(np.hypot(lattice[:, 0], lattice[:, 1]), kind="stable")]
+        cand = self.bounds.clip((home[off, None, :] + lattice[None]).reshape(-1, 2)).reshape(len(off), len(lattice), 2)
+        good = walkable(cand.reshape(-1, 2)).reshape(len(off), len(lattice))
+        found = good.any(axis=1)
+        first = np.argmax(good, axis=1)  # the nearest walkable lattice point (sorted by distance)
+        home[off[found]] = cand[found, first[found]]
+        ok[off[found]] = True
+        return ok
 
     def step(self, dt: float) -> None:
         if dt <= 0:

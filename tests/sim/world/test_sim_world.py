@@ -172,6 +172,23 @@ def test_a_dense_crowd_stands_where_people_stand_and_packs_the_rest() -> None:
             assert np.min(np.hypot(*(people - q).T)) < 2.5, q
 
 
+def test_a_path_narrower_than_the_crowds_grid_still_has_its_people() -> None:
+    """A 1 m wide path between roofs, off every grid point: the homes of the cells it crosses move
+    onto it (the nearest walkable point of the cell), so the path is as packed as open ground."""
+    def path(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p, float).reshape(-1, 2)
+        return np.abs(p[:, 1] - 0.3) < 0.5
+
+    world = dense_crowd(seed=3, centre=(0.0, 0.0), half_size=10.0, spacing=2.0, n_walkers=0, walkable=path)
+    assert len(world) >= 10 and path(world.positions()).all()
+    for _ in range(300):
+        world.step(DT)
+    people = world.positions()
+    assert path(people).all()
+    for n in np.arange(-9.0, 9.5, 0.5):
+        assert np.min(np.hypot(people[:, 0] - n, people[:, 1] - 0.3)) < 1.5, n
+
+
 def test_a_dense_crowd_anywhere_is_drawn_as_it_always_was() -> None:
     """Walkable ground everywhere draws exactly the crowd of no walkable map: the option draws no
     random number of its own, so the drawn ground's worlds (walkable None) keep their people and

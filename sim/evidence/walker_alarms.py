@@ -1,7 +1,8 @@
 """The people stage's walkers against the simulator's truth: how often the landing question is
 answered wrongly.
 
-``python -m sim.evidence.walker_alarms --seeds 2,5,8,9 [--edge-px 0,16] [--seconds 30] [--model FILE.onnx]``
+``python -m sim.evidence.walker_alarms --seeds 2,5,8,9 [--edge-px 0,16] [--seconds 30] [--model FILE.onnx]
+[--ground photo [--photos DIR]]``
 
 With ``controller.predict_people`` the controller asks, just before it commits a landing, whether
 anybody seen walking will come within ``r0`` of the landing point while the landing is committed
@@ -27,6 +28,13 @@ followed with nobody within 1 m; and for the real walkers, the tracker's speed a
 over the last second (mean error, mean absolute error, how often over 1.5 times theirs). A
 danger the camera cannot see (a walker outside the view) is counted as missed: that is the floor
 of "The physics of the last metres", not a fault of the tracker.
+
+``--ground photo`` (``--photos DIR``, default ``../shared/data/semantic_drone/full``) asks the same
+over the photo world (docs/photo-world.md): each seed's photo scene as the flights build it, its
+circle landable by the class maps, its walkers real silhouettes keeping to walkable ground, and
+the photos' own people in the truth (they stand still). Each seed then also says how many of
+the world's people, frame by frame, stood off walkable ground by the class maps (the scripted
+crossers' approach may start there, as in the flights).
 """
 
 from __future__ import annotations
@@ -53,10 +61,12 @@ from companion.pipeline.people import (
     predicted_clearance,
 )
 from companion.pipeline.slz import PipelineConfig
-from sim.flights.flight import build_world
-from sim.flights.scenarios import parse_seeds, scenario
-from sim.world.crowd import add_crossing_walkers
+from sim.flights.flight import build_world, photo_ground
+from sim.flights.scenarios import FlightJob, parse_seeds, scenario
+from sim.flights.spec import photos_folder
+from sim.world.crowd import World, add_crossing_walkers
 from sim.world.ground import ProceduralGround
+from sim.world.photo_ground import PhotoGround
 from sim.world.render import render_world
 
 #: The head plane the service places people on (m above the ground).
@@ -90,6 +100,7 @@ class AlarmFigure:
     speed_error_sum: float = 0.0
     speed_abs_error_sum: float = 0.0
     speed_over_1_5: int = 0
+    ground: str = "procedural"
 
     @property
     def false_alarm_rate(self) -> float:
@@ -131,33 +142,59 @@ class Descent:
     intrinsics: Intrinsics
     frames: list[Frame]
     truth: list[tuple[float, np.ndarray]] = field(repr=False)
+    ground: str = "procedural"
+    #: Photo ground: the world's people seen in the frames (people x frames), and how many of
+    #: them stood off walkable ground by the class maps; 0 and 0 on the drawn ground.
+    people_frames: int = 0
+    off_walkable: int = 0
 
 
-def fly_over_circle(model: DensityModel, seed: int, seconds: float = 30.0, horizon_s: float = 8.0) -> Descent:
+def everyone(world: World) -> tuple[np.ndarray, np.ndarray]:
+    """The world's people, moving and fixed in the ground (the photos' people, who count for the
+    truth as everyone else), (N, 2) north/east m, and their ids (the fixed ones' negative)."""
+    people, ids = world.positions().copy(), world.ids().copy()
+    fixed = np.empty((0, 2)) if world.fixed_people is None else np.asarray(world.fixed_people, float).reshape(-1, 2)
+    if len(fixed) == 0:
+        return people, ids
+    return np.vstack([people, fixed]), np.concatenate([ids, -1 - np.arange(len(fixed), dtype=np.int64)])
+
+
+def fly_over_circle(model: DensityModel, seed: int, seconds: float = 30.0, horizon_s: float = 8.0,
+                    photos: str | None = None) -> Descent:
     """The :class:`Descent` of ``seed``: frames for ``seconds``, the truth until ``horizon_s``
-    after the last frame."""
-    spec = scenario(seed, "ardupilot")  # the scene does not depend on the flavour
+    after the last frame. ``photos``: the seed's photo world over that folder's photos instead
+    of its drawn world."""
+    # The scene does not depend on the flavour.
+    spec = (scenario(seed, "ardupilot") if photos is None
+            else FlightJob(seed, "ardupilot", ground="photo", photos=photos).spec())
     world, free, _start = build_world(spec)
     kk = Intrinsics.from_fov(640, 480, spec.hfov_deg)
     if free is None:
-        return Descent(spec.world, (math.nan, math.nan), kk, [], [])
+        return Descent(spec.world, (math.nan, math.nan), kk, [], [], spec.ground)
     if spec.world == "crossing":
         add_crossing_walkers(world, free, 2.0, spec.seed)
-    ground = ProceduralGround(seed)
+    ground: ProceduralGround | PhotoGround = ProceduralGround(seed) if photos is None else photo_ground(photos)
+    # The ground people walk on around the circle: as far as a 90 deg view reaches from 18 m.
+    walkable = None if photos is None else photo_ground(photos).walkable((free.north, free.east), 60.0)
     frames: list[Frame] = []
     truth: list[tuple[float, np.ndarray]] = []
+    seen = off = 0
     for _ in range(int(round((seconds + horizon_s) * FPS))):
         world.step(1.0 / FPS)
-        t, people = world.t, world.positions().copy()
+        t = world.t
+        people, ids = everyone(world)
         truth.append((t, people))
         if t > seconds + 1e-9:
             continue
+        if walkable is not None:
+            moving = world.positions()
+            seen += len(moving)
+            off += int(np.count_nonzero(~walkable(moving)))
         height = max(18.0 - t / 3.0, 8.0)
         pose = Pose(t, free.north + 0.3 * math.sin(0.7 * t), free.east + 0.3 * math.cos(0.5 * t), -height,
                     math.radians(1.5) * math.sin(1.1 * t), math.radians(1.5) * math.cos(0.9 * t), 0.2)
-        frames.append(Frame(t, pose, model(render_world(world, pose, kk, Mount(), ground)), people,
-                            world.ids().copy()))
-    return Descent(spec.world, (free.north, free.east), kk, frames, truth)
+        frames.append(Frame(t, pose, model(render_world(world, pose, kk, Mount(), ground)), people, ids))
+    return Descent(spec.world, (free.north, free.east), kk, frames, truth, spec.ground, seen, off)
 
 
 def nearest(q: Person, t: float, people: np.ndarray) -> int | None:
@@ -199,7 +236,7 @@ def score(descent: Descent, threshold: float, params: PeopleParams, r0_m: float 
     kk, truth = descent.intrinsics, descent.truth
     image_hw = (kk.height, kk.width)
     tracker = PeopleTracker(params)
-    fig = AlarmFigure(0, descent.world, params.edge_px)
+    fig = AlarmFigure(0, descent.world, params.edge_px, ground=descent.ground)
     lag = int(round(FPS))  # frames: the truth's speed over the last second
     times = np.array([t for t, _ in truth])
     cn, ce = descent.centre
@@ -258,8 +295,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--blind-from", type=float, default=4.5, help="start of the predicted window, s (default 4.5)")
     ap.add_argument("--horizon", type=float, default=8.0, help="end of the predicted window, s (default 8)")
     ap.add_argument("--model", type=Path, default=SHIPPED_MODEL, help="ONNX density model (default: the shipped one)")
+    ap.add_argument("--ground", choices=("procedural", "photo"), default="procedural",
+                    help="the drawn ground (default) or the photo world's (docs/photo-world.md)")
+    ap.add_argument("--photos", type=Path, default=None,
+                    help="the photos of --ground photo (default ../shared/data/semantic_drone/full)")
     ap.add_argument("--json", action="store_true", help="one JSON object per seed and edge, then the totals")
     args = ap.parse_args(argv)
+    try:
+        photos = photos_folder(args.ground, args.photos)
+    except ValueError as e:
+        print(f"error: --photos: {e}", file=sys.stderr)
+        return 2
     try:
         seeds = parse_seeds(args.seeds)
         edges = [float(e) for e in args.edge_px.split(",")]
@@ -275,12 +321,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     model = DensityModel(args.model, threads=2)
     threshold = float(model.spec.occupancy_threshold or 0.0)
-    totals = {edge: AlarmFigure(0, "all", edge) for edge in edges}
+    totals = {edge: AlarmFigure(0, "all", edge, ground=args.ground) for edge in edges}
     for seed in seeds:
-        descent = fly_over_circle(model, seed, args.seconds, args.horizon)
+        descent = fly_over_circle(model, seed, args.seconds, args.horizon, photos)
         if not descent.frames:
             print(f"seed {seed}: {descent.world} has no free circle, skipped", file=sys.stderr)
             continue
+        if photos is not None:
+            print(f"seed {seed}: {descent.off_walkable} of {descent.people_frames} people x frames stood off "
+                  "walkable ground by the class maps", file=sys.stderr)
         for edge in edges:
             fig = score(descent, threshold, PeopleParams(edge_px=edge), blind_from_s=args.blind_from,
                         horizon_s=args.horizon)

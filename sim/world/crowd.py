@@ -14,7 +14,8 @@ Scenario builders for the SITL tests:
 - :func:`default_world`: a park-like mix of walkers, groups and standing people.
 - :func:`crowd_with_free_area`: the same, with a circle that nobody ever enters
   (``world.free_areas``).
-- :func:`dense_crowd`: people everywhere in a square around a point, no landing circle anywhere.
+- :func:`dense_crowd`: people everywhere in a square around a point (everywhere people can stand),
+  no landing circle anywhere.
 - :meth:`World.add_intrusion`: people that walk into a circle at a given time (and stay).
 - :meth:`World.add_crossing` / :func:`add_crossing_walkers`: people that walk across a circle and
   out again, at walking speed, at given times (the ``crossing`` scenario: a landing zone crossed
@@ -302,11 +303,14 @@ def dense_crowd(seed: int = 0, centre: tuple[float, float] = (0.0, 0.0), half_si
     crowd on a ``spacing``-metre jittered grid plus some walkers crossing it. No circle of radius
     above about ``spacing`` metres is free anywhere inside (check with
     :meth:`World.largest_free_circle`), except ``free`` when given: a circle nobody enters
-    (``world.free_areas[0]``), for a search to find. ``walkable``: where the walkers walk (the
-    milling crowd stands everywhere: a dense world has nobody's free ground)."""
+    (``world.free_areas[0]``), for a search to find. ``walkable``: where the walkers walk and
+    the milling crowd stands (:class:`~sim.world.walkers.MillingCrowd`); None: anywhere. With it,
+    nobody stands on a roof, in water or a tree, and the bound on free circles holds on walkable
+    ground."""
     bounds = Bounds.around(centre, half_size)
     keep_out = [] if free is None else [free]
-    sources: list[MotionSource] = [MillingCrowd(bounds, spacing=spacing, seed=seed, keep_out=keep_out)]
+    sources: list[MotionSource] = [MillingCrowd(bounds, spacing=spacing, seed=seed, keep_out=keep_out,
+                                                        walkable=walkable)]
     if n_walkers:
         sources.append(GeneratedCrowd(bounds, CrowdParams(n_walkers=n_walkers, n_groups=0, n_standing=0,
                                                           keep_out=keep_out, walkable=walkable), seed + 1))

@@ -190,6 +190,11 @@ class GeneratedCrowd:
         self.fol_leader = np.array(fol_leader, dtype=int)
         self.fol_offset = np.array(fol_offset, dtype=float).reshape(-1, 2)
         self.fol_pos = self._follower_targets()
+        if p.walkable is not None and len(self.fol_pos):
+            # A follower whose slot lies off open ground starts beside its leader (on it), not on
+            # the roof or the water: the rule below keeps it there only if it starts there.
+            off = ~p.walkable(self.fol_pos)
+            self.fol_pos[off] = self.lead_pos[self.fol_leader[off]]
 
         self.stand_pos = _sample_outside(rng, bounds, p.n_standing, self.keep_out, margin + 0.5, p.walkable)
         self.stand_heading = rng.uniform(-math.pi, math.pi, p.n_standing)
@@ -326,11 +331,19 @@ class MillingCrowd:
     with ``jitter`` metres of random displacement, shuffling at up to 0.4 m/s. The largest circle
     free of people anywhere inside the covered area is then bounded by about
     ``(spacing / sqrt(2) + jitter + wander)``.
+
+    ``walkable`` (:data:`Walkable`; None: anywhere): where people stand. With it, a home whose
+    jittered point is not walkable moves back to its grid point, else to the nearest walkable
+    point of its cell, and is dropped when the cell has none (nobody stands on a roof, in a pond
+    or a tree); a shuffle target off walkable
+    ground is the home instead, and a step from walkable ground onto ground that is not is not
+    taken, as for :class:`GeneratedCrowd`'s walkers. The bound above then holds on walkable
+    ground. None draws exactly the crowd it always drew (the drawn ground's rows).
     """
 
     def __init__(self, bounds: Bounds, spacing: float = 2.0, jitter: float = 0.4,
                  wander: float = 0.3, seed: int = 0, keep_out: list[Circle] | None = None,
-                 keep_out_margin: float = 0.3) -> None:
+                 keep_out_margin: float = 0.3, walkable: Walkable | None = None) -> None:
         if spacing <= 0:
             raise ValueError(f"spacing must be > 0 m, got {spacing}")
         self.bounds = bounds
@@ -339,8 +352,14 @@ class MillingCrowd:
         n_ = np.arange(bounds.north_min + spacing / 2, bounds.north_max, spacing)
         e_ = np.arange(bounds.east_min + spacing / 2, bounds.east_max, spacing)
         gn, ge = np.meshgrid(n_, e_, indexing="ij")
-        home = np.column_stack([gn.ravel(), ge.ravel()])
-        home = bounds.clip(home + self.rng.uniform(-jitter, jitter, home.shape))
+        grid = np.column_stack([gn.ravel(), ge.ravel()])
+        home = bounds.clip(grid + self.rng.uniform(-jitter, jitter, grid.shape))
+        self.walkable = walkable
+        if walkable is not None:
+            # After the jitter's draw, so the stream (headings, shuffles) is drawn the same way.
+            off = ~walkable(home)
+            home[off] = grid[off]
+            home = home[self._onto_walkable(home, walkable)]
         # Nobody's home, nor where they shuffle to, lies in a keep-out circle (free ground).
         for c in keep_out or ():
             d = np.hypot(home[:, 0] - c.north, home[:, 1] - c.east)
@@ -351,6 +370,26 @@ class MillingCrowd:
         self.heading = self.rng.uniform(-math.pi, math.pi, len(self.home))
         self._moving = np.zeros(len(self.home), bool)
 
+    def _onto_walkable(self, home: np.ndarray, walkable: Walkable) -> np.ndarray:
+        """Move each home (in place) that is not on walkable ground to the walkable point of its
+        grid cell nearest to it (a 5 x 5 lattice across the cell, no random draw), so a strip of
+        open ground narrower than a cell still has its people; (N,) bool, False where the cell
+        holds no walkable point (the home is dropped)."""
+        ok = walkable(home)
+        off = np.flatnonzero(~ok)
+        if len(off) == 0:
+            return ok
+        a = np.linspace(-0.45, 0.45, 5) * self.spacing
+        lattice = np.stack(np.meshgrid(a, a, indexing="ij"), axis=-1).reshape(-1, 2)
+        lattice = lattice[np.argsort(np.hypot(lattice[:, 0], lattice[:, 1]), kind="stable")]
+        cand = self.bounds.clip((home[off, None, :] + lattice[None]).reshape(-1, 2)).reshape(len(off), len(lattice), 2)
+        good = walkable(cand.reshape(-1, 2)).reshape(len(off), len(lattice))
+        found = good.any(axis=1)
+        first = np.argmax(good, axis=1)  # the nearest walkable lattice point (sorted by distance)
+        home[off[found]] = cand[found, first[found]]
+        ok[off[found]] = True
+        return ok
+
     def step(self, dt: float) -> None:
         if dt <= 0:
             return
@@ -360,12 +399,22 @@ class MillingCrowd:
         if k:
             a = rng.uniform(-math.pi, math.pi, k)
             r = self.wander * np.sqrt(rng.random(k))
-            self.target[new_t] = self.home[new_t] + np.column_stack([np.cos(a), np.sin(a)]) * r[:, None]
+            target = self.home[new_t] + np.column_stack([np.cos(a), np.sin(a)]) * r[:, None]
+            if self.walkable is not None:
+                off = ~self.walkable(target)
+                target[off] = self.home[new_t][off]
+            self.target[new_t] = target
         d = self.target - self.pos
         dist = np.hypot(d[:, 0], d[:, 1])
         k = np.minimum(1.0, 0.4 * dt / np.maximum(dist, 1e-9))
-        self.pos = self.bounds.clip(self.pos + d * k[:, None])
-        self._moving = dist > 0.05
+        new = self.bounds.clip(self.pos + d * k[:, None])
+        stay = np.zeros(len(new), bool)
+        if self.walkable is not None:
+            # The way to a walkable target can cut a corner of a roof or a pond: wait at its edge.
+            stay = self.walkable(self.pos) & ~self.walkable(new)
+            new[stay] = self.pos[stay]
+        self.pos = new
+        self._moving = (dist > 0.05) & ~stay
         h = np.arctan2(d[:, 1], d[:, 0])
         self.heading = np.where(self._moving, h, self.heading)
 

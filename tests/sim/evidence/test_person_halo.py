@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import json
+import math
+from pathlib import Path
 
 import pytest
 
-from sim.evidence.person_halo import main, measure, parse_floats
+from sim.evidence.person_halo import BEARINGS_DEG, PHOTO_DISC_MARGIN_M, main, measure, parse_floats, photo_point
+from sim.flights.flight import photo_ground
+from sim.world.photo_ground import PHOTO_WALKABLE
 
 
 def test_a_person_is_marked_nearer_than_they_stand_by_about_a_metre(model_path) -> None:
@@ -34,3 +38,48 @@ def test_json_rows(model_path, capsys) -> None:
     assert main(["--heights", "7", "--distances", "3", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert rows[0]["height_m"] == 7 and rows[0]["distance_m"] == 3 and len(rows[0]["halo_m"]) == 4
+
+
+@pytest.fixture(scope="module")
+def photos(shared_dir: Path) -> str:
+    folder = shared_dir / "data" / "semantic_drone" / "full"
+    if not (folder / "images").is_dir():
+        pytest.skip(f"needs the held-out full-size photos at {folder}")
+    return str(folder.resolve())
+
+
+def test_over_the_photo_ground_the_person_stands_on_walkable_ground(photos: str, model_path, capsys) -> None:
+    """``--ground photo``: the point below is drawn where the disc out to the person is walkable
+    ground with none of the photos' people in it, so at every bearing the person stands on paved
+    area, dirt, grass or gravel by the class maps; the row says the ground, the free radius with
+    nobody there and how far the photos' nearest person stands."""
+    ground = photo_ground(photos)
+    (cn, ce), near = photo_point(ground, 18, 3.0)
+    for bearing in BEARINGS_DEG:
+        b = math.radians(bearing)
+        assert ground.surface_at(cn + 3.0 * math.cos(b), ce + 3.0 * math.sin(b)) in PHOTO_WALKABLE
+    assert near > 3.0 + PHOTO_DISC_MARGIN_M
+    (row,) = measure([10.0], [3.0], seed=18, photos=photos)
+    assert row.ground == "photo" and row.nearest_other_m == round(near, 2)
+    assert row.empty_m is not None and 0.0 <= row.empty_m <= row.view_m and len(row.free_m) == 4
+    # A halo only where the person, not the view's end nor the ground's own marks, sets the radius.
+    for r, h in zip(row.free_m, row.halo_m, strict=True):
+        assert h is None or (r < row.view_m and row.empty_m > 3.0 and h == round(3.0 - r, 2))
+    assert main(["--heights", "10", "--distances", "3", "--ground", "photo", "--photos", photos, "--json"]) == 0
+    (out,) = json.loads(capsys.readouterr().out)
+    assert out["ground"] == "photo" and out["free_m"] == row.free_m
+    # No walkable disc is 80 m wide: said, exit 2, before any frame.
+    assert main(["--heights", "10", "--distances", "80", "--ground", "photo", "--photos", photos]) == 2
+    assert "no landable disc" in capsys.readouterr().err
+
+
+def test_a_missing_or_malformed_photos_folder_is_exit_2_naming_it(tmp_path: Path, capsys) -> None:
+    missing = tmp_path / "nowhere"
+    assert main(["--ground", "photo", "--photos", str(missing), "--heights", "10", "--distances", "3"]) == 2
+    assert str(missing) in capsys.readouterr().err
+    (tmp_path / "bad" / "images").mkdir(parents=True)
+    (tmp_path / "bad" / "labels").mkdir()
+    assert main(["--ground", "photo", "--photos", str(tmp_path / "bad")]) == 2
+    assert str(tmp_path / "bad") in capsys.readouterr().err
+    assert main(["--photos", str(tmp_path / "bad")]) == 2  # --photos without --ground photo
+    assert "--ground photo" in capsys.readouterr().err

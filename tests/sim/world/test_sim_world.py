@@ -147,6 +147,64 @@ def test_dense_crowd_has_no_landing_circle_anywhere() -> None:
     assert sparse.largest_free_circle((0.0, 0.0), 25.0)[2] > 5.0
 
 
+def _pond(p: np.ndarray) -> np.ndarray:
+    """Walkable ground: everywhere but a pond of 8 m radius at (10, -5) and a strip of roofs
+    north of 18 m (world north, east)."""
+    p = np.asarray(p, float).reshape(-1, 2)
+    return (np.hypot(p[:, 0] - 10.0, p[:, 1] + 5.0) > 8.0) & (p[:, 0] < 18.0)
+
+
+def test_a_dense_crowd_stands_where_people_stand_and_packs_the_rest() -> None:
+    """Issue 59: on the photo ground the milling crowd keeps off roofs and water, as the walkers
+    do: nobody stands, shuffles or walks there for a minute, and the walkable ground is still
+    packed (no circle of room anywhere on it)."""
+    world = dense_crowd(seed=2, centre=(10.0, -5.0), half_size=30.0, spacing=2.0, walkable=_pond)
+    everywhere = dense_crowd(seed=2, centre=(10.0, -5.0), half_size=30.0, spacing=2.0)
+    assert len(world.sources[0].positions()) < 0.8 * len(everywhere.sources[0].positions())
+    for _ in range(600):
+        world.step(DT)
+        assert _pond(world.positions()).all()
+    walkable_pts = np.array([[n, e] for n in np.arange(-15.0, 16.0, 1.0) for e in np.arange(-30.0, 21.0, 1.0)])
+    people = world.positions()
+    for q in walkable_pts[_pond(walkable_pts)]:
+        if _pond(q + np.array([[2.0, 0.0], [-2.0, 0.0], [0.0, 2.0], [0.0, -2.0]])).all():
+            # Ground with walkable room around it has somebody within about a spacing.
+            assert np.min(np.hypot(*(people - q).T)) < 2.5, q
+
+
+def test_a_path_narrower_than_the_crowds_grid_still_has_its_people() -> None:
+    """A 1 m wide path between roofs, off every grid point: the homes of the cells it crosses move
+    onto it (the nearest walkable point of the cell), so the path is as packed as open ground."""
+    def path(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p, float).reshape(-1, 2)
+        return np.abs(p[:, 1] - 0.3) < 0.5
+
+    world = dense_crowd(seed=3, centre=(0.0, 0.0), half_size=10.0, spacing=2.0, n_walkers=0, walkable=path)
+    assert len(world) >= 10 and path(world.positions()).all()
+    for _ in range(300):
+        world.step(DT)
+    people = world.positions()
+    assert path(people).all()
+    for n in np.arange(-9.0, 9.5, 0.5):
+        assert np.min(np.hypot(people[:, 0] - n, people[:, 1] - 0.3)) < 1.5, n
+
+
+def test_a_dense_crowd_anywhere_is_drawn_as_it_always_was() -> None:
+    """Walkable ground everywhere draws exactly the crowd of no walkable map: the option draws no
+    random number of its own, so the drawn ground's worlds (walkable None) keep their people and
+    the yardstick's rows."""
+    free = Circle(25.0, 10.0, 6.5)
+    a = dense_crowd(seed=4, centre=(10.0, 0.0), half_size=45.0, free=free)
+    b = dense_crowd(seed=4, centre=(10.0, 0.0), half_size=45.0, free=free,
+                    walkable=lambda p: np.ones(len(np.asarray(p).reshape(-1, 2)), bool))
+    for _ in range(300):
+        a.step(DT)
+        b.step(DT)
+    np.testing.assert_array_equal(a.positions(), b.positions())
+    np.testing.assert_array_equal(a.headings(), b.headings())
+    np.testing.assert_array_equal(a.moving(), b.moving())
+
+
 def test_people_walk_into_a_circle_at_the_given_time() -> None:
     world = crowd_with_free_area(seed=9)
     (free,) = world.free_areas

@@ -1,0 +1,51 @@
+"""``python -m sim.evidence.walker_alarms --ground photo``: the people stage's walkers scored over the
+photo world. Needs ``../shared`` (the held-out full-size photos); skips without it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from companion.pipeline.density import DensityModel
+from sim.evidence.walker_alarms import fly_over_circle, main
+
+
+@pytest.fixture(scope="module")
+def photos(shared_dir: Path) -> str:
+    folder = shared_dir / "data" / "semantic_drone" / "full"
+    if not (folder / "images").is_dir():
+        pytest.skip(f"needs the held-out full-size photos at {folder}")
+    return str(folder.resolve())
+
+
+def test_a_descent_over_the_photo_world_keeps_its_people_on_walkable_ground(photos: str, model_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """Seed 2's photo scene (a crossing world): its walkers stand on walkable ground by the class
+    maps in every frame, the photos' own people are in the truth, and the command scores it."""
+    descent = fly_over_circle(DensityModel(model_path, threads=1), 2, seconds=4.0, horizon_s=3.0, photos=photos)
+    assert descent.ground == "photo" and descent.frames
+    assert descent.people_frames > 0 and descent.off_walkable == 0
+    fixed = [fr for fr in descent.frames if (fr.ids < 0).any()]  # the photos' people, negative ids
+    assert len(fixed) == len(descent.frames) and len(descent.truth[0][1]) == len(descent.frames[0].people)
+    assert main(["--seeds", "2", "--seconds", "4", "--horizon", "3", "--blind-from", "1", "--ground", "photo",
+                 "--photos", photos, "--model", str(model_path), "--json"]) == 0
+    captured = capsys.readouterr()
+    rows = [json.loads(line) for line in captured.out.splitlines()]
+    assert [(r["seed"], r["ground"]) for r in rows] == [(2, "photo"), (None, "photo")]
+    assert rows[0]["safe_frames"] + rows[0]["danger_frames"] > 0
+    assert "seed 2: 0 of" in captured.err and "off walkable ground" in captured.err
+
+
+def test_a_missing_or_malformed_photos_folder_is_exit_2_naming_it(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "nowhere"
+    assert main(["--seeds", "2", "--ground", "photo", "--photos", str(missing)]) == 2
+    assert str(missing) in capsys.readouterr().err
+    (tmp_path / "bad" / "images").mkdir(parents=True)
+    (tmp_path / "bad" / "labels").mkdir()
+    assert main(["--seeds", "2", "--ground", "photo", "--photos", str(tmp_path / "bad")]) == 2
+    assert str(tmp_path / "bad") in capsys.readouterr().err
+    assert main(["--seeds", "2", "--photos", str(tmp_path / "bad")]) == 2  # --photos without --ground photo
+    assert "--ground photo" in capsys.readouterr().err

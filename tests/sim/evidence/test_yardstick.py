@@ -67,3 +67,34 @@ def test_each_file_is_the_defaults_and_its_figures_are_the_tables(entry):
 @pytest.mark.parametrize("entry", _table(BASELINE), ids=lambda e: e["file"])
 def test_each_baseline_file_is_the_autopilots_failsafe_alone_and_its_strikes_are_the_tables(entry):
     assert summarise_baseline(_rows(entry, baseline=True))["strikes"] == int(entry["strikes"])
+
+
+CAMERA = ("file", "autopilot", "camera", "flown", "software", "unsafe", "strikes (outside dense worlds)",
+          "handbacks", "clear landings of 66 with free ground")
+
+
+@pytest.mark.parametrize("entry", _table(CAMERA), ids=lambda e: e["file"])
+def test_each_other_camera_file_is_that_camera_and_its_figures_are_the_tables(entry):
+    # The wide lenses' rows (issue 60): the defaults but the camera, seeds 1-75 from 1000 s.
+    rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
+    assert bad == 0 and sorted(r["seed"] for r in rows) == list(range(1, 76))
+    camera = entry["camera"].strip("`").removeprefix("--camera ")
+    flavour = {"PX4": "px4", "ArduPilot": "ardupilot"}[entry["autopilot"]]
+    for r in rows:
+        assert r["camera"] == camera and r["flavour"] == flavour and r["lockstep"]
+        assert r["clock_start_s"] == 1000.0 and r["settings"] == [] and not r["baseline"]
+        assert r["land_speed"] == 1.0 and r["watch_s"] == 4.0 and r["crossing_window"] == [4.0, 24.0]
+    summary = summarise_rows(rows)
+    m = re.fullmatch(r"(\d+) \((\d+)\)", entry["strikes (outside dense worlds)"])
+    assert m is not None
+    strikes, outside = m.groups()
+    assert (summary["unsafe"], summary["strikes"], summary["handbacks"]) == (
+        int(entry["unsafe"]), int(strikes), int(entry["handbacks"]))
+    assert sum(bool(r["strike"]) and r["world"] != "dense" for r in rows) == int(outside)
+    free = [r for r in rows if r["world"] != "dense"]
+    assert len(free) == 66
+    assert sum(r["outcome"] == "safe" for r in free) == int(entry["clear landings of 66 with free ground"])
+
+
+def test_the_readme_names_the_fisheyes_file():
+    assert [r["camera"] for r in _table(CAMERA)] == ["`--camera fisheye:160`"]

@@ -161,9 +161,10 @@ class Intrinsics:
             raise GeometryError("the lens sees none of its image border")
         return float(min(math.tan(min(float(theta[ok].min()), math.radians(89.9))), trusted))
 
-    def project(self, xc: np.ndarray) -> np.ndarray:
-        """Camera-frame points (N, 3) -> pixels (N, 2), NaN where the lens does not see them."""
-        return lens.project(self.model, self.K, self.dist, xc)
+    def project(self, xc: np.ndarray, theta: np.ndarray | None = None) -> np.ndarray:
+        """Camera-frame points (N, 3) -> pixels (N, 2), NaN where the lens does not see them
+        (``theta``: their ``lens.ray_theta``, when known)."""
+        return lens.project(self.model, self.K, self.dist, xc, theta)
 
     def unproject(self, uv: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) -> unit rays (N, 3) in the camera frame, NaN where nothing seen lands."""
@@ -319,9 +320,10 @@ class LensView:
         d = np.column_stack([p[:, 0] - self.position[0], p[:, 1] - self.position[1],
                              np.full(len(p), self.plane_z - self.position[2])])
         xc = d @ self.R_cv_from_world.T
-        uv = self.intrinsics.project(xc)
         with np.errstate(invalid="ignore"):
-            wide = np.arctan2(np.hypot(xc[:, 0], xc[:, 1]), xc[:, 2]) > lens.TRUSTED_THETA
+            theta = lens.ray_theta(xc)
+            wide = theta > lens.TRUSTED_THETA
+        uv = self.intrinsics.project(xc, theta)  # a fisheye's projection needs the angles too
         uv[wide] = np.nan
         return uv
 

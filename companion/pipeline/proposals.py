@@ -109,39 +109,25 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
     out: list[Circle] = []
     if n_max <= 0 or free_grid.size == 0:
         return out
-    if dist is None:
-        dist = distance_cells(free_grid)
+    dist = distance_cells(free_grid) if dist is None else dist.copy()
     rows, cols = dist.shape
     pref = None
     if prefer is not None and all(math.isfinite(v) for v in prefer):
         # In cells, as (row, col): prefer's x is along columns, y along rows.
         pref = ((prefer[1] - grid.y0) / grid.cell, (prefer[0] - grid.x0) / grid.cell)
     tie = max(0.0, tie_m) / grid.cell
-    # Only cells at least a cell short of a circle of r_min can ever be a centre: the largest
-    # distance left decides whether a circle is made (below r_min it is not), and the near-ties
-    # are at least r_min too. Marking disks only lowers distances, so a cell below that stays
-    # below it. The search runs on those cells alone (a fisheye's grid is 0.4 M cells, a few
-    # proposals each read it twice), in row-major order so that ties go to the same first cell as
-    # an argmax over the whole map would; ``~(dist < lo)`` keeps NaN in, as argmax would.
-    lo = r_min / grid.cell + _HALF_DIAGONAL - 1.0
-    flat_dist = dist.ravel()
-    at = np.flatnonzero(~(flat_dist < (-math.inf if math.isnan(lo) else lo)))
-    val = flat_dist[at]  # a copy: ``dist`` is not modified
-    at_i, at_j = np.divmod(at, cols)
     for _ in range(n_max):
-        if not len(at):
-            break  # every distance is below lo: no circle of r_min fits
-        k0 = int(np.argmax(val))
-        i, j = int(at_i[k0]), int(at_j[k0])
-        d = d_max = float(val[k0])
+        flat = int(np.argmax(dist))
+        i, j = divmod(flat, cols)
+        d = d_max = float(dist[i, j])
         if pref is not None and tie > 0 and (d - _HALF_DIAGONAL) * grid.cell >= r_min:
             # Never below r_min for a nearer centre: the largest circle would have qualified.
-            near = np.flatnonzero(val >= max(d - tie, r_min / grid.cell + _HALF_DIAGONAL))
+            near = np.flatnonzero(dist >= max(d - tie, r_min / grid.cell + _HALF_DIAGONAL))
             if len(near) > 1:
-                ni, nj = at_i[near], at_j[near]
+                ni, nj = np.divmod(near, cols)
                 k = int(np.argmin((ni - pref[0]) ** 2 + (nj - pref[1]) ** 2))
                 i, j = int(ni[k]), int(nj[k])
-                d = float(val[near[k]])
+                d = float(dist[i, j])
         r_cells = d - _HALF_DIAGONAL
         if r_cells <= 0 or r_cells * grid.cell < r_min:
             break
@@ -152,14 +138,10 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
         reach = int(math.ceil(r_cells + d_max)) + 1
         i0, i1 = max(0, i - reach), min(rows, i + reach + 1)
         j0, j1 = max(0, j - reach), min(cols, j + reach + 1)
-        # The candidates' rows i0..i1 are one run of them (row-major), then the columns.
-        a, b = np.searchsorted(at, (i0 * cols, i1 * cols))
-        wj = at_j[a:b]
-        inside = np.flatnonzero((wj >= j0) & (wj < j1)) + a
-        # The same float32 arithmetic as over the whole window, cell by cell.
-        ii = (at_i[inside] - i).astype(np.float32)
-        jj = (at_j[inside] - j).astype(np.float32)
+        ii = np.arange(i0, i1, dtype=np.float32)[:, None] - i
+        jj = np.arange(j0, j1, dtype=np.float32)[None, :] - j
         to_disk = np.sqrt(ii * ii + jj * jj) - np.float32(r_cells)
         np.maximum(to_disk, 0.0, out=to_disk)
-        val[inside] = np.minimum(val[inside], to_disk)
+        window = dist[i0:i1, j0:j1]
+        np.minimum(window, to_disk, out=window)
     return out

@@ -309,7 +309,9 @@ def _sample_lens(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec, pp
     view = None
     if with_view:
         h, w = free_img.shape[:2]
-        whole = _whole_view(h, w, k) if box is None else _box_view(h, w, k, box)
+        # The cache's key: a box given as a list or in numpy integers is the same box.
+        whole = (_whole_view(h, w, k) if box is None
+                 else _box_view(h, w, k, (int(box[0]), int(box[1]), int(box[2]), int(box[3]))))
         view = cv2.remap(whole, mx, my, cv2.INTER_NEAREST,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if box is not None:

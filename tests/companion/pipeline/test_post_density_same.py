@@ -229,6 +229,14 @@ def test_box_view_is_the_same_and_read_only() -> None:
             got = headplane._box_view(480, 640, k, box)
             assert not _same(got, _ref_box_view(480, 640, k, box))
             assert headplane._box_view(480, 640, k, box) is got and not got.flags.writeable
+    # The pipeline's call takes a box however its numbers come (the cache's key is a tuple).
+    proj = PlaneProjection.from_pose(FISHEYE, Mount(), bench.drifting_pose(0.5), 1.7)
+    grid = grid_for_view(proj, (480, 640), GridParams())
+    box = lens_crop_box(proj, (480, 640), 4, 40.0)
+    assert box is not None
+    free = np.full((480, 640), 255, np.uint8)
+    want = headplane.sample_with_view(free, proj, grid, box)
+    assert not _same(headplane.sample_with_view(free, proj, grid, list(np.asarray(box))), want)  # type: ignore[arg-type]
 
 
 def test_distance_cells_is_the_same_for_any_uint8_free_value() -> None:

@@ -232,11 +232,11 @@ def test_box_view_is_the_same_and_read_only() -> None:
     # The pipeline's call takes a box however its numbers come (the cache's key is a tuple).
     proj = PlaneProjection.from_pose(FISHEYE, Mount(), bench.drifting_pose(0.5), 1.7)
     grid = grid_for_view(proj, (480, 640), GridParams())
-    box = lens_crop_box(proj, (480, 640), 4, 40.0)
-    assert box is not None
+    crop = lens_crop_box(proj, (480, 640), 4, 40.0)
+    assert crop is not None
     free = np.full((480, 640), 255, np.uint8)
-    want = headplane.sample_with_view(free, proj, grid, box)
-    assert not _same(headplane.sample_with_view(free, proj, grid, list(np.asarray(box))), want)  # type: ignore[arg-type]
+    want = headplane.sample_with_view(free, proj, grid, crop)
+    assert not _same(headplane.sample_with_view(free, proj, grid, list(np.asarray(crop))), want)  # type: ignore[arg-type]
 
 
 def test_distance_cells_is_the_same_for_any_uint8_free_value() -> None:

@@ -58,16 +58,35 @@ def _dtheta_d(th: np.ndarray, k: tuple[float, ...]) -> np.ndarray:
     return out
 
 
-def project(model: str, K: np.ndarray, dist: tuple[float, ...], xc: np.ndarray) -> np.ndarray:
-    """Camera-frame points or rays (N, 3) -> pixels (N, 2); NaN where the lens does not see them."""
+def ray_theta(xc: np.ndarray) -> np.ndarray:
+    """Camera-frame points or rays (N, 3) -> their angles from the optical axis (N,), radians."""
+    p = np.asarray(xc, dtype=np.float64).reshape(-1, 3)
+    out: np.ndarray = np.arctan2(np.hypot(p[:, 0], p[:, 1]), p[:, 2])
+    return out
+
+
+def project(model: str, K: np.ndarray, dist: tuple[float, ...], xc: np.ndarray,
+            theta: np.ndarray | None = None) -> np.ndarray:
+    """Camera-frame points or rays (N, 3) -> pixels (N, 2); NaN where the lens does not see them.
+    ``theta``: their ``ray_theta`` when the caller has it already (a fisheye needs it)."""
     p = np.asarray(xc, dtype=np.float64).reshape(-1, 3)
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
     out = np.full((len(p), 2), np.nan)
     if model == "fisheye":
         r = np.hypot(x, y)
-        th = np.arctan2(r, z)
+        th = np.arctan2(r, z) if theta is None else np.asarray(theta, dtype=np.float64).reshape(-1)
         ok = np.isfinite(th) & (th <= fisheye_theta_max(tuple(dist)))
+        if ok.all():
+            # Every point seen (a grid inside the view, the usual case): the same arithmetic
+            # without gathering through the mask and scattering back.
+            td = _theta_d(th, dist)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = np.where(r > 1e-12, td / r, 0.0)
+            a, b = x * s, y * s
+            out[:, 0] = fx * a + skew * b + cx
+            out[:, 1] = fy * b + cy
+            return out
         td = _theta_d(th[ok], dist)
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(r[ok] > 1e-12, td / r[ok], 0.0)

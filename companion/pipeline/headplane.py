@@ -205,13 +205,16 @@ def sample_with_view(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec
     return out, view
 
 
+@functools.lru_cache(maxsize=8)
 def _box_view(h: int, w: int, k: int, box: tuple[int, int, int, int]) -> np.ndarray:
-    """``_whole_view`` for a frame of which only ``box`` was looked at."""
+    """``_whole_view`` for a frame of which only ``box`` was looked at. The box moves in steps of
+    the model's stride, so most frames find theirs here: cached, read-only."""
     x0, y0, x1, y1 = box
     view: np.ndarray = np.zeros((h, w), np.uint8)
     view[y0:y1, x0:x1] = 255
     if k > 1:
         view = cv2.erode(view, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    view.flags.writeable = False
     return view
 
 
@@ -274,9 +277,11 @@ def lens_maps(proj: PlaneProjection, grid: GridSpec) -> tuple[np.ndarray, np.nda
     assert proj.lens is not None
     # Only ground along rays the model is trusted on counts as seen (lens.TRUSTED_THETA).
     uv = proj.lens.seen_to_image(np.column_stack([x, y])).reshape(len(rows), len(cols), 2)
-    ok = np.isfinite(uv).all(axis=2).astype(np.uint8)
+    finite = np.isfinite(uv)
+    # Per coordinate, then both: ``all(axis=2)`` over a last axis of 2 is several times slower.
+    ok = (finite[..., 0] & finite[..., 1]).view(np.uint8)
     ok = cv2.erode(ok, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
-    uv = np.where(np.isfinite(uv), uv, -1e4).astype(np.float32)
+    uv = np.where(finite, uv, -1e4).astype(np.float32)
     size = ((len(cols) - 1) * s + 1, (len(rows) - 1) * s + 1)
     # align corners: coarse node k sits on fine cell k * s (cv2.resize maps pixel centres instead).
     A = np.array([[1.0 / s, 0.0, 0.0], [0.0, 1.0 / s, 0.0]])
@@ -286,8 +291,9 @@ def lens_maps(proj: PlaneProjection, grid: GridSpec) -> tuple[np.ndarray, np.nda
                         borderMode=cv2.BORDER_REPLICATE)[:grid.rows, :grid.cols]
     seen = cv2.warpAffine(ok, A, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                           borderMode=cv2.BORDER_REPLICATE)[:grid.rows, :grid.cols]
-    mx[seen == 0] = -1.0
-    my[seen == 0] = -1.0
+    unseen = seen == 0
+    mx[unseen] = -1.0
+    my[unseen] = -1.0
     return mx, my
 
 
@@ -303,7 +309,9 @@ def _sample_lens(free_img: np.ndarray, proj: PlaneProjection, grid: GridSpec, pp
     view = None
     if with_view:
         h, w = free_img.shape[:2]
-        whole = _whole_view(h, w, k) if box is None else _box_view(h, w, k, box)
+        # The cache's key: a box given as a list or in numpy integers is the same box.
+        whole = (_whole_view(h, w, k) if box is None
+                 else _box_view(h, w, k, (int(box[0]), int(box[1]), int(box[2]), int(box[3]))))
         view = cv2.remap(whole, mx, my, cv2.INTER_NEAREST,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if box is not None:

@@ -40,8 +40,9 @@ def distance_cells(free_grid: np.ndarray) -> np.ndarray:
     """
     if free_grid.ndim != 2:
         raise ValueError(f"free grid must be 2-D, got shape {free_grid.shape}")
-    padded = cv2.copyMakeBorder((free_grid > 0).astype(np.uint8), 1, 1, 1, 1,
-                                cv2.BORDER_CONSTANT, value=0)
+    # The transform reads any non-zero uint8 as free: a uint8 grid needs no 0/1 copy first.
+    free = free_grid if free_grid.dtype == np.uint8 else (free_grid > 0).astype(np.uint8)
+    padded = cv2.copyMakeBorder(free, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     dist = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return dist[1:-1, 1:-1]
 

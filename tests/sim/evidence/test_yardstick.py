@@ -96,5 +96,5 @@ def test_each_other_camera_file_is_that_camera_and_its_figures_are_the_tables(en
     assert sum(r["outcome"] == "safe" for r in free) == int(entry["clear landings of 66 with free ground"])
 
 
-def test_the_readme_names_the_fisheyes_file():
-    assert [r["camera"] for r in _table(CAMERA)] == ["`--camera fisheye:160`"]
+def test_the_readme_names_the_wide_lenses_files():
+    assert [r["camera"] for r in _table(CAMERA)] == ["`--camera fisheye:160`", "`--camera pinhole:110`"]

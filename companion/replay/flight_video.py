@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from companion import config as settings
+from companion.control.descent import judging_height
 from companion.control.touchdown import DescentProfile, touchdown_basis
 from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.occupancy import FREE
@@ -146,18 +147,21 @@ def mark_people(img: np.ndarray, ground: PlaneProjection, people_ne: np.ndarray)
 def annotate(frame_bgr: np.ndarray, tracks: list[Track], target_id: int | None, proj: PlaneProjection | None,
              phase: str, message: str, height_m: float | None, t_rel: float | None,
              descent: DescentProfile | None = None, touchdown_from_m: float | None = None,
-             people: tuple[PlaneProjection | None, np.ndarray] | None = None) -> np.ndarray:
+             people: tuple[PlaneProjection | None, np.ndarray] | None = None,
+             judge_m: float | None = None) -> np.ndarray:
     """One video frame: title bar, the frame with the tracks and target (each with its predicted
     clearance at touchdown when ``descent`` and the height are known: from ``touchdown_from_m``
     above the ground when given, a rangefinder's, else from ``height_m``), a legend, and a status
     line (phase, height above home in metres, time from the trigger in seconds, last message).
     ``people``: the ground plane's projection (None where the camera is on the ground) and the
-    people's (N, 2) ground positions, marked as the truth (the legend says so)."""
+    people's (N, 2) ground positions, marked as the truth (the legend says so). ``judge_m``: the
+    flight's judging height (``descent.judging_height``); above it the labels show no clearance,
+    as the status page does (from high up the figure is strongly negative and says nothing)."""
     h, w = frame_bgr.shape[:2]
     if proj is not None:
         clearances = None
         start = height_m if touchdown_from_m is None else touchdown_from_m
-        if descent is not None and start is not None:
+        if descent is not None and start is not None and (judge_m is None or start <= judge_m):
             clearances = draw.touchdown_clearances(tracks, descent, start)
         view = draw.draw_image_view(frame_bgr, np.full((h, w), FREE, np.uint8), proj, [], tracks, target_id,
                                     clearances=clearances)
@@ -188,10 +192,12 @@ def timed_frames(recording: Path, people: PeopleAt | None = None) -> Iterator[tu
     timeline = _Timeline(events)
     head = float(((reader.meta.get("config") or {}).get("pipeline") or {}).get("head_height_m", 1.7))
     land_agl_m = 0.0
+    judge: float | None = None
     try:
         cfg = settings.from_recording(reader.meta.get("config") or {})
         descent: DescentProfile | None = settings.descent_profile(cfg)
         land_agl_m = cfg.controller.land_agl_m
+        judge = judging_height(settings.landing_config(cfg))
     except (settings.ConfigError, TypeError, ValueError):
         descent = None  # a recording from another version: zones without their clearance
     rangefinder = RangefinderHeights(e for e in events if e.get("kind") == "telemetry")
@@ -219,7 +225,8 @@ def timed_frames(recording: Path, people: PeopleAt | None = None) -> Iterator[tu
         if reader.intrinsics is not None and image.shape[:2] != (reader.intrinsics.height, reader.intrinsics.width):
             image = cv2.resize(image, (reader.intrinsics.width, reader.intrinsics.height))
         marks = None if people is None else (ground, people(fr.t) if ground is not None else np.empty((0, 2)))
-        yield fr.t, annotate(image, tracks, target, proj, phase, message, height, t_rel, profile, start, marks)
+        yield fr.t, annotate(image, tracks, target, proj, phase, message, height, t_rel, profile, start, marks,
+                             judge)
 
 
 def frames(recording: Path, people: PeopleAt | None = None) -> Iterator[np.ndarray]:

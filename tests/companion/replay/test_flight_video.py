@@ -27,7 +27,10 @@ def _track(tid: int, x: float, y: float, r: float) -> Track:
 def _recording(root: Path, n: int = 30, ranges: tuple[tuple[float, int], ...] = ()) -> Path:
     """``ranges``: recorded downward DISTANCE_SENSOR readings (time s, distance cm)."""
     rec = FlightRecorder(root, fps=10, queue_size=n + 1, intrinsics=K, mount=Mount(),
-                         meta={"config": {"pipeline": {"head_height_m": 1.7}, "controller": {"land_agl_m": 1.0}}})
+                         # Judged from 20 m (the default judges at 10 m, above which the labels
+                         # carry no clearance): these frames fly at 14-20 m.
+                         meta={"config": {"pipeline": {"head_height_m": 1.7},
+                                          "controller": {"land_agl_m": 1.0, "descend_alt_m": 20.0}}})
     path = rec.start()
     for t, cm in ranges:
         rec.add_event("telemetry", t, msg="DISTANCE_SENSOR", orientation=25, current_distance=cm,
@@ -102,6 +105,21 @@ def test_zones_carry_their_clearance_at_touchdown_from_the_flights_own_descent(t
     assert np.abs(with_c.astype(int) - without.astype(int)).sum() > 0
 
 
+def test_no_clearance_is_labelled_above_the_judging_height() -> None:
+    # As the status page: from above the judging height the clearance at touchdown is strongly
+    # negative and says nothing about the zone, so the label gives the zone alone.
+    from companion import config as settings
+    profile = settings.descent_profile(settings.from_recording({"pipeline": {"head_height_m": 1.7}}))
+    tr = _track(3, 0.5, 0.3, 4.0)  # its centre and label in view from both heights
+    grey = np.full((240, 320, 3), 90, np.uint8)
+    for height in (20.0, 8.0):
+        pose = Pose(0.0, 0.0, 0.0, -height, 0.0, 0.0, 0.0)
+        proj = PlaneProjection.from_pose(K, Mount(), pose, 1.7)
+        judged = flight_video.annotate(grey, [tr], 3, proj, "DESCEND", "", height, 1.0, profile, judge_m=10.0)
+        bare = flight_video.annotate(grey, [tr], 3, proj, "DESCEND", "", height, 1.0, None)
+        assert np.array_equal(judged, bare) == (height > 10.0)
+
+
 def test_a_frame_without_a_pose_is_drawn_without_zones(tmp_path: Path) -> None:
     rec = FlightRecorder(tmp_path / "rec", fps=10, queue_size=4, intrinsics=K, mount=Mount())
     path = rec.start()
@@ -156,7 +174,8 @@ def test_the_video_figures_clearance_from_the_recorded_rangefinder_as_the_contro
     # 1 m; the status line keeps the height above home.
     fr = next(f for f in RecordingReader(path).frames() if f.index == 4)
     assert fr.pose is not None
-    flown = settings.from_recording({"pipeline": {"head_height_m": 1.7}, "controller": {"land_agl_m": 1.0}})
+    flown = settings.from_recording({"pipeline": {"head_height_m": 1.7},
+                                     "controller": {"land_agl_m": 1.0, "descend_alt_m": 20.0}})
     profile = by_rangefinder(settings.descent_profile(flown), 1.0)
     proj = PlaneProjection.from_pose(K, Mount(), fr.pose, 1.7)
     tracks = [_track(3, 2.0, 1.0, 4.0), _track(5, -6.0, -6.0, 2.5)]

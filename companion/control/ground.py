@@ -146,6 +146,13 @@ def gone(track: Track | None, now: float, zone_max_age_s: float) -> bool:
     return track is None or now - track.last_t > zone_max_age_s
 
 
+def left_view(track: Track | None, now: float, status: VehicleStatus | None, below: GroundBelow | None,
+              planner: PlannerConfig) -> bool:
+    """Whether the target merely left the view (``gone``) with nobody seen within r0 of the vehicle
+    (``someone_within_r0``): low over the zone, no reason to give it up."""
+    return gone(track, now, planner.zone_max_age_s) and not someone_within_r0(status, below, planner)
+
+
 def target_check(planner: ZonePlanner, target: Track, tracks: list[Track], now: float, s: VehicleStatus | None,
                  below: GroundBelow | None, over_zone: bool, free_under_aim: bool) -> tuple[ZoneCheck, Track | None, str]:
     """Whether the zone flown to still holds on this frame: ``ZonePlanner.check_target``, and

@@ -4,8 +4,9 @@ The phases and which may follow which are in ``companion.control.phases``. The q
 machine asks on its way each have their module, which answers and changes nothing: which zone
 (``planner``: zones are lost there too), is the ground under the vehicle fit now (``ground``:
 and when a LAND is committed), where in the zone (``aim``), the levels and the last metres
-(``descent``), where to search (``search``), what the vehicle and the clock say (``watch``), and
-whether the vehicle obeys (``obedience``). Only this machine acts: it emits the commands and the
+(``descent``), what the descent over the zone does on a frame, down to the LAND (``over_zone``),
+where to search (``search``), what the vehicle and the clock say (``watch``), and whether the
+vehicle obeys (``obedience``). Only this machine acts: it emits the commands and the
 events and changes the phase, with one handler per phase for each frame. HOLD is a position
 target at the vehicle's own position (climbing to ``hold_height_m`` above the ground), so the
 autopilot stays in GUIDED/OFFBOARD and can resume.
@@ -34,7 +35,7 @@ import math
 from collections.abc import Callable, Sequence
 
 from companion.control import aim as aiming
-from companion.control import commit, ground, watch
+from companion.control import commit, ground, over_zone, watch
 from companion.control import descent as plan
 from companion.control.aim import Aimed
 from companion.control.commands import Command, Goto, GotoSender, Handback, Land
@@ -72,7 +73,8 @@ class LandingController(PhaseMachine):
         self.last_valid_frame_t: float | None = None
         self.frames_ignored = 0
         self.refusals = 0
-        self.placements, self.moves = 0, aiming.MoveNews({})  # points moved away from people; which told
+        self.placements = 0  # landing points moved away from people
+        self.moves = aiming.MoveNews({})  # which of those moves were told
         self.failures_tolerated = 0  # single failing frames that did not lose a zone, since start
         self.trigger_alt: float | None = None  # metres above home at the trigger
         self.ceiling_m: float | None = None  # metres above home (``descent``)
@@ -83,8 +85,7 @@ class LandingController(PhaseMachine):
         self._level = math.nan  # the planned altitude (m above home; ``descent``)
         self._aim: tuple[float, float] | None = None  # landing point, north/east metres
         self._blind = False  # in LAND, the zone went out of view: committed
-        # In LAND, the target of the companion's own descent to land_agl_m (``descent.low_target``).
-        self._low_to: tuple[float, float, float, float] | None = None  # north, east, alt, agl
+        self._low_to: over_zone.LowDescent | None = None  # in LAND, the companion's own descent, if any
         self._restless: set[int] = set()  # zones given up because they never became calm
         self._waits = commit.Waits()  # over the zone before the LAND: for calm, for nobody within reach
         # The zone judged at the judging height: below it the calm disc no longer fits in the
@@ -134,10 +135,11 @@ class LandingController(PhaseMachine):
                 self._set_phase(Phase.HANDBACK, f"mode changed to {status.mode} by someone else: companion stops",
                                 warning=True, event=HandedBack, reason=f"mode changed to {status.mode}")
                 return []
-        if self.phase == Phase.LAND and self._low_to is not None:
-            north, east, alt, agl = self._low_to
-            why = plan.low_land_reason(self.config, status, alt, agl)
-            return self._goto(north, east, alt, self._zone_id_or_none()) if why is None else self._low_land(why)
+        if self.phase == Phase.LAND and (low := self._low_to) is not None:
+            why = plan.low_land_reason(self.config, status, low.alt_m, low.agl_m)
+            if why is not None:
+                return self._low_land(why)
+            return self._goto(low.north, low.east, low.alt_m, self._zone_id_or_none())
         return []
 
     def on_frame(self, t: float, tracks: Sequence[Track], pose: Pose | None,
@@ -167,7 +169,11 @@ class LandingController(PhaseMachine):
                             self._search_over() if self.phase == Phase.SEARCH else None,
                             None if self.trigger is None else self.trigger.t,
                             None if self.status is None else self.status.t, self.last_valid_frame_t)
-        return [] if due is None else (self._start_search if due.search else self._handback)(due.why)
+        if due is None:
+            return []
+        if due.search:
+            return self._start_search(due.why)
+        return self._handback(due.why)
 
     def on_command_result(self, command: Command, error: Exception | None) -> list[Command]:
         if error is None:
@@ -280,23 +286,27 @@ class LandingController(PhaseMachine):
 
     def _frame_descend(self) -> list[Command]:
         over = self._confirmed()
-        return self._descend(over) if isinstance(over, Aimed) else over
+        if not isinstance(over, Aimed):
+            return over
+        return self._descend(over)
 
     def _frame_land(self) -> list[Command]:
         """LAND: the autopilot lands; the zone is still checked (``_confirmed``) above the commit height."""
         over = self._confirmed()
-        return [] if isinstance(over, Aimed) else over
+        if not isinstance(over, Aimed):
+            return over
+        return []  # confirmed: the LAND goes on
 
     def _confirmed(self) -> Aimed | list[Command]:
         """APPROACH, DESCEND, LAND: the target as this frame confirms it, with its landing point
         (``Aimed``); else the commands for a zone lost or unconfirmed (none, another zone, HOLD)."""
         assert self.target is not None
         s, c, aim = self.status, self.config, self._aim
-        over_zone = self.phase in (Phase.DESCEND, Phase.LAND)
-        under_aim = (over_zone and s is not None and aim is not None and self._status_fresh()
+        over_target = self.phase in (Phase.DESCEND, Phase.LAND)
+        under_aim = (over_target and s is not None and aim is not None and self._status_fresh()
                      and ground.holds_under_aim(s, aim, self.below, c.planner, c.arrive_radius_m))
         verdict, track, why = ground.target_check(self.planner, self.target, self.tracks, self.now, s, self.below,
-                                                  over_zone, under_aim)
+                                                  over_target, under_aim)
         if verdict == ZoneCheck.LOST:  # gone from the tracks, or unconfirmed for zone_max_age_s
             if not self._out_of_view(track):
                 return self._lost(why)
@@ -326,56 +336,39 @@ class LandingController(PhaseMachine):
 
     def _descend(self, over: Aimed) -> list[Command]:
         """DESCEND: step down over the landing point to the judging height, judge the zone there
-        (calm), step on down to the LAND height, and command the LAND (``descent``)."""
-        s, c = self.status, self.config
+        (calm), step on down to the LAND height, and command the LAND: ``over_zone.decide`` says
+        which on this frame; this acts on it."""
+        s = self.status
         assert s is not None
-        track, aim, zone_id = over.track, over.aim, over.track.id
-        judge = plan.judging_height(c)
-        reached = over.dist <= c.arrive_radius_m and s.height <= judge + c.alt_tolerance_m
-        judged = self._judged == zone_id
-        if reached and not s.on_ground and not judged:
-            calm = ground.calm_verdict(track, self.below, self._over_steady(track), c.planner)
-            if not calm.ok:
-                return self._hover_while("calm", zone_id, f"{calm.why}: waiting before the LAND", aim)
-        # fast: the footprint guarantees, and the landing is committed from land_at (``commit``).
-        land_at, fast = commit.land_plan(c, self.descent, s, judge, self._waits.waited("reach", zone_id, self.now))
-        if not s.on_ground and reached and s.height > land_at + c.alt_tolerance_m:
-            # Judged (calm): the companion's own descent goes on to land_at by the plan's steps
-            # below, the ground under the vehicle re-checked every frame (``_confirmed``).
-            if not judged:
-                judged, self._judged = True, zone_id
-                steady = track.steady_s if self._over_steady(track) else None
-                self._event(ground.judged_text(zone_id, s.height, ground.calm_s(self.below), steady, land_at))
-        elif s.on_ground or reached:
-            if fast and not s.on_ground and (why := commit.reach_wait(c, fast, s, self.below)):
-                return self._hover_while("reach", zone_id, why, aim)  # no longer than calm_wait_s: land_plan
-            # on_ground: the ground came early (a slope); the autopilot's LAND finishes and disarms.
-            calm_s = ground.calm_s(self.below)
-            agl = commit.fast_agl(c) if fast else c.land_agl_m
-            low_alt = None if s.on_ground else plan.low_target(c, s, agl)
-            how = "" if low_alt is None else f", first down to {agl:g} m by the rangefinder"
-            self._set_phase(Phase.LAND, f"LAND over zone {zone_id} at {s.height:.1f} m, radius {track.r:.1f} m"
-                            + how, zone_id=zone_id, touchdown_clearance_m=self.touchdown_clearance(track),
-                            calm_s=round(calm_s, 1) if math.isfinite(calm_s) else None)
-            if low_alt is None:
-                return [Land()]
-            # Straight down over the landing point as it is now: the committed descent chases no zone.
-            self._low_to = (aim[0], aim[1], low_alt, agl)
-            self.sender.forget()
-            return self._goto(aim[0], aim[1], low_alt, zone_id)
-        # The plan's next step, never below the judging (judged: LAND) height; off the point it re-centres.
-        floor = s.alt - s.height + (land_at if judged else judge)
-        self._level = plan.next_level(self._level, s, over.dist, floor, c, self._cap())
+        aim, zone_id = over.aim, over.track.id
+        move = over_zone.decide(s, self.config, self.descent, over, self.below, self._over_steady(over.track),
+                                judged=self._judged == zone_id,
+                                calm_waited_s=self._waits.waited("calm", zone_id, self.now),
+                                reach_waited_s=self._waits.waited("reach", zone_id, self.now))
+        if isinstance(move, over_zone.GiveUp):
+            self._restless.add(zone_id)
+            return self._lost(move.why)
+        if isinstance(move, over_zone.Hover):
+            if self._waits.begin(move.wait, zone_id, self.now):
+                self._event(f"zone {zone_id}: {move.why}")
+            return self._goto(aim[0], aim[1], self._level, zone_id)
+        if isinstance(move, over_zone.CommitLand):
+            return self._command_land(move, zone_id)
+        if move.judged is not None:
+            self._judged = zone_id  # kept down to the LAND height, not asked again
+            self._event(move.judged)
+        self._level = plan.next_level(self._level, s, over.dist, move.floor_alt_m, self.config, self._cap())
         return self._goto(aim[0], aim[1], self._level, zone_id)
 
-    def _hover_while(self, kind: str, zone_id: int, why: str, aim: tuple[float, float]) -> list[Command]:
-        """Hover over the landing point while ``why`` (told once); not calm after ``calm_wait_s``, the zone is given up."""
-        if self._waits.begin(kind, zone_id, self.now):
-            self._event(f"zone {zone_id}: {why}")
-        elif kind == "calm" and self._waits.waited(kind, zone_id, self.now) > self.config.calm_wait_s:
-            self._restless.add(zone_id)
-            return self._lost(f"not calm after {self.config.calm_wait_s:g} s over it: people keep passing near it")
-        return self._goto(aim[0], aim[1], self._level, zone_id)
+    def _command_land(self, move: over_zone.CommitLand, zone_id: int) -> list[Command]:
+        """LAND over the zone: the autopilot's LAND now, or first the companion's own descent."""
+        self._set_phase(Phase.LAND, move.text, zone_id=zone_id, touchdown_clearance_m=move.touchdown_clearance_m,
+                        calm_s=move.calm_s)
+        low = self._low_to = move.low
+        if low is None:
+            return [Land()]
+        self.sender.forget()
+        return self._goto(low.north, low.east, low.alt_m, zone_id)
 
     def _on_news(self, news: watch.News) -> list[Command]:
         """Act on what the vehicle's status says happened (``watch.vehicle_news``)."""
@@ -422,12 +415,12 @@ class LandingController(PhaseMachine):
 
     def _out_of_view(self, track: Track | None) -> bool:
         """In LAND, or descending over the judged zone (too low to confirm it), whether the target left the
-        tracks with nobody seen within r0 of the vehicle (``ground.gone``): the landing is committed."""
+        tracks with nobody seen within r0 of the vehicle (``ground.left_view``): the landing is committed."""
         last = self.target
-        if last is None or not (self.phase == Phase.LAND or self._judged == last.id) or \
-                not ground.gone(track, self.now, self.config.planner.zone_max_age_s) or \
-                ground.someone_within_r0(self.status, self.below, self.config.planner):
+        if last is None or not (self.phase == Phase.LAND or self._judged == last.id):
             return False
+        if not ground.left_view(track, self.now, self.status, self.below, self.config.planner):
+            return False  # seen occupied, or somebody seen within r0 of the vehicle: lost
         if not self._blind:
             self._blind = True
             h = "?" if self.status is None else f"{self.status.height:.1f}"

@@ -192,6 +192,10 @@ class FrameResult:
     unlandable: np.ndarray | None = None
     #: What the decision may ask of the risk map about this frame (the landing spot).
     ground: GroundView | None = None
+    #: Through a fisheye, the pixel box (x0, y0, x1, y1) the density model looked at
+    #: (``headplane.lens_crop_box``): outside it ``occupancy`` is 0 because unseen, not occupied;
+    #: None: the whole frame.
+    looked_at: tuple[int, int, int, int] | None = None
 
 
 def _with_calm(track: Track, calm_s: float, unwalked_s: float) -> Track:
@@ -398,4 +402,4 @@ class SLZPipeline:
         ground = GroundView(t, self.risk, self.risk.stats.updates if self.risk is not None else 0)
         return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
                            density, below, followed, edges, people_free,
-                           surface, unlandable, ground)
+                           surface, unlandable, ground, box)

@@ -58,20 +58,33 @@ def _tint(img: np.ndarray, mask: np.ndarray, color: tuple[int, int, int], alpha:
         img[mask] = (img[mask].astype(np.float32) * (1 - alpha) + c * alpha).astype(np.uint8)
 
 
+#: What is left of a pixel's brightness outside the part of the frame the model looked at.
+UNSEEN_DIM = 0.35
+
+
 def overlay_people(frame: np.ndarray, occupancy_free: np.ndarray, alpha: float = 0.45,
-                   surface_free: np.ndarray | None = None, people_free: np.ndarray | None = None) -> np.ndarray:
+                   surface_free: np.ndarray | None = None, people_free: np.ndarray | None = None,
+                   looked_at: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """``frame`` with the occupied pixels (``occupancy_free == 0``) tinted red by ``alpha``.
 
     With the landability model's ``surface_free`` (0 = unlandable ground), those pixels are tinted
     magenta instead, except where ``people_free`` (the people's own map; default: whatever is
-    occupied and not unlandable ground) has people: people stay red wherever they stand."""
+    occupied and not unlandable ground) has people: people stay red wherever they stand.
+    ``looked_at`` (``FrameResult.looked_at``): outside this box the model did not look, so the
+    pixels are dimmed (unseen), not tinted as people."""
     out = frame.copy()
     occ = occupancy_free == OCCUPIED
+    if looked_at is not None:
+        x0, y0, x1, y1 = looked_at
+        inside = np.zeros(occ.shape, bool)
+        inside[y0:y1, x0:x1] = True
+        occ &= inside
+        out[~inside] = (out[~inside].astype(np.float32) * UNSEEN_DIM).astype(np.uint8)
     if surface_free is None or surface_free.shape != occ.shape:
         _tint(out, occ, RED, alpha)
         return out
-    ground = surface_free == OCCUPIED
-    people = (people_free == OCCUPIED) if people_free is not None and people_free.shape == occ.shape \
+    ground = (surface_free == OCCUPIED) & occ
+    people = ((people_free == OCCUPIED) & occ) if people_free is not None and people_free.shape == occ.shape \
         else occ & ~ground
     _tint(out, ground & ~people, MAGENTA, alpha)
     _tint(out, people, RED, alpha)
@@ -130,11 +143,14 @@ def draw_image_view(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlanePr
                     proposals: Sequence[Circle], tracks: Sequence[Track],
                     target_id: int | None, surface_free: np.ndarray | None = None,
                     people_free: np.ndarray | None = None,
-                    clearances: Mapping[int, float] | None = None) -> np.ndarray:
+                    clearances: Mapping[int, float] | None = None,
+                    looked_at: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """The annotated camera frame (same size as ``frame``); unlandable ground in magenta when
     ``surface_free`` is given (see :func:`overlay_people`); each track labelled with its
-    predicted clearance at touchdown (m, by track id) when ``clearances`` gives it."""
-    img = overlay_people(frame, occupancy_free, surface_free=surface_free, people_free=people_free)
+    predicted clearance at touchdown (m, by track id) when ``clearances`` gives it; outside
+    ``looked_at`` dimmed (see :func:`overlay_people`)."""
+    img = overlay_people(frame, occupancy_free, surface_free=surface_free, people_free=people_free,
+                         looked_at=looked_at)
     for c in proposals:
         poly = circle_in_image_polygon(proj, c.x, c.y, c.r)
         if poly is not None:
@@ -234,11 +250,12 @@ def figure(frame: np.ndarray, occupancy_free: np.ndarray, proj: PlaneProjection,
            proposals: Sequence[Circle], tracks: Sequence[Track], target_id: int | None,
            free_grid: np.ndarray | None = None, grid: GridSpec | None = None,
            surface_free: np.ndarray | None = None,
-           people_free: np.ndarray | None = None, clearances: Mapping[int, float] | None = None) -> np.ndarray:
+           people_free: np.ndarray | None = None, clearances: Mapping[int, float] | None = None,
+           looked_at: tuple[int, int, int, int] | None = None) -> np.ndarray:
     """The full figure of one frame; the plane view is added when ``free_grid`` and ``grid`` are
     given (the replay passes them when the pose is known, so north is meaningful)."""
     view = draw_image_view(frame, occupancy_free, proj, proposals, tracks, target_id, surface_free, people_free,
-                           clearances)
+                           clearances, looked_at)
     plane = None
     if free_grid is not None and grid is not None and free_grid.size:
         plane = draw_plane_view(free_grid, grid, proposals, tracks, target_id, frame.shape[0])

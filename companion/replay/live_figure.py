@@ -20,7 +20,8 @@ def live_figure(image: np.ndarray, result: FrameResult, target_id: int | None, c
     """The figure of ``image`` (BGR, the frame the pipeline saw) and its ``result``, with
     ``caption`` (one line: phase, zones, time) in a dark band on top."""
     fig = draw.figure(image, result.occupancy, result.projection, result.proposals, result.tracks, target_id,
-                      result.free_grid, result.grid, result.surface, result.people_free)
+                      result.free_grid, result.grid, result.surface, result.people_free,
+                      looked_at=result.looked_at)
     band = np.full((CAPTION_PX, fig.shape[1], 3), 32, np.uint8)
     cv2.putText(band, caption, (8, CAPTION_PX - 9), cv2.FONT_HERSHEY_SIMPLEX, 0.55, draw.WHITE, 1, cv2.LINE_AA)
     return np.vstack([band, fig])

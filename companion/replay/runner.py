@@ -253,7 +253,7 @@ def replay(source: ReplaySource, pipe: SLZPipeline, outputs: ReplayOutputs, use_
                     frame.image, result.occupancy, result.projection, result.proposals,
                     shown, shown_target,
                     result.free_grid if posed else None, result.grid if posed else None,
-                    result.surface, result.people_free, clearances))
+                    result.surface, result.people_free, clearances, result.looked_at))
             if on_result is not None:
                 on_result(frame, result)
         if source.skipped_upstream is not None:

@@ -144,3 +144,30 @@ def test_no_crop_where_the_model_resizes_every_frame(model: DensityModel) -> Non
         frame, 0.0, bench.drifting_pose(0.0))
     assert rec.shapes == [(480, 640, 3)]
     assert model.any_size
+
+
+def test_the_pilots_view_dims_what_the_model_did_not_look_at(model: DensityModel) -> None:
+    # Outside the crop the occupancy is 0 because unseen: the live view and the replay dim it
+    # instead of tinting it red as people.
+    from companion.replay import draw
+    from companion.replay.live_figure import live_figure
+
+    frame = np.full((480, 640, 3), 120, np.uint8)
+    pipe = SLZPipeline(Recorded(model), PipelineConfig(), intrinsics=FISHEYE, mount=Mount())
+    res = pipe.process(frame, 0.0, Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0))
+    assert res.looked_at is not None
+    x0, _, x1, _ = res.looked_at
+    assert not res.occupancy[:, :x0].any()
+    view = draw.overlay_people(frame, res.occupancy, looked_at=res.looked_at)
+    outside = view[:, : x0 - 1].reshape(-1, 3)
+    assert (outside == int(120 * draw.UNSEEN_DIM)).all()  # grey, dimmed: no red tint
+    red = draw.overlay_people(frame, res.occupancy)[:, : x0 - 1].reshape(-1, 3)
+    assert (red[:, 2] > red[:, 1]).all()  # without the box it would read as people
+    # The live view's figure carries the same: its left strip is the dimmed grey.
+    fig = live_figure(frame, res, None, "MONITOR")
+    strip = fig[-200:, : x0 - 1].reshape(-1, 3)
+    assert (strip == int(120 * draw.UNSEEN_DIM)).all()
+    # A pinhole's frame is looked at whole.
+    pin = SLZPipeline(Recorded(model), PipelineConfig(), intrinsics=Intrinsics.from_fov(640, 480, 70.0),
+                      mount=Mount())
+    assert pin.process(frame, 0.0, Pose(0.0, 0.0, 0.0, -20.0, 0.0, 0.0, 0.0)).looked_at is None

@@ -98,4 +98,5 @@ def test_each_other_camera_file_is_that_camera_and_its_figures_are_the_tables(en
 
 def test_the_readme_names_the_wide_lenses_files():
     assert [(r["autopilot"], r["camera"]) for r in _table(CAMERA)] == [
-        ("PX4", "`--camera fisheye:160`"), ("PX4", "`--camera pinhole:110`"), ("ArduPilot", "`--camera fisheye:160`")]
+        ("PX4", "`--camera fisheye:160`"), ("PX4", "`--camera pinhole:110`"), ("ArduPilot", "`--camera fisheye:160`"),
+        ("ArduPilot", "`--camera pinhole:110`")]

@@ -28,6 +28,16 @@ def shared_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
+def photos(shared_dir: Path) -> str:
+    """The held-out full-size semantic-drone photos the photo world is built from (its
+    ``--photos`` folder, as a string), or a skip when they are absent."""
+    folder = shared_dir / "data" / "semantic_drone" / "full"
+    if not (folder / "images").is_dir():
+        pytest.skip(f"needs the held-out full-size photos at {folder}")
+    return str(folder.resolve())
+
+
+@pytest.fixture(scope="session")
 def model_path() -> Path:
     """The shipped density model; it is committed, so its absence is a failure, not a skip."""
     assert MODEL.is_file(), f"the shipped density model {MODEL} is missing"

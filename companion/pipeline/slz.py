@@ -296,9 +296,9 @@ class SLZPipeline:
         if box is not None:
             # Not looked at is not free (the view says unseen there too).
             x0, y0, x1, y1 = box
-            kept = free[y0:y1, x0:x1].copy()
-            free = np.zeros_like(free)
-            free[y0:y1, x0:x1] = kept
+            looked = np.zeros_like(free)
+            looked[y0:y1, x0:x1] = free[y0:y1, x0:x1]
+            free = looked
         people_free = surface = None
         if unlandable is not None:
             thr = self.config.surface_threshold

@@ -5,17 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import pytest
-
 from sim.evidence.lens_recall import main
-
-
-@pytest.fixture(scope="module")
-def photos(shared_dir: Path) -> str:
-    folder = shared_dir / "data" / "semantic_drone" / "full"
-    if not (folder / "images").is_dir():
-        pytest.skip(f"needs the held-out full-size photos at {folder}")
-    return str(folder.resolve())
 
 
 def test_over_the_photo_ground_walkers_and_the_photos_people_are_counted(photos: str, model_path, capsys) -> None:

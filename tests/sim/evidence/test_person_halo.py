@@ -40,14 +40,6 @@ def test_json_rows(model_path, capsys) -> None:
     assert rows[0]["height_m"] == 7 and rows[0]["distance_m"] == 3 and len(rows[0]["halo_m"]) == 4
 
 
-@pytest.fixture(scope="module")
-def photos(shared_dir: Path) -> str:
-    folder = shared_dir / "data" / "semantic_drone" / "full"
-    if not (folder / "images").is_dir():
-        pytest.skip(f"needs the held-out full-size photos at {folder}")
-    return str(folder.resolve())
-
-
 def test_over_the_photo_ground_the_person_stands_on_walkable_ground(photos: str, model_path, capsys) -> None:
     """``--ground photo``: the point below is drawn where the disc out to the person is walkable
     ground with none of the photos' people in it, so at every bearing the person stands on paved

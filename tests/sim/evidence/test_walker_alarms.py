@@ -12,14 +12,6 @@ from companion.pipeline.density import DensityModel
 from sim.evidence.walker_alarms import fly_over_circle, main
 
 
-@pytest.fixture(scope="module")
-def photos(shared_dir: Path) -> str:
-    folder = shared_dir / "data" / "semantic_drone" / "full"
-    if not (folder / "images").is_dir():
-        pytest.skip(f"needs the held-out full-size photos at {folder}")
-    return str(folder.resolve())
-
-
 def test_a_descent_over_the_photo_world_keeps_its_people_on_walkable_ground(photos: str, model_path: Path,
                                                                            capsys: pytest.CaptureFixture[str]) -> None:
     """Seed 2's photo scene (a crossing world): its walkers stand on walkable ground by the class

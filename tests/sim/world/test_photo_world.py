@@ -32,14 +32,6 @@ from sim.world.walkers import Bounds, Circle
 
 
 @pytest.fixture(scope="module")
-def photos(shared_dir: Path) -> str:
-    folder = shared_dir / "data" / "semantic_drone" / "full"
-    if not (folder / "images").is_dir():
-        pytest.skip(f"needs the held-out full-size photos at {folder}")
-    return str(folder.resolve())
-
-
-@pytest.fixture(scope="module")
 def ground(photos: str):
     return photo_ground(photos)
 

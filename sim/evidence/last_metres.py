@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 from companion.control.touchdown import DescentProfile, guaranteed_clearance
 from companion.geometry.camera import Intrinsics
+from sim.flights.spec import parse_camera
 
 CAMERAS = ("pinhole:70", "pinhole:110", "fisheye:160")
 HEIGHTS_M = (10.0, 20.0, 25.0)
@@ -50,11 +51,9 @@ DESCENTS = (
 
 
 def camera(spec: str, width: int, height: int) -> Intrinsics:
-    """``MODEL:HFOV`` (as ``sim-scenarios --camera``) at ``width x height``."""
-    model, _, fov = spec.partition(":")
-    if model not in ("pinhole", "fisheye") or not fov:
-        raise ValueError(f"camera must be MODEL:HFOV with MODEL pinhole or fisheye, got {spec!r}")
-    return Intrinsics.from_fov(width, height, float(fov), model)
+    """``MODEL:HFOV`` (``sim-scenarios --camera``'s own parser and checks) at ``width x height``."""
+    model, hfov = parse_camera(spec)
+    return Intrinsics.from_fov(width, height, hfov, model)
 
 
 def table(cameras: Sequence[str] = CAMERAS, size: tuple[int, int] = (640, 480)) -> list[dict[str, object]]:

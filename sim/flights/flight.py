@@ -273,14 +273,15 @@ PHOTO_PEOPLE_HALF_M = 150.0
 def photo_scene_centre(spec: FlightSpec) -> tuple[float, float]:
     """Where a photo world's scenario happens: a point drawn from the seed (its own stream) where
     the free circle (grown by ``PHOTO_FREE_MARGIN_M``) is landable ground by the class maps with
-    no photo's person within 1 m of it; for a world without a free circle, any point of the
-    photo block."""
+    no photo's person within 1 m of it, on a photo drawn first among every photo that holds
+    such a point, each as likely (``PhotoGround.place_centre``); for a world without a free
+    circle, any point of the photo block."""
     assert spec.photos is not None
     ground = photo_ground(spec.photos)
     rng = np.random.default_rng([int(spec.seed), 0x9407])
     if spec.world in ("dense", "uniform", "dronecrowd"):
         return (float(rng.uniform(0, ground.block_n)), float(rng.uniform(0, ground.block_e)))
-    return ground.free_centre(spec.free_radius_m + PHOTO_FREE_MARGIN_M, rng)
+    return ground.place_centre(spec.free_radius_m + PHOTO_FREE_MARGIN_M, rng)[1]
 
 
 def build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, float]]:
@@ -309,6 +310,13 @@ def _walkable(spec: FlightSpec, centre: tuple[float, float], half: float) -> Wal
         return None
     assert spec.photos is not None
     return photo_ground(spec.photos).walkable(centre, half + 1.0)
+
+
+def crossing_walkable(spec: FlightSpec, free: Circle) -> Walkable | None:
+    """Where the crossing world's walkers start, cross and stop (``add_crossing_walkers``):
+    anywhere on the drawn ground; on the photo ground, the ground people walk on by the class
+    maps around ``free`` (its radius and a crossing's approach, 8 m, and 1 m more)."""
+    return _walkable(spec, (free.north, free.east), free.radius + 8.0)
 
 
 def _build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, float]]:
@@ -569,6 +577,8 @@ def touchdown_surfaces(ground: object, point: tuple[float, float]) -> list[str] 
 
 async def _fly(spec: FlightSpec, link_port: int, cam_port: int, observe: Observer | None = None) -> FlightResult:
     world, free, sim, camera = build_scene(spec, link_port, cam_port)
+    # Made now, not at the trigger: reading the class maps there would stall the flight's loop.
+    cross_walkable = crossing_walkable(spec, free) if spec.world == "crossing" and free is not None else None
     if observe is not None:
         observe(world, sim)
     # The world's clock starts when the service is ready (at once for the baseline), so the
@@ -635,7 +645,8 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int, observe: Observe
                                 speed=1.4)
         elif spec.world == "crossing" and free is not None:
             # Walkers cross the free circle (the zone the companion lands in) during the descent.
-            add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window, runners=spec.runners)
+            add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window, runners=spec.runners,
+                                 walkable=cross_walkable)
         end = t_trigger + spec.timeout_s
         while not touchdown and time.monotonic() < end:
             if service is not None and not service.running:

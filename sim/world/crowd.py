@@ -25,6 +25,7 @@ Scenario builders for the SITL tests:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -237,9 +238,59 @@ def largest_free_circle(positions: np.ndarray, centre: tuple[float, float], half
             max(r, 0.0))
 
 
+#: Step (m) at which a crossing's way is checked against walkable ground, and of the bearings
+#: tried (degrees) for a way that keeps to it (:func:`on_walkable_ground`).
+CROSSING_CHECK_M = 0.1
+CROSSING_BEARING_STEP_DEG = 5.0
+
+
+def _walkable_run(walkable: Walkable, edge: np.ndarray, d: np.ndarray, length: float) -> float:
+    """How far (m, up to ``length``) one walks from ``edge`` along unit direction ``d`` on
+    walkable ground without a step off it (checked every :data:`CROSSING_CHECK_M`)."""
+    t = np.arange(1, int(math.floor(length / CROSSING_CHECK_M + 1e-9)) + 1) * CROSSING_CHECK_M
+    if len(t) == 0:
+        return 0.0
+    ok = walkable(edge[None, :] + t[:, None] * d[None, :])
+    return float(length) if ok.all() else float(t[int(np.argmin(ok))] - CROSSING_CHECK_M)
+
+
+def on_walkable_ground(crossing: Crossing, walkable: Walkable) -> Crossing:
+    """``crossing`` turned to a way that keeps to walkable ground, as a person crossing open
+    ground keeps to paths, paving and lawns: its start, its chord through the circle and its
+    end. Bearings from the drawn one outward (every :data:`CROSSING_BEARING_STEP_DEG`, nearest
+    first) are tried with the drawn offset; the first whose chord is walkable and that leaves
+    the drawn ``approach_m`` of walkable ground before and beyond the circle wins. When none
+    does, the one that leaves most (the nearer to the drawn bearing of equals) is taken with its
+    approach shortened to what it leaves, so that the walker starts and stops on walkable
+    ground, nearer the circle. Its time at the circle's edge and speed stay. When no bearing
+    gives a walkable chord, the drawn crossing is kept (it is the test)."""
+    c = crossing.circle
+    half = math.sqrt(c.radius ** 2 - crossing.offset_m ** 2)
+    n = int(round(360.0 / CROSSING_BEARING_STEP_DEG))
+    best: tuple[float, float] | None = None  # (run, bearing)
+    for k in [0] + [s * j for j in range(1, n // 2 + 1) for s in (1, -1)][:n - 1]:
+        bearing = crossing.bearing + math.radians(k * CROSSING_BEARING_STEP_DEG)
+        d = np.array([math.cos(bearing), math.sin(bearing)])
+        mid = c.centre + crossing.offset_m * np.array([-d[1], d[0]])
+        entry, exit_ = mid - half * d, mid + half * d
+        chord = entry[None, :] + np.linspace(0.0, 1.0, max(2, int(2 * half / CROSSING_CHECK_M) + 1))[:, None] * (exit_ - entry)
+        if not walkable(chord).all():
+            continue
+        run = min(_walkable_run(walkable, entry, -d, crossing.approach_m),
+                  _walkable_run(walkable, exit_, d, crossing.approach_m))
+        if run >= crossing.approach_m:
+            return dataclasses.replace(crossing, bearing=bearing)
+        if best is None or run > best[0]:
+            best = (run, bearing)
+    if best is None:
+        return crossing
+    return dataclasses.replace(crossing, bearing=best[1], approach_m=best[0])
+
+
 def add_crossing_walkers(world: World, circle: Circle, t_from: float, seed: int,
                          count: int | None = None,
-                         window: tuple[float, float] = CROSSING_WINDOW_S, runners: float = 0.0) -> list[Crossing]:
+                         window: tuple[float, float] = CROSSING_WINDOW_S, runners: float = 0.0,
+                         walkable: Walkable | None = None) -> list[Crossing]:
     """Walkers who cross ``circle`` (a landing zone) during the descent: ``count`` of them (2-4
     drawn when None), each at a speed drawn from :data:`CROSSING_SPEEDS`, from a bearing drawn
     all round, along a chord within half the radius of the centre, crossing the edge at world
@@ -249,7 +300,10 @@ def add_crossing_walkers(world: World, circle: Circle, t_from: float, seed: int,
     the scene's other draws are not touched; the default window draws what it always drew).
     ``runners``: the share (0-1) of them who run or cycle instead, at a speed drawn from
     :data:`RUNNER_SPEEDS`; who does is drawn from a stream of its own, so every walker keeps its
-    bearing, chord and time, and 0 draws exactly what the scenarios always drew."""
+    bearing, chord and time, and 0 draws exactly what the scenarios always drew. ``walkable``
+    (:data:`Walkable`; None: anywhere, as on the drawn ground): the ground they start, cross and
+    stop on (:func:`on_walkable_ground`: each drawn crossing turned to a way on it; nothing more
+    is drawn, so the draws stay)."""
     lo, hi = window
     if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo < hi):
         raise ValueError(f"crossing window must be 0 <= from < to seconds, not {window!r}")
@@ -268,7 +322,10 @@ def add_crossing_walkers(world: World, circle: Circle, t_from: float, seed: int,
         t_enter = t_from + float(rng.uniform(lo, hi))
         runner, run_speed = float(fast.uniform()) < runners, float(fast.uniform(*RUNNER_SPEEDS))
         speed = run_speed if runner else speed
-        out.append(world.add_crossing(Crossing(circle, t_enter, speed, bearing, offset)))
+        crossing = Crossing(circle, t_enter, speed, bearing, offset)
+        if walkable is not None:
+            crossing = on_walkable_ground(crossing, walkable)
+        out.append(world.add_crossing(crossing))
     return out
 
 

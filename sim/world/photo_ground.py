@@ -465,6 +465,54 @@ class PhotoGround:
         free[:, 0] = free[:, -1] = 0
         return cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
 
+    def cell_index(self, res: float = 0.1) -> np.ndarray:
+        """Over one block, as :meth:`landable_clearance`: the index (into :attr:`patches`) of the
+        photo whose cell (``Patch.cell_m``: the photo and its mirrored fill) holds each point."""
+        rows, cols = int(math.ceil(self.block_n / res)), int(math.ceil(self.block_e / res))
+        out = np.full((rows, cols), -1, np.int16)
+        for i, p in enumerate(self.patches):
+            r0, r1 = round(p.north / res), round((p.north + p.cell_m[0]) / res)
+            c0, c1 = round(p.east / res), round((p.east + p.cell_m[1]) / res)
+            out[r0:r1, c0:c1] = i
+        return out
+
+    def places(self, radius: float, res: float = 0.1) -> dict[str, int]:
+        """The photos (names) whose cells hold a centre of a landable disc of ``radius`` m with
+        none of the photos' people within 1 m of it (:meth:`landable_clearance`), and how many
+        such centres (``res`` m apart) each holds."""
+        dist = _clearance_cached(self.folder, self.origin, res)
+        idx = _cell_index_cached(self.folder, self.origin, res)
+        counts = np.bincount(idx[(dist >= radius) & (idx >= 0)].astype(np.int64), minlength=len(self.patches))
+        return {self.patches[i].name: int(counts[i]) for i in np.nonzero(counts)[0]}
+
+    def largest_discs(self, res: float = 0.1) -> dict[str, float]:
+        """Each photo's largest landable disc (its radius, m) with none of the photos' people
+        within 1 m of it, whose centre its cell holds (:meth:`places`)."""
+        dist = _clearance_cached(self.folder, self.origin, res)
+        idx = _cell_index_cached(self.folder, self.origin, res)
+        out = np.zeros(len(self.patches))
+        np.maximum.at(out, idx[idx >= 0].astype(np.int64), dist[idx >= 0])
+        return {p.name: float(out[i]) for i, p in enumerate(self.patches)}
+
+    def place_centre(self, radius: float, rng: np.random.Generator, res: float = 0.1) -> tuple[str, tuple[float, float]]:
+        """A place and a point in it (world north, east) whose disc of ``radius`` m is landable
+        ground by the class maps with no photo's person within 1 m of it: the photo drawn from
+        ``rng`` among every photo whose cell holds such a point (:meth:`places`), each as likely
+        as any other, then the point among that cell's. So a large landable photo holds no more
+        scenes than a small one (:meth:`free_centre` draws among all points, and the two largest
+        photos held every scene). Raises ValueError when no photo holds one."""
+        dist = _clearance_cached(self.folder, self.origin, res)
+        idx = _cell_index_cached(self.folder, self.origin, res)
+        ok = dist >= radius
+        hosts = sorted({int(i) for i in np.unique(idx[ok]) if i >= 0})
+        if not hosts:
+            raise ValueError(f"no landable disc of {radius:.1f} m on the photo ground ({self.folder})")
+        i = hosts[int(rng.integers(len(hosts)))]
+        ii, jj = np.nonzero(ok & (idx == i))
+        k = int(rng.integers(len(ii)))
+        return self.patches[i].name, (float(self.origin[0] + (ii[k] + 0.5) * res),
+                                      float(self.origin[1] + (jj[k] + 0.5) * res))
+
     def free_centre(self, radius: float, rng: np.random.Generator, res: float = 0.1) -> tuple[float, float]:
         """A point (world north, east) whose disc of ``radius`` m is landable ground by the class
         maps with no photo's person within 1 m of it, drawn from ``rng`` among all such points of
@@ -480,6 +528,11 @@ class PhotoGround:
 @functools.lru_cache(maxsize=4)
 def _clearance_cached(folder: str, origin: tuple[float, float], res: float) -> np.ndarray:
     return PhotoGround(folder, origin).landable_clearance(res)
+
+
+@functools.lru_cache(maxsize=4)
+def _cell_index_cached(folder: str, origin: tuple[float, float], res: float) -> np.ndarray:
+    return PhotoGround(folder, origin).cell_index(res)
 
 
 def main() -> None:

@@ -13,11 +13,18 @@ import pytest
 
 from companion.evaluation.datasets import DatasetError, read_image, refuse_held_out
 from companion.geometry.camera import Intrinsics, Mount, Pose
-from sim.flights.flight import build_world, photo_ground, touchdown_surfaces
+from sim.flights.flight import (
+    PHOTO_FREE_MARGIN_M,
+    build_world,
+    crossing_walkable,
+    photo_ground,
+    photo_scene_centre,
+    touchdown_surfaces,
+)
 from sim.flights.results import row_key
 from sim.flights.scenarios import FlightJob
 from sim.flights.spec import FlightResult, FlightSpec
-from sim.world.crowd import World
+from sim.world.crowd import World, add_crossing_walkers
 from sim.world.photo_ground import (
     PERSON,
     PHOTO_CLASSES,
@@ -123,6 +130,67 @@ def test_each_worlds_free_circle_is_landable_and_nobody_stands_in_it(photos: str
     assert ground.surfaces_within(free.north, free.east, free.radius + 0.5) <= PHOTO_LANDABLE
     assert world.people_within(Circle(free.north, free.east, free.radius + 0.3)) == 0
     assert world.nearest_person_distance((free.north, free.east)) > free.radius
+
+
+def test_scenes_are_drawn_among_every_photo_that_holds_their_disc(photos: str, ground) -> None:
+    """Issue 59: a scene's photo is drawn first, each photo that holds a landable disc of the
+    free radius plus 1 m (nobody of the photos within 1 m of it) as likely as any other, so a
+    small landable photo hosts scenes too (until session 29 a point was drawn among the whole
+    block's, and the two largest photos held every scene of seeds 1-75: 533 and 326 all but
+    one). Every disc drawn is landable by the class maps, nobody of the photos within it."""
+    radius = 5.2 + PHOTO_FREE_MARGIN_M  # the scenarios' radii are 5-8 m
+    hosts = ground.places(radius)
+    assert len(hosts) >= 3
+    largest = ground.largest_discs()
+    assert all(largest[name] >= radius for name in hosts)
+    assert sum(r >= radius for r in largest.values()) == len(hosts)
+    drawn = []
+    for seed in range(1, 31):
+        name, (north, east) = ground.place_centre(radius, np.random.default_rng([seed, 0x9407]))
+        drawn.append(name)
+        assert ground.surfaces_within(north, east, radius - 0.2) <= PHOTO_LANDABLE
+        people = ground.people((north, east), radius + 5.0)
+        assert len(people) == 0 or np.hypot(*(people - [north, east]).T).min() > radius + 1.0
+    assert set(drawn) == set(hosts)  # every photo that can host one does
+    assert max(drawn.count(n) for n in hosts) <= 2 * len(drawn) / len(hosts)  # none holds most
+    # The flights' scenes (seeds 1-75) lie on every photo that holds the smallest of their discs.
+    specs = [FlightJob(seed, ground="photo", photos=photos).spec() for seed in range(1, 76)]
+    scenes = [s for s in specs if s.world not in ("dense", "uniform", "dronecrowd")]
+    on = set()
+    for spec in scenes:
+        north, east = photo_scene_centre(spec)
+        n, e = (north - ground.origin[0]) % ground.block_n, (east - ground.origin[1]) % ground.block_e
+        on |= {p.name for p in ground.patches
+               if p.north <= n < p.north + p.cell_m[0] and p.east <= e < p.east + p.cell_m[1]}
+    assert on == set(ground.places(min(s.free_radius_m for s in scenes) + PHOTO_FREE_MARGIN_M))
+
+
+@pytest.mark.parametrize("seed", [2, 8])  # crossing worlds whose crossers, drawn anywhere, leave it
+def test_the_crossing_worlds_crossers_start_and_walk_on_ground_people_walk_on(photos: str, ground, seed: int) -> None:
+    """Issue 59: the crossing world's crossers start, cross and stop on walkable ground by the
+    class maps, every 0.1 s for a minute, as the flights draw them; drawn anywhere (as on the
+    drawn ground, and on the photo ground until session 29) some of them stand on roofs, cars or
+    vegetation."""
+    spec = FlightJob(seed, ground="photo", photos=photos).spec()
+    assert spec.world == "crossing"
+    _world, free, _start = build_world(spec)
+    assert free is not None
+    walkable = crossing_walkable(spec, free)
+    assert walkable is not None and walkable.mask.mean() < 1.0
+    off = {}
+    for on in (True, False):
+        world = World(seed=seed)
+        crossers = add_crossing_walkers(world, free, 0.0, seed, walkable=walkable if on else None)
+        assert len(crossers) >= 2
+        positions, entered = [], 0
+        for _ in range(600):
+            world.step(0.1)
+            positions.append(world.positions())
+            entered = max(entered, world.people_within(free))
+        assert entered > 0  # they still cross the free circle
+        off[on] = float((~walkable(np.vstack(positions))).mean())
+    assert off[True] == 0.0
+    assert off[False] > 0.05
 
 
 def test_the_photos_people_count_for_the_judge_as_walkers_do() -> None:

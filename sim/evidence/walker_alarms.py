@@ -33,8 +33,8 @@ of "The physics of the last metres", not a fault of the tracker.
 over the photo world (docs/photo-world.md): each seed's photo scene as the flights build it, its
 circle landable by the class maps, its walkers real silhouettes keeping to walkable ground, and
 the photos' own people in the truth (they stand still). Each seed then also says how many of
-the world's people, frame by frame, stood off walkable ground by the class maps (the scripted
-crossers' approach may start there, as in the flights).
+the world's people, frame by frame, stood off walkable ground by the class maps (the crossing
+world's crossers keep to it too since session 29, as in the flights).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ from companion.pipeline.people import (
     predicted_clearance,
 )
 from companion.pipeline.slz import PipelineConfig
-from sim.flights.flight import build_world, photo_ground
+from sim.flights.flight import build_world, crossing_walkable, photo_ground
 from sim.flights.scenarios import FlightJob, parse_seeds, scenario
 from sim.flights.spec import photos_folder
 from sim.world.crowd import World, add_crossing_walkers
@@ -172,7 +172,7 @@ def fly_over_circle(model: DensityModel, seed: int, seconds: float = 30.0, horiz
     if free is None:
         return Descent(spec.world, (math.nan, math.nan), kk, [], [], spec.ground)
     if spec.world == "crossing":
-        add_crossing_walkers(world, free, 2.0, spec.seed)
+        add_crossing_walkers(world, free, 2.0, spec.seed, walkable=crossing_walkable(spec, free))
     ground: ProceduralGround | PhotoGround = ProceduralGround(seed) if photos is None else photo_ground(photos)
     # The ground people walk on around the circle: as far as a 90 deg view reaches from 18 m.
     walkable = None if photos is None else photo_ground(photos).walkable((free.north, free.east), 60.0)

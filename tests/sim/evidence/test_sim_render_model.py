@@ -132,8 +132,10 @@ def test_lawn_false_positives_of_a_landability_model(capsys: pytest.CaptureFixtu
 
 def test_lawn_false_positives_on_the_photo_ground(shared_dir: Path, tmp_path: Path,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
-    """``python -m sim.evidence.false_positives --ground photo``: seed 4's photo scene (a circle
-    of asphalt in photo 533, by its class map, with nobody in it) is judged on the class maps: all
+    """``python -m sim.evidence.false_positives --ground photo``: seed 7's photo scene (a circle
+    of asphalt in photo 533, by its class map, with nobody in it; until session 29 it was seed 4's,
+    whose circle moved to photo 326, where 1.8 % of it is marked, when scenes began to draw their
+    photo first) is judged on the class maps: all
     of the circle is landable; from 8 m the shipped model marks some of its real texture as people,
     which the drawn lawn never shows it (docs/photo-world.md); the frame's free ground is
     measured apart from the photos' people; a bad photos folder is exit 2."""
@@ -144,14 +146,14 @@ def test_lawn_false_positives_on_the_photo_ground(shared_dir: Path, tmp_path: Pa
     if not (photos / "images").is_dir():
         pytest.skip(f"needs the held-out full-size photos at {photos}")
     model = DensityModel(MODEL, threads=1)
-    (photo,) = lawn_false_positives(model, 4, [8.0], str(photos.resolve()))
-    (drawn,) = lawn_false_positives(model, 4, [8.0])
+    (photo,) = lawn_false_positives(model, 7, [8.0], str(photos.resolve()))
+    (drawn,) = lawn_false_positives(model, 7, [8.0])
     assert photo.ground == "photo" and drawn.ground == "procedural" and drawn.free_marked_pct is None
     assert photo.unlandable_pct == 0.0 and photo.unlandable_left_pct is None
     assert photo.landable_marked_pct is not None and drawn.landable_marked_pct is not None
     assert photo.landable_marked_pct > 5.0 > drawn.landable_marked_pct
     assert photo.free_marked_pct is not None and 5.0 < photo.free_marked_pct < 50.0
-    assert main(["--seeds", "4", "--heights", "8", "--ground", "photo", "--photos", str(photos), "--json"]) == 0
+    assert main(["--seeds", "7", "--heights", "8", "--ground", "photo", "--photos", str(photos), "--json"]) == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert len(rows) == 1 and rows[0]["ground"] == "photo" and rows[0]["circle_pct"] == photo.circle_pct
     assert main(["--seeds", "3", "--ground", "photo", "--photos", str(tmp_path)]) == 2

@@ -63,6 +63,7 @@ class _Started:
 
 
 _started: dict[str, _Started] = {}
+_done: dict[str, tuple[Path, list[subprocess.CompletedProcess[str]]]] = {}
 _folders: list[Path] = []
 
 
@@ -104,7 +105,10 @@ def _end(started: _Started) -> None:
 
 def result(name: str) -> tuple[Path, list[subprocess.CompletedProcess[str]]]:
     """``name``'s folder and what each of its commands did, in order: those of the early start
-    waited for, or the batch run now, its commands side by side."""
+    waited for, or the batch run now, its commands side by side; once done, the same for every
+    test that asks (several tests may assert on one batch)."""
+    if name in _done:
+        return _done[name]
     started = _started.pop(name, None)
     if started is None:
         folder = _folder(name)
@@ -117,13 +121,15 @@ def result(name: str) -> tuple[Path, list[subprocess.CompletedProcess[str]]]:
             out.seek(0)
             err.seek(0)
             done.append(subprocess.CompletedProcess(run.argv, code, out.read(), err.read()))
-        return started.folder, done
+        _done[name] = (started.folder, done)
+        return _done[name]
     finally:
         _end(started)
 
 
 def stop_all() -> None:
     """End the commands no test waited for, and remove every batch's folder."""
+    _done.clear()
     while _started:
         _end(_started.popitem()[1])
     while _folders:

@@ -98,10 +98,8 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     """Start the commands of the selected tests marked ``started_early`` (tests/early.py)."""
     if os.environ.get("PYTEST_XDIST_WORKER") or session.config.option.collectonly:
         return
-    for item in session.items:
-        marker = item.get_closest_marker("started_early")
-        if marker is not None:
-            early.start(*marker.args)
+    early.start([marker.args[0] for item in session.items
+                 if (marker := item.get_closest_marker("started_early")) is not None])
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:

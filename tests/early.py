@@ -3,30 +3,35 @@
 tests that assert on them, instead of when those tests' turn comes.
 
 They then run beside the tests before them (the fast lane is one process, mostly on one core:
-the other is free), and each test waits for its commands and asserts on what they did as it
-always did: the same commands on the same inputs. A batch is a function registered with
-:func:`batch` that writes its inputs into the folder it is given and returns its commands; a test
-marked ``@pytest.mark.started_early("name")`` gets them done from :func:`result`. tests/conftest.py
-starts the marked tests' batches once collection is done, and ends any still running at the
-session's end (a run stopped by ``-x``). Nothing is started early under ``--collect-only`` nor
-under pytest-xdist (every worker collects every test, and only one runs each): :func:`result`
-then runs the batch on the spot.
+the other is free), one at a time (tests/early_runner.py), and each test waits for its commands
+and asserts on what they did as it always did: the same commands on the same inputs. A batch is
+a function registered with :func:`batch` that writes its inputs into the folder it is given and
+returns its commands; a test marked ``@pytest.mark.started_early("name")`` gets them done from
+:func:`result`. tests/conftest.py starts the marked tests' batches once collection is done, in
+the order of the tests, and ends what is still running at the session's end (a run stopped by
+``-x``). Nothing is started early under ``--collect-only`` nor under pytest-xdist (every worker
+collects every test, and only one runs each): :func:`result` then runs the batch on the spot,
+its commands side by side.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-TIMEOUT_S = 240.0
+#: The longest a test waits for its batch, queue included (mypy alone takes 10-20 s).
+TIMEOUT_S = 600.0
 
 
 @dataclass(frozen=True)
@@ -55,16 +60,17 @@ def _mypy(folder: Path) -> list[Run]:
     return [Run([str(BIN / "mypy")])]  # pyproject.toml's settings, from the repository's root
 
 
-@dataclass
-class _Started:
+@dataclass(frozen=True)
+class _Queued:
     folder: Path
     runs: list[Run]
-    procs: list[tuple[subprocess.Popen[str], IO[str], IO[str]]] = field(default_factory=list)
+    files: list[tuple[Path, Path, Path]]  # stdout, stderr, exit status of each run
 
 
-_started: dict[str, _Started] = {}
-_done: dict[str, tuple[Path, list[subprocess.CompletedProcess[str]]]] = {}
 _folders: list[Path] = []
+_queued: dict[str, _Queued] = {}
+_done: dict[str, tuple[Path, list[subprocess.CompletedProcess[str]]]] = {}
+_runner: subprocess.Popen[bytes] | None = None
 
 
 def _folder(name: str) -> Path:
@@ -73,65 +79,79 @@ def _folder(name: str) -> Path:
     return path
 
 
-def _popen(run: Run) -> tuple[subprocess.Popen[str], IO[str], IO[str]]:
-    # Output to temporary files: a pipe nobody reads until the test's turn would fill and stall it.
-    out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
-    proc = subprocess.Popen(run.argv, cwd=run.cwd or REPO, env=run.env, stdout=out, stderr=err, text=True)
-    return proc, out, err
-
-
-def start(name: str) -> None:
-    """Write ``name``'s inputs and start its commands now."""
-    if name in _started:
+def start(names: list[str]) -> None:
+    """Write the inputs of the batches ``names`` and hand their commands, in that order, to one
+    runner process that runs them one at a time."""
+    global _runner
+    jobs = []
+    for name in dict.fromkeys(names):
+        if name in _queued or name in _done:
+            continue
+        folder = _folder(name)
+        runs = BATCHES[name](folder)
+        files = [(folder / f".out{k}", folder / f".err{k}", folder / f".status{k}") for k in range(len(runs))]
+        _queued[name] = _Queued(folder, runs, files)
+        jobs += [{"argv": run.argv, "cwd": str(run.cwd or REPO), "env": run.env if run.env is not None else dict(os.environ),
+                  "out": str(out), "err": str(err), "status": str(status)}
+                 for run, (out, err, status) in zip(runs, files, strict=True)]
+    if not jobs:
         return
-    folder = _folder(name)
-    runs = BATCHES[name](folder)
-    started = _Started(folder, runs)
-    _started[name] = started
-    try:
-        for run in runs:
-            started.procs.append(_popen(run))
-    except OSError:  # a tool that is not there: the test runs the batch itself, and says so
-        _end(_started.pop(name))
+    spec = _folder("jobs") / "jobs.json"
+    spec.write_text(json.dumps(jobs))
+    _runner = subprocess.Popen([sys.executable, str(Path(__file__).with_name("early_runner.py")), str(spec)],
+                               stdin=subprocess.DEVNULL, start_new_session=True)
 
 
-def _end(started: _Started) -> None:
-    for proc, out, err in started.procs:
-        proc.kill()  # nothing to a process that has exited
-        proc.wait()
-        out.close()
-        err.close()
+def _wait_for(queued: _Queued) -> list[subprocess.CompletedProcess[str]]:
+    deadline = time.monotonic() + TIMEOUT_S
+    done = []
+    for run, (out, err, status) in zip(queued.runs, queued.files, strict=True):
+        while not status.exists():
+            if _runner is not None and _runner.poll() is not None and not status.exists():
+                raise RuntimeError(f"tests/early_runner.py ended ({_runner.returncode}) before {run.argv} was run")
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{run.argv} not done in {TIMEOUT_S:.0f} s")
+            time.sleep(0.02)
+        done.append(subprocess.CompletedProcess(run.argv, int(status.read_text()), out.read_text(), err.read_text()))
+    return done
+
+
+def _run_now(folder: Path, runs: list[Run]) -> list[subprocess.CompletedProcess[str]]:
+    procs = [subprocess.Popen(run.argv, cwd=run.cwd or REPO, env=run.env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for run in runs]
+    done = []
+    for run, proc in zip(runs, procs, strict=True):
+        out, err = proc.communicate(timeout=TIMEOUT_S)
+        done.append(subprocess.CompletedProcess(run.argv, proc.returncode, out, err))
+    return done
 
 
 def result(name: str) -> tuple[Path, list[subprocess.CompletedProcess[str]]]:
     """``name``'s folder and what each of its commands did, in order: those of the early start
-    waited for, or the batch run now, its commands side by side; once done, the same for every
-    test that asks (several tests may assert on one batch)."""
-    if name in _done:
-        return _done[name]
-    started = _started.pop(name, None)
-    if started is None:
-        folder = _folder(name)
-        started = _Started(folder, BATCHES[name](folder))
-        started.procs = [_popen(run) for run in started.runs]
-    try:
-        done = []
-        for run, (proc, out, err) in zip(started.runs, started.procs, strict=True):
-            code = proc.wait(timeout=TIMEOUT_S)
-            out.seek(0)
-            err.seek(0)
-            done.append(subprocess.CompletedProcess(run.argv, code, out.read(), err.read()))
-        _done[name] = (started.folder, done)
-        return _done[name]
-    finally:
-        _end(started)
+    waited for, or the batch run now; once done, the same for every test that asks (several
+    tests may assert on one batch)."""
+    if name not in _done:
+        queued = _queued.pop(name, None)
+        if queued is not None:
+            _done[name] = (queued.folder, _wait_for(queued))
+        else:
+            folder = _folder(name)
+            _done[name] = (folder, _run_now(folder, BATCHES[name](folder)))
+    return _done[name]
 
 
 def stop_all() -> None:
-    """End the commands no test waited for, and remove every batch's folder."""
+    """End the runner and what it runs (the session stopped before some tests ran), and remove
+    every batch's folder."""
+    global _runner
+    if _runner is not None and _runner.poll() is None:
+        try:
+            os.killpg(_runner.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        _runner.wait()
+    _runner = None
+    _queued.clear()
     _done.clear()
-    while _started:
-        _end(_started.popitem()[1])
     while _folders:
         shutil.rmtree(_folders.pop(), ignore_errors=True)
-

@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.config import SHIPPED_MODEL
 from companion.frames import decode_image, read_image, truncated_jpeg
 from companion.service.camera import CameraError, CameraSource, check_source
 from tests import early
@@ -114,7 +113,7 @@ def _undecodable_folder_start_ups(folder: Path) -> list[early.Run]:
     """``check-config`` and ``run`` of a folder where no image decodes: each starts a Python and
     loads onnxruntime, so they start side by side once the session knows it runs the test."""
     frames = _undecodable_folder(folder)
-    model = SHIPPED_MODEL  # the fixture model_path's
+    from tests.conftest import MODEL as model  # the fixture model_path's
     cfg = folder / "companion.toml"
     cfg.write_text(f'[camera]\nsource = "{frames}"\n[model]\npath = "{model}"\n')
     return [early.Run([sys.executable, "-m", "companion", *args], REPO)
@@ -132,6 +131,7 @@ def test_a_frames_folder_where_no_image_decodes_is_refused_at_start_up(tmp_path:
     # check-config and run of such a folder (one of its own, tests/early.py): exit 2 naming it.
     folder, runs = early.result("undecodable-folder")
     folder = folder / "frames"
+    assert runs[1].args[-1] == str(model_path)  # run --model, as the config's model.path
     for r in runs:
         args = r.args
         assert r.returncode == 2, (args, r.stderr)

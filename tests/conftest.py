@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from tests import early
+
 REPO = Path(__file__).resolve().parents[1]
 #: Every test that flies the simulator (marked ``sitl``, or starting a simulator or a flight) is in
 #: this folder: the second lane of the test command (.ci/tests), after the fast lane.
@@ -90,3 +92,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if stray:
         raise pytest.UsageError("tests marked sitl fly the simulator and belong in tests/flights/: "
                                 + ", ".join(stray))
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Start the commands of the selected tests marked ``started_early`` (tests/early.py)."""
+    if os.environ.get("PYTEST_XDIST_WORKER") or session.config.option.collectonly:
+        return
+    early.start([marker.args[0] for item in session.items
+                 if (marker := item.get_closest_marker("started_early")) is not None])
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    early.stop_all()

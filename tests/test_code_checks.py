@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from tests import early
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
@@ -34,8 +36,10 @@ def test_ruff_finds_nothing() -> None:
     assert res.returncode == 0, res.stdout + res.stderr
 
 
+@pytest.mark.started_early("mypy")  # beside the tests before it (tests/early.py): same command, same check
 def test_mypy_finds_nothing() -> None:
-    res = _run([_tool("mypy")])
+    _tool("mypy")
+    (res,) = early.result("mypy")[1]
     assert res.returncode == 0, res.stdout + res.stderr
 
 

@@ -15,11 +15,11 @@ import fnmatch
 import json
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
 import sysconfig
-import venv
 import zipfile
 from dataclasses import replace
 from pathlib import Path
@@ -29,6 +29,7 @@ import pytest
 from companion import __version__
 from companion import config as config_mod
 from companion.cli import build_parser, command_names
+from tests import early
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "companion.example.toml"
@@ -59,13 +60,17 @@ def _side_by_side(argvs: list[list[str]], cwd: Path | list[Path] | None = None,
     return done
 
 
-def _companions(*argss: tuple[str, ...], cwd: Path | None = None) -> list[subprocess.CompletedProcess[str]]:
-    return _side_by_side([[sys.executable, "-m", "companion", *args] for args in argss], cwd=cwd)
+def _companion_run(*args: str, cwd: Path) -> early.Run:
+    """``companion ARGS`` in ``cwd``, as a command of an early batch (tests/early.py): the
+    commands of this module's tests each start a Python and import the package, and start when
+    the session knows it runs the test, beside the tests before it."""
+    return early.Run([sys.executable, "-m", "companion", *args], cwd)
 
 
 # ---- check-config ---------------------------------------------------------------------------
 
-def test_the_settings_load_without_the_kalman_filters_statistics() -> None:
+@early.batch("settings-without-filterpy")
+def _settings_without_filterpy(folder: Path) -> list[early.Run]:
     # filterpy's package imports scipy.stats (about 0.8 s): every command paid it through
     # companion.config before it could say a key was wrong. The zone tracker imports it when
     # made (the service at start-up), and its filters work as before.
@@ -77,13 +82,24 @@ def test_the_settings_load_without_the_kalman_filters_statistics() -> None:
             "print('filterpy' in sys.modules)\n"
             "for k in range(5): tr.update([Circle(1.0, 2.0, 3.0)], k * 0.1)\n"
             "print(len(tr.update([Circle(1.0, 2.0, 3.0)], 0.5)))\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    return [early.Run([sys.executable, "-c", code], folder)]
+
+
+@pytest.mark.started_early("settings-without-filterpy")
+def test_the_settings_load_without_the_kalman_filters_statistics() -> None:
+    (r,) = early.result("settings-without-filterpy")[1]
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["False", "False", "True", "1"], r.stdout
 
 
-def test_check_config_accepts_the_example_and_prints_what_it_resolves_to(tmp_path: Path) -> None:
-    r = _companion("check-config", str(EXAMPLE), cwd=tmp_path)
+@early.batch("check-config-example")
+def _check_config_example(folder: Path) -> list[early.Run]:
+    return [_companion_run("check-config", str(EXAMPLE), cwd=folder)]
+
+
+@pytest.mark.started_early("check-config-example")
+def test_check_config_accepts_the_example_and_prints_what_it_resolves_to() -> None:
+    (r,) = early.result("check-config-example")[1]
     assert r.returncode == 0, r.stderr
     resolved = tomllib.loads(r.stdout)  # the printout is TOML itself
     # Every key, each with the value run would use: the example's empty model.path is the shipped model.
@@ -110,20 +126,25 @@ BAD_CONFIGS = [
 ]
 
 
+@early.batch("bad-configs")
+def _bad_configs(folder: Path) -> list[early.Run]:
+    """``companion check-config`` of each of BAD_CONFIGS, its own file in its own folder."""
+    runs = []
+    for k, (text, _key) in enumerate(BAD_CONFIGS):
+        (folder / str(k)).mkdir()
+        (folder / str(k) / "c.toml").write_text(text)
+        runs.append(_companion_run("check-config", str(folder / str(k) / "c.toml"), cwd=folder / str(k)))
+    return runs
+
+
 @pytest.fixture(scope="module")
-def bad_config_checks(tmp_path_factory: pytest.TempPathFactory) -> dict[str, subprocess.CompletedProcess[str]]:
-    """``companion check-config`` of each of BAD_CONFIGS (its own file in its own folder), the
-    commands started at once: the text -> what the command did."""
-    folders = []
-    for text, _key in BAD_CONFIGS:
-        folder = tmp_path_factory.mktemp("bad_config")
-        (folder / "c.toml").write_text(text)
-        folders.append(folder)
-    runs = _side_by_side([[sys.executable, "-m", "companion", "check-config", str(folder / "c.toml")]
-                          for folder in folders], cwd=folders)
+def bad_config_checks() -> dict[str, subprocess.CompletedProcess[str]]:
+    """What ``companion check-config`` did with each of BAD_CONFIGS: the text -> the run."""
+    runs = early.result("bad-configs")[1]
     return {text: r for (text, _key), r in zip(BAD_CONFIGS, runs, strict=True)}
 
 
+@pytest.mark.started_early("bad-configs")
 @pytest.mark.parametrize(("text", "key"), BAD_CONFIGS)
 def test_check_config_exits_2_naming_the_key(bad_config_checks: dict[str, subprocess.CompletedProcess[str]],
                                              text: str, key: str) -> None:
@@ -133,26 +154,46 @@ def test_check_config_exits_2_naming_the_key(bad_config_checks: dict[str, subpro
     assert r.stdout == ""
 
 
-def test_check_config_exits_2_on_a_malformed_model(tmp_path: Path) -> None:
-    (tmp_path / "bad.onnx").write_bytes(b"not an onnx model at all")
-    f = tmp_path / "c.toml"
+@early.batch("malformed-model")
+def _malformed_model(folder: Path) -> list[early.Run]:
+    (folder / "bad.onnx").write_bytes(b"not an onnx model at all")
+    f = folder / "c.toml"
     f.write_text('[model]\npath = "bad.onnx"\n')
-    r = _companion("check-config", str(f), cwd=tmp_path)
+    return [_companion_run("check-config", str(f), cwd=folder)]
+
+
+@pytest.mark.started_early("malformed-model")
+def test_check_config_exits_2_on_a_malformed_model() -> None:
+    (r,) = early.result("malformed-model")[1]
     assert r.returncode == 2 and "model.path" in r.stderr and "Traceback" not in r.stderr
 
 
-def test_check_config_exits_2_on_malformed_toml_and_a_missing_file(tmp_path: Path) -> None:
-    f = tmp_path / "c.toml"
+@early.batch("malformed-toml")
+def _malformed_toml(folder: Path) -> list[early.Run]:
+    f = folder / "c.toml"
     f.write_text("[camera\nfps = 10\n")
-    r, missing = _companions(("check-config", str(f)), ("check-config", str(tmp_path / "missing.toml")), cwd=tmp_path)
+    return [_companion_run("check-config", str(f), cwd=folder),
+            _companion_run("check-config", str(folder / "missing.toml"), cwd=folder)]
+
+
+@pytest.mark.started_early("malformed-toml")
+def test_check_config_exits_2_on_malformed_toml_and_a_missing_file() -> None:
+    folder, (r, missing) = early.result("malformed-toml")
+    f = folder / "c.toml"
     assert r.returncode == 2 and "not valid TOML" in r.stderr and str(f) in r.stderr
     r = missing
     assert r.returncode == 2 and "does not exist" in r.stderr and "missing.toml" in r.stderr
 
 
-def test_check_config_takes_set_overrides_as_run_does(tmp_path: Path) -> None:
-    r, bad = _companions(("check-config", str(EXAMPLE), "--set", "camera.fps=15"),
-                         ("check-config", str(EXAMPLE), "--set", "camera.fps=0"), cwd=tmp_path)
+@early.batch("set-overrides")
+def _set_overrides(folder: Path) -> list[early.Run]:
+    return [_companion_run("check-config", str(EXAMPLE), "--set", "camera.fps=15", cwd=folder),
+            _companion_run("check-config", str(EXAMPLE), "--set", "camera.fps=0", cwd=folder)]
+
+
+@pytest.mark.started_early("set-overrides")
+def test_check_config_takes_set_overrides_as_run_does() -> None:
+    r, bad = early.result("set-overrides")[1]
     assert r.returncode == 0 and tomllib.loads(r.stdout)["camera"]["fps"] == 15.0
     r = bad
     assert r.returncode == 2 and "camera.fps" in r.stderr
@@ -175,31 +216,43 @@ def test_help_shows_no_restructuredtext(command: str | None) -> None:
     assert parser.description and not parser.description.startswith(" ")
 
 
-def test_a_missing_optional_package_names_its_extra(tmp_path: Path) -> None:
+@early.batch("without-tqdm")
+def _without_tqdm(folder: Path) -> list[early.Run]:
     # sys.modules[name] = None makes the import fail exactly as an absent package does. A replay
     # without a progress bar needs no tqdm (the container image has none); one with it does.
     import cv2
     import numpy as np
-    frames = tmp_path / "frames"
+    frames = folder / "frames"
     frames.mkdir()
     cv2.imwrite(str(frames / "000.png"), np.full((48, 64, 3), 90, np.uint8))
     codes = [("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
               f"sys.exit(main({argv!r}))")
              for argv in (["replay", "--help"], ["replay", str(frames), "--nadir", "--gsd", "0.05", "--progress"],
                           ["sim-scenarios", "--seeds", "1-3", "--json"])]
-    r, *runs = _side_by_side([[sys.executable, "-c", code] for code in codes], cwd=tmp_path)
+    return [early.Run([sys.executable, "-c", code], folder) for code in codes]
+
+
+@pytest.mark.started_early("without-tqdm")
+def test_a_missing_optional_package_names_its_extra() -> None:
+    r, *runs = early.result("without-tqdm")[1]
     assert "Traceback" not in r.stderr
     for r in runs:
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert "pip install 'companion-slz[tools]'" in r.stderr and "tqdm" in r.stderr, r.stderr
 
 
-def test_the_demo_without_pyav_says_so_before_flying(tmp_path: Path) -> None:
+@early.batch("demo-without-pyav")
+def _demo_without_pyav(folder: Path) -> list[early.Run]:
     code = ("import sys; sys.modules['av'] = None; from companion.cli import main; "
-            f"sys.exit(main(['demo', '--out', {str(tmp_path / 'out')!r}]))")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=60)
+            f"sys.exit(main(['demo', '--out', {str(folder / 'out')!r}]))")
+    return [early.Run([sys.executable, "-c", code], folder)]
+
+
+@pytest.mark.started_early("demo-without-pyav")
+def test_the_demo_without_pyav_says_so_before_flying() -> None:
+    folder, (r,) = early.result("demo-without-pyav")
     assert r.returncode == 2 and "companion-slz[tools]" in r.stderr and "--no-video" in r.stderr, r.stderr
-    assert not (tmp_path / "out").exists()  # nothing flown, nothing written
+    assert not (folder / "out").exists()  # nothing flown, nothing written
 
 
 # ---- the wheel, installed outside the clone --------------------------------------------------
@@ -262,21 +315,31 @@ def test_the_dockerfile_copies_what_exists_and_runs_the_service() -> None:
     assert any("pip wheel" in " ".join(args) and "--no-deps" in args for word, args in steps if word == "RUN")
 
 
-def test_a_wheel_installed_outside_the_clone_runs_and_finds_its_model(tmp_path: Path) -> None:
-    src = _copy_source(tmp_path / "src")
-    dist = tmp_path / "dist"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "-q", "-w", str(dist)],
-                   check=True, capture_output=True, text=True, timeout=300)
-    (wheel,) = dist.glob("companion_slz-*.whl")
+@early.batch("wheel")
+def _wheel(folder: Path) -> list[early.Run]:
+    """The wheel built from a copy of the source, and installed into a fresh virtual environment
+    without pip (``venv --without-pip --symlinks``) by this environment's pip: one command, the
+    steps in order, stopping at the first that fails."""
+    src = _copy_source(folder / "src")
+    py = [sys.executable, "-m"]
+    steps = [[*py, "pip", "wheel", str(src), "--no-deps", "-q", "-w", str(folder / "dist")],
+             [*py, "venv", "--without-pip", "--symlinks", str(folder / "venv")],
+             [*py, "pip", "--python", str(folder / "venv" / "bin" / "python"), "install", "--no-deps", "--no-index",
+              "-q", "--find-links", str(folder / "dist"), "companion-slz"]]
+    return [early.Run(["bash", "-c", " && ".join(shlex.join(step) for step in steps)], folder)]
+
+
+@pytest.mark.started_early("wheel")
+def test_a_wheel_installed_outside_the_clone_runs_and_finds_its_model() -> None:
+    tmp_path, (built,) = early.result("wheel")
+    assert built.returncode == 0, built.stdout + built.stderr
+    (wheel,) = (tmp_path / "dist").glob("companion_slz-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     assert {"companion/models/slz-density-v5.onnx", "companion/models/slz-density-v4.onnx", "companion/models/slz-density-v4-x86.onnx",
             "companion/models/slz-density.onnx"} <= set(names) and "companion/models/MODEL_CARD.md" in names
 
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, with_pip=False, symlinks=True)
     py = env_dir / "bin" / "python"
-    subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "--no-index", "-q",
-                    str(wheel)], check=True, capture_output=True, text=True, timeout=300)
     site = Path(subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                                check=True, capture_output=True, text=True).stdout.strip())
     # The dependencies (numpy, onnxruntime, ...) from this test's environment, after the wheel's own

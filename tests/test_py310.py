@@ -51,16 +51,24 @@ def timeout_handlers_missing_asyncio(tree: ast.AST) -> list[int]:
     return bad
 
 
+def _sources_saying(word: str) -> Iterator[tuple[Path, ast.AST]]:
+    """Each source whose text holds ``word``, parsed: a file without it can hold neither such a
+    handler (``TimeoutError``) nor such an import (``tomllib``), so the others need no parse."""
+    for path in SOURCES:
+        text = path.read_text()
+        if word in text:
+            yield path, ast.parse(text)
+
+
 def test_asyncio_timeouts_are_caught_on_python_3_10() -> None:
-    bad = {str(p.relative_to(REPO)): lines for p in SOURCES
-           if (lines := timeout_handlers_missing_asyncio(ast.parse(p.read_text())))}
+    bad = {str(p.relative_to(REPO)): lines for p, tree in _sources_saying("TimeoutError")
+           if (lines := timeout_handlers_missing_asyncio(tree))}
     assert not bad, (f"{bad}: these lines catch TimeoutError around asyncio.wait_for/timeout; on 3.10 that "
                      "misses asyncio.TimeoutError: catch (TimeoutError, asyncio.TimeoutError)")
 
 
 def test_tomllib_is_imported_behind_a_version_check() -> None:
-    for path in SOURCES:
-        tree = ast.parse(path.read_text())
+    for path, tree in _sources_saying("tomllib"):
         guarded = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If) and "version_info" in ast.unparse(node.test)
                    for n in ast.walk(node)}
         for node in ast.walk(tree):

@@ -142,9 +142,14 @@ def _process(pipe: SLZPipeline, frame: ReplayFrame, use_pose: bool
 LOGGED_SKIPS = 5
 #: Skips every recording of a flight has, said once at INFO and counted, not warned about (what
 #: the pipeline says of the frame -> why it is expected): frames from below the head plane (the
-#: vehicle on the ground, before its take-off or after its landing) and frames recorded before the
-#: first pose arrived (the service did not use them either).
+#: vehicle on the ground, before its take-off or after its landing), frames from about the head
+#: plane's height (the last metres before touchdown: the plane then passes through the camera, or
+#: within millimetres of it, so the recorded pose gives a homography that cannot be inverted; a
+#: user's fixed homography is checked at start-up instead, so per frame this comes from poses
+#: alone) and frames recorded before the first pose arrived (the service did not use them either).
 EXPECTED_SKIPS = {"not above the head plane": "on the ground",
+                  "homography is not invertible": "camera at about head-plane height (take-off, or the last metres "
+                                                  "before touchdown): the head plane passes through it",
                   "no pose and no fixed projection": "recorded without a pose: the flight did not use it either"}
 
 

@@ -4,7 +4,6 @@ installed, a clear message (no traceback) where it is not or where a route is br
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from importlib.metadata import EntryPoint
 from pathlib import Path
@@ -12,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from companion import cli
+from tests import early
 
 SIM_COMMANDS = ("demo", "sim", "sim-scenarios", "sim-compare")
 
@@ -36,21 +36,36 @@ def test_a_routed_command_runs_its_modules_configure(capsys: pytest.CaptureFixtu
     assert "--lockstep" in capsys.readouterr().out
 
 
+#: What a process that imports ``companion.cli`` with the simulator absent does.
+WITHOUT_SIM = "import sys; sys.modules['sim'] = None; from companion.cli import main; "
+
+
+@early.batch("cli-routes")
+def _cli_routes(folder: Path) -> list[early.Run]:
+    """This module's processes (each imports the package: they start side by side once the
+    session knows it runs their tests, tests/early.py): the modules ``companion.cli`` imports;
+    ``--help`` and ``demo`` without the simulator; ``check-config --help`` listing what it loaded."""
+    imports = "import sys, companion.cli; print(sorted(m for m in sys.modules if m == 'sim' or m.startswith('sim.')))"
+    check = ("import atexit, sys; atexit.register(lambda: print(sorted(m for m in sys.modules "
+             "if m == 'sim' or m.startswith('sim.')), file=sys.stderr)); "
+             "from companion.cli import main; main(['check-config', '--help'])")
+    return [early.Run([sys.executable, "-c", code], cwd) for code, cwd in (
+        (imports, None), (WITHOUT_SIM + "sys.exit(main(['--help']))", None),
+        (WITHOUT_SIM + "sys.exit(main(['demo']))", None), (check, folder))]
+
+
+@pytest.mark.started_early("cli-routes")
 def test_the_command_line_imports_nothing_of_the_simulator() -> None:
-    code = "import sys, companion.cli; print(sorted(m for m in sys.modules if m == 'sim' or m.startswith('sim.')))"
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    r = early.result("cli-routes")[1][0]
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
 
 
+@pytest.mark.started_early("cli-routes")
 def test_without_the_simulator_its_commands_are_not_listed_and_asking_for_one_says_why() -> None:
-    # sys.modules["sim"] = None makes importing it fail exactly as an absent package does.
-    head = "import sys; sys.modules['sim'] = None; from companion.cli import main; "
-    listing = subprocess.run([sys.executable, "-c", head + "sys.exit(main(['--help']))"],
-                             capture_output=True, text=True, timeout=60)
+    # sys.modules["sim"] = None makes importing it fail exactly as an absent package does (WITHOUT_SIM).
+    listing, asked = early.result("cli-routes")[1][1:3]
     assert listing.returncode == 0 and "check-config" in listing.stdout, listing.stderr
     assert "sim-scenarios" not in listing.stdout and "demo" not in listing.stdout, listing.stdout
-    asked = subprocess.run([sys.executable, "-c", head + "sys.exit(main(['demo']))"],
-                           capture_output=True, text=True, timeout=60)
     assert asked.returncode == 2 and "Traceback" not in asked.stderr, asked.stderr
     assert "'demo' comes from a package that is not installed here" in asked.stderr, asked.stderr
 
@@ -77,11 +92,9 @@ def test_a_broken_route_is_listed_as_unavailable_and_says_why(monkeypatch: pytes
     assert "pip install -e ." in err
 
 
-def test_the_services_own_commands_load_nothing_of_the_simulator(tmp_path: Path) -> None:
+@pytest.mark.started_early("cli-routes")
+def test_the_services_own_commands_load_nothing_of_the_simulator() -> None:
     # `companion run` (the daemon on the vehicle) and the other own commands never import sim.
-    check = ("import atexit, sys; atexit.register(lambda: print(sorted(m for m in sys.modules "
-             "if m == 'sim' or m.startswith('sim.')), file=sys.stderr)); "
-             "from companion.cli import main; main(['check-config', '--help'])")
-    r = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    r = early.result("cli-routes")[1][3]
     assert r.returncode == 0, r.stderr
     assert r.stderr.strip().splitlines()[-1] == "[]", r.stderr

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from companion.evaluation import datasets as D
 from companion.evaluation.metrics import CURVE_THRESHOLDS, best_threshold, evaluate_set, level_map, tally_occupancy
 from companion.pipeline.density import DensityModel
 from companion.pipeline.occupancy import FREE, OccupancyParams, occupancy_map
+from tests import early
 
 CARD = Path(__file__).resolve().parents[3] / "companion" / "models" / "MODEL_CARD.md"
 
@@ -117,13 +119,24 @@ def test_dronecrowd_recall_matches_the_model_card(model_path: Path, shared_dir: 
     assert r.free == pytest.approx(free, abs=0.003)
 
 
-def test_eval_cli_json_with_peer(model_path: Path, shared_dir: Path, capsys) -> None:
-    from companion.cli import main
+@early.batch("eval-json-with-peer")
+def _eval_json_with_peer(folder: Path) -> list[early.Run]:
+    """``companion eval --json`` with the MCNN peer (its latency runs alone take seconds): a
+    process of its own, started once the session knows it runs the test (tests/early.py)."""
+    from tests.conftest import SHARED
+    if not (SHARED / "data").is_dir():
+        return []  # the test skips (shared_dir)
+    return [early.Run([sys.executable, "-m", "companion", "eval", "--shared", str(SHARED), "--sets", "semantic,mall",
+                       "--limit", "2", "--mall-step", "300", "--latency-runs", "1",
+                       "--peer", str(SHARED / "peers" / "mcnn-shb.onnx"), "--json"])]
 
-    rc = main(["eval", "--shared", str(shared_dir), "--sets", "semantic,mall", "--limit", "2", "--mall-step", "300",
-               "--latency-runs", "1", "--peer", str(shared_dir / "peers" / "mcnn-shb.onnx"), "--json"])
-    assert rc == 0
-    doc = json.loads(capsys.readouterr().out)
+
+@pytest.mark.started_early("eval-json-with-peer")
+def test_eval_cli_json_with_peer(model_path: Path, shared_dir: Path) -> None:
+    (r,) = early.result("eval-json-with-peer")[1]
+    assert r.args[r.args.index("--shared") + 1] == str(shared_dir)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
     ours, peer = doc["model"], doc["peer"]
     assert set(ours["sets"]) == {"semantic_drone_val", "mall"}
     assert ours["sets"]["mall"]["images"] == 2 and ours["sets"]["mall"]["mae"] is not None

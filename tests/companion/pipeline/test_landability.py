@@ -4,7 +4,6 @@ unlandable ground, the zones' edges, start-up errors, the drawing, and training 
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from companion.pipeline.landability import LandabilityModel, LandabilityModelErr
 from companion.pipeline.occupancy import FREE, OCCUPIED, surface_free_map
 from companion.pipeline.proposals import distance_cells
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
+from tests import early
 from tests.companion.evaluation.test_density_runner import _save
 
 REPO = Path(__file__).resolve().parents[3]
@@ -240,30 +240,31 @@ def test_config_validates_the_unlandable_levels(value: list[str], message: str) 
         config.load(None, {"pipeline.unlandable_threshold": 1.0})
 
 
-def _companions(runs: list[tuple[str, ...]], cwd: Path) -> list[subprocess.CompletedProcess[str]]:
-    """Several ``companion`` commands started at once and waited for (each starts a Python and
-    loads onnxruntime: side by side they take the time of about two, not of all of them)."""
-    procs = [subprocess.Popen([sys.executable, "-m", "companion", *args], stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, cwd=str(cwd)) for args in runs]
-    done = []
-    for args, proc in zip(runs, procs):
-        out, err = proc.communicate(timeout=60)
-        done.append(subprocess.CompletedProcess([*args], proc.returncode, out, err))
-    return done
-
-
-def test_a_missing_or_corrupt_landability_model_stops_the_start_with_exit_2(tmp_path: Path) -> None:
-    (tmp_path / "bad.onnx").write_bytes(b"garbage, not onnx")
-    cases = (("missing.onnx", "does not exist"), ("bad.onnx", "not a loadable ONNX model"))
-    runs: list[tuple[str, ...]] = []
-    for k, (path, _) in enumerate(cases):
-        f = tmp_path / f"c{k}.toml"
+@early.batch("landability-exit-2")
+def _landability_exit_2(folder: Path) -> list[early.Run]:
+    """``companion run`` and ``check-config`` with a missing and a corrupt landability model, and
+    ``check-config`` with an unknown unlandable level: each starts a Python and loads onnxruntime,
+    so they start side by side once the session knows it runs the test (tests/early.py)."""
+    (folder / "bad.onnx").write_bytes(b"garbage, not onnx")
+    runs: list[early.Run] = []
+    for k, (path, _) in enumerate(LANDABILITY_CASES):
+        f = folder / f"c{k}.toml"
         f.write_text(f'[model]\nthreads = 1\nlandability = true\nlandability_path = "{path}"\n')
-        runs += [("run", "--config", str(f)), ("check-config", str(f))]
-    lava = tmp_path / "lava.toml"
+        runs += [early.Run([sys.executable, "-m", "companion", *args], folder)
+                 for args in (("run", "--config", str(f)), ("check-config", str(f)))]
+    lava = folder / "lava.toml"
     lava.write_text('[model]\nthreads = 1\nlandability = true\n[pipeline]\nunlandable_levels = ["lava"]\n')
-    runs.append(("check-config", str(lava)))
-    results = _companions(runs, cwd=tmp_path)
+    runs.append(early.Run([sys.executable, "-m", "companion", "check-config", str(lava)], folder))
+    return runs
+
+
+LANDABILITY_CASES = (("missing.onnx", "does not exist"), ("bad.onnx", "not a loadable ONNX model"))
+
+
+@pytest.mark.started_early("landability-exit-2")
+def test_a_missing_or_corrupt_landability_model_stops_the_start_with_exit_2() -> None:
+    cases = LANDABILITY_CASES
+    results = early.result("landability-exit-2")[1]
     for k, (path, words) in enumerate(cases):
         r, c = results[2 * k], results[2 * k + 1]
         assert r.returncode == 2, (r.stdout, r.stderr)

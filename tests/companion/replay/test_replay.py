@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 import sys
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, Pose
 from companion.pipeline.density import DensityModel
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
+from tests import early
 
 GSD = 0.05  # m/px
 FREE = (250.0, 240.0, 100.0)  # the known free circle, pixels (u, v, r)
@@ -65,7 +65,11 @@ def _scenes() -> list[synthetic.SyntheticScene]:
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("replay")
+    return _work(tmp_path_factory.mktemp("replay"))
+
+
+def _work(root: Path) -> dict[str, Path]:
+    """The scenes as PNG frames and as an MJPG video, and the darkness model, under ``root``."""
     frames = root / "frames"
     frames.mkdir()
     scenes = _scenes()
@@ -184,12 +188,30 @@ def test_annotated_video_has_every_frame(folder_run: dict[str, Path]) -> None:
     assert yellow.sum() > 200
 
 
-def test_video_input_as_a_subprocess(work: dict[str, Path], tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "companion", "replay", str(work["video"]), "--nadir", "--gsd",
-         str(GSD), "--model", str(work["model"]), "--threads", "1", "--r0", "1",
-         "--jsonl", str(tmp_path / "v.jsonl"), "--summary-json", str(tmp_path / "s.json")],
-        capture_output=True, text=True, timeout=120)
+@early.batch("replay-subprocesses")
+def _replay_subprocesses(folder: Path) -> list[early.Run]:
+    """``companion replay`` of the video in a process of its own, and a replay of the frames in
+    one where tqdm cannot be imported: each starts a Python and loads onnxruntime, so they start
+    side by side once the session knows it runs their tests (tests/early.py)."""
+    work = _work(folder)
+    (folder / "video").mkdir()
+    (folder / "no_tqdm").mkdir()
+    video = [sys.executable, "-m", "companion", "replay", str(work["video"]), "--nadir", "--gsd",
+             str(GSD), "--model", str(work["model"]), "--threads", "1", "--r0", "1",
+             "--jsonl", str(folder / "video" / "v.jsonl"), "--summary-json", str(folder / "video" / "s.json")]
+    # The container image installs the daemon's dependencies only (no tqdm, no av): tqdm is
+    # made unimportable in the child, as in the image.
+    code = ("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
+            f"sys.exit(main(['replay', {str(work['frames'])!r}, '--nadir', '--gsd', '{GSD}', '--no-progress', "
+            f"'--model', {str(work['model'])!r}, '--threads', '1', "
+            f"'--summary-json', {str(folder / 'no_tqdm' / 's.json')!r}]))")
+    return [early.Run(video), early.Run([sys.executable, "-c", code])]
+
+
+@pytest.mark.started_early("replay-subprocesses")
+def test_video_input_as_a_subprocess() -> None:
+    folder, (proc, _) = early.result("replay-subprocesses")
+    tmp_path = folder / "video"
     assert proc.returncode == 0, proc.stderr
     assert "frames: 6 processed, 0 skipped" in proc.stdout
     recs = _read_jsonl(tmp_path / "v.jsonl")
@@ -200,14 +222,13 @@ def test_video_input_as_a_subprocess(work: dict[str, Path], tmp_path: Path) -> N
     assert json.loads((tmp_path / "s.json").read_text())["frames"] == N_FRAMES
 
 
-def test_a_replay_without_progress_needs_no_tools_extra(work: dict[str, Path], tmp_path: Path) -> None:
+@pytest.mark.started_early("replay-subprocesses")
+def test_a_replay_without_progress_needs_no_tools_extra() -> None:
     """The container image installs the daemon's dependencies only (no tqdm, no av): a replay
     without a progress bar or a video runs there (scripts/container-build.sh replays two frames
     inside the image). tqdm is made unimportable in the child, as in the image."""
-    code = ("import sys; sys.modules['tqdm'] = None; from companion.cli import main; "
-            f"sys.exit(main(['replay', {str(work['frames'])!r}, '--nadir', '--gsd', '{GSD}', '--no-progress', "
-            f"'--model', {str(work['model'])!r}, '--threads', '1', '--summary-json', {str(tmp_path / 's.json')!r}]))")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    folder, (_, proc) = early.result("replay-subprocesses")
+    tmp_path = folder / "no_tqdm"
     assert proc.returncode == 0, proc.stderr
     assert json.loads((tmp_path / "s.json").read_text())["frames"] == N_FRAMES
 

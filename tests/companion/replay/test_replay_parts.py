@@ -269,3 +269,26 @@ def test_frames_from_the_ground_are_said_once_at_info_not_warned_about(caplog):
     assert [r.levelno for r in caplog.records] == [logging.INFO, logging.INFO]
     assert "(on the ground)" in caplog.records[0].getMessage()
     assert "the flight did not use it either" in caplog.records[1].getMessage()
+
+
+def test_a_frame_from_head_plane_height_is_said_once_at_info_with_why(caplog):
+    # The demo's replay warned "homography is not invertible" at the frame before touchdown where
+    # the camera passes the head plane: the real message of that frame's projection, 1 mm above
+    # the plane 50 m from home, is an expected skip, said once at INFO with the reason.
+    import logging
+
+    from companion.geometry.camera import GeometryError, Intrinsics, Mount, PlaneProjection, Pose
+    from companion.replay.runner import SKIP_GEOMETRY, _log_skip
+
+    lens = Intrinsics(500.0, 500.0, 320.0, 240.0, 640, 480)
+    with pytest.raises(GeometryError) as exc:
+        PlaneProjection.from_pose(lens, Mount(), Pose(0.0, 30.0, 40.0, -1.701, 0.01, 0.02, 0.3), 1.7)
+    why = str(exc.value)
+    assert "homography is not invertible" in why
+    counts: dict[str, int] = {}
+    with caplog.at_level(logging.INFO, logger="companion.replay.runner"):
+        for i in range(3):
+            _log_skip(counts, SKIP_GEOMETRY, i, why)
+    assert [r.levelno for r in caplog.records] == [logging.INFO]
+    assert "head-plane height" in caplog.records[0].getMessage()
+    assert "touchdown" in caplog.records[0].getMessage()

@@ -5,7 +5,6 @@ written in tmp_path, real OpenCV, a real MJPEG server on loopback, the real comm
 
 from __future__ import annotations
 
-import subprocess
 import sys
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import pytest
 
 from companion.frames import decode_image, read_image, truncated_jpeg
 from companion.service.camera import CameraError, CameraSource, check_source
+from tests import early
 from tests.companion.service.test_camera_sources import _collect, _ScriptedMjpegServer, _wait_until
 
 REPO = Path(__file__).resolve().parents[3]
@@ -108,6 +108,19 @@ def _undecodable_folder(tmp_path: Path) -> Path:
     return folder
 
 
+@early.batch("undecodable-folder")
+def _undecodable_folder_start_ups(folder: Path) -> list[early.Run]:
+    """``check-config`` and ``run`` of a folder where no image decodes: each starts a Python and
+    loads onnxruntime, so they start side by side once the session knows it runs the test."""
+    frames = _undecodable_folder(folder)
+    from tests.conftest import MODEL as model  # the fixture model_path's
+    cfg = folder / "companion.toml"
+    cfg.write_text(f'[camera]\nsource = "{frames}"\n[model]\npath = "{model}"\n')
+    return [early.Run([sys.executable, "-m", "companion", *args], REPO)
+            for args in (["check-config", str(cfg)], ["run", "--camera", str(frames), "--model", str(model)])]
+
+
+@pytest.mark.started_early("undecodable-folder")
 def test_a_frames_folder_where_no_image_decodes_is_refused_at_start_up(tmp_path: Path, model_path: Path) -> None:
     folder = _undecodable_folder(tmp_path)
     with pytest.raises(CameraError, match="none of the folder's 4 image file"):
@@ -115,13 +128,12 @@ def test_a_frames_folder_where_no_image_decodes_is_refused_at_start_up(tmp_path:
     # One whole image among them is enough to start (the others are counted as they play).
     (folder / "f004.jpg").write_bytes(_jpeg(4))
     check_source(str(folder))
-    (folder / "f004.jpg").unlink()
-    cfg = tmp_path / "companion.toml"
-    cfg.write_text(f'[camera]\nsource = "{folder}"\n[model]\npath = "{model_path}"\n')
-    for args in (["check-config", str(cfg)],
-                 ["run", "--camera", str(folder), "--model", str(model_path)]):
-        r = subprocess.run([sys.executable, "-m", "companion", *args], capture_output=True, text=True,
-                           timeout=120, cwd=str(REPO))
+    # check-config and run of such a folder (one of its own, tests/early.py): exit 2 naming it.
+    folder, runs = early.result("undecodable-folder")
+    folder = folder / "frames"
+    assert runs[1].args[-1] == str(model_path)  # run --model, as the config's model.path
+    for r in runs:
+        args = r.args
         assert r.returncode == 2, (args, r.stderr)
         assert str(folder) in r.stderr and "decodes" in r.stderr, r.stderr
         assert "Traceback" not in r.stderr

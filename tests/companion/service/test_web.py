@@ -8,9 +8,9 @@ import asyncio
 import json
 import math
 import socket
-import subprocess
 import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -24,6 +24,7 @@ from companion.pipeline.slz import PipelineConfig, SLZPipeline
 from companion.replay.live_figure import CAPTION_PX
 from companion.service import web
 from companion.service.web import LiveView, Snapshot, WebServer, live_video_stream, stream_uri
+from tests import early
 
 
 @pytest.fixture(scope="module")
@@ -204,9 +205,14 @@ def test_a_wrong_live_or_gcs_setting_names_the_key(key, value, says):
         config.load(None, {key: value})
 
 
+@early.batch("run-wrong-live-port")
+def _run_wrong_live_port(folder: Path) -> list[early.Run]:
+    return [early.Run([sys.executable, "-m", "companion", "run", "--set", "live.port=99999"])]
+
+
+@pytest.mark.started_early("run-wrong-live-port")  # a Python started beside the tests before it (tests/early.py)
 def test_companion_run_exits_2_on_a_wrong_live_setting():
-    proc = subprocess.run([sys.executable, "-m", "companion", "run", "--set", "live.port=99999"],
-                          capture_output=True, text=True, timeout=60)
+    (proc,) = early.result("run-wrong-live-port")[1]
     assert proc.returncode == 2 and "live.port" in proc.stderr, proc.stderr
 
 

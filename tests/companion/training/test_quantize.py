@@ -4,6 +4,10 @@ real held-out frame almost as the float model does."""
 
 from __future__ import annotations
 
+import json
+import sys
+from pathlib import Path
+
 import numpy as np
 import onnx
 import onnxruntime as ort
@@ -13,6 +17,7 @@ from companion.evaluation import datasets as D
 from companion.pipeline.density import DensityModel
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map
 from companion.training import quantize as Q
+from tests import early
 
 
 def test_calibration_frames_come_from_the_training_splits_only(shared_dir):
@@ -27,12 +32,35 @@ def test_calibration_frames_come_from_the_training_splits_only(shared_dir):
         Q.calibration_frames(shared_dir, per_source=0)
 
 
-def test_the_int8_model_loads_keeps_its_metadata_and_scores_like_the_float_one(shared_dir, model_path, tmp_path):
+@early.batch("quantize-int8-and-qdq")
+def _quantize_int8_and_qdq(folder: Path) -> list[early.Run]:
+    """``Q.quantize`` of version 1 in both forms, each in a process of its own (calibrating takes
+    seconds), started once the session knows it runs the test (tests/early.py); the int8 file's
+    returned metadata is written beside it as JSON."""
+    from tests.conftest import MODEL, SHARED
+    if not (SHARED / "data").is_dir():
+        return []  # the test skips (shared_dir)
+    shipped = MODEL.with_name("slz-density.onnx")
+    head = "import json; from pathlib import Path; from companion.training import quantize as Q; "
+    call = (f"Q.quantize(Path({str(shipped)!r}), Path({{out!r}}), Path({str(SHARED)!r}), per_source=2, threads=1, "
+            "calibrate_after=False{fmt})")
+    int8 = head + "meta = " + call.format(out=str(folder / "int8.onnx"), fmt="") + \
+        f"; Path({str(folder / 'meta.json')!r}).write_text(json.dumps(meta))"
+    qdq = head + call.format(out=str(folder / "qdq.onnx"), fmt=", fmt='qdq'")
+    return [early.Run([sys.executable, "-c", int8]), early.Run([sys.executable, "-c", qdq])]
+
+
+@pytest.mark.started_early("quantize-int8-and-qdq")
+def test_the_int8_model_loads_keeps_its_metadata_and_scores_like_the_float_one(shared_dir, model_path):
     # Version 1, which the shipped int8 file was made from; the default (version 4) quantised the
     # same way is 0.15 off on this frame, and no int8 form of it ships.
     SHIPPED = model_path.with_name("slz-density.onnx")
+    tmp_path, runs = early.result("quantize-int8-and-qdq")
+    for r in runs:
+        assert r.returncode == 0, r.stderr
+        assert str(SHIPPED) in r.args[-1] and str(shared_dir) in r.args[-1]
     out = tmp_path / "int8.onnx"
-    meta = Q.quantize(SHIPPED, out, shared_dir, per_source=2, threads=1, calibrate_after=False)
+    meta = json.loads((tmp_path / "meta.json").read_text())
     proto = onnx.load(str(out))
     ops = {n.op_type for n in proto.graph.node}
     assert "QLinearConv" in ops and "Conv" not in ops
@@ -58,8 +86,7 @@ def test_the_int8_model_loads_keeps_its_metadata_and_scores_like_the_float_one(s
     # quantisation in QDQ form, run unfused (float convolutions between QuantizeLinear and
     # DequantizeLinear), is that arithmetic exactly. With 8-bit weights an x86 CPU without VNNI
     # saturated (0.11 off on an AVX2 host), so the same file scored differently by CPU.
-    qdq = tmp_path / "qdq.onnx"
-    Q.quantize(SHIPPED, qdq, shared_dir, per_source=2, threads=1, calibrate_after=False, fmt="qdq")
+    qdq = tmp_path / "qdq.onnx"  # Q.quantize(SHIPPED, qdq, ..., fmt="qdq"), the same calibration
     assert {"QuantizeLinear", "DequantizeLinear"} <= {n.op_type for n in onnx.load(str(qdq)).graph.node}
     opts = ort.SessionOptions()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL

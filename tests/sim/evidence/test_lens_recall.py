@@ -3,17 +3,35 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
+import pytest
+
 from sim.evidence.lens_recall import main
+from tests import early
 
 
-def test_over_the_photo_ground_walkers_and_the_photos_people_are_counted(photos: str, model_path, capsys) -> None:
+@early.batch("lens-recall-photo")
+def _lens_recall_photo(folder: Path) -> list[early.Run]:
+    """The command over the photo ground (seconds of rendering and inference): a process of its
+    own, started once the session knows it runs the test (tests/early.py)."""
+    from tests.conftest import SHARED
+    photos = SHARED / "data" / "semantic_drone" / "full"
+    if not (photos / "images").is_dir():
+        return []  # the test skips (photos)
+    return [early.Run([sys.executable, "-m", "sim.evidence.lens_recall", "--camera", "fisheye:160", "--heights", "20",
+                       "--seeds", "1", "--frames", "1", "--ground", "photo", "--photos", str(photos.resolve())])]
+
+
+@pytest.mark.started_early("lens-recall-photo")
+def test_over_the_photo_ground_walkers_and_the_photos_people_are_counted(photos: str, model_path) -> None:
     """``--ground photo``: one frame of the seed's photo scene through the fisheye; each bin
     counts the composited walkers and the photos' own people apart, and their sum is the bin's."""
-    assert main(["--camera", "fisheye:160", "--heights", "20", "--seeds", "1", "--frames", "1",
-                 "--ground", "photo", "--photos", photos]) == 0
-    res = json.loads(capsys.readouterr().out)
+    (r,) = early.result("lens-recall-photo")[1]
+    assert r.args[-1] == photos
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
     assert res["ground"] == "photo" and res["heights_m"] == [20.0]
     bins = res["bins"]
     for b in bins:

@@ -16,13 +16,6 @@ multiplied by 0), so the map is the same up to floating-point rounding: :func:`m
 measures it on random inputs, and the command writes no file whose outputs differ by more than
 ``TOLERANCE``.
 
-A channel-wise node right after such a concatenation (the max-pool of versions 1, 2 and 4) is
-then moved before it, one copy per branch (:func:`pool_first`): pooling each branch and
-concatenating the pooled branches computes the same numbers, bit for bit, and the concatenation
-copies a quarter of the data. Version 4 at 584x512 (a fisheye's crop): the concatenation and the
-pool took 1.42 + 0.73 ms of onnxruntime's profile, pooled first 0.26 + 3 x 0.24 ms; 3.5 % less
-density time, the two files alternating.
-
 Where convolutions are not blocked (onnxruntime on ARM, unless built with its NEON NCHWc kernels)
 the added channels are real work: version 4 aligned took 19.6 ms a frame against 18.3 ms plain,
 with onnxruntime's blocked layout switched off on the development machine. So the aligned file is
@@ -121,9 +114,7 @@ def align_concats(model: onnx.ModelProto, block: int = BLOCK) -> Aligned:
         branches: list[onnx.NodeProto] = []
         for tensor in cat.input:
             node = producer.get(tensor)
-            # Channel-wise nodes too (a pool moved before the concatenation, ``pool_first``): an
-            # added channel is constant there, whatever they do, and is multiplied by zero later.
-            while node is not None and node.op_type in CHANNELWISE and only_consumer(node.output[0]) is not None:
+            while node is not None and node.op_type in ELEMENTWISE and only_consumer(node.output[0]) is not None:
                 node = producer.get(node.input[0])
             ok = (node is not None and node.op_type == "Conv" and _attr(node, "group", 1) == 1
                   and own_weights(node) and only_consumer(node.output[0]) is not None)
@@ -180,68 +171,6 @@ def align_concats(model: onnx.ModelProto, block: int = BLOCK) -> Aligned:
     return Aligned(m, tuple(notes))
 
 
-def pool_first(model: onnx.ModelProto) -> Aligned:
-    """A copy of ``model`` in which every channel-wise node (``CHANNELWISE``: Relu, MaxPool, ...)
-    that reads a concatenation along channels, and is its only reader, runs on each concatenated
-    tensor before the concatenation instead (see the module docstring): the same output, bit for
-    bit, with less data concatenated after a pool. ``model`` itself is not changed."""
-    m = onnx.ModelProto()
-    m.CopyFrom(model)
-    g = m.graph
-    graph_outputs = {o.name for o in g.output}
-    notes: list[str] = []
-    changed = False
-    while True:
-        consumers: dict[str, list[onnx.NodeProto]] = {}
-        for n in g.node:
-            for i in n.input:
-                consumers.setdefault(i, []).append(n)
-        move = None
-        for cat in g.node:
-            if cat.op_type != "Concat" or _attr(cat, "axis", 0) not in (1, -3) or cat.output[0] in graph_outputs:
-                continue
-            users = consumers.get(cat.output[0], [])
-            if (len(users) == 1 and users[0].op_type in CHANNELWISE and len(users[0].input) == 1
-                    and len(users[0].output) == 1):
-                move = (cat, users[0])
-                break
-        if move is None:
-            break
-        cat, node = move
-        copies = []
-        for k, tensor in enumerate(cat.input):
-            copy = onnx.NodeProto()
-            copy.CopyFrom(node)
-            copy.name = f"{node.name or node.output[0]}_{k}"
-            del copy.input[:]
-            copy.input.append(tensor)
-            del copy.output[:]
-            copy.output.append(f"{tensor}_{node.op_type.lower()}")
-            copies.append(copy)
-        new_cat = onnx.NodeProto()
-        new_cat.CopyFrom(cat)
-        del new_cat.input[:]
-        new_cat.input.extend(c.output[0] for c in copies)
-        del new_cat.output[:]
-        new_cat.output.append(node.output[0])
-        nodes = []
-        for n in g.node:
-            if n is cat:
-                nodes += copies + [new_cat]
-            elif n is not node:
-                nodes.append(n)
-        del g.node[:]
-        g.node.extend(nodes)
-        notes.append(f"{cat.name or cat.output[0]}: {node.name or node.output[0]} ({node.op_type}) moved before it, "
-                     f"one per branch")
-        changed = True
-    if not changed:
-        return Aligned(None, ("no channel-wise node reads a concatenation of channels alone",))
-    del g.value_info[:]  # the concatenation's old output is gone; onnxruntime infers the rest
-    onnx.checker.check_model(m)
-    return Aligned(m, tuple(notes))
-
-
 def max_difference(a: onnx.ModelProto, b: onnx.ModelProto, runs: int = 3, size: tuple[int, int] = (128, 160),
                    seed: int = 0) -> float:
     """The largest absolute difference between the outputs of ``a`` and ``b`` (onnxruntime, CPU)
@@ -289,15 +218,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {args.model} is not a readable ONNX model: {exc}", file=sys.stderr)
         return 2
     result = align_concats(model, args.block)
-    pooled = pool_first(result.model or model)
-    for line in result.notes + pooled.notes:
+    for line in result.notes:
         print(line)
-    out = pooled.model or result.model
-    if out is None:
+    if result.model is None:
         print(f"nothing to align in {args.model}; {args.out} not written")
         return 1
     try:
-        diff = max_difference(model, out, runs=args.runs)
+        diff = max_difference(model, result.model, runs=args.runs)
     except Exception as exc:  # onnxruntime's own exception types for a model it cannot run
         print(f"error: cannot run {args.model} to compare: {exc}", file=sys.stderr)
         return 2
@@ -306,13 +233,11 @@ def main(argv: Sequence[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     # Replaces a layout note the input already had (a file aligned again), as every metadata write does.
-    what = (f"concatenated channels in blocks of {args.block}" if result.model is not None
-            else "concatenated channels as they were")
-    what += ", pooled before the concatenation" if pooled.model is not None else ""
-    replace_metadata(out, {"companion.layout": f"{what} (companion.training.layout) from {args.model.name}; "
-                           f"outputs within {diff:.1e} of it"})
+    replace_metadata(result.model, {"companion.layout": f"concatenated channels in blocks of {args.block} "
+                                    f"(companion.training.layout) from {args.model.name}; outputs within "
+                                    f"{diff:.1e} of it"})
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save(out, str(args.out))
+    onnx.save(result.model, str(args.out))
     print(f"wrote {args.out} (outputs within {diff:.1e} of {args.model.name} on {args.runs} random inputs)")
     return 0
 

@@ -15,7 +15,7 @@ from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 from companion import config  # noqa: E402
 from companion.geometry.camera import Intrinsics, Mount, Pose  # noqa: E402
 from companion.pipeline.density import DensityModel  # noqa: E402
-from companion.training.layout import TOLERANCE, align_concats, main, max_difference, pool_first  # noqa: E402
+from companion.training.layout import TOLERANCE, align_concats, main, max_difference  # noqa: E402
 from sim.world.crowd import default_world  # noqa: E402
 from sim.world.ground import ProceduralGround  # noqa: E402
 from sim.world.render import render_world  # noqa: E402
@@ -110,51 +110,14 @@ def test_the_command_writes_only_a_proven_model_and_says_why_not(tmp_path: Path,
     assert "not a readable ONNX model" in capsys.readouterr().err
     assert main(["--model", str(src), "--out", str(tmp_path / "o.onnx"), "--block", "0"]) == 2
     assert not (tmp_path / "o.onnx").exists()
-    exposed = tmp_path / "exposed.onnx"  # the concatenation is an output: neither padded nor pooled first
-    onnx.save(_branchy(second_reader=True), str(exposed))
-    assert main(["--model", str(exposed), "--out", str(tmp_path / "o.onnx"), "--block", "8"]) == 1
-    assert "nothing to align" in capsys.readouterr().out and not (tmp_path / "o.onnx").exists()
-    plain = tmp_path / "aligned8.onnx"  # whole blocks already: only pooled first
+    plain = tmp_path / "aligned8.onnx"
     onnx.save(_branchy((8, 8, 8)), str(plain))
-    assert main(["--model", str(plain), "--out", str(tmp_path / "p.onnx"), "--block", "8"]) == 0
-    assert "already whole blocks of 8" in capsys.readouterr().out
-    meta = {p.key: p.value for p in onnx.load(str(tmp_path / "p.onnx")).metadata_props}
-    assert meta["companion.layout"].startswith("concatenated channels as they were, pooled before the concatenation")
+    assert main(["--model", str(plain), "--out", str(tmp_path / "o.onnx"), "--block", "8"]) == 1
+    assert "nothing to align" in capsys.readouterr().out and not (tmp_path / "o.onnx").exists()
     assert main(["--model", str(src), "--out", str(tmp_path / "o.onnx"), "--block", "8"]) == 0
     out = onnx.load(str(tmp_path / "o.onnx"))
     meta = {p.key: p.value for p in out.metadata_props}
     assert meta["companion.layout"].startswith("concatenated channels in blocks of 8")
-
-
-def _run(model: onnx.ModelProto, x: np.ndarray, threads: int = 2) -> np.ndarray:
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.log_severity_level = 3
-    return ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"]).run(
-        None, {"input": x})[0]
-
-
-def test_pooling_before_the_concatenation_gives_the_same_bits() -> None:
-    """The max-pool after the concatenation runs on each branch instead: the same output bit for
-    bit (onnxruntime's blocked layout and the plain one alike), the input model unchanged."""
-    for widths, block in (((3, 5, 8), 8), ((8, 8, 8), 8), ((10, 14, 16), 16)):
-        model = _branchy(widths)
-        aligned = align_concats(model, block=block).model or model
-        before = aligned.SerializeToString()
-        pooled = pool_first(aligned)
-        assert pooled.model is not None and aligned.SerializeToString() == before
-        assert pooled.notes == ("cat: pool (MaxPool) moved before it, one per branch",)
-        ops = [n.op_type for n in pooled.model.graph.node]
-        assert ops.count("MaxPool") == 3 and ops.index("Concat") > max(i for i, o in enumerate(ops) if o == "MaxPool")
-        rng = np.random.default_rng(sum(widths))
-        for hw in ((64, 96), (61, 90)):
-            x = rng.normal(0.0, 1.0, (1, 3, *hw)).astype(np.float32)
-            for threads in (1, 2):
-                assert np.array_equal(_run(pooled.model, x, threads), _run(aligned, x, threads))
-    exposed = pool_first(_branchy(second_reader=True))
-    assert exposed.model is None and "alone" in exposed.notes[0]
 
 
 def test_a_model_it_cannot_run_to_compare_is_exit_2_and_not_written(tmp_path: Path, capsys) -> None:
@@ -176,7 +139,7 @@ def _frame() -> np.ndarray:
     return render_world(world, pose, Intrinsics.from_fov(640, 480, 70.0), Mount(), ProceduralGround(3))
 
 
-def test_the_shipped_x86_file_is_version_4_in_blocks(tmp_path: Path) -> None:
+def test_the_shipped_x86_file_is_version_4_in_blocks() -> None:
     plain, blocked = config.PLAIN_MODEL, config.X86_MODEL
     assert plain.is_file() and blocked.is_file()
     a, b = DensityModel(plain, threads=1), DensityModel(blocked, threads=1)
@@ -199,18 +162,6 @@ def test_the_shipped_x86_file_is_version_4_in_blocks(tmp_path: Path) -> None:
     made = {t.name: hashlib.sha256(t.raw_data or numpy_helper.to_array(t).tobytes()).hexdigest()
             for t in remade.graph.initializer}
     assert have == made
-    # ... and its max-pool runs on each branch before the concatenation: the same map, bit for bit,
-    # as the file before (only padded), on the frame and on a fisheye's crop of it.
-    ops = [n.op_type for n in onnx.load(str(blocked)).graph.node]
-    assert ops.index("Concat") == ops.index("MaxPool") + 3
-    pooled = pool_first(remade).model
-    assert pooled is not None
-    padded = tmp_path / "padded.onnx"
-    onnx.save(remade, str(padded))
-    c = DensityModel(padded, threads=2)
-    b2 = DensityModel(blocked, threads=2)
-    for image in (frame, np.ascontiguousarray(frame[:, 44:596])):
-        assert np.array_equal(b2(image), c(image))
 
 
 @pytest.mark.parametrize(("machine", "expected"), [("x86_64", "x86"), ("AMD64", "x86"), ("aarch64", "plain"),

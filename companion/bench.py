@@ -22,6 +22,13 @@ the service's settings build it instead: their model and landability model (``--
 their pipeline and controller settings, and their camera (``camera.width x camera.height``, its
 intrinsics, distortion and mount), at that one resolution: what a configuration costs on the
 machine it will fly on.
+
+``--peer FILE`` (e.g. ``../shared/peers/mcnn-shb.onnx``) times another density model on the same
+frame in the same run, frame by frame in turn with the pipeline (the peer first, then the
+pipeline's frame), with the same onnxruntime threads and spinning: ``peer_density`` is its density
+time, and ``total_over_peer`` the ratio of the medians, the pipeline's whole frame (``total``) over
+the peer's density (issue 60's cost target: at most 1/4 with the fisheye). Alternating frame by
+frame lets the load of a shared machine fall on both alike.
 """
 
 from __future__ import annotations
@@ -99,12 +106,14 @@ COSTLIEST = PipelineConfig(calm=True, unwalked=True, people=PeopleParams())
 def bench_resolution(width: int, height: int, frames: int, model: DensityFn | None = None, warmup: int = 5,
                      seed: int = 0, surface: SurfaceFn | None = None, pause_s: float = 0.0,
                      config: PipelineConfig = COSTLIEST, intrinsics: Intrinsics | None = None,
-                     mount: Mount | None = None) -> dict[str, dict[str, float]]:
+                     mount: Mount | None = None, peer: DensityFn | None = None) -> dict[str, dict[str, float]]:
     """Per-stage median and p99 milliseconds over ``frames`` frames at one resolution
     (``surface``: the landability model's callable, timed as ``landability``; ``pause_s``: a sleep
     before each frame, the time a camera's frame period or the models would leave between them;
     ``config``, ``intrinsics``, ``mount``: the pipeline's set-up, by default the costliest with a
-    distortion-free 70 deg lens pointing straight down)."""
+    distortion-free 70 deg lens pointing straight down; ``peer``: another density model timed on
+    the same frame just before each of the pipeline's frames, as ``peer_density``, with
+    ``total_over_peer`` the ratio of the medians of ``total`` and ``peer_density``)."""
     frame, ideal = bench_frame(width, height, seed)
     density = model if model is not None else (lambda f: ideal)
     K = intrinsics if intrinsics is not None else Intrinsics.from_fov(width, height, 70.0)
@@ -115,9 +124,16 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
         t = k / 15.0
         if pause_s > 0:
             time.sleep(pause_s)
+        peer_ms = None
+        if peer is not None:
+            t0 = time.perf_counter()
+            peer(frame)
+            peer_ms = (time.perf_counter() - t0) * 1e3
         res = pipe.process(frame, t, drifting_pose(t))
         if k < warmup:
             continue
+        if peer_ms is not None:
+            samples.setdefault("peer_density", []).append(peer_ms)
         for name, ms in res.timings_ms.items():
             samples.setdefault(name, []).append(ms)
         # The live view's cost while a client watches (the service draws nothing otherwise): the
@@ -139,8 +155,11 @@ def bench_resolution(width: int, height: int, frames: int, model: DensityFn | No
         wanted.insert(1 if model is not None else 0, "landability")
     if model is not None or surface is not None:
         wanted.append("total")
-    wanted += ["live_view", "landing_spot"]
-    return {name: _stats(samples[name]) for name in wanted if name in samples}
+    wanted += ["live_view", "landing_spot", "peer_density"]
+    out = {name: _stats(samples[name]) for name in wanted if name in samples}
+    if "peer_density" in out and "total" in out:
+        out["total_over_peer"] = {"ratio": round(out["total"]["median_ms"] / out["peer_density"]["median_ms"], 4)}
+    return out
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -161,6 +180,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "stages run about 1.4 times slower once per frame period than back to back, "
                              "whatever fills the time between (the models, a sleep, a Python loop): "
                              "--no-model --pause-ms 40 shows the post-density stages as a flight runs them")
+    parser.add_argument("--peer", type=Path, default=None,
+                        help="another ONNX density model (e.g. ../shared/peers/mcnn-shb.onnx) timed on the same frame, "
+                             "frame by frame in turn with the pipeline, same threads: peer_density and "
+                             "total_over_peer (the whole frame over the peer's density)")
+    parser.add_argument("--peer-preset", choices=("none", "mcnn"), default=None,
+                        help="the peer's input settings (default: mcnn if its file name says mcnn, as companion eval)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--configured", action="store_true",
                         help="time the pipeline as the service's settings build it (the defaults, or --config "
@@ -215,16 +240,28 @@ def run(args: argparse.Namespace) -> int:
             except DensityModelError as exc:  # a LandabilityModelError too
                 print(f"companion bench: {exc}", file=sys.stderr)
                 return 2
+    peer = None
+    if args.peer is not None:
+        from companion.evaluation.cli import PRESETS
+        from companion.pipeline.density import DensityModel, DensityModelError
+
+        preset = args.peer_preset or ("mcnn" if "mcnn" in args.peer.name.lower() else "none")
+        try:
+            peer = DensityModel(args.peer, threads=threads, allow_spinning=spinning, overrides=PRESETS[preset])
+        except DensityModelError as exc:
+            print(f"companion bench: peer: {exc}", file=sys.stderr)
+            return 2
     pause_s = args.pause_ms / 1e3
     if cfg is None:
-        result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=pause_s)
+        result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=pause_s,
+                                               peer=peer)
                   for w, h in RESOLUTIONS}
     else:
         w, h = cfg.camera.width, cfg.camera.height
         pipe_cfg = settings.pipeline_config(cfg, model.spec if model is not None else None)
         result = {f"{w}x{h}": bench_resolution(w, h, args.frames, model, surface=surface, pause_s=pause_s,
                                                config=pipe_cfg, intrinsics=settings.intrinsics(cfg),
-                                               mount=settings.mount(cfg))}
+                                               mount=settings.mount(cfg), peer=peer)}
     if args.json:
         print(json.dumps(result))
         return 0
@@ -233,6 +270,7 @@ def run(args: argparse.Namespace) -> int:
           + (f", {threads} thread(s), spinning {'on' if spinning else 'off'}" if model is not None else "")
           + f", landability: {surface.model.path if surface is not None else 'none'}"
           + (f", {args.pause_ms:g} ms pause before each frame" if args.pause_ms > 0 else "")
+          + (f", peer: {peer.path} (same threads, frame by frame in turn)" if peer is not None else "")
           + (f"; set up as configured ({args.config or 'the defaults'}"
              + (f" with {len(args.set_)} --set" if args.set_ else "") + ")" if cfg is not None
              else "; the costliest set-up (calm, unwalked, people)"))
@@ -240,5 +278,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"\n{res_name}")
         print(f"  {'stage':<14}{'median ms':>11}{'p99 ms':>10}")
         for stage, s in stages.items():
+            if "ratio" in s:
+                continue
             print(f"  {stage:<14}{s['median_ms']:>11.2f}{s['p99_ms']:>10.2f}")
+        if "total_over_peer" in stages:
+            print(f"  whole frame over the peer's density (medians): {stages['total_over_peer']['ratio']:.3f}")
     return 0

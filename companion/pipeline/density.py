@@ -317,6 +317,13 @@ class DensityModel:
         std = np.asarray(self.spec.std, np.float64)
         self._gain = (self.spec.scale / std).astype(np.float32)
         self._offset = (-np.asarray(self.spec.mean, np.float64) / std).astype(np.float32)
+        # The same float32 multiply and add for each of the 256 values a uint8 pixel can take,
+        # looked up per pixel (``cv2.LUT``) instead of computed: the same bits, a third less time.
+        values = np.arange(256, dtype=np.uint8)
+        self._lut = np.empty((channels, 256), np.float32)
+        for c in range(channels):
+            np.multiply(values, self._gain[c], out=self._lut[c])
+            self._lut[c] += self._offset[c]
 
     @property
     def any_size(self) -> bool:
@@ -398,13 +405,12 @@ class DensityModel:
             ph, pw = -img.shape[0] % m, -img.shape[1] % m
             if ph or pw:
                 img = cv2.copyMakeBorder(img, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
-        # One fused multiply-add per channel plane, written straight into the NCHW buffer: a
-        # float HWC->CHW transpose copy costs ~10x more than the arithmetic at 640x480.
-        planes = [img] if img.ndim == 2 else [img[..., c] for c in range(img.shape[2])]
+        # Each channel plane looked up (x * gain + offset, in float32, per value: ``_lut``) straight
+        # into the NCHW buffer: a float HWC->CHW transpose copy costs ~10x more than the lookups.
+        planes = [img] if img.ndim == 2 else cv2.split(img)
         x = np.empty((1, len(planes), *img.shape[:2]), np.float32)
         for c, plane in enumerate(planes):
-            np.multiply(plane, self._gain[c], out=x[0, c])
-            x[0, c] += self._offset[c]
+            cv2.LUT(plane, self._lut[c], dst=x[0, c])
         return x
 
     def __call__(self, frame: np.ndarray) -> np.ndarray:

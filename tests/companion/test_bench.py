@@ -71,3 +71,17 @@ def test_bench_refuses_a_bad_configuration_with_exit_2(capsys, tmp_path):
     assert "gone.onnx" in capsys.readouterr().err
     assert main(["bench", "--frames", "1", "--no-model", "--threads", "0"]) == 2
     assert "--threads" in capsys.readouterr().err
+
+
+def test_bench_times_a_peer_on_the_same_frame_and_gives_the_ratio(capsys, shared_dir, tmp_path):
+    """--peer times another density model (the MCNN peer, its preset from its name) on the same
+    frames in the same run: its density time and the whole frame's ratio to it."""
+    peer = shared_dir / "peers" / "mcnn-shb.onnx"
+    assert main(["bench", "--json", "--frames", "2", "--no-landability", "--set", "camera.width=320",
+                 "--set", "camera.height=240", "--peer", str(peer)]) == 0
+    stages = json.loads(capsys.readouterr().out)["320x240"]
+    assert stages["peer_density"]["median_ms"] > 0
+    ratio = stages["total"]["median_ms"] / stages["peer_density"]["median_ms"]
+    assert stages["total_over_peer"]["ratio"] == round(ratio, 4)
+    assert main(["bench", "--frames", "1", "--peer", str(tmp_path / "gone.onnx")]) == 2
+    assert "gone.onnx" in capsys.readouterr().err

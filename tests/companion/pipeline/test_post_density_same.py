@@ -9,6 +9,11 @@ against it: function by function on random input, and the whole configured pipel
 model on the bench's frame, through fisheye:160 and pinhole:70) with the old functions put back,
 every ``FrameResult`` field and the risk map compared.
 
+Session 29 (the same target) made the density step's input cheaper with the same map: the
+model's input tensor is looked up per pixel value (``DensityModel._lut``) instead of computed; the
+pipeline comparison puts the old ``preprocess`` back too, and it is checked alone on every pixel
+value and colour order besides.
+
 OpenCV's exact distance transform runs its own code on 2 threads or more and IPP's on one thread
 or below 16384 cells, whose last bit varies from call to call; the comparisons run on 2 threads
 and grids above that size, where the transform gives the same bits every time.
@@ -19,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -147,6 +153,34 @@ def _ref_distance_cells(free_grid: np.ndarray) -> np.ndarray:
     return dist[1:-1, 1:-1]
 
 
+def _ref_preprocess(self: DensityModel, frame: np.ndarray) -> np.ndarray:
+    frame = self._check_frame(frame)
+    color = self.spec.color
+    if color == "gray":
+        img = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    elif frame.ndim == 2:
+        img = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+    else:
+        img = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB) if color == "rgb" else frame
+    fh, fw = self._fixed_hw
+    if fh or fw:
+        img = cv2.resize(img, (fw or img.shape[1], fh or img.shape[0]), interpolation=cv2.INTER_AREA)
+    else:
+        b = self.spec.border_px
+        if b:
+            img = cv2.copyMakeBorder(img, b, b, b, b, cv2.BORDER_REFLECT_101)
+        m = self.spec.input_multiple
+        ph, pw = -img.shape[0] % m, -img.shape[1] % m
+        if ph or pw:
+            img = cv2.copyMakeBorder(img, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+    planes = [img] if img.ndim == 2 else [img[..., c] for c in range(img.shape[2])]
+    x = np.empty((1, len(planes), *img.shape[:2]), np.float32)
+    for c, plane in enumerate(planes):
+        np.multiply(plane, self._gain[c], out=x[0, c])
+        x[0, c] += self._offset[c]
+    return x
+
+
 # -- helpers ----------------------------------------------------------------------------------
 
 @pytest.fixture(autouse=True)
@@ -253,6 +287,23 @@ def test_distance_cells_is_the_same_for_any_uint8_free_value() -> None:
         assert not _same(proposals.distance_cells((free > 0).astype(np.float32)), want)
 
 
+def test_preprocess_is_the_same_for_every_pixel_value(shared_dir: Path) -> None:
+    rng = np.random.default_rng(11)
+    every = np.stack([rng.permutation(np.tile(np.arange(256, dtype=np.uint8), 64)).reshape(128, 128)
+                      for _ in range(3)], axis=2)  # each value in each channel, 64 times
+    frame = bench.bench_frame(640, 480, 0)[0]
+    frames = [every, frame, np.ascontiguousarray(frame[:, 44:596]), frame[1:, 3:], every[..., 1], frame[..., :1]]
+    peer = shared_dir / "peers" / "mcnn-shb.onnx"
+    models = [DensityModel(settings.X86_MODEL), DensityModel(settings.PLAIN_MODEL, overrides={"color": "rgb"}),
+              DensityModel(settings.PLAIN_MODEL, overrides={"mean": "0.1,0.5,0.9", "std": "0.3,0.2,0.1", "border_px": 0}),
+              DensityModel(peer, overrides={"color": "gray", "scale": 1, "stride": 4})]
+    for model in models:
+        for f in frames:
+            got, want = model.preprocess(f), _ref_preprocess(model, f)
+            assert got.dtype == want.dtype == np.float32
+            assert not _same(got.view(np.uint32), want.view(np.uint32))  # bits, -0.0 and +0.0 apart
+
+
 # -- the whole configured pipeline ------------------------------------------------------------
 
 def _pipeline(sets: list[str]) -> SLZPipeline:
@@ -277,6 +328,7 @@ def test_the_configured_pipeline_gives_the_same_frames(sets: list[str], monkeypa
     frames = [bench.bench_frame(640, 480, s)[0] for s in (0, 0, 0, 1, 1, 1)]
     new, new_risk = _fly(sets, frames)
     with monkeypatch.context() as m:  # the code as it was
+        m.setattr(DensityModel, "preprocess", _ref_preprocess)
         m.setattr(lens, "project", _ref_project)
         m.setattr(camera.LensView, "seen_to_image", _ref_seen_to_image)
         m.setattr(camera.LensView, "seen_boundary", _ref_seen_boundary)

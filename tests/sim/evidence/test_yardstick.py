@@ -100,3 +100,45 @@ def test_the_readme_names_the_wide_lenses_files():
     assert [(r["autopilot"], r["camera"]) for r in _table(CAMERA)] == [
         ("PX4", "`--camera fisheye:160`"), ("PX4", "`--camera pinhole:110`"), ("ArduPilot", "`--camera fisheye:160`"),
         ("ArduPilot", "`--camera pinhole:110`")]
+
+
+SECOND_HALF = ("file", "autopilot", "camera", "seeds", "flown", "software", "unsafe",
+               "strikes (outside dense worlds)", "handbacks", "clear landings (worlds with free ground)")
+
+
+@pytest.mark.parametrize("entry", _table(SECOND_HALF), ids=lambda e: e["file"])
+def test_each_second_half_file_is_its_seeds_and_camera_and_its_figures_are_the_tables(entry):
+    # Issue 60 asks for seeds 1-150: seeds 76-150 from 1000 s in lockstep, kept apart from the
+    # 1-75 yardstick files (which the tables above hold to seeds 1-75); a baseline row is the
+    # autopilot's own failsafe alone on the same seeds ("-" where a figure is the companion's).
+    rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
+    first, last = (int(s) for s in entry["seeds"].split("-"))
+    assert bad == 0 and sorted(r["seed"] for r in rows) == list(range(first, last + 1))
+    flavour = {"PX4": "px4", "ArduPilot": "ardupilot"}[entry["autopilot"]]
+    baseline = entry["camera"] == "baseline"
+    camera = None if entry["camera"] in ("baseline", "default") else entry["camera"].strip("`").removeprefix("--camera ")
+    for r in rows:
+        assert r["flavour"] == flavour and r["lockstep"] and r["clock_start_s"] == 1000.0
+        assert r["settings"] == [] and r["baseline"] is baseline and r.get("camera") == camera
+        assert r["land_speed"] == 1.0 and r["watch_s"] == 4.0 and r["crossing_window"] == [4.0, 24.0]
+        assert r["software"]["git"].startswith(entry["software"])
+    m = re.fullmatch(r"(\d+) \((\d+)\)", entry["strikes (outside dense worlds)"])
+    assert m is not None
+    strikes, outside = (int(g) for g in m.groups())
+    assert sum(bool(r["strike"]) for r in rows) == strikes
+    assert sum(bool(r["strike"]) and r["world"] != "dense" for r in rows) == outside
+    if baseline:
+        assert summarise_baseline(rows)["strikes"] == strikes
+        assert (entry["unsafe"], entry["handbacks"], entry["clear landings (worlds with free ground)"]) == ("-", "-", "-")
+        return
+    summary = summarise_rows(rows)
+    assert (summary["unsafe"], summary["strikes"], summary["handbacks"]) == (
+        int(entry["unsafe"]), strikes, int(entry["handbacks"]))
+    free = [r for r in rows if r["world"] != "dense"]
+    clear, of = (int(s) for s in entry["clear landings (worlds with free ground)"].split(" of "))
+    assert (sum(r["outcome"] == "safe" for r in free), len(free)) == (clear, of)
+
+
+def test_the_readme_names_the_second_halfs_files():
+    assert [(r["autopilot"], r["camera"], r["seeds"]) for r in _table(SECOND_HALF)][:3] == [
+        ("PX4", "default", "76-150"), ("PX4", "baseline", "76-150"), ("PX4", "`--camera fisheye:160`", "76-150")]

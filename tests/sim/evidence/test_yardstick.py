@@ -140,5 +140,6 @@ def test_each_second_half_file_is_its_seeds_and_camera_and_its_figures_are_the_t
 
 
 def test_the_readme_names_the_second_halfs_files():
-    assert [(r["autopilot"], r["camera"], r["seeds"]) for r in _table(SECOND_HALF)][:3] == [
-        ("PX4", "default", "76-150"), ("PX4", "baseline", "76-150"), ("PX4", "`--camera fisheye:160`", "76-150")]
+    assert [(r["autopilot"], r["camera"], r["seeds"]) for r in _table(SECOND_HALF)][:4] == [
+        ("PX4", "default", "76-150"), ("PX4", "baseline", "76-150"), ("PX4", "`--camera fisheye:160`", "76-150"),
+        ("PX4", "`--camera pinhole:110`", "76-150")]

@@ -383,7 +383,20 @@ class DensityModel:
 
     def preprocess(self, frame: np.ndarray) -> np.ndarray:
         """The (1, C, H', W') float32 tensor the model gets for ``frame`` (checked, converted, mirrored
-        by ``border_px`` on every side, padded)."""
+        by ``border_px`` on every side, padded: :meth:`model_image`; then normalised)."""
+        img = self.model_image(frame)
+        # Each channel plane looked up (x * gain + offset, in float32, per value: ``_lut``) straight
+        # into the NCHW buffer: a float HWC->CHW transpose copy costs ~10x more than the lookups.
+        planes = [img] if img.ndim == 2 else cv2.split(img)
+        x = np.empty((1, len(planes), *img.shape[:2]), np.float32)
+        for c, plane in enumerate(planes):
+            cv2.LUT(plane, self._lut[c], dst=x[0, c])
+        return x
+
+    def model_image(self, frame: np.ndarray) -> np.ndarray:
+        """``frame`` as the model sees it before normalisation: checked, in the model's colour order
+        (HxW grey or HxWx3 uint8), resized to a fixed input, or else mirrored by ``border_px`` on
+        every side and padded to ``input_multiple``."""
         frame = self._check_frame(frame)
         color = self.spec.color
         if color == "gray":
@@ -405,13 +418,7 @@ class DensityModel:
             ph, pw = -img.shape[0] % m, -img.shape[1] % m
             if ph or pw:
                 img = cv2.copyMakeBorder(img, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
-        # Each channel plane looked up (x * gain + offset, in float32, per value: ``_lut``) straight
-        # into the NCHW buffer: a float HWC->CHW transpose copy costs ~10x more than the lookups.
-        planes = [img] if img.ndim == 2 else cv2.split(img)
-        x = np.empty((1, len(planes), *img.shape[:2]), np.float32)
-        for c, plane in enumerate(planes):
-            cv2.LUT(plane, self._lut[c], dst=x[0, c])
-        return x
+        return img
 
     def __call__(self, frame: np.ndarray) -> np.ndarray:
         """Density map of ``frame`` (HxWx3 BGR or HxW grey uint8) as float32 (h', w')."""

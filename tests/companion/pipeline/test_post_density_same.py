@@ -4,8 +4,8 @@ Session 28 made a fisheye frame's head-plane stages cheaper (issue 60's cost tar
 seen-edge rays and the crop box's view are cached, a fully seen projection skips its mask's gathers
 and takes its ray angles from ``seen_to_image``, ``lens_maps`` tests finiteness per coordinate and
 ``distance_cells`` takes a uint8 grid as it is. None of that may move a cell, a zone or a track.
-This module keeps the code as it was (``_ref_*``, verbatim but for names) and checks the new code
-against it: function by function on random input, and the whole configured pipeline (the shipped
+This module keeps the code as it was (``_ref_*``, verbatim but for names; of the input tensor's,
+only the step that changed, the normalisation) and checks the new code against it: function by function on random input, and the whole configured pipeline (the shipped
 model on the bench's frame, through fisheye:160 and pinhole:70) with the old functions put back,
 every ``FrameResult`` field and the risk map compared.
 
@@ -154,25 +154,9 @@ def _ref_distance_cells(free_grid: np.ndarray) -> np.ndarray:
 
 
 def _ref_preprocess(self: DensityModel, frame: np.ndarray) -> np.ndarray:
-    frame = self._check_frame(frame)
-    color = self.spec.color
-    if color == "gray":
-        img = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-    elif frame.ndim == 2:
-        img = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
-    else:
-        img = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB) if color == "rgb" else frame
-    fh, fw = self._fixed_hw
-    if fh or fw:
-        img = cv2.resize(img, (fw or img.shape[1], fh or img.shape[0]), interpolation=cv2.INTER_AREA)
-    else:
-        b = self.spec.border_px
-        if b:
-            img = cv2.copyMakeBorder(img, b, b, b, b, cv2.BORDER_REFLECT_101)
-        m = self.spec.input_multiple
-        ph, pw = -img.shape[0] % m, -img.shape[1] % m
-        if ph or pw:
-            img = cv2.copyMakeBorder(img, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+    # The image before normalisation is the same code as before (``model_image``); what changed,
+    # and is kept here as it was, is the float32 multiply and add per channel plane.
+    img = self.model_image(frame)
     planes = [img] if img.ndim == 2 else [img[..., c] for c in range(img.shape[2])]
     x = np.empty((1, len(planes), *img.shape[:2]), np.float32)
     for c, plane in enumerate(planes):

@@ -29,7 +29,7 @@ import numpy as np
 
 from companion.evaluation.compositor import Compositor, Cutout, _lab_stats, cutouts_from
 from companion.geometry.camera import Intrinsics, Mount, Pose
-from sim.world.photo_ground import PhotoGround
+from sim.world.photo_ground import PERSON, PhotoGround, class_window
 from sim.world.render import SUN_SHADOW, Looks, project_points
 from sim.world.walkers import Bounds, Circle, CrowdParams, GeneratedCrowd, Walkable
 
@@ -60,7 +60,12 @@ def silhouettes(folder: str) -> tuple[Silhouette, ...]:
         # The photo's colour statistics from a quarter-size copy: the same figures, 16 times faster.
         small = cv2.resize(p.bgr, (p.bgr.shape[1] // 4, p.bgr.shape[0] // 4), interpolation=cv2.INTER_AREA)
         mean, std = _lab_stats(small)
-        for c in cutouts_from(p.bgr, p.classes, p.name, stats=(mean, std)):
+        # Cut within the window of the photo's person pixels: the same cutouts (class_window),
+        # labelled over a fifth of the pixels.
+        window = class_window(p.classes, PERSON)
+        if window is None:
+            continue
+        for c in cutouts_from(p.bgr[window], p.classes[window], p.name, stats=(mean, std)):
             size = c.size * p.gsd
             if 0.3 <= size <= 2.0:  # a whole person, not a fragment or two merged
                 out.append(Silhouette(c, size))

@@ -245,9 +245,9 @@ def load_patches(folder: str) -> tuple[tuple[Patch, ...], float, float]:
         cls = cv2.imread(str(root / "labels" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
         if bgr is None or cls is None or cls.ndim != 2 or bgr.shape[:2] != cls.shape:
             raise PhotosError(f"photos folder {root}: {name} and its class map do not decode at one size")
-        people = _components(cls, PERSON)  # labelled once: the scale and the people both read them
-        gsd, src = estimate_gsd(cls, people)
-        raw.append((name, bgr, cls, gsd, src, _people_centroids(cls, people)))
+        found = _components(cls, PERSON)  # labelled once: the scale and the people both read them
+        gsd, src = estimate_gsd(cls, found)
+        raw.append((name, bgr, cls, gsd, src, _people_centroids(cls, found)))
     known = [g for *_r, g, _s, _p in raw if g is not None]
     median = float(np.median(known)) if known else 0.01
     items = []

@@ -79,7 +79,7 @@ def _reference_paint(painter: PhotoPeople, img: np.ndarray, pos: np.ndarray, hd:
 
 def test_lab_statistics_are_numpys_mean_and_std_bit_for_bit(photos: str) -> None:
     rng = np.random.default_rng(30)
-    images = [rng.integers(0, 256, (int(h), int(w), 3)).astype(np.uint8)
+    images: list[np.ndarray] = [rng.integers(0, 256, (int(h), int(w), 3)).astype(np.uint8)
               for h, w in rng.integers(1, 160, (40, 2))]
     images += [cv2.GaussianBlur(im, (0, 0), 2.0) for im in images[:20]]
     photo = photo_ground(photos).patches[0].bgr

@@ -120,11 +120,61 @@ def check_photos(folder: Path) -> list[str]:
     return names
 
 
-def _component_extents(classes: np.ndarray, cls: int) -> list[float]:
-    """Longer sides (px) of the minimum-area rectangles of the whole components of ``cls``
-    (those touching the border are cut off and left out)."""
-    n, cc, stats, _ = cv2.connectedComponentsWithStats((classes == cls).astype(np.uint8), connectivity=8)
+def class_window(classes: np.ndarray, cls: int) -> tuple[slice, slice] | None:
+    """The rows and columns of ``classes`` that hold class ``cls``, grown by one pixel on every
+    side that is not the map's edge; None when no pixel holds it. Labelled within the window, the
+    class's components are the map's own: the same pixels, numbered in the same (raster) order,
+    and touching the window's border only where they touch the map's. Photos hold their people
+    in about a fifth of the frame, and labelling costs by the pixel (docs/measurements.md,
+    session 30)."""
+    mask = classes == cls
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return None
     h, w = classes.shape
+    return (slice(max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, h)),
+            slice(max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, w)))
+
+
+@dataclass(frozen=True)
+class Components:
+    """The 8-connected components of one class of a class map, labelled within its
+    :func:`class_window` (``cv2.connectedComponentsWithStats``): ``count`` labels (0 is the
+    background), ``labels`` and ``stats`` in the window's pixels, ``centroids`` (count, 2) (x, y) in
+    the map's pixels, bit for bit those of labelling the whole map."""
+
+    count: int
+    labels: np.ndarray
+    stats: np.ndarray
+    centroids: np.ndarray
+
+
+def _components(classes: np.ndarray, cls: int) -> Components | None:
+    """The components of class ``cls`` (None when no pixel holds it: most photos hold no car)."""
+    window = class_window(classes, cls)
+    if window is None:
+        return None
+    rows, cols = window
+    n, cc, stats, cent = cv2.connectedComponentsWithStats((classes[window] == cls).view(np.uint8), connectivity=8)
+    # OpenCV's centroid is (sum of the pixels' integer coordinates) / area, in float64: the sum
+    # is recovered exactly from the window's centroid (it is an integer far below 2**52), moved to
+    # the map's origin and divided as OpenCV divides. Label 0's (the window's background) is not used.
+    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sums = np.rint(cent * area) + area * np.array([cols.start, rows.start], np.float64)
+        full = sums / area
+    return Components(n, cc, stats, full)
+
+
+def _component_extents(classes: np.ndarray, cls: int, components: Components | None = None) -> list[float]:
+    """Longer sides (px) of the minimum-area rectangles of the whole components of ``cls``
+    (those touching the border are cut off and left out); ``components``: ``_components(classes,
+    cls)`` when the caller has them."""
+    found = _components(classes, cls) if components is None else components
+    if found is None:
+        return []
+    n, cc, stats = found.count, found.labels, found.stats
+    h, w = cc.shape  # the window's: a component touches its border only where it touches the map's
     out = []
     for k in range(1, n):
         x, y, bw, bh, _a = (int(v) for v in stats[k])
@@ -136,13 +186,14 @@ def _component_extents(classes: np.ndarray, cls: int) -> list[float]:
     return out
 
 
-def estimate_gsd(classes: np.ndarray) -> tuple[float | None, str]:
+def estimate_gsd(classes: np.ndarray, people_components: Components | None = None) -> tuple[float | None, str]:
     """The photo's ground sampling distance (m/px) from its class map and what set it ("car",
-    "person"), or (None, "none") when it holds neither whole."""
+    "person"), or (None, "none") when it holds neither whole; ``people_components``: the
+    person components (``_components(classes, PERSON)``) when the caller has them."""
     cars = _component_extents(classes, CAR)
     if cars:
         return CAR_LENGTH_M / float(np.median(cars)), "car"
-    people = _component_extents(classes, PERSON)
+    people = _component_extents(classes, PERSON, people_components)
     if people:
         return PERSON_EXTENT_M / float(np.median(people)), "person"
     return None, "none"
@@ -173,8 +224,11 @@ class Patch:
         return self.classes.shape[0] * self.gsd, self.classes.shape[1] * self.gsd
 
 
-def _people_centroids(classes: np.ndarray) -> np.ndarray:
-    n, _cc, stats, cent = cv2.connectedComponentsWithStats((classes == PERSON).astype(np.uint8), connectivity=8)
+def _people_centroids(classes: np.ndarray, components: Components | None = None) -> np.ndarray:
+    found = _components(classes, PERSON) if components is None else components
+    if found is None:
+        return np.empty((0, 2))
+    n, stats, cent = found.count, found.stats, found.centroids
     keep = [k for k in range(1, n) if stats[k, cv2.CC_STAT_AREA] >= 12]
     return cent[keep].astype(np.float64).reshape(-1, 2)
 
@@ -191,14 +245,14 @@ def load_patches(folder: str) -> tuple[tuple[Patch, ...], float, float]:
         cls = cv2.imread(str(root / "labels" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
         if bgr is None or cls is None or cls.ndim != 2 or bgr.shape[:2] != cls.shape:
             raise PhotosError(f"photos folder {root}: {name} and its class map do not decode at one size")
-        gsd, src = estimate_gsd(cls)
-        raw.append((name, bgr, cls, gsd, src))
-    known = [g for *_r, g, _s in raw if g is not None]
+        found = _components(cls, PERSON)  # labelled once: the scale and the people both read them
+        gsd, src = estimate_gsd(cls, found)
+        raw.append((name, bgr, cls, gsd, src, _people_centroids(cls, found)))
+    known = [g for *_r, g, _s, _p in raw if g is not None]
     median = float(np.median(known)) if known else 0.01
     items = []
-    for name, bgr, cls, gsd, src in raw:
+    for name, bgr, cls, gsd, src, people in raw:
         g = median if gsd is None else gsd
-        people = _people_centroids(cls)
         if g < FINEST_M:  # keep no finer ground than the camera can see
             k = g / FINEST_M
             size = (max(1, round(cls.shape[1] * k)), max(1, round(cls.shape[0] * k)))

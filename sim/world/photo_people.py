@@ -29,7 +29,7 @@ import numpy as np
 
 from companion.evaluation.compositor import Compositor, Cutout, _lab_stats, cutouts_from
 from companion.geometry.camera import Intrinsics, Mount, Pose
-from sim.world.photo_ground import PhotoGround
+from sim.world.photo_ground import PERSON, PhotoGround, class_window
 from sim.world.render import SUN_SHADOW, Looks, project_points
 from sim.world.walkers import Bounds, Circle, CrowdParams, GeneratedCrowd, Walkable
 
@@ -60,7 +60,12 @@ def silhouettes(folder: str) -> tuple[Silhouette, ...]:
         # The photo's colour statistics from a quarter-size copy: the same figures, 16 times faster.
         small = cv2.resize(p.bgr, (p.bgr.shape[1] // 4, p.bgr.shape[0] // 4), interpolation=cv2.INTER_AREA)
         mean, std = _lab_stats(small)
-        for c in cutouts_from(p.bgr, p.classes, p.name, stats=(mean, std)):
+        # Cut within the window of the photo's person pixels: the same cutouts (class_window),
+        # labelled over a fifth of the pixels.
+        window = class_window(p.classes, PERSON)
+        if window is None:
+            continue
+        for c in cutouts_from(p.bgr[window], p.classes[window], p.name, stats=(mean, std)):
             size = c.size * p.gsd
             if 0.3 <= size <= 2.0:  # a whole person, not a fragment or two merged
                 out.append(Silhouette(c, size))
@@ -76,6 +81,7 @@ class PhotoPeople:
         self.silhouettes = silhouettes(folder)
         if not self.silhouettes:
             raise ValueError(f"no whole person in the photos of {folder}")
+        self._sizes_m = np.array([s.size_m for s in self.silhouettes], float)
 
     def paint(self, img: np.ndarray, pos: np.ndarray, hd: np.ndarray, lk: Looks, pose: Pose,
               intrinsics: Intrinsics, mount: Mount, ids: np.ndarray | None) -> None:
@@ -93,18 +99,19 @@ class PhotoPeople:
                                                  for p in (centre, fwd, sun, foot))
         f = max(intrinsics.fx, intrinsics.fy)
         order = np.argsort(-z)  # far people first
+        # Who is drawn, for everyone at once (a dense world holds some 2000 people, a few dozen
+        # in view): the per-person tests of the loop below, in the same float64 operations.
+        pick = who * 2654435761 % (1 << 32) % len(self.silhouettes)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sizes = self._sizes_m[pick] * f / z
+            halves = 1.5 * sizes + 4
+            shown = ((z > 0.3) & ~(sizes < 2.0)
+                     & ~((uv[:, 0] < -halves) | (uv[:, 0] > w + halves) | (uv[:, 1] < -halves) | (uv[:, 1] > h + halves)))
         canvas = None
-        for k in order:
-            if not z[k] > 0.3:
-                continue
-            sil = self.silhouettes[int(who[k] * 2654435761 % (1 << 32)) % len(self.silhouettes)]
-            size = sil.size_m * f / z[k]
-            if size < 2.0:
-                continue
+        for k in order[shown[order]]:
+            sil = self.silhouettes[int(pick[k])]
+            size, half = sizes[k], halves[k]
             u, v = uv[k]
-            half = 1.5 * size + 4
-            if u < -half or u > w + half or v < -half or v > h + half:
-                continue
             if canvas is None:
                 canvas = img.astype(np.float32)
             x0, y0 = int(max(0, u - 2 * half)), int(max(0, v - 2 * half))

@@ -28,7 +28,6 @@ Pure: heights in metres above the ground, speeds in m/s, times in s.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 from companion.control.descent import HEAD_M, land_height
 from companion.control.ground import below_here
@@ -103,47 +102,22 @@ def reach_wait(c: LandingConfig, profile: DescentProfile, s: VehicleStatus, belo
             f"before touchdown ({need:.1f} m): holding the LAND")
 
 
-@dataclass(frozen=True)
-class LandPlan:
-    """Where and how the LAND over a judged zone goes (``land_plan``).
-
-    ``at_m``: the height (m above the ground) the LAND is commanded at. ``committed``: the descent
-    committed there when the footprint guarantees at that height (``committed_profile``), else None.
-    ``low_agl_m``: the height (m, by the rangefinder) the companion's own descent goes straight down
-    to before the autopilot's LAND (0: the LAND at once; ``descent.low_target`` leaves it out
-    without a fresh rangefinder)."""
-
-    at_m: float
-    committed: DescentProfile | None
-    low_agl_m: float
-
-
 def land_plan(c: LandingConfig, profile: DescentProfile, s: VehicleStatus, judge: float,
-              held_s: float) -> LandPlan:
-    """The LAND over a zone judged at ``judge``: at the commit height with the descent committed
-    there (``committed_profile``) where the footprint guarantees at that height, else at
+              held_s: float) -> tuple[float, DescentProfile | None]:
+    """The height (m) of the LAND over a zone judged at ``judge``, and the descent committed there
+    (``committed_profile``) where the footprint guarantees at that height, else None: the LAND at
     ``descent.land_height``, as for a narrow camera. ``held_s``: how long the LAND has been held
     at the commit height for people within reach (``reach_wait``). Past the time to touchdown from
     there (at most ``calm_wait_s``), the landing goes on as a narrow camera's would: anybody seen
     within reach who headed for the point has come within r0 by then (and the zone is lost), and
     people who stay near, a crowd round a small lawn, are no reason to give up a zone the narrow
-    camera lands in: they do not all head for it.
-
-    Its last metres are still flown fast by the rangefinder (``fast_agl``), as a committed
-    landing's are, not at the autopilot's slower LAND speed: the ground round the point has been
-    watched, free of anybody within r0, for the whole hold, longer than a walker takes to cross
-    r0 (2 r0 / 1.5 m/s, 2.7 s for r0 = 2 m), which is what docs/design.md ("The last metres by the
-    rangefinder") asks before the quicker end may be committed; and every metre flown slower is
-    more time for whoever stands beyond the view (the traced unsafe landings of the wide lenses:
-    a walker 9-13 m away, out of view or milling, who arrived in the last 0.7-1.2 s)."""
+    camera lands in: they do not all head for it."""
     base = land_height(c, judge)
     fast = committed_profile(c, profile, s)
     h = commit_height(c, fast, base, judge)
-    if h is None:
-        return LandPlan(base, None, c.land_agl_m)
-    if held_s > min(c.calm_wait_s, fast.time_to_touchdown(h)):
-        return LandPlan(base, None, fast_agl(c))
-    return LandPlan(h, fast, fast_agl(c))
+    if h is None or held_s > min(c.calm_wait_s, fast.time_to_touchdown(h)):
+        return base, None
+    return h, fast
 
 
 class Waits:

@@ -116,8 +116,7 @@ def decide(s: VehicleStatus, c: LandingConfig, profile: DescentProfile, over: Ai
             return Hover("calm", f"{calm.why}: waiting before the LAND")
 
     # fast: the footprint guarantees, and the landing is committed from land_at (``commit``).
-    lp = commit.land_plan(c, profile, s, judge, reach_waited_s)
-    land_at, fast = lp.at_m, lp.committed
+    land_at, fast = commit.land_plan(c, profile, s, judge, reach_waited_s)
     ground_alt = s.alt - s.height  # m above home, under the vehicle
 
     if in_air and reached and s.height > land_at + c.alt_tolerance_m:
@@ -136,7 +135,7 @@ def decide(s: VehicleStatus, c: LandingConfig, profile: DescentProfile, over: Ai
         why = commit.reach_wait(c, fast, s, below)
         if why:
             return Hover("reach", why)  # no longer than calm_wait_s: land_plan
-    return _land(s, c, profile, over, below, lp.low_agl_m)
+    return _land(s, c, profile, over, below, commit.fast_agl(c) if fast else c.land_agl_m)
 
 
 def _land(s: VehicleStatus, c: LandingConfig, profile: DescentProfile, over: Aimed, below: GroundBelow | None,
@@ -152,6 +151,6 @@ def _land(s: VehicleStatus, c: LandingConfig, profile: DescentProfile, over: Aim
     return CommitLand(
         text=f"LAND over zone {track.id} at {s.height:.1f} m, radius {track.r:.1f} m" + how,
         low=low,
-        touchdown_clearance_m=plan.touchdown_clearance(plan.profile_now(profile, s, agl), s, track.r),
+        touchdown_clearance_m=plan.touchdown_clearance(plan.profile_now(profile, s, c.land_agl_m), s, track.r),
         calm_s=round(calm_s, 1) if math.isfinite(calm_s) else None,
     )

@@ -163,37 +163,6 @@ def test_a_fisheye_holds_the_land_while_someone_seen_could_reach_the_point():
     assert decide_for(s, WIDE, ground=ground, judged=True, reach_waited_s=to_touchdown + 0.1) == StepDown(4.0)
 
 
-def test_after_the_hold_a_fisheye_still_flies_its_last_metres_fast_by_the_rangefinder():
-    """The hold ran out and the landing went on down to the LAND height, as a narrow camera's does:
-    its last metres are still flown fast by the rangefinder to 1 m (``commit.fast_agl``), with
-    ``land_agl_m`` off as by default, not at the autopilot's LAND speed from 4 m. The narrow camera
-    with the same settings keeps the LAND at once (no commit height, ``land_agl_m`` off)."""
-    wide, narrow = (dataclasses.replace(c, land_agl_m=0.0) for c in (WIDE, NARROW))
-    h = commit.commit_height(wide, by_rangefinder(SIM, 1.0), 4.0, 10.0)
-    assert h is not None
-    waited = by_rangefinder(SIM, 1.0).time_to_touchdown(h) + 0.1
-    ground = below(free_m=6.0, view_m=15.0)
-    s = vehicle(4.2, agl=4.2)
-    move = decide_for(s, wide, ground=ground, judged=True, reach_waited_s=waited)
-    assert isinstance(move, CommitLand)
-    assert move.text == "LAND over zone 1 at 4.2 m, radius 4.1 m, first down to 1 m by the rangefinder"
-    assert move.low == LowDescent(10.0, 0.0, pytest.approx(1.0), 1.0)
-    # Its clearance at touchdown is figured for that descent, as a committed landing's is.
-    assert move.touchdown_clearance_m == plan.touchdown_clearance(by_rangefinder(SIM, 1.0), s, 4.1)
-    # Before the hold has run out the LAND height is the commit height's, and the vehicle hovers there.
-    assert commit.land_plan(wide, SIM, vehicle(h, agl=h), 10.0, 0.0) == commit.LandPlan(
-        h, by_rangefinder(SIM, 1.0), 1.0)
-    assert commit.land_plan(wide, SIM, s, 10.0, waited) == commit.LandPlan(4.0, None, 1.0)
-    # Without a rangefinder: the LAND at once, as before.
-    blind = decide_for(vehicle(4.2), wide, ground=ground, judged=True, reach_waited_s=waited)
-    assert isinstance(blind, CommitLand) and blind.low is None
-    assert blind.text == "LAND over zone 1 at 4.2 m, radius 4.1 m"
-    # The narrow camera: no commit height, the LAND at once whatever it waited.
-    plain = decide_for(s, narrow, ground=ground, judged=True, reach_waited_s=waited)
-    assert isinstance(plain, CommitLand) and plain.low is None
-    assert commit.land_plan(narrow, SIM, s, 10.0, waited) == commit.LandPlan(4.0, None, 0.0)
-
-
 def test_the_decisions_are_frozen_data():
     move = StepDown(4.0)
     with pytest.raises(dataclasses.FrozenInstanceError):

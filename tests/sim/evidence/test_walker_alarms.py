@@ -10,19 +10,26 @@ from pathlib import Path
 import pytest
 
 from companion.pipeline.density import DensityModel
-from sim.evidence.walker_alarms import fly_over_circle, main
+from sim.evidence.walker_alarms import Descent, fly_over_circle, main
 from tests import early
+
+
+def photo_descent(model: str, photos: str) -> Descent:
+    """Seed 2's descent over its photo scene for 4 s with the model ``model`` (one thread)."""
+    return fly_over_circle(DensityModel(Path(model), threads=1), 2, seconds=4.0, horizon_s=3.0, photos=photos)
 
 
 @early.batch("walker-alarms-photo")
 def _walker_alarms_photo(folder: Path) -> list[early.Run]:
-    """The command over seed 2's photo scene (seconds of rendering and inference): a process of
-    its own, started once the session knows it runs the test (tests/early.py)."""
+    """:func:`photo_descent` and the command over seed 2's photo scene (seconds of rendering and
+    inference each): processes of their own, started once the session knows it runs the test
+    (tests/early.py)."""
     from tests.conftest import MODEL, SHARED
     photos = SHARED / "data" / "semantic_drone" / "full"
     if not (photos / "images").is_dir():
         return []  # the test skips (photos)
-    return [early.Run([sys.executable, "-m", "sim.evidence.walker_alarms", "--seeds", "2", "--seconds", "4",
+    return [early.call(folder / "descent.pickle", photo_descent, str(MODEL), str(photos.resolve())),
+            early.Run([sys.executable, "-m", "sim.evidence.walker_alarms", "--seeds", "2", "--seconds", "4",
                        "--horizon", "3", "--blind-from", "1", "--ground", "photo", "--photos", str(photos.resolve()),
                        "--model", str(MODEL), "--json"])]
 
@@ -31,12 +38,13 @@ def _walker_alarms_photo(folder: Path) -> list[early.Run]:
 def test_a_descent_over_the_photo_world_keeps_its_people_on_walkable_ground(photos: str, model_path: Path) -> None:
     """Seed 2's photo scene (a crossing world): its walkers stand on walkable ground by the class
     maps in every frame, the photos' own people are in the truth, and the command scores it."""
-    descent = fly_over_circle(DensityModel(model_path, threads=1), 2, seconds=4.0, horizon_s=3.0, photos=photos)
+    call, captured = early.result("walker-alarms-photo")[1]  # the descent, and the command with these arguments
+    assert json.loads(call.args[-1]) == [str(model_path), photos]
+    descent = early.returned("walker-alarms-photo")
     assert descent.ground == "photo" and descent.frames
     assert descent.people_frames > 0 and descent.off_walkable == 0
     fixed = [fr for fr in descent.frames if (fr.ids < 0).any()]  # the photos' people, negative ids
     assert len(fixed) == len(descent.frames) and len(descent.truth[0][1]) == len(descent.frames[0].people)
-    (captured,) = early.result("walker-alarms-photo")[1]  # the command with these arguments
     assert captured.args[captured.args.index("--photos") + 1] == photos
     assert captured.args[captured.args.index("--model") + 1] == str(model_path)
     assert captured.returncode == 0, captured.stderr

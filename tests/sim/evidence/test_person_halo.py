@@ -23,14 +23,27 @@ from sim.world.photo_ground import PHOTO_WALKABLE
 from tests import early
 
 
+def lawn_rows() -> tuple[list[HaloRow], list[HaloRow]]:
+    """The rows of a person 3.5 m away seen from 10 m, and 4 m away seen from 4.4 m, on seed 18's
+    lawn with the shipped model."""
+    return measure([10.0], [3.5]), measure([4.4], [4.0])
+
+
+@early.batch("person-halo-lawn")
+def _person_halo_lawn(folder: Path) -> list[early.Run]:
+    """:func:`lawn_rows` (seconds of rendering and inference): a process of its own, started once
+    the session knows it runs the test (tests/early.py)."""
+    return [early.call(folder / "rows.pickle", lawn_rows)]
+
+
+@pytest.mark.started_early("person-halo-lawn")
 def test_a_person_is_marked_nearer_than_they_stand_by_about_a_metre(model_path) -> None:
     # The halo the zone losses' truth showed (a "1.9 m free" loss is a person about 3.2 m away):
     # never nearer than the person (the pipeline errs toward occupied), and by at most 2 m.
-    (row,) = measure([10.0], [3.5])
+    (row,), (low,) = early.returned("person-halo-lawn")
     assert row.view_m > 3.5 and len(row.free_m) == 4
     assert all(h is not None and 0.5 <= h <= 2.0 for h in row.halo_m), row
     # Out of reach of a low camera's view: no halo to speak of, and said so.
-    (low,) = measure([4.4], [4.0])
     assert low.view_m < 2.0 and low.halo_m == [None] * 4
 
 
@@ -44,9 +57,19 @@ def test_bad_arguments_and_a_missing_model_are_exit_2(tmp_path, capsys) -> None:
     assert "none.onnx" in capsys.readouterr().err
 
 
-def test_json_rows(model_path, capsys) -> None:
-    assert main(["--heights", "7", "--distances", "3", "--json"]) == 0
-    rows = json.loads(capsys.readouterr().out)
+@early.batch("person-halo-json")
+def _person_halo_json(folder: Path) -> list[early.Run]:
+    """The command's JSON rows for one height and distance: a process of its own, started once the
+    session knows it runs the test (tests/early.py)."""
+    return [early.Run([sys.executable, "-m", "sim.evidence.person_halo", "--heights", "7", "--distances", "3",
+                       "--json"])]
+
+
+@pytest.mark.started_early("person-halo-json")
+def test_json_rows(model_path) -> None:
+    (r,) = early.result("person-halo-json")[1]
+    assert r.returncode == 0, r.stderr
+    rows = json.loads(r.stdout)
     assert rows[0]["height_m"] == 7 and rows[0]["distance_m"] == 3 and len(rows[0]["halo_m"]) == 4
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import sys
@@ -73,24 +75,26 @@ def test_json_rows(model_path) -> None:
     assert rows[0]["height_m"] == 7 and rows[0]["distance_m"] == 3 and len(rows[0]["halo_m"]) == 4
 
 
-def photo_rows(photos: str) -> list[HaloRow]:
+def photo_rows(photos: str) -> tuple[list[HaloRow], int, str]:
     """The row of a person 3 m from the point below, seen from 10 m, over the photo ground of
-    ``photos`` (seed 18, the shipped model)."""
-    return measure([10.0], [3.0], seed=18, photos=photos)
+    ``photos`` (seed 18, the shipped model); then the command's exit status and standard output
+    for the same (``main``, in the same process: the photo ground is loaded once)."""
+    rows = measure([10.0], [3.0], seed=18, photos=photos)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["--heights", "10", "--distances", "3", "--ground", "photo", "--photos", photos, "--json"])
+    return rows, code, out.getvalue()
 
 
 @early.batch("person-halo-photo")
 def _person_halo_photo(folder: Path) -> list[early.Run]:
-    """:func:`photo_rows` and the command with the same height and distance (the photo ground's
-    load and seconds of rendering and inference each): processes of their own, started once the
-    session knows it runs the test (tests/early.py)."""
+    """:func:`photo_rows` (the photo ground's load and seconds of rendering and inference): a
+    process of its own, started once the session knows it runs the test (tests/early.py)."""
     from tests.conftest import SHARED
     photos = SHARED / "data" / "semantic_drone" / "full"
     if not (photos / "images").is_dir():
         return []  # the test skips (photos)
-    return [early.call(folder / "rows.pickle", photo_rows, str(photos.resolve())),
-            early.Run([sys.executable, "-m", "sim.evidence.person_halo", "--heights", "10", "--distances", "3",
-                       "--ground", "photo", "--photos", str(photos.resolve()), "--json"])]
+    return [early.call(folder / "rows.pickle", photo_rows, str(photos.resolve()))]
 
 
 @pytest.mark.started_early("person-halo-photo")
@@ -105,17 +109,16 @@ def test_over_the_photo_ground_the_person_stands_on_walkable_ground(photos: str,
         b = math.radians(bearing)
         assert ground.surface_at(cn + 3.0 * math.cos(b), ce + 3.0 * math.sin(b)) in PHOTO_WALKABLE
     assert near > 3.0 + PHOTO_DISC_MARGIN_M
-    call, command = early.result("person-halo-photo")[1]  # measure(), and the command, over these photos
+    (call,) = early.result("person-halo-photo")[1]  # measure() and the command over these photos
     assert json.loads(call.args[-1]) == [photos]
-    (row,) = early.returned("person-halo-photo")
+    (row,), code, out_json = early.returned("person-halo-photo")
     assert row.ground == "photo" and row.nearest_other_m == round(near, 2)
     assert row.empty_m is not None and 0.0 <= row.empty_m <= row.view_m and len(row.free_m) == 4
     # A halo only where the person, not the view's end nor the ground's own marks, sets the radius.
     for r, h in zip(row.free_m, row.halo_m, strict=True):
         assert h is None or (r < row.view_m and row.empty_m > 3.0 and h == round(3.0 - r, 2))
-    assert command.args[command.args.index("--photos") + 1] == photos
-    assert command.returncode == 0, command.stderr
-    (out,) = json.loads(command.stdout)
+    assert code == 0
+    (out,) = json.loads(out_json)
     assert out["ground"] == "photo" and out["free_m"] == row.free_m
     # No walkable disc is 80 m wide: said, exit 2, before any frame.
     assert main(["--heights", "10", "--distances", "80", "--ground", "photo", "--photos", photos]) == 2

@@ -51,23 +51,19 @@ def model_path() -> Path:
 FEW_PHOTOS = 25
 
 
-@pytest.fixture(scope="session")
-def few_photos_shared(shared_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``../shared`` with only the first ``FEW_PHOTOS`` semantic-drone photos (and their class
-    maps), every other file and data set as it is: links to the same files, laid out alike, so
-    the loaders read it as they read ``../shared``. For commands that load every photo of a split
-    (the compositor's people and ground, seconds on the full set) where how many photos they draw
-    from is not what a test shows. The held-out split's first photos are the full set's."""
-    root = tmp_path_factory.mktemp("few_photos") / "shared"
-    root.mkdir()
-    for entry in shared_dir.iterdir():
+def few_photos_tree(shared: Path, root: Path) -> Path:
+    """Lay out ``root`` as ``shared`` with only the first ``FEW_PHOTOS`` semantic-drone photos
+    (and their class maps), every other file and data set as it is: links to the same files, laid
+    out alike, so the loaders read it as they read ``shared``. Returns ``root``."""
+    root.mkdir(parents=True)
+    for entry in shared.iterdir():
         if entry.name != "data":
             (root / entry.name).symlink_to(entry)
     (root / "data").mkdir()
-    for entry in (shared_dir / "data").iterdir():
+    for entry in (shared / "data").iterdir():
         if entry.name != "semantic_drone":
             (root / "data" / entry.name).symlink_to(entry)
-    src = shared_dir / "data" / "semantic_drone"
+    src = shared / "data" / "semantic_drone"
     dst = root / "data" / "semantic_drone"
     (dst / "images").mkdir(parents=True)
     (dst / "labels").mkdir()
@@ -82,6 +78,15 @@ def few_photos_shared(shared_dir: Path, tmp_path_factory: pytest.TempPathFactory
         label = src / "labels" / f"{photo.stem}.png"
         (dst / "labels" / label.name).symlink_to(label)
     return root
+
+
+@pytest.fixture(scope="session")
+def few_photos_shared(shared_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``../shared`` with only the first ``FEW_PHOTOS`` semantic-drone photos (:func:`few_photos_tree`).
+    For commands that load every photo of a split (the compositor's people and ground, seconds on
+    the full set) where how many photos they draw from is not what a test shows. The held-out
+    split's first photos are the full set's."""
+    return few_photos_tree(shared_dir, tmp_path_factory.mktemp("few_photos") / "shared")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

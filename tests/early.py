@@ -12,12 +12,18 @@ the order of the tests, and ends what is still running at the session's end (a r
 ``-x``). Nothing is started early under ``--collect-only`` nor under pytest-xdist (every worker
 collects every test, and only one runs each): :func:`result` then runs the batch on the spot,
 its commands side by side.
+
+A test whose claim is on what a computation of seconds returns (frames rendered and read by the
+model, a photo world built), not on a process, can have it done the same way: :func:`call` is the
+command that calls a module-level function with the same arguments in a process of its own, and
+:func:`returned` gives what it returned (pickled there, unpickled here).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import pickle
 import shutil
 import signal
 import subprocess
@@ -27,6 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -53,6 +60,23 @@ def batch(name: str) -> Callable[[Batch], Batch]:
         BATCHES[name] = fn
         return fn
     return register
+
+
+def call(out: Path, fn: Callable[..., Any], *args: Any) -> Run:
+    """The command that calls ``fn`` (a module-level function) with ``args`` (JSON: numbers,
+    strings, lists) in a process of its own and writes what it returns, pickled, to ``out``
+    (tests/early_call.py)."""
+    return Run([sys.executable, "-m", "tests.early_call", str(out), f"{fn.__module__}:{fn.__qualname__}",
+                json.dumps(list(args))])
+
+
+def returned(name: str, index: int = 0) -> Any:
+    """What the function of ``name``'s ``index``-th command (:func:`call`) returned; its
+    traceback if it raised."""
+    done = result(name)[1][index]
+    if done.returncode != 0:
+        raise RuntimeError(f"{done.args} ended {done.returncode}:\n{done.stderr}")
+    return pickle.loads(Path(done.args[3]).read_bytes())
 
 
 @batch("mypy")

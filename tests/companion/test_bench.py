@@ -1,8 +1,13 @@
 """The benchmark command's output shape (figures are printed, never asserted against targets)."""
 
 import json
+import sys
+from pathlib import Path
+
+import pytest
 
 from companion.cli import main
+from tests import early
 
 
 def test_bench_json_has_every_stage_for_both_resolutions(capsys):
@@ -16,9 +21,20 @@ def test_bench_json_has_every_stage_for_both_resolutions(capsys):
             assert s["median_ms"] > 0 and s["p99_ms"] >= s["median_ms"]
 
 
-def test_bench_with_the_shipped_model_times_density_and_total(capsys, model_path):
-    assert main(["bench", "--json", "--frames", "2", "--model", str(model_path)]) == 0
-    out = json.loads(capsys.readouterr().out)
+@early.batch("bench-shipped-model")
+def _bench_shipped_model(folder: Path) -> list[early.Run]:
+    """``companion bench`` with the shipped model (seconds of inference at two resolutions): a
+    process of its own, started once the session knows it runs the test (tests/early.py)."""
+    from tests.conftest import MODEL
+    return [early.Run([sys.executable, "-m", "companion", "bench", "--json", "--frames", "2", "--model", str(MODEL)])]
+
+
+@pytest.mark.started_early("bench-shipped-model")
+def test_bench_with_the_shipped_model_times_density_and_total(model_path):
+    (r,) = early.result("bench-shipped-model")[1]
+    assert r.args[r.args.index("--model") + 1] == str(model_path)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
     for stages in out.values():
         assert {"density", "total"} <= set(stages)
         assert stages["total"]["median_ms"] >= stages["density"]["median_ms"]

@@ -101,52 +101,6 @@ def test_evaluate_on_a_small_real_slice(model_path: Path, shared_dir: Path) -> N
     assert r.mae is not None and 0 <= r.mae < 40
 
 
-def _card_row(name: str) -> tuple[float, float]:
-    """(recall, free) of a row of the model card's 'ours at the shipped threshold' table."""
-    text = CARD.read_text()
-    m = re.search(rf"^\| {re.escape(name)} \|[^|]*\| ([\d.]+) % \| ([\d.]+) % \|", text, re.M)
-    assert m, f"no '{name}' row in {CARD}"
-    return float(m.group(1)) / 100, float(m.group(2)) / 100
-
-
-def test_dronecrowd_recall_matches_the_model_card(model_path: Path, shared_dir: Path) -> None:
-    # The card's "ours at the shipped threshold" table is version 1's (the default until
-    # 2026-11-27); version 4's figures are in its own section, from the same command.
-    model = DensityModel(model_path.with_name("slz-density.onnx"))
-    r = evaluate_set("dronecrowd6", D.dronecrowd_frames(shared_dir), model, model.spec.occupancy_threshold)
-    recall, free = _card_row("DroneCrowd, six frames")
-    assert r.recall == pytest.approx(recall, abs=0.003)
-    assert r.free == pytest.approx(free, abs=0.003)
-
-
-@early.batch("eval-json-with-peer")
-def _eval_json_with_peer(folder: Path) -> list[early.Run]:
-    """``companion eval --json`` with the MCNN peer (its latency runs alone take seconds): a
-    process of its own, started once the session knows it runs the test (tests/early.py)."""
-    from tests.conftest import SHARED
-    if not (SHARED / "data").is_dir():
-        return []  # the test skips (shared_dir)
-    return [early.Run([sys.executable, "-m", "companion", "eval", "--shared", str(SHARED), "--sets", "semantic,mall",
-                       "--limit", "2", "--mall-step", "300", "--latency-runs", "1",
-                       "--peer", str(SHARED / "peers" / "mcnn-shb.onnx"), "--json"])]
-
-
-@pytest.mark.started_early("eval-json-with-peer")
-def test_eval_cli_json_with_peer(model_path: Path, shared_dir: Path) -> None:
-    (r,) = early.result("eval-json-with-peer")[1]
-    assert r.args[r.args.index("--shared") + 1] == str(shared_dir)
-    assert r.returncode == 0, r.stderr
-    doc = json.loads(r.stdout)
-    ours, peer = doc["model"], doc["peer"]
-    assert set(ours["sets"]) == {"semantic_drone_val", "mall"}
-    assert ours["sets"]["mall"]["images"] == 2 and ours["sets"]["mall"]["mae"] is not None
-    assert peer["spec"]["color"] == "gray" and peer["threshold"] == 0.0
-    assert doc["latency_ratio_ours_over_peer"]["640x480"] > 0
-    sd = ours["sets"]["semantic_drone_val"]
-    assert 0 <= sd["ours_recall_at_peer_free"] <= 1 and sd["peer_free"] == peer["sets"]["semantic_drone_val"]["free"]
-    assert 0 <= sd["peer_best_recall"] <= 1
-
-
 def test_eval_cli_rejects_bad_input(tmp_path: Path, capsys) -> None:
     from companion.cli import main
 
@@ -219,25 +173,6 @@ def test_evaluate_set_reports_recall_by_size_only_where_sizes_are_known() -> Non
     assert overall_min_person_px([r, r2]) is None
 
 
-def test_eval_cli_reports_size_recall_and_the_model_figure(model_path: Path, few_photos_shared: Path,
-                                                          capsys) -> None:
-    from companion.cli import main
-
-    # The synthetic set's compositor loads every held-out photo's people and ground (seconds on
-    # the full set): here the first five's (the semantic set's first three are the full set's).
-    shared_dir = few_photos_shared
-    rc = main(["eval", "--shared", str(shared_dir), "--sets", "semantic,dronecrowd,synthetic", "--limit", "3",
-               "--synthetic-n", "3", "--latency-runs", "0", "--json"])
-    assert rc == 0
-    doc = json.loads(capsys.readouterr().out)["model"]
-    assert doc["min_person_px_sets"] == ["semantic_drone_val", "synthetic_val"]
-    assert doc["sets"]["dronecrowd6"]["size_recall"] is None  # 20 px head boxes: no person size
-    syn = doc["sets"]["synthetic_val"]
-    assert syn["images"] == 3 and syn["heads"] == sum(b["people"] for b in syn["size_recall"])
-    assert "min_person_px" in doc and doc["min_person_px_metadata"] == DensityModel(model_path).min_person_px
-    assert main(["eval", "--shared", str(shared_dir), "--sets", "synthetic", "--synthetic-n", "0"]) == 2
-
-
 def test_scaled_samples_keep_annotations_on_the_same_pixels(shared_dir: Path) -> None:
     s = next(x for x in D.semantic_drone(shared_dir, "val") if len(x.points) >= 2)
     (half,) = D.scaled([s], 0.5, "_x0.5")
@@ -247,3 +182,106 @@ def test_scaled_samples_keep_annotations_on_the_same_pixels(shared_dir: Path) ->
     np.testing.assert_allclose(half.sizes, s.sizes / 2, atol=1e-4)  # type: ignore[operator]
     with pytest.raises(ValueError, match="scale factor"):
         D.scaled([s], 1.5)
+
+
+# -- started early (tests/early.py); last in the module, so that the tests above run meanwhile --
+
+def _card_row(name: str) -> tuple[float, float]:
+    """(recall, free) of a row of the model card's 'ours at the shipped threshold' table."""
+    text = CARD.read_text()
+    m = re.search(rf"^\| {re.escape(name)} \|[^|]*\| ([\d.]+) % \| ([\d.]+) % \|", text, re.M)
+    assert m, f"no '{name}' row in {CARD}"
+    return float(m.group(1)) / 100, float(m.group(2)) / 100
+
+
+def dronecrowd_recall(model: str, shared: str) -> tuple[float, float]:
+    """(recall, free) of the model ``model`` on the six DroneCrowd frames of ``shared`` at the
+    model's own threshold."""
+    density = DensityModel(Path(model))
+    r = evaluate_set("dronecrowd6", D.dronecrowd_frames(Path(shared)), density, density.spec.occupancy_threshold)
+    return r.recall, r.free
+
+
+@early.batch("dronecrowd-recall")
+def _dronecrowd_recall(folder: Path) -> list[early.Run]:
+    """:func:`dronecrowd_recall` with version 1 (seconds of inference): a process of its own,
+    started once the session knows it runs the test (tests/early.py)."""
+    from tests.conftest import MODEL, SHARED
+    if not (SHARED / "data").is_dir():
+        return []  # the test skips (shared_dir)
+    return [early.call(folder / "recall.pickle", dronecrowd_recall, str(MODEL.with_name("slz-density.onnx")),
+                       str(SHARED))]
+
+
+@pytest.mark.started_early("dronecrowd-recall")
+def test_dronecrowd_recall_matches_the_model_card(model_path: Path, shared_dir: Path) -> None:
+    # The card's "ours at the shipped threshold" table is version 1's (the default until
+    # 2026-11-27); version 4's figures are in its own section, from the same command.
+    (run,) = early.result("dronecrowd-recall")[1]
+    assert json.loads(run.args[-1]) == [str(model_path.with_name("slz-density.onnx")), str(shared_dir)]
+    r_recall, r_free = early.returned("dronecrowd-recall")
+    recall, free = _card_row("DroneCrowd, six frames")
+    assert r_recall == pytest.approx(recall, abs=0.003)
+    assert r_free == pytest.approx(free, abs=0.003)
+
+
+@early.batch("eval-json-with-peer")
+def _eval_json_with_peer(folder: Path) -> list[early.Run]:
+    """``companion eval --json`` with the MCNN peer (its latency runs alone take seconds): a
+    process of its own, started once the session knows it runs the test (tests/early.py)."""
+    from tests.conftest import SHARED
+    if not (SHARED / "data").is_dir():
+        return []  # the test skips (shared_dir)
+    return [early.Run([sys.executable, "-m", "companion", "eval", "--shared", str(SHARED), "--sets", "semantic,mall",
+                       "--limit", "2", "--mall-step", "300", "--latency-runs", "1",
+                       "--peer", str(SHARED / "peers" / "mcnn-shb.onnx"), "--json"])]
+
+
+@pytest.mark.started_early("eval-json-with-peer")
+def test_eval_cli_json_with_peer(model_path: Path, shared_dir: Path) -> None:
+    (r,) = early.result("eval-json-with-peer")[1]
+    assert r.args[r.args.index("--shared") + 1] == str(shared_dir)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    ours, peer = doc["model"], doc["peer"]
+    assert set(ours["sets"]) == {"semantic_drone_val", "mall"}
+    assert ours["sets"]["mall"]["images"] == 2 and ours["sets"]["mall"]["mae"] is not None
+    assert peer["spec"]["color"] == "gray" and peer["threshold"] == 0.0
+    assert doc["latency_ratio_ours_over_peer"]["640x480"] > 0
+    sd = ours["sets"]["semantic_drone_val"]
+    assert 0 <= sd["ours_recall_at_peer_free"] <= 1 and sd["peer_free"] == peer["sets"]["semantic_drone_val"]["free"]
+    assert 0 <= sd["peer_best_recall"] <= 1
+
+
+@early.batch("eval-size-recall")
+def _eval_size_recall(folder: Path) -> list[early.Run]:
+    """``companion eval --json`` on the semantic, DroneCrowd and synthetic sets: a process of its
+    own, started once the session knows it runs the test (tests/early.py). The synthetic set's
+    compositor loads every held-out photo's people and ground (seconds on the full set): here the
+    first five's (``few_photos_tree``; the semantic set's first three are the full set's)."""
+    from tests.conftest import SHARED, few_photos_tree
+    if not (SHARED / "data").is_dir():
+        return []  # the test skips (shared_dir)
+    shared = few_photos_tree(SHARED, folder / "shared")
+    return [early.Run([sys.executable, "-m", "companion", "eval", "--shared", str(shared), "--sets",
+                       "semantic,dronecrowd,synthetic", "--limit", "3", "--synthetic-n", "3", "--latency-runs", "0",
+                       "--json"])]
+
+
+@pytest.mark.started_early("eval-size-recall")
+def test_eval_cli_reports_size_recall_and_the_model_figure(model_path: Path, few_photos_shared: Path,
+                                                          capsys) -> None:
+    from companion.cli import main
+
+    (r,) = early.result("eval-size-recall")[1]
+    shared = Path(r.args[r.args.index("--shared") + 1])  # laid out as few_photos_shared is
+    assert sorted(p.name for p in (shared / "data" / "semantic_drone" / "images").iterdir()) == \
+        sorted(p.name for p in (few_photos_shared / "data" / "semantic_drone" / "images").iterdir())
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)["model"]
+    assert doc["min_person_px_sets"] == ["semantic_drone_val", "synthetic_val"]
+    assert doc["sets"]["dronecrowd6"]["size_recall"] is None  # 20 px head boxes: no person size
+    syn = doc["sets"]["synthetic_val"]
+    assert syn["images"] == 3 and syn["heads"] == sum(b["people"] for b in syn["size_recall"])
+    assert "min_person_px" in doc and doc["min_person_px_metadata"] == DensityModel(model_path).min_person_px
+    assert main(["eval", "--shared", str(few_photos_shared), "--sets", "synthetic", "--synthetic-n", "0"]) == 2

@@ -4,7 +4,9 @@ shipped model, a walker heading for a landing zone seen coming seconds before th
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +21,8 @@ from companion.pipeline.people import (
     place_people,
     predicted_clearance,
 )
+from sim.evidence.walker_alarms import Descent, fly_over_circle, score
+from tests import early
 
 K = Intrinsics.from_fov(640, 480, 70.0)
 
@@ -125,10 +129,13 @@ def test_bad_parameters_are_clear_errors(field, value):
         PeopleParams(**{field: value})
 
 
-def test_a_walker_heading_for_the_zone_is_seen_coming_before_the_zone_is_seen_occupied(model_path):
-    """Real frames (the simulator's renderer), the shipped model, the whole pipeline: a scenario
-    whose walkers cross the free circle. The predicted clearance at the circle's centre over a
-    12 s horizon drops under r0 seconds before the ground there is seen occupied."""
+def walker_coming(model: str) -> tuple[list[tuple[float, float]], float | None, float | None]:
+    """Real frames (the simulator's renderer), the model ``model``, the whole pipeline: scenario
+    2's world, whose walkers cross the free circle, seen from 12 m over its centre. Returns, for
+    the first 6 s (no frames: the world walks on), how far (px) outside the view the nearest
+    person's feet lie at each step; then, over frames at 10 Hz to 20 s, when the predicted
+    clearance at the circle's centre over a 12 s horizon dropped under r0 and when the ground
+    there was seen occupied (None: never)."""
     from companion.pipeline.density import DensityModel
     from companion.pipeline.slz import PipelineConfig, SLZPipeline
     from sim.flights.flight import build_world
@@ -140,20 +147,19 @@ def test_a_walker_heading_for_the_zone_is_seen_coming_before_the_zone_is_seen_oc
     spec = scenario(2, "ardupilot")
     assert spec.world == "crossing"
     world, free, _ = build_world(spec)
+    assert free is not None
     add_crossing_walkers(world, free, 4.0, spec.seed)
     ground = ProceduralGround(spec.seed)
     kk = Intrinsics.from_fov(640, 480, spec.hfov_deg)
-    pipe = SLZPipeline(DensityModel(model_path, threads=2), PipelineConfig(people=PeopleParams()), intrinsics=kk,
+    pipe = SLZPipeline(DensityModel(Path(model), threads=2), PipelineConfig(people=PeopleParams()), intrinsics=kk,
                        mount=Mount())
-    # The first 6 s nobody is in view (everyone's feet lie outside the frame by more than a
-    # person's width; the crossing walkers come into view from about 7.4 s): the world walks on
-    # without frames, and the camera starts 1.4 s before the first person enters its view.
+    outside_px = []
     for _ in range(60):
         world.step(0.1)
         pose = Pose(world.t, free.north, free.east, -12.0, 0.0, 0.0, 0.0)
         uv = PlaneProjection.from_pose(kk, Mount(), pose, 0.0).plane_to_image(world.positions())
         outside = np.maximum.reduce([-uv[:, 0], uv[:, 0] - 640, -uv[:, 1], uv[:, 1] - 480])
-        assert float(outside.min()) > 20.0, (world.t, float(outside.min()))
+        outside_px.append((world.t, float(outside.min())))
     warned = occupied = None
     for _ in range(140):  # to 20 s at 10 Hz
         world.step(0.1)
@@ -164,6 +170,31 @@ def test_a_walker_heading_for_the_zone_is_seen_coming_before_the_zone_is_seen_oc
         if occupied is None and res.below is not None and res.below.r < 2.0:
             occupied = world.t
             break
+    return outside_px, warned, occupied
+
+
+@early.batch("walker-coming")
+def _walker_coming(folder: Path) -> list[early.Run]:
+    """:func:`walker_coming` with the shipped model (seconds of rendering and inference): a
+    process of its own, started once the session knows it runs the test (tests/early.py)."""
+    from tests.conftest import MODEL
+    return [early.call(folder / "walker.pickle", walker_coming, str(MODEL))]
+
+
+@pytest.mark.started_early("walker-coming")
+def test_a_walker_heading_for_the_zone_is_seen_coming_before_the_zone_is_seen_occupied(model_path):
+    """Real frames (the simulator's renderer), the shipped model, the whole pipeline: a scenario
+    whose walkers cross the free circle. The predicted clearance at the circle's centre over a
+    12 s horizon drops under r0 seconds before the ground there is seen occupied."""
+    (run,) = early.result("walker-coming")[1]
+    assert json.loads(run.args[-1]) == [str(model_path)]  # this test's model
+    outside_px, warned, occupied = early.returned("walker-coming")
+    # The first 6 s nobody is in view (everyone's feet lie outside the frame by more than a
+    # person's width; the crossing walkers come into view from about 7.4 s): the world walks on
+    # without frames, and the camera starts 1.4 s before the first person enters its view.
+    assert len(outside_px) == 60
+    for t, px in outside_px:
+        assert px > 20.0, (t, px)
     assert warned is not None and occupied is not None, (warned, occupied)
     assert occupied - warned >= 2.0, (warned, occupied)
 
@@ -229,6 +260,24 @@ def test_merging_keeps_the_stronger_of_every_close_pair_as_a_greedy_pass_would(s
     np.testing.assert_allclose(got, xy[keep])
 
 
+def border_descent(model: str) -> tuple[float, Descent]:
+    """The occupancy threshold of the model ``model`` and its descent over crossing scenario 9's
+    free circle for 8 s (``sim.evidence.walker_alarms.fly_over_circle``)."""
+    from companion.pipeline.density import DensityModel
+
+    density = DensityModel(Path(model), threads=2)
+    return float(density.spec.occupancy_threshold), fly_over_circle(density, 9, seconds=8.0, horizon_s=8.0)
+
+
+@early.batch("border-descent")
+def _border_descent(folder: Path) -> list[early.Run]:
+    """:func:`border_descent` with version 1 (seconds of rendering and inference): a process of
+    its own, started once the session knows it runs the test (tests/early.py)."""
+    from tests.conftest import MODEL
+    return [early.call(folder / "descent.pickle", border_descent, str(MODEL.with_name("slz-density.onnx")))]
+
+
+@pytest.mark.started_early("border-descent")
 def test_on_rendered_frames_the_view_border_makes_no_walkers(model_path):
     """Real frames (the simulator's renderer, crossing scenario 9's world) and the shipped model,
     the camera coming down over the free circle with a little sway (``sim.evidence.walker_alarms``):
@@ -237,16 +286,13 @@ def test_on_rendered_frames_the_view_border_makes_no_walkers(model_path):
     fewer (measured on 17 seeds' worlds, docs/design.md "Walkers at the edge of the view"). That
     the walker heading for the zone is still seen coming is the test above, with the default
     margin."""
-    from companion.pipeline.density import DensityModel
-    from sim.evidence.walker_alarms import fly_over_circle, score
-
     # Version 1 (the default until 2026-11-27), on which the margin was measured. Version 4 follows
     # far more walkers here (343 walker frames, 113 of them phantoms with the margin, against 15
     # and 5): with it the people stage is not to be trusted (MODEL_CARD.md, "Version 4").
-    model = DensityModel(model_path.with_name("slz-density.onnx"), threads=2)
-    descent = fly_over_circle(model, 9, seconds=8.0, horizon_s=8.0)
+    (run,) = early.result("border-descent")[1]
+    assert json.loads(run.args[-1]) == [str(model_path.with_name("slz-density.onnx"))]
+    thr, descent = early.returned("border-descent")
     assert descent.world == "crossing" and len(descent.frames) == 80 and len(descent.truth) == 160
-    thr = float(model.spec.occupancy_threshold)
     without, with_margin = (score(descent, thr, PeopleParams(edge_px=e)) for e in (0.0, 16.0))
     assert without.phantom_walker_frames >= 3 * max(with_margin.phantom_walker_frames, 1), (without, with_margin)
     assert with_margin.walker_frames > with_margin.phantom_walker_frames  # real walkers still followed

@@ -315,8 +315,17 @@ def scripted_camera(script, stamp=None, **camera) -> Iterator[tuple[_ScriptedMjp
     try:
         yield server, cam, got
     finally:
-        cam.stop()
-        server.close()
+        _stop_both(cam, server)
+
+
+def _stop_both(cam: CameraSource, server: _ScriptedMjpegServer) -> None:
+    """Stop the camera, then close the server: told to stop first (``stop(0)`` does not wait for
+    its thread), a reader blocked on a silent part reads the end of the closed connection and
+    ends, rather than ``stop()`` waiting its 2 s for a read timed out only after
+    ``stall_timeout_s``; nothing is reopened once it is told to stop."""
+    cam.stop(0.0)
+    server.close()
+    cam.stop()
 
 
 def _jpeg(i: int) -> bytes:

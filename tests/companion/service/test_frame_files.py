@@ -15,7 +15,7 @@ import pytest
 from companion.frames import decode_image, read_image, truncated_jpeg
 from companion.service.camera import CameraError, CameraSource, check_source
 from tests import early
-from tests.companion.service.test_camera_sources import _collect, _ScriptedMjpegServer, _wait_until
+from tests.companion.service.test_camera_sources import _collect, _ScriptedMjpegServer, _stop_both, _wait_until
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -93,8 +93,7 @@ def test_a_truncated_jpeg_part_of_an_mjpeg_stream_is_counted_and_dropped() -> No
         cam.start()
         assert _wait_until(lambda: cam.stats.frames + cam.stats.corrupt >= 3, 5)
     finally:
-        cam.stop()
-        server.close()
+        _stop_both(cam, server)
     assert cam.stats.corrupt == 1 and cam.stats.frames == 2 and len(got) == 2
 
 

@@ -19,6 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as m
 
 from companion import config
 from companion.mavlink.link import MavLink
+from companion.mavlink.statustext import TextPacer
 from companion.replay.live_figure import CAPTION_PX
 from companion.service.app import Service
 from companion.service.freshness import HISTORY
@@ -86,6 +87,12 @@ async def _run_on(page: PortClaim, frames: Path, body, telemetry: bool) -> None:
                              "camera.source": str(frames), "camera.loop": True, "camera.fps": 5.0,
                              "camera.stall_timeout_s": 1.0, "live.enabled": True, "live.port": page.port})
     svc = Service(cfg, load_model(cfg), link=MavLink(config.link_config(cfg)))
+    # The ground station's texts are paced (companion.mavlink.statustext: at most 4 in 10 s, 1 s
+    # apart, a condition's next text 5 s after its last; test_statustext_pacing tests that). Here
+    # 4 in 2 s, 0.2 s apart and 1 s, given as the service's GroundStation takes a pace, so the
+    # test waits for the texts, not for the pace: each change is still told once, as asserted.
+    svc.gcs.outbox.pacer = TextPacer(window_s=2.0, min_gap_s=0.2, repeat_s=1.0)
+    svc.gcs.conditions.min_gap_s = 1.0
     task = asyncio.create_task(svc.run())
     vehicle = Vehicle(peer)
     rig = Rig(svc, peer, vehicle)

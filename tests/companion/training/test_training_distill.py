@@ -9,17 +9,31 @@ import numpy as np
 import pytest
 
 from companion.evaluation import datasets as D
+from tests import early
+
+
+@early.batch("pack")
+def _pack(folder: Path) -> list[early.Run]:
+    """``companion.training.pack.pack`` of ``../shared`` into ``folder / "shared"`` (seconds of
+    resizing and encoding photos): a process of its own, started once the session knows it runs
+    the test (tests/early.py)."""
+    from companion.training.pack import pack
+    from tests.conftest import SHARED
+    if not (SHARED / "data").is_dir():
+        return []  # the test skips (shared_dir)
+    return [early.call(folder / "manifest.pickle", pack, str(SHARED), str(folder / "shared"), 0.5, 75, 10)]
 
 
 @pytest.fixture(scope="module")
-def pack_dir(tmp_path_factory: pytest.TempPathFactory, shared_dir: Path) -> Path:
-    from companion.training.pack import pack
+def pack_dir(shared_dir: Path) -> Path:
+    """``../shared`` packed with ShanghaiTech B at half size, JPEG quality 75, every tenth layout."""
+    (run,) = early.result("pack")[1]
+    assert json.loads(run.args[-1])[0] == str(shared_dir)
+    early.returned("pack")  # its manifest, written to pack.json too
+    return Path(json.loads(run.args[-1])[1])
 
-    out = tmp_path_factory.mktemp("pack") / "shared"
-    pack(shared_dir, out, shb_scale=0.5, shb_quality=75, layout_step=10)
-    return out
 
-
+@pytest.mark.started_early("pack")
 def test_pack_is_read_by_the_same_loaders_with_the_same_splits(pack_dir: Path, shared_dir: Path) -> None:
     from companion.evaluation.compositor import load_layouts
     from companion.training.pack import shb_scale

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ from sim.world.crowd import default_world
 from sim.world.ground import ProceduralGround
 from sim.world.render import render_world
 from sim.world.walkers import CrowdParams
+from tests import early
 
 MODEL = Path(__file__).resolve().parents[3] / "companion" / "models" / "slz-density-v4.onnx"  # the default
 V1 = MODEL.with_name("slz-density.onnx")  # the first default, beside it now: held to the same figures
@@ -160,20 +162,28 @@ def test_lawn_false_positives_on_the_photo_ground(shared_dir: Path, tmp_path: Pa
     assert str(tmp_path) in capsys.readouterr().err
 
 
+@early.batch("walker-alarms-seeds")
+def _walker_alarms_seeds(folder: Path) -> list[early.Run]:
+    """The command over crossing seed 9 and dense seed 16 (seconds of rendering and inference): a
+    process of its own, started once the session knows it runs the test (tests/early.py)."""
+    return [early.Run([sys.executable, "-m", "sim.evidence.walker_alarms", "--seeds", "9,16", "--edge-px", "0,16",
+                       "--seconds", "4", "--horizon", "3", "--blind-from", "1", "--model", str(MODEL), "--json"])]
+
+
+@pytest.mark.started_early("walker-alarms-seeds")
 def test_walker_alarms_command_scores_each_seed_and_refuses_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
     """``python -m sim.evidence.walker_alarms``: a short descent over crossing seed 9's circle gives one
     JSON row per margin and the totals; a dense world has no circle and is skipped, said on
     stderr; bad arguments are exit 2."""
     from sim.evidence.walker_alarms import main
 
-    assert main(["--seeds", "9,16", "--edge-px", "0,16", "--seconds", "4", "--horizon", "3",
-                 "--blind-from", "1", "--model", str(MODEL), "--json"]) == 0
-    captured = capsys.readouterr()
-    rows = [json.loads(line) for line in captured.out.splitlines()]
+    (captured,) = early.result("walker-alarms-seeds")[1]
+    assert captured.returncode == 0, captured.stderr
+    rows = [json.loads(line) for line in captured.stdout.splitlines()]
     assert [(r["seed"], r["edge_px"]) for r in rows] == [(9, 0.0), (9, 16.0), (None, 0.0), (None, 16.0)]
     assert all(0 <= r["speed_frames"] <= r["walker_frames"] - r["phantom_walker_frames"] for r in rows)
     assert rows[0]["safe_frames"] + rows[0]["danger_frames"] > 0 and rows[2]["world"] == "all"
-    assert "seed 16: dense has no free circle" in captured.err
+    assert "seed 16: dense has no free circle" in captured.stderr
     assert main(["--edge-px", "-1"]) == 2
     assert main(["--seconds", "2"]) == 2
     assert main(["--blind-from", "9", "--horizon", "8"]) == 2

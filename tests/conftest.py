@@ -29,14 +29,24 @@ def shared_dir() -> Path:
     return SHARED
 
 
+#: The held-out full-size semantic-drone photos the photo world is built from (``--photos``).
+PHOTOS = SHARED / "data" / "semantic_drone" / "full"
+
+
+def held_out_photos() -> str | None:
+    """:data:`PHOTOS` resolved (as a string), or None when they are absent: for what runs
+    outside a test (an early batch), where the :func:`photos` fixture's skip cannot."""
+    return str(PHOTOS.resolve()) if (PHOTOS / "images").is_dir() else None
+
+
 @pytest.fixture(scope="session")
 def photos(shared_dir: Path) -> str:
     """The held-out full-size semantic-drone photos the photo world is built from (its
     ``--photos`` folder, as a string), or a skip when they are absent."""
-    folder = shared_dir / "data" / "semantic_drone" / "full"
-    if not (folder / "images").is_dir():
-        pytest.skip(f"needs the held-out full-size photos at {folder}")
-    return str(folder.resolve())
+    folder = held_out_photos()
+    if folder is None:
+        pytest.skip(f"needs the held-out full-size photos at {PHOTOS}")
+    return folder
 
 
 @pytest.fixture(scope="session")

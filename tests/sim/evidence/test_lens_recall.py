@@ -16,12 +16,12 @@ from tests import early
 def _lens_recall_photo(folder: Path) -> list[early.Run]:
     """The command over the photo ground (seconds of rendering and inference): a process of its
     own, started once the session knows it runs the test (tests/early.py)."""
-    from tests.conftest import SHARED
-    photos = SHARED / "data" / "semantic_drone" / "full"
-    if not (photos / "images").is_dir():
+    from tests.conftest import held_out_photos
+    photos = held_out_photos()
+    if photos is None:
         return []  # the test skips (photos)
     return [early.Run([sys.executable, "-m", "sim.evidence.lens_recall", "--camera", "fisheye:160", "--heights", "20",
-                       "--seeds", "1", "--frames", "1", "--ground", "photo", "--photos", str(photos.resolve())])]
+                       "--seeds", "1", "--frames", "1", "--ground", "photo", "--photos", photos])]
 
 
 @pytest.mark.started_early("lens-recall-photo")

@@ -90,11 +90,11 @@ def photo_rows(photos: str) -> tuple[list[HaloRow], int, str]:
 def _person_halo_photo(folder: Path) -> list[early.Run]:
     """:func:`photo_rows` (the photo ground's load and seconds of rendering and inference): a
     process of its own, started once the session knows it runs the test (tests/early.py)."""
-    from tests.conftest import SHARED
-    photos = SHARED / "data" / "semantic_drone" / "full"
-    if not (photos / "images").is_dir():
+    from tests.conftest import held_out_photos
+    photos = held_out_photos()
+    if photos is None:
         return []  # the test skips (photos)
-    return [early.call(folder / "rows.pickle", photo_rows, str(photos.resolve()))]
+    return [early.call(folder / "rows.pickle", photo_rows, photos)]
 
 
 @pytest.mark.started_early("person-halo-photo")

@@ -31,11 +31,11 @@ def photo_descent(model: str, photos: str) -> tuple[Descent, int, str, str]:
 def _walker_alarms_photo(folder: Path) -> list[early.Run]:
     """:func:`photo_descent` (the photo ground's load and seconds of rendering and inference): a
     process of its own, started once the session knows it runs the test (tests/early.py)."""
-    from tests.conftest import MODEL, SHARED
-    photos = SHARED / "data" / "semantic_drone" / "full"
-    if not (photos / "images").is_dir():
+    from tests.conftest import MODEL, held_out_photos
+    photos = held_out_photos()
+    if photos is None:
         return []  # the test skips (photos)
-    return [early.call(folder / "descent.pickle", photo_descent, str(MODEL), str(photos.resolve()))]
+    return [early.call(folder / "descent.pickle", photo_descent, str(MODEL), photos)]
 
 
 @pytest.mark.started_early("walker-alarms-photo")

@@ -28,7 +28,6 @@ from companion.config.removed import REMOVED, REMOVED_TABLES, Removed
 from companion.config.schema import (
     BEFORE_RECORDED,
     BLOCKED_MACHINES,
-    FISHEYE_MODEL,
     FLAVOURS,
     LANDABILITY_DEFAULT,
     LOG_LEVELS,
@@ -52,7 +51,6 @@ from companion.config.schema import (
     parse_assignment,
     removed_error,
     shipped_model,
-    shipped_model_for,
 )
 
 __all__ = [
@@ -80,8 +78,6 @@ __all__ = [
     "SHIPPED_LANDABILITY",
     "PLAIN_MODEL",
     "X86_MODEL",
-    "FISHEYE_MODEL",
-    "shipped_model_for",
     "BLOCKED_MACHINES",
     "shipped_model",
     "LANDABILITY_DEFAULT",

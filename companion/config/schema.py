@@ -74,20 +74,6 @@ def shipped_model(machine: str | None = None) -> Path:
 #: directory). The one definition the service, replay, evaluation and the benchmark use. A wheel is
 #: always unpacked on disk, so the resource is a real file onnxruntime can open by path.
 SHIPPED_MODEL = shipped_model()
-#: The shipped density model behind a fisheye lens: version 5 (MODEL_CARD.md), a third of version
-#: 4's time. A fisheye frame costs more after the model (its head-plane grid is five times the
-#: pinhole's cells), so with version 4 the whole frame takes about 0.3 of the MCNN peer's density
-#: time, over issue 60's quarter; with version 5 about 0.19. It also finds the most small people of
-#: the shipped models, and people are small through a fisheye. The fisheye's figures are flown with
-#: it (docs/measurements.md, session 31).
-FISHEYE_MODEL = _packaged("slz-density-v5.onnx")
-
-
-def shipped_model_for(lens: str, machine: str | None = None) -> Path:
-    """The shipped density model for a camera of lens model ``lens`` (``camera.model``):
-    :data:`FISHEYE_MODEL` for a fisheye, else :func:`shipped_model` (``machine`` as there). What
-    an empty ``model.path`` names."""
-    return FISHEYE_MODEL if lens == "fisheye" else shipped_model(machine)
 #: The shipped landability model (water, vehicles, trees, roofs, ...: ground that is no place to
 #: land), beside the density model; ``model.landability`` switches it on.
 SHIPPED_LANDABILITY = _packaged("slz-landability.onnx")
@@ -173,8 +159,8 @@ class CameraSettings:
 class ModelSettings:
     """The ONNX density model."""
 
-    path: str = _f("", "ONNX density model file; empty = the model shipped in the package for the camera's lens "
-                       "(a pinhole: version 4; a fisheye: version 5)", path=True)
+    path: str = _f(str(SHIPPED_MODEL), "ONNX density model file; empty = the model shipped in the package",
+                   path=True)
     threads: int = _f(2, "onnxruntime intra-op threads", min=1, max=64)
     overrides: dict[str, Any] = _f({}, "settings that win over the model's metadata (color, scale, ...)")
     landability: bool = _f(LANDABILITY_DEFAULT, "also keep zones off unlandable ground (water, vehicles, trees, "
@@ -522,8 +508,8 @@ def from_dict(raw: Mapping[str, Any], source: Path | None = None) -> Config:
     cfg = replace(cfg, source=source)
     if not cfg.model.path:
         # "" names the shipped model wherever the package is installed, so the example file works
-        # copied to /etc/companion unchanged; the lens picks which (shipped_model_for).
-        cfg = replace(cfg, model=replace(cfg.model, path=str(shipped_model_for(cfg.camera.model))))
+        # copied to /etc/companion unchanged.
+        cfg = replace(cfg, model=replace(cfg.model, path=str(SHIPPED_MODEL)))
     if not cfg.model.landability_path:
         cfg = replace(cfg, model=replace(cfg.model, landability_path=str(SHIPPED_LANDABILITY)))
     _cross_checks(cfg)
@@ -652,8 +638,7 @@ __all__ = [
     "Config", "ConfigError", "LinkSettings", "CameraSettings", "ModelSettings", "PipelineSettings",
     "FailsafeSettings", "ControllerSettings", "RecorderSettings", "GcsSettings",
     "LiveSettings", "LogSettings", "removed_error",
-    "load", "from_dict", "parse_assignment", "all_keys", "SHIPPED_MODEL", "SHIPPED_LANDABILITY", "FISHEYE_MODEL",
-    "shipped_model_for",
+    "load", "from_dict", "parse_assignment", "all_keys", "SHIPPED_MODEL", "SHIPPED_LANDABILITY",
     "PLAIN_MODEL", "X86_MODEL", "BLOCKED_MACHINES", "shipped_model",
     "LANDABILITY_DEFAULT", "from_recording", "BEFORE_RECORDED", "FLAVOURS", "LOG_LEVELS",
 ]

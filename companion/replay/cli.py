@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from companion import config as settings
-from companion.config import FISHEYE_MODEL, SHIPPED_LANDABILITY, SHIPPED_MODEL, Config, ConfigError, shipped_model_for
+from companion.config import SHIPPED_LANDABILITY, SHIPPED_MODEL, Config, ConfigError
 from companion.control.planner import ZonePlanner
 from companion.geometry.camera import GeometryError, PlaneProjection
 from companion.pipeline.density import DensityModel, DensityModelError
@@ -69,8 +69,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                      help="override one setting (e.g. pipeline.r0_m=3); repeatable")
     mdl.add_argument("--model", type=Path, default=None,
                      help="ONNX density model (default: the recording's model when that file "
-                          f"exists, else the one shipped for its lens: {SHIPPED_MODEL.name}, a fisheye's "
-                          f"{FISHEYE_MODEL.name})")
+                          f"exists, else the shipped {SHIPPED_MODEL.name})")
     mdl.add_argument("--threads", type=int, default=2, help="onnxruntime threads (default 2)")
     mdl.add_argument("--threshold", type=float, default=None,
                      help="occupancy threshold on D - min(D), = --set pipeline.occupancy_threshold "
@@ -186,7 +185,7 @@ def _load_model(args: argparse.Namespace, cfg: Config, from_recording: bool) -> 
         path = args.model
     else:
         recorded = Path(cfg.model.path)
-        path = recorded if from_recording and recorded.is_file() else shipped_model_for(cfg.camera.model)
+        path = recorded if from_recording and recorded.is_file() else SHIPPED_MODEL
         if not path.is_file():
             raise _Fail(f"the shipped density model {path} is missing; pass --model FILE")
     try:

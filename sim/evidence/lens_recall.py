@@ -80,12 +80,12 @@ def recall_by_angle(camera: str, heights: list[float], seeds: list[int], frames:
     and the share found. ``walkers``: people walking in the 120 m square world (a sparse crowd:
     in a dense one a missed head is often covered by its neighbours' occupancy). ``photos``: the
     checked photos folder of the photo world (module docstring); None for the drawn ground."""
-    from companion.config import shipped_model_for
+    from companion.config import SHIPPED_MODEL
     from companion.pipeline.density import DensityModel
 
     lens, hfov = parse_camera(camera)
     K = Intrinsics.from_fov(640, 480, hfov, lens)
-    model = DensityModel(model_path or shipped_model_for(lens), threads=2)
+    model = DensityModel(model_path or SHIPPED_MODEL, threads=2)
     threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
     mount = Mount()
     nbins = int(math.ceil(100.0 / BIN_DEG))
@@ -127,7 +127,7 @@ def recall_by_angle(camera: str, heights: list[float], seeds: list[int], frames:
                 row[name] = {"people": int(seen[j, i]), "found": int(found[j, i]),
                              "recall": _recall(int(seen[j, i]), int(found[j, i]))}
         rows.append(row)
-    return {"camera": camera, "model": Path(model.path).name, "ground": "procedural" if photos is None else "photo", "heights_m": heights,
+    return {"camera": camera, "ground": "procedural" if photos is None else "photo", "heights_m": heights,
             "seeds": seeds, "frames": frames, "walkers": walkers, "bins": rows}
 
 
@@ -138,8 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="1-3", help="e.g. 1-4")
     parser.add_argument("--frames", type=int, default=3, help="frames per seed and height")
     parser.add_argument("--walkers", type=int, default=30, help="walkers in the 120 m world (default 30)")
-    parser.add_argument("--model", default=None, help="ONNX density model (default: the one shipped for the lens, "
-                        "companion.config.shipped_model_for)")
+    parser.add_argument("--model", default=None, help="ONNX density model (default: the shipped one)")
     parser.add_argument("--ground", choices=("procedural", "photo"), default="procedural",
                         help="the drawn ground (default) or the photo world's (docs/photo-world.md)")
     parser.add_argument("--photos", type=Path, default=None,

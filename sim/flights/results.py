@@ -314,8 +314,7 @@ class Apart:
 
 def flown_apart(row: dict[str, Any]) -> list[Apart]:
     """How a row was flown apart from the scenarios' own, in key order: the LAND speed, the
-    crossing window, the watch before the failsafe, the camera (``--camera``), the density model
-    its lens picked when not the scenarios' own (``density_model``: a fisheye's), the share of
+    crossing window, the watch before the failsafe, the camera (``--camera``), the share of
     runners in the crossing world (``--runners``), a lockstep flight's clock start when
     it is not :data:`LOCKSTEP_CLOCK_START_S` (``unknown`` for a lockstep row written before the
     start was fixed), the link latency added each way (``link_latency_s``, ``--link-latency``),
@@ -334,9 +333,6 @@ def flown_apart(row: dict[str, Any]) -> list[Apart]:
     camera = row.get("camera")
     if camera and camera != DEFAULT_CAMERA:
         out.append(Apart("camera", "camera", str(camera)))
-    model = row.get("density_model")
-    if model:  # only a shipped model the lens picked other than the scenarios' own (sim.flights.spec)
-        out.append(Apart("model", "density_model", str(model)))
     runners = row.get("runners")
     if runners:  # rows flown without runners have no such field
         out.append(Apart("runners", "runners", f"{float(runners):g}"))

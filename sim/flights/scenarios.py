@@ -132,7 +132,7 @@ from sim.flights.results import (
     summarise_rows,
     summary_text,
 )
-from sim.flights.spec import GROUNDS, camera_name, density_model_field, parse_camera_and_photos
+from sim.flights.spec import GROUNDS, camera_name, parse_camera_and_photos
 from sim.flights.spec import service_settings as flight_settings
 
 
@@ -317,7 +317,7 @@ class FlightJob:
                         "crossing_window": list(spec.crossing_window), "watch_s": spec.watch_s,
                         "lockstep": self.lockstep, "clock_start_s": spec.clock_start_s if self.lockstep else None,
                         "camera": camera_name(spec), **link_latency_field(spec), "ground": spec.ground,
-                        **({"runners": spec.runners} if spec.runners else {}), **density_model_field(spec)})
+                        **({"runners": spec.runners} if spec.runners else {})})
 
 
 def _cpu_s() -> float:

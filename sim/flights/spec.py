@@ -15,7 +15,6 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from companion.config import PLAIN_MODEL, X86_MODEL, shipped_model_for
 from sim.flights.results import DEFAULT_CAMERA, LOCKSTEP_CLOCK_START_S, SCENARIO_LAND_SPEED, SCENARIO_WATCH_S
 from sim.world.crowd import CROSSING_WINDOW_S
 from sim.world.ground import LANDABLE_SURFACES
@@ -218,25 +217,7 @@ class FlightResult:
             **({"runners": self.spec.runners} if self.spec.runners else {}),
             # Only when not the drawn ground: the procedural rows stay as the yardstick has them.
             **({} if self.spec.ground == "procedural" else {"ground": self.spec.ground}),
-            # Only when the lens picked a shipped model other than the scenarios' own.
-            **density_model_field(self.spec),
         }
-
-
-#: The density model files of the scenarios' own: the shipped pinhole model, version 4, in either
-#: layout (``companion.config.shipped_model``).
-SCENARIO_MODELS = frozenset({PLAIN_MODEL.name, X86_MODEL.name})
-
-
-def density_model_field(spec: FlightSpec) -> dict[str, str]:
-    """``{"density_model": FILE}`` (the file's name) for a flight whose service runs the shipped
-    model its lens picks (``companion.config.shipped_model_for``: a fisheye's is version 5) where
-    that is not the scenarios' own; nothing for the pinhole's, and nothing when ``model.path`` is
-    set (the row's ``settings`` name the file): rows flown so keep exactly the fields they had."""
-    if any(item.startswith("model.path=") for item in spec.service_set):
-        return {}
-    name = shipped_model_for(spec.camera_model).name
-    return {} if name in SCENARIO_MODELS else {"density_model": name}
 
 
 #: Widest horizontal field of view a ``--camera`` may ask (degrees; ``camera.hfov_deg``'s bound).

@@ -55,23 +55,6 @@ def test_example_documents_every_key_with_its_default() -> None:
             assert lines[j].startswith("#"), f"key line {i + 1} ({line}) has no comment above it"
 
 
-def test_an_empty_model_path_is_the_model_shipped_for_the_lens(tmp_path: Path) -> None:
-    # Session 31: a fisheye runs version 5 unless model.path names a file (issue 60's cost target and
-    # the fisheye's flown figures are version 5's); a pinhole version 4, in this CPU's layout.
-    fisheye = config.load(None, {"camera.model": "fisheye", "camera.hfov_deg": 160.0})
-    assert Path(fisheye.model.path) == config.FISHEYE_MODEL == REPO / "companion" / "models" / "slz-density-v5.onnx"
-    assert config.FISHEYE_MODEL.is_file()
-    assert Path(config.load().model.path) == config.shipped_model()
-    assert config.shipped_model_for("pinhole", "aarch64") == config.PLAIN_MODEL
-    assert config.shipped_model_for("fisheye", "x86_64") == config.FISHEYE_MODEL
-    # A file the integrator names wins over the lens's choice, from a file or from --set.
-    f = tmp_path / "c.toml"
-    f.write_text(f'[camera]\nmodel = "fisheye"\n[model]\npath = "{config.PLAIN_MODEL}"\n')
-    assert Path(config.load(f).model.path) == config.PLAIN_MODEL
-    assert Path(config.load(None, {"camera.model": "fisheye", "model.path": str(config.X86_MODEL)}).model.path) \
-        == config.X86_MODEL
-
-
 def test_unknown_key_names_key_and_allowed(tmp_path: Path) -> None:
     f = tmp_path / "c.toml"
     f.write_text("[camera]\nfsp = 10\n")

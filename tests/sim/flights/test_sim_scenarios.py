@@ -566,7 +566,7 @@ def test_a_camera_flies_both_cameras_as_one_and_is_keyed_apart(monkeypatch, caps
     fish = FlightJob(3, "px4", lockstep=True, camera=("fisheye", 160.0))
     assert camera_name(plain.spec()) == "pinhole:70" and plain.key() == (3, "px4", "lockstep")
     assert fish.spec().camera_model == "fisheye" and fish.spec().hfov_deg == 160.0
-    assert fish.key() == (3, "px4", "camera:fisheye:160", "model:slz-density-v5.onnx", "lockstep")
+    assert fish.key() == (3, "px4", "camera:fisheye:160", "lockstep")
     assert FlightJob(3, "px4", lockstep=True, camera=("pinhole", 70.0)).key() == plain.key()
     assert "camera.model=fisheye" in service_settings(fish.spec())
     assert not any(s.startswith("camera.model") for s in service_settings(plain.spec()))
@@ -578,36 +578,6 @@ def test_a_camera_flies_both_cameras_as_one_and_is_keyed_apart(monkeypatch, caps
     monkeypatch.setattr(scenarios, "fly_seed", lambda job: pytest.fail("nothing may fly"))
     assert main(["sim-scenarios", "--seeds", "1", "--workers", "1", "--no-progress", "--camera", "fish:160"]) == 2
     assert "--camera" in capsys.readouterr().err
-
-
-def test_the_model_a_lens_picks_is_recorded_and_keyed_apart(tmp_path):
-    # Session 31: a fisheye's service runs version 5 (companion.config.shipped_model_for). Its rows
-    # say so and are keyed apart from the fisheye rows flown with version 4 before, so resuming
-    # such a file flies its seeds again; a pinhole's rows, and any flown with model.path set (their
-    # settings name the file), have no such field and keep their keys.
-    from companion.config import FISHEYE_MODEL, shipped_model
-
-    fish = FlightJob(3, "px4", lockstep=True, camera=("fisheye", 160.0))
-    row = {**FlightResult(fish.spec(), "safe").as_dict(), "seed": 3, "flavour": "px4",
-           "clock_start_s": fish.spec().clock_start_s}  # as fly_seed completes it
-    assert row["density_model"] == FISHEYE_MODEL.name == "slz-density-v5.onnx"
-    before = {k: v for k, v in row.items() if k != "density_model"}  # a fisheye row flown with version 4
-    assert row_key(row) == fish.key()
-    assert row_key(before) == (3, "px4", "camera:fisheye:160", "lockstep")
-    plain = FlightJob(3, "px4", lockstep=True)
-    assert "density_model" not in FlightResult(plain.spec(), "safe").as_dict()
-    assert shipped_model().name in ("slz-density-v4.onnx", "slz-density-v4-x86.onnx")
-    pinned = FlightJob(3, "px4", lockstep=True, camera=("fisheye", 160.0),
-                       service_set=(f"model.path={FISHEYE_MODEL}",))
-    assert "density_model" not in FlightResult(pinned.spec(), "safe").as_dict()
-    assert "model:slz-density-v5.onnx" not in pinned.key()
-    # What the service itself is given: the lens, and no model path, so its settings pick version 5.
-    from companion import config
-    from sim.flights.spec import service_settings
-
-    given = dict(config.parse_assignment(item) for item in service_settings(fish.spec()))
-    assert "model.path" not in given
-    assert config.load(None, given).model.path == str(FISHEYE_MODEL)
 
 
 def test_runners_cross_at_their_speed_drawn_apart_and_are_keyed_apart(monkeypatch, capsys):

@@ -146,3 +146,49 @@ def test_the_readme_names_the_second_halfs_files():
     assert [(r["autopilot"], r["camera"]) for r in _table(SECOND_HALF)][4:] == [
         ("ArduPilot", "default"), ("ArduPilot", "baseline"), ("ArduPilot", "`--camera fisheye:160`"),
         ("ArduPilot", "`--camera pinhole:110`")]
+
+
+#: 12 columns: ``_table`` tells the tables apart by their number of columns.
+RUNNERS = ("file", "autopilot", "camera", "runners", "seeds", "flown", "software", "unsafe", "strikes", "handbacks",
+           "clear landings", "baseline strikes")
+
+
+def _crossing_seeds(flavour: str) -> list[int]:
+    """The crossing worlds among seeds 1-150: the kept defaults' rows say which seeds they are."""
+    rows = read_rows(YARDSTICK / f"{flavour}-defaults-1000.jsonl")[0] + \
+        read_rows(YARDSTICK / f"{flavour}-defaults-1000-76-150.jsonl")[0]
+    return sorted(r["seed"] for r in rows if r["world"] == "crossing")
+
+
+@pytest.mark.parametrize("entry", _table(RUNNERS), ids=lambda e: e["file"])
+def test_each_runners_file_is_the_crossing_worlds_with_runners_and_its_figures_are_the_tables(entry):
+    # Issue 60 item 5: the crossing worlds of seeds 1-150 flown again with a share of runners and
+    # cyclists (`--runners`), the companion and (in the defaults' file) the autopilot alone.
+    rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
+    flavour = {"PX4": "px4", "ArduPilot": "ardupilot"}[entry["autopilot"]]
+    camera = None if entry["camera"] == "default" else entry["camera"].strip("`").removeprefix("--camera ")
+    crossing = _crossing_seeds(flavour)
+    assert bad == 0 and len(crossing) == 43 and entry["seeds"] == "the 43 crossing worlds of 1-150"
+    for r in rows:
+        assert r["flavour"] == flavour and r["lockstep"] and r["clock_start_s"] == 1000.0
+        assert r["world"] == "crossing" and r["runners"] == float(entry["runners"])
+        assert r["settings"] == [] and r.get("camera") == camera
+        assert r["software"]["git"].startswith(entry["software"])
+    companion = [r for r in rows if not r["baseline"]]
+    baseline = [r for r in rows if r["baseline"]]
+    assert sorted(r["seed"] for r in companion) == crossing
+    assert sum(r["outcome"] == "unsafe" for r in companion) == int(entry["unsafe"])
+    assert sum(bool(r["strike"]) for r in companion) == int(entry["strikes"])
+    assert sum(r["outcome"] == "safe" for r in companion) == int(entry["clear landings"])
+    assert sum(r["outcome"] == "handback" for r in companion) == int(entry["handbacks"])
+    if entry["baseline strikes"] == "-":
+        assert baseline == []
+    else:
+        assert sorted(r["seed"] for r in baseline) == crossing
+        assert summarise_baseline(baseline)["strikes"] == int(entry["baseline strikes"])
+
+
+def test_the_readme_names_the_runners_files():
+    assert [(r["autopilot"], r["camera"]) for r in _table(RUNNERS)] == [
+        ("PX4", "default"), ("PX4", "`--camera fisheye:160`"), ("ArduPilot", "default"),
+        ("ArduPilot", "`--camera fisheye:160`")]

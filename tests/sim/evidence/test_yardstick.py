@@ -23,6 +23,17 @@ COMPANION = ("file", "autopilot", "clock start", "flown", "software", "unsafe", 
 BASELINE = ("file", "autopilot", "clock start", "flown", "software", "strikes")
 
 
+#: The README's autopilot column, as rows spell the flavour.
+FLAVOURS = {"PX4": "px4", "ArduPilot": "ardupilot"}
+
+
+def _camera(entry: dict[str, str]) -> str | None:
+    """The ``camera`` a row of the entry's file says: None for the scenarios' own ("default", or a
+    baseline's), else the ``--camera`` the table names."""
+    cell = entry["camera"]
+    return None if cell in ("baseline", "default") else cell.strip("`").removeprefix("--camera ")
+
+
 def _table(columns: tuple[str, ...]) -> list[dict[str, str]]:
     """The rows of the README's table with these columns (the companion's, or the baseline's)."""
     rows = []
@@ -38,7 +49,7 @@ def _rows(entry: dict[str, str], baseline: bool) -> list[dict]:
     defaults in lockstep from the table's clock start; the baseline's flights or the companion's."""
     rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
     assert bad == 0 and sorted(r["seed"] for r in rows) == list(range(1, 76))
-    flavour = {"PX4": "px4", "ArduPilot": "ardupilot"}[entry["autopilot"]]
+    flavour = FLAVOURS[entry["autopilot"]]
     start = float(entry["clock start"].removesuffix(" s"))
     for r in rows:
         assert r["flavour"] == flavour and r["lockstep"] and r["clock_start_s"] == start
@@ -78,8 +89,8 @@ def test_each_other_camera_file_is_that_camera_and_its_figures_are_the_tables(en
     # The wide lenses' rows (issue 60): the defaults but the camera, seeds 1-75 from 1000 s.
     rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
     assert bad == 0 and sorted(r["seed"] for r in rows) == list(range(1, 76))
-    camera = entry["camera"].strip("`").removeprefix("--camera ")
-    flavour = {"PX4": "px4", "ArduPilot": "ardupilot"}[entry["autopilot"]]
+    camera = _camera(entry)
+    flavour = FLAVOURS[entry["autopilot"]]
     for r in rows:
         assert r["camera"] == camera and r["flavour"] == flavour and r["lockstep"]
         assert r["clock_start_s"] == 1000.0 and r["settings"] == [] and not r["baseline"]
@@ -114,9 +125,9 @@ def test_each_second_half_file_is_its_seeds_and_camera_and_its_figures_are_the_t
     rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
     first, last = (int(s) for s in entry["seeds"].split("-"))
     assert bad == 0 and sorted(r["seed"] for r in rows) == list(range(first, last + 1))
-    flavour = {"PX4": "px4", "ArduPilot": "ardupilot"}[entry["autopilot"]]
+    flavour = FLAVOURS[entry["autopilot"]]
     baseline = entry["camera"] == "baseline"
-    camera = None if entry["camera"] in ("baseline", "default") else entry["camera"].strip("`").removeprefix("--camera ")
+    camera = _camera(entry)
     for r in rows:
         assert r["flavour"] == flavour and r["lockstep"] and r["clock_start_s"] == 1000.0
         assert r["settings"] == [] and r["baseline"] is baseline and r.get("camera") == camera
@@ -165,8 +176,8 @@ def test_each_runners_file_is_the_crossing_worlds_with_runners_and_its_figures_a
     # Issue 60 item 5: the crossing worlds of seeds 1-150 flown again with a share of runners and
     # cyclists (`--runners`), the companion and (in the defaults' file) the autopilot alone.
     rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
-    flavour = {"PX4": "px4", "ArduPilot": "ardupilot"}[entry["autopilot"]]
-    camera = None if entry["camera"] == "default" else entry["camera"].strip("`").removeprefix("--camera ")
+    flavour = FLAVOURS[entry["autopilot"]]
+    camera = _camera(entry)
     crossing = _crossing_seeds(flavour)
     assert bad == 0 and len(crossing) == 43 and entry["seeds"] == "the 43 crossing worlds of 1-150"
     for r in rows:

@@ -68,6 +68,7 @@ import torch.nn.functional as F
 from companion.evaluation import datasets as D
 from companion.training import model as M
 from companion.training.export import export_onnx
+from companion.training.negatives import check_kinds
 from companion.training.train import CropSource, all_sources, check_shares, loss, normalise, raw_batch, resolve_device
 
 log = logging.getLogger("companion.training.distill")
@@ -338,7 +339,8 @@ def run(args: argparse.Namespace) -> dict[str, object]:
     # OpenCV's and torch's thread pools do not survive fork(): single-threaded OpenCV before the
     # data is loaded, and the crop workers started (first batch drawn) before any network exists.
     cv2.setNumThreads(1)
-    sources = all_sources(Path(args.shared), args.synthetic_share, args.negative_share, args.max_images, args.seed)
+    sources = all_sources(Path(args.shared), args.synthetic_share, args.negative_share, args.max_images, args.seed,
+                          args.negative_kinds)
     t_load = time.monotonic() - t_start
     stream = batches(CropStream(sources, args.batch, args.crop, args.seed), args.workers, cuda)
     first: tuple[torch.Tensor, torch.Tensor] | None = next(stream)
@@ -448,7 +450,9 @@ def run(args: argparse.Namespace) -> dict[str, object]:
                 how += f", warm-started from {inits[s.name].name} at lr x{args.init_lr_scale}"
             note = (f"distill {s.name} teacher_steps={history['phase1']['steps']} "  # type: ignore[index]
                     f"student_steps={s.steps} batch={args.batch} synthetic_share={args.synthetic_share} "
-                    f"negative_share={args.negative_share} {how} device={history['device']}")
+                    f"negative_share={args.negative_share}"
+                    + (f" negative_kinds={','.join(args.negative_kinds)}" if args.negative_kinds else "")
+                    + f" {how} device={history['device']}")
             try:
                 export_onnx(net, out / f"slz-{s.name}.onnx", {"companion.training": note})
             except Exception as exc:  # the state dicts are saved: export again where torch.onnx works
@@ -490,6 +494,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="NAME=ALPHA,...: another weight of the ground truth for the named d or k students")
     p.add_argument("--synthetic-share", type=float, default=0.35)
     p.add_argument("--negative-share", type=float, default=0.1)
+    p.add_argument("--negative-kinds", type=lambda v: [k.strip() for k in v.split(",") if k.strip()], default=None,
+                   help="comma-separated hard-negative kinds (training.negatives; default: every kind but the "
+                        "opt-in ones, as every shipped model was trained), e.g. landable,no-person-photo")
     p.add_argument("--max-images", type=int, default=0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--log-every", type=int, default=50)
@@ -500,6 +507,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         resolve_device(args.device)
         check_shares(args.synthetic_share, args.negative_share, args.max_images)
+        if args.negative_kinds is not None:
+            check_kinds(args.negative_kinds)
+            if args.negative_share <= 0:
+                raise ValueError("--negative-kinds needs --negative-share > 0")
         specs = parse_students(args.students)
         by_name = {sp.name: sp for sp in specs}
         if args.teacher_init and not needs_teacher(specs):

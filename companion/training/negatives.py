@@ -11,7 +11,11 @@ loudly). ``road-marking`` is not a class there: it is the brightest 2 % of an im
 pixels (painted lines and symbols are brighter than the asphalt or paving around them). Nor is
 ``path-edge``: the band ``EDGE_PX`` pixels either side of where paved area meets grass. The shipped
 model marks one edge of a paved path across a lawn as people (docs/design.md, "Why landing points
-sit at a lawn's edge"; ``python -m sim.evidence.false_positives``).
+sit at a lawn's edge"; ``python -m sim.evidence.false_positives``). Nor is ``landable``: the ground
+a vehicle may land on (paved area, dirt, grass, gravel, as the photo world's truth has it) farther
+than ``LANDABLE_CLEAR_PX`` from every person pixel of the class map. On the photo world the shipped
+models mark 6-11 % of such real ground as people from 5-8 m (asphalt grain, molehills; issue 59),
+the free ground a landing needs.
 """
 
 from __future__ import annotations
@@ -29,20 +33,29 @@ from companion.training.augment import GeomAug, random_crop
 
 KINDS = ("roof", "wall", "window", "car", "obstacle", "tree", "bald-tree", "fence", "fence-pole", "road-marking",
          "path-edge")
+#: Kinds drawn only when named (``--negative-kinds``), so that "all kinds", the default every
+#: shipped model was trained with, stays what it was.
+OPT_IN = ("landable",)
+#: The classes of ``landable`` ground (``sim.world.photo_ground.PHOTO_LANDABLE``'s).
+LANDABLE = ("paved-area", "dirt", "grass", "gravel")
 #: Kinds made from other classes (``kind_mask``), not classes of their own, and the classes they need.
-DERIVED = {"road-marking": ("paved-area",), "path-edge": ("paved-area", "grass")}
+DERIVED = {"road-marking": ("paved-area",), "path-edge": ("paved-area", "grass"), "landable": (*LANDABLE, "person")}
 EMPTY = "no-person-photo"
 POINTS_PER_IMAGE = 64  # candidate centres kept per (image, kind): enough variety, little memory
 MIN_PIXELS = 30  # a kind with fewer pixels in an image is noise in the class map there
 EDGE_PX = 4  # half the width of a path-edge band (pixels of the photo, about 0.1 m on the ground)
+#: Pixels (of the 750x500 photos, 0.01-0.07 m each) a ``landable`` centre keeps from every person
+#: pixel: a crop's centre is then at least a body's width from anyone, so the crops, whose targets
+#: are all zero, teach "bare ground" and not "the ground beside a person" (the inpainting's seams).
+LANDABLE_CLEAR_PX = 160
 
 
 def check_kinds(kinds: Sequence[str] | None) -> tuple[str, ...]:
     """The hard-negative kinds to draw: ``kinds`` checked against ``KINDS`` and ``EMPTY`` (None:
     all of them). ValueError naming an unknown or repeated kind, or an empty list."""
-    known = (*KINDS, EMPTY)
+    known = (*KINDS, EMPTY, *OPT_IN)
     if kinds is None:
-        return known
+        return (*KINDS, EMPTY)
     unknown = [k for k in kinds if k not in known]
     if unknown:
         raise ValueError(f"unknown hard-negative kind {', '.join(map(repr, unknown))}; known: {', '.join(known)}")
@@ -79,6 +92,10 @@ def kind_mask(kind: str, ground: Background, classes: dict[str, int]) -> np.ndar
         near_paved = cv2.dilate(paved.astype(np.uint8), near) > 0
         near_grass = cv2.dilate(grass.astype(np.uint8), near) > 0
         return np.asarray(near_paved & near_grass & (paved | grass))
+    if kind == "landable":
+        ground_ok = np.isin(ground.classes, [classes[c] for c in LANDABLE])
+        clear = cv2.distanceTransform((ground.classes != classes["person"]).astype(np.uint8), cv2.DIST_L2, 5)
+        return np.asarray(ground_ok & (clear > LANDABLE_CLEAR_PX))
     return np.asarray(ground.classes == classes[kind])
 
 
@@ -108,7 +125,7 @@ class HardNegatives:
         rng = np.random.default_rng(seed)
         centres: dict[str, list[tuple[int, np.ndarray]]] = {k: [] for k in chosen}
         for gi, g in enumerate(grounds):
-            for kind in KINDS:
+            for kind in (*KINDS, *OPT_IN):
                 if kind not in centres:
                     continue
                 ys, xs = np.nonzero(kind_mask(kind, g, classes))

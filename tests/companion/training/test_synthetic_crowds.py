@@ -232,6 +232,31 @@ def test_path_edge_negatives_are_the_band_where_paving_meets_grass() -> None:
     assert "path-edge" in neg.kinds
 
 
+def test_landable_negatives_are_bare_landable_ground_away_from_people() -> None:
+    """The opt-in ``landable`` kind: paving, dirt, grass or gravel farther than
+    ``LANDABLE_CLEAR_PX`` from every person pixel; never a roof, never beside a person. It is drawn
+    only when named: "all kinds" (None), what every shipped model was trained with, leaves it out."""
+    from companion.training.negatives import LANDABLE_CLEAR_PX, HardNegatives, check_kinds, kind_mask
+
+    classes = np.full((400, 500), GRASS, np.uint8)
+    classes[:, 250:] = CLASSES["paved-area"]
+    classes[:100, :100] = ROOF
+    classes[300:310, 400:405] = C.PERSON  # one person on the paving
+    classes[0, 0] = C.PERSON  # and one on the roof's corner
+    ground = C.Background("yard", np.full((400, 500, 3), 110, np.uint8), classes, 20.0)
+    mask = kind_mask("landable", ground, {**CLASSES, "dirt": 2, "gravel": 4})
+    assert not mask[classes == ROOF].any() and not mask[classes == C.PERSON].any()
+    ys, xs = np.nonzero(mask)
+    d_person = np.min([np.hypot(ys - 305, xs - 402), np.hypot(ys, xs)], axis=0)
+    assert d_person.min() > LANDABLE_CLEAR_PX - 8  # the nearest person pixel, not the person's centre
+    assert mask[200, 200] and mask[100, 300] and not mask[305, 402 - LANDABLE_CLEAR_PX // 2]
+    assert "landable" not in check_kinds(None) and check_kinds(["landable"]) == ("landable",)
+    assert "landable" not in HardNegatives.build([ground], {**CLASSES, "dirt": 2, "gravel": 4}).kinds
+    neg = HardNegatives.build([ground], {**CLASSES, "dirt": 2, "gravel": 4}, kinds=["landable"])
+    rng = np.random.default_rng(3)
+    assert all(neg.crop(64, rng)[2] == "landable" for _ in range(5))
+
+
 def test_hard_negatives_refuse_a_class_list_without_a_class_a_kind_needs() -> None:
     from companion.evaluation.datasets import DatasetError
     from companion.training.negatives import HardNegatives

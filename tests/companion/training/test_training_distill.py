@@ -180,7 +180,9 @@ def test_distillation_rejects_bad_arguments(tmp_path: Path, capsys) -> None:
                         (["--students", "d40", "--alpha-of", "d40=nan"], "[0, 1]"),
                         (["--students", "d40", "--alpha-of", "d40=x"], "[0, 1]"),
                         (["--crop", "30"], "--crop"), (["--teacher-steps", "0"], "a phase needs"),
-                        (["--synthetic-share", "0.9", "--negative-share", "0.2"], "must be <= 1")):
+                        (["--synthetic-share", "0.9", "--negative-share", "0.2"], "must be <= 1"),
+                        (["--negative-kinds", "landable,puddle"], "unknown hard-negative kind 'puddle'"),
+                        (["--negative-share", "0", "--negative-kinds", "landable"], "needs --negative-share > 0")):
         assert main([*base, *extra]) == 2
         assert says in capsys.readouterr().err
     assert main(base) == 2  # no data at --shared: a clear error before any training

@@ -73,7 +73,7 @@ OBEDIENCE_KEYS = _keys("controller", tolerance_z_m="controller.obey_tolerance_z_
 #: ``land_alt_m`` is ``controller.land_alt_m``, or ``descend_alt_m`` where that is 0.
 DESCENT_KEYS = _keys("controller", "descend_speed_mps", "land_alt_m", "land_speed_mps",
                      walk_speed_mps="pipeline.walk_speed_mps")
-PIPELINE_KEYS = _keys("pipeline", "head_height_m", "r0_m", "proposal_tie_m", "calm_margin_m",
+PIPELINE_KEYS = _keys("pipeline", "head_height_m", "r0_m", "proposal_tie_m", "calm_margin_m", "person_px",
                       surface_threshold="pipeline.unlandable_threshold")
 RISK_KEYS = _keys("pipeline", "walk_speed_mps")
 OCCUPANCY_KEYS = _keys("pipeline", threshold="pipeline.occupancy_threshold")
@@ -165,6 +165,7 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         head_height_m=p.head_height_m,
         r0_m=p.r0_m,
         proposal_tie_m=p.proposal_tie_m,
+        person_px=p.person_px,
         calm=cfg.controller.min_calm_s > 0,
         calm_margin_m=p.calm_margin_m,
         unwalked=planner.prefer_unwalked,

@@ -28,6 +28,7 @@ from companion.invariant import require
 from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.density import resolve_threshold
 from companion.pipeline.edges import edge_reason
+from companion.pipeline.input_scale import density_scale, scaled_size
 from companion.pipeline.headplane import (
     GridParams,
     GridSpec,
@@ -93,6 +94,11 @@ class PipelineConfig:
     #: Measure each zone's ``Track.steady_s`` against ``r0_m`` plus this free radius (m), for the
     #: planner's steady zones (``controller.steady_s``); None: not measured, it stays NaN.
     steady_margin_m: float | None = None
+    #: Through a pinhole, shrink the frame before the density model runs so that the smallest
+    #: person (``input_scale.PERSON_M``) still spans this many pixels where the view reaches
+    #: farthest (``input_scale.density_scale``): low over real ground the full frame shows the
+    #: model the ground's grain, which it takes for people. 0: always the full frame.
+    person_px: float = 0.0
 
     def __post_init__(self) -> None:
         # The one place these rules live (the settings name the key of a field refused here).
@@ -111,6 +117,8 @@ class PipelineConfig:
         require(math.isfinite(self.proposal_tie_m) and self.proposal_tie_m >= 0, "pipeline", "proposal_tie_m",
                 "must be >= 0", self.proposal_tie_m)
         require(math.isfinite(self.r0_m) and self.r0_m > 0, "pipeline", "r0_m", "must be > 0", self.r0_m)
+        require(math.isfinite(self.person_px) and 0 <= self.person_px <= 1000, "pipeline", "person_px",
+                "must be >= 0 and <= 1000 px", self.person_px)
 
     @property
     def n_proposals(self) -> int:
@@ -286,7 +294,17 @@ class SLZPipeline:
         box = None
         if self._crop_multiple is not None and pose is not None:
             box = lens_crop_box(proj, (h, w), self._crop_multiple, self.config.grid.max_extent)
-        density = self._density(frame, box)
+        scale = 1.0
+        if box is None and pose is not None and self.config.person_px > 0 and proj.lens is None \
+                and self._crop_multiple is not None:
+            scale = density_scale(proj, (h, w), self.config.person_px)
+        if scale < 1.0:
+            # The map of the shrunk frame is brought back to the frame's size by the occupancy
+            # step, which never shrinks an occupied cell (``resize_keep_occupied``).
+            sh, sw = scaled_size((h, w), scale, self._crop_multiple or 1)
+            density = np.asarray(self.density(cv2.resize(frame, (sw, sh), interpolation=cv2.INTER_AREA)))
+        else:
+            density = self._density(frame, box)
         t1 = time.perf_counter()
         unlandable = None
         if self.surface is not None:

@@ -43,11 +43,13 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.density import DensityModel
+from companion.pipeline.input_scale import density_scale, scaled_size
 from companion.pipeline.landability import LandabilityModel
 from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.slz import PipelineConfig
@@ -91,9 +93,16 @@ class LawnFigure:
     free_marked_pct: float | None = None
 
 
-def marked_map(model: DensityModel, img: np.ndarray) -> np.ndarray:
+def marked_map(model: DensityModel, img: np.ndarray, scale: float = 1.0) -> np.ndarray:
     """(H, W) bool: where the service's occupancy step, fed by ``model`` at its own threshold,
-    marks the frame: people for a density model, unlandable ground for a landability model."""
+    marks the frame: people for a density model, unlandable ground for a landability model.
+    ``scale`` < 1: a density model sees the frame shrunk by it first, as the pipeline does with
+    ``pipeline.person_px`` (``input_scale.density_scale``)."""
+    if scale < 1.0 and not isinstance(model, LandabilityModel):
+        sh, sw = scaled_size(img.shape[:2], scale, model.spec.stride)
+        threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
+        small = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA)
+        return occupancy_map(model(small), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
     if isinstance(model, LandabilityModel):
         spec = model.landability
         unlandable = 1.0 - model(img)[spec.names.index(spec.landable)]
@@ -103,10 +112,11 @@ def marked_map(model: DensityModel, img: np.ndarray) -> np.ndarray:
 
 
 def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[float],
-                         photos: str | None = None) -> list[LawnFigure]:
+                         photos: str | None = None, person_px: float = 0.0) -> list[LawnFigure]:
     """The figures of ``seed`` from each of ``heights_m`` (m above the ground); none for a world
     without a free circle. ``photos``: measure the seed's photo world over that folder's photos
-    instead of its drawn world."""
+    instead of its drawn world. ``person_px``: the pipeline's setting of that name (the frame
+    shrunk before the density model; 0: the full frame)."""
     job = FlightJob(seed, "ardupilot") if photos is None else FlightJob(seed, "ardupilot", ground="photo", photos=photos)
     spec = job.spec()  # the scene does not depend on the flavour
     world, free, _start = build_world(spec)
@@ -121,7 +131,8 @@ def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[flo
     for height_m in heights_m:
         pose = Pose(0.0, free.north, free.east, -height_m, 0.0, 0.0, 0.0)
         img = render_world(empty, pose, K, Mount(), ground)
-        occ = marked_map(model, img)
+        proj = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M)
+        occ = marked_map(model, img, density_scale(proj, img.shape[:2], person_px))
         xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M).image_to_plane(pixels)
         inside = np.hypot(xy[:, 0] - free.north, xy[:, 1] - free.east) < free.radius
         marked = occ[vv.ravel(), uu.ravel()]
@@ -201,6 +212,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="the drawn ground (default) or the photo world's (docs/photo-world.md)")
     ap.add_argument("--photos", type=Path, default=None,
                     help="the photos of --ground photo (default ../shared/data/semantic_drone/full)")
+    ap.add_argument("--person-px", type=float, default=0.0,
+                    help="the pipeline's pipeline.person_px: shrink each view so that the smallest person spans this "
+                         "many pixels (default 0: the full frame)")
     ap.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     args = ap.parse_args(argv)
     photos = None
@@ -218,6 +232,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if not (0.0 <= args.person_px <= 1000.0):
+        print("error: --person-px must lie between 0 and 1000", file=sys.stderr)
+        return 2
     if not all(0.0 < h - HEAD_M < 500.0 for h in heights):
         print(f"error: heights must lie between {HEAD_M} m (the head plane) and 500 m", file=sys.stderr)
         return 2
@@ -231,7 +248,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     for seed in seeds:
-        figures = lawn_false_positives(model, seed, heights, photos)
+        figures = lawn_false_positives(model, seed, heights, photos, args.person_px)
         if not figures:
             continue
         if args.json:

@@ -28,7 +28,6 @@ from companion.invariant import require
 from companion.pipeline.circles import Circle, GroundBelow
 from companion.pipeline.density import resolve_threshold
 from companion.pipeline.edges import edge_reason
-from companion.pipeline.input_scale import density_scale, scaled_size
 from companion.pipeline.headplane import (
     GridParams,
     GridSpec,
@@ -37,6 +36,7 @@ from companion.pipeline.headplane import (
     sample_to_grid,
     sample_with_view,
 )
+from companion.pipeline.input_scale import density_scale, scaled_size
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, propose

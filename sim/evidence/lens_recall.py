@@ -29,10 +29,13 @@ import math
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose, camera_extrinsics
+from companion.pipeline.input_scale import density_scale, scaled_size
 from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map
+from companion.pipeline.slz import PipelineConfig
 from sim.flights.flight import photo_ground, photo_scene_centre
 from sim.flights.scenarios import FlightJob
 from sim.flights.spec import parse_camera, photos_folder
@@ -75,11 +78,13 @@ def _recall(people: int, found: int) -> float | None:
 
 def recall_by_angle(camera: str, heights: list[float], seeds: list[int], frames: int = 3,
                     model_path: str | None = None, walkers: int = 30,
-                    photos: str | None = None) -> dict[str, object]:
+                    photos: str | None = None, person_px: float = 0.0) -> dict[str, object]:
     """Per ``BIN_DEG`` bin of the head ray's angle from the optical axis: people in view, found,
     and the share found. ``walkers``: people walking in the 120 m square world (a sparse crowd:
     in a dense one a missed head is often covered by its neighbours' occupancy). ``photos``: the
-    checked photos folder of the photo world (module docstring); None for the drawn ground."""
+    checked photos folder of the photo world (module docstring); None for the drawn ground.
+    ``person_px``: the pipeline's setting of that name (a pinhole's frame shrunk before the model
+    so that the smallest person spans that many pixels; 0: the full frame)."""
     from companion.config import SHIPPED_MODEL
     from companion.pipeline.density import DensityModel
 
@@ -110,7 +115,15 @@ def recall_by_angle(camera: str, heights: list[float], seeds: list[int], frames:
                 world.step(1.0)
                 pose = Pose(0.0, centre[0], centre[1], -h, 0.0, 0.0, 0.5 * k)
                 img = render_world(world, pose, K, mount, ground)
-                occ = occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold))
+                scale = 1.0
+                if person_px > 0 and not K.is_fisheye:  # as SLZPipeline.process shrinks it
+                    proj = PlaneProjection.from_pose(K, mount, pose, head_height=PipelineConfig().head_height_m)
+                    scale = density_scale(proj, img.shape[:2], person_px)
+                small = img
+                if scale < 1.0:
+                    sh, sw = scaled_size(img.shape[:2], scale, model.spec.stride)
+                    small = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA)
+                occ = occupancy_map(model(small), img.shape[:2], OccupancyParams(threshold=threshold))
                 # A drawn walker's head; a silhouette's centre, where the painter puts it.
                 z_walker = -HEAD_Z if photos is None else -BODY_Z
                 for i, (pos, z_up) in enumerate(((world.positions(), z_walker), (own, 0.0))):
@@ -128,7 +141,7 @@ def recall_by_angle(camera: str, heights: list[float], seeds: list[int], frames:
                              "recall": _recall(int(seen[j, i]), int(found[j, i]))}
         rows.append(row)
     return {"camera": camera, "ground": "procedural" if photos is None else "photo", "heights_m": heights,
-            "seeds": seeds, "frames": frames, "walkers": walkers, "bins": rows}
+            "seeds": seeds, "frames": frames, "walkers": walkers, "person_px": person_px, "bins": rows}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -141,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--model", default=None, help="ONNX density model (default: the shipped one)")
     parser.add_argument("--ground", choices=("procedural", "photo"), default="procedural",
                         help="the drawn ground (default) or the photo world's (docs/photo-world.md)")
+    parser.add_argument("--person-px", type=float, default=0.0,
+                        help="the pipeline's pipeline.person_px: a pinhole's frame shrunk so that the smallest person "
+                             "spans this many pixels (default 0: the full frame)")
     parser.add_argument("--photos", type=Path, default=None,
                         help="the photos of --ground photo (default ../shared/data/semantic_drone/full)")
     args = parser.parse_args(argv)
@@ -152,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     a, _, b = args.seeds.partition("-")
     seeds = list(range(int(a), int(b or a) + 1))
     res = recall_by_angle(args.camera, [float(h) for h in args.heights.split(",")], seeds, args.frames, args.model,
-                          args.walkers, photos)
+                          args.walkers, photos, args.person_px)
     json.dump(res, sys.stdout, indent=1)
     print()
     return 0

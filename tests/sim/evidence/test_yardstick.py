@@ -35,11 +35,15 @@ def _camera(entry: dict[str, str]) -> str | None:
 
 
 def _table(columns: tuple[str, ...]) -> list[dict[str, str]]:
-    """The rows of the README's table with these columns (the companion's, or the baseline's)."""
-    rows = []
+    """The rows of the README's tables headed by these columns (the companion's, the baseline's,
+    ...): a file's row belongs to the table whose header line came last above it."""
+    rows, mine = [], False
     for line in (YARDSTICK / "README.md").read_text().splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == len(columns) and cells[0].startswith("`") and cells[0].endswith(".jsonl`"):
+        if cells and cells[0] == "file":
+            # A header cell may say more than the column's name ("software (each row's ...)").
+            mine = len(cells) == len(columns) and all(c.startswith(name) for c, name in zip(cells, columns))
+        elif mine and len(cells) == len(columns) and cells[0].startswith("`") and cells[0].endswith(".jsonl`"):
             rows.append(dict(zip(columns, cells)))
     return rows
 
@@ -203,3 +207,53 @@ def test_the_readme_names_the_runners_files():
     assert [(r["autopilot"], r["camera"]) for r in _table(RUNNERS)] == [
         ("PX4", "default"), ("PX4", "`--camera fisheye:160`"), ("ArduPilot", "default"),
         ("ArduPilot", "`--camera fisheye:160`")]
+
+
+SHRUNK = ("file", "autopilot", "ground", "settings", "seeds", "flown", "software", "unsafe",
+          "strikes (outside dense worlds)", "handbacks", "clear landings (worlds with free ground)",
+          "the autopilot alone's strikes")
+
+
+@pytest.mark.parametrize("entry", _table(SHRUNK), ids=lambda e: e["file"])
+def test_each_photo_world_and_shrunk_frame_file_is_what_the_table_says(entry):
+    # Issue 59: the photo world's rows, and the frame shrunk before the density model
+    # (pipeline.person_px) on both grounds, in lockstep from 1000 s; a file flown with
+    # --baseline holds the autopilot alone's rows of the same seeds too.
+    rows, bad = read_rows(YARDSTICK / entry["file"].strip("`"))
+    first, last = (int(s) for s in entry["seeds"].split("-"))
+    flavour = FLAVOURS[entry["autopilot"]]
+    ground = None if entry["ground"] == "drawn" else "photo"
+    settings = [] if entry["settings"] == "-" else [s.strip("` ") for s in entry["settings"].split(",")]
+    companion = [r for r in rows if not r["baseline"]]
+    baseline = [r for r in rows if r["baseline"]]
+    assert bad == 0 and sorted(r["seed"] for r in companion) == list(range(first, last + 1))
+    assert sorted(r["seed"] for r in baseline) in ([], list(range(first, last + 1)))
+    for r in rows:
+        assert r["flavour"] == flavour and r["lockstep"] and r["clock_start_s"] == 1000.0
+        assert r.get("ground") == ground and r.get("camera") is None
+        assert r["settings"] == ([] if r["baseline"] else settings)
+        assert r["software"]["git"].startswith(entry["software"])
+    m = re.fullmatch(r"(\d+) \((\d+)\)", entry["strikes (outside dense worlds)"])
+    assert m is not None
+    strikes, outside = (int(g) for g in m.groups())
+    summary = summarise_rows(companion)
+    assert (summary["unsafe"], summary["strikes"], summary["handbacks"]) == (
+        int(entry["unsafe"]), strikes, int(entry["handbacks"]))
+    assert sum(bool(r["strike"]) and r["world"] != "dense" for r in companion) == outside
+    free = [r for r in companion if r["world"] != "dense"]
+    clear = re.fullmatch(r"(\d+) of (\d+)", entry["clear landings (worlds with free ground)"])
+    assert clear is not None and len(free) == int(clear.group(2))
+    assert sum(r["outcome"] == "safe" for r in free) == int(clear.group(1))
+    alone = entry["the autopilot alone's strikes"]
+    assert (alone == "-") == (not baseline)
+    if baseline:
+        assert summarise_baseline(baseline)["strikes"] == int(alone)
+    # No companion touchdown on unlandable ground by the class maps (issue 59's first target).
+    if ground == "photo":
+        assert not any(r["unlandable_touchdown"] for r in companion if r["outcome"] in ("safe", "unsafe"))
+
+
+def test_the_readme_names_the_photo_world_and_shrunk_frame_files():
+    entries = _table(SHRUNK)
+    assert {(e["autopilot"], e["ground"]) for e in entries} == {
+        (a, g) for a in ("PX4", "ArduPilot") for g in ("drawn", "photo")}

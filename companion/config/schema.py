@@ -589,9 +589,10 @@ def all_keys(cls: type = Config, prefix: str = "") -> list[tuple[str, Any, str]]
 
 #: Settings added after recordings were first made, with the value that flew before each existed
 #: (a recording's ``meta.json`` without the key was flown so): ``controller.land_agl_m``, the
-#: LAND at ``land_alt_m`` whatever the rangefinder said. Add a row when a new setting changes
-#: what flies, so that old recordings replay as they were flown.
-BEFORE_RECORDED: dict[str, Any] = {"controller.land_agl_m": 0.0}
+#: LAND at ``land_alt_m`` whatever the rangefinder said; ``pipeline.person_px``, the density
+#: model on the full frame. Add a row when a new setting changes what flies, so that old
+#: recordings replay as they were flown.
+BEFORE_RECORDED: dict[str, Any] = {"controller.land_agl_m": 0.0, "pipeline.person_px": 0.0}
 
 
 #: Removed keys whose recorded value does not change what a replay computes (the link, the

@@ -360,3 +360,12 @@ def test_a_recording_flown_before_land_agl_m_existed_is_read_with_it_off() -> No
     flown = config.load(None, {"controller.land_agl_m": 1.0}).to_dict()
     assert config.from_recording(flown).controller.land_agl_m == 1.0
     assert config.from_recording({}, {"controller.land_agl_m": 1.0}).controller.land_agl_m == 1.0
+
+
+def test_a_recording_flown_before_person_px_existed_replays_on_the_full_frame() -> None:
+    # Before 2026-12-07 the density model always saw the full frame; the default now shrinks it.
+    assert config.load(None).pipeline.person_px == 12.0
+    assert config.from_recording({"pipeline": {"r0_m": 2.0}}).pipeline.person_px == 0.0
+    flown = config.load(None).to_dict()
+    assert config.from_recording(flown).pipeline.person_px == 12.0
+    assert config.from_recording({}, {"pipeline.person_px": 8.0}).pipeline.person_px == 8.0

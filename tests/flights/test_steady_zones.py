@@ -325,11 +325,13 @@ def test_the_search_lands_on_a_lawn_with_a_bench_on_it_as_a_steady_zone(model_pa
     happens to be (docs/yardstick before 2026-12-02). With the defaults (steady, 8 s and 0.5 m)
     the lawn is chosen and landed on. (Seed 43, this test's first seed, lands too since the search waits for the watch
     of the same ground, which began 4.5 s after arriving as its zone's centre settled; seed 23
-    lands without that wait, so it tests the steady zone alone.)"""
+    lands without that wait, so it tests the steady zone alone.) The lawn's 2.9-3.4 m are the
+    full frame's (``pipeline.person_px = 0``): the frame shrunk low over the ground, the default
+    since 2026-12-07, no longer marks the bench, and the lawn is an ordinary zone of 4 m."""
     from sim.flights.lockstep import fly_in_process
     from sim.flights.scenarios import FlightJob
 
-    spec = FlightJob(23, "ardupilot", lockstep=True, threads=1).spec()
+    spec = FlightJob(23, "ardupilot", lockstep=True, threads=1, service_set=("pipeline.person_px=0",)).spec()
     assert spec.world == "dense_beyond"
     r = fly_in_process(spec)
     assert "SEARCH" in r.phases and r.outcome == "safe" and not r.handed_back, (r.outcome, r.messages)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from companion.geometry.camera import PlaneProjection
@@ -73,3 +74,13 @@ def scaled_size(hw: tuple[int, int], scale: float, multiple: int) -> tuple[int, 
     h, w = hw
     return (min(h, max(multiple, math.ceil(h * scale / multiple) * multiple)),
             min(w, max(multiple, math.ceil(w * scale / multiple) * multiple)))
+
+
+def shrunk(frame: np.ndarray, scale: float, multiple: int) -> np.ndarray:
+    """``frame`` (H, W[, C]) shrunk by ``scale`` to ``scaled_size`` (area interpolation: the
+    grain averages out, as a camera with fewer pixels would see it); ``frame`` itself when
+    ``scale`` is 1 or more."""
+    if scale >= 1.0:
+        return frame
+    h, w = scaled_size(frame.shape[:2], scale, multiple)
+    return cv2.resize(frame, (w, h), interpolation=cv2.INTER_AREA)

@@ -36,7 +36,7 @@ from companion.pipeline.headplane import (
     sample_to_grid,
     sample_with_view,
 )
-from companion.pipeline.input_scale import density_scale, scaled_size
+from companion.pipeline.input_scale import density_scale, shrunk
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, propose
@@ -301,8 +301,7 @@ class SLZPipeline:
         if scale < 1.0:
             # The map of the shrunk frame is brought back to the frame's size by the occupancy
             # step, which never shrinks an occupied cell (``resize_keep_occupied``).
-            sh, sw = scaled_size((h, w), scale, self._crop_multiple or 1)
-            density = np.asarray(self.density(cv2.resize(frame, (sw, sh), interpolation=cv2.INTER_AREA)))
+            density = np.asarray(self.density(shrunk(frame, scale, self._crop_multiple or 1)))
         else:
             density = self._density(frame, box)
         t1 = time.perf_counter()

@@ -43,13 +43,12 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.density import DensityModel
-from companion.pipeline.input_scale import density_scale, scaled_size
+from companion.pipeline.input_scale import density_scale, shrunk
 from companion.pipeline.landability import LandabilityModel
 from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.slz import PipelineConfig
@@ -98,17 +97,13 @@ def marked_map(model: DensityModel, img: np.ndarray, scale: float = 1.0) -> np.n
     marks the frame: people for a density model, unlandable ground for a landability model.
     ``scale`` < 1: a density model sees the frame shrunk by it first, as the pipeline does with
     ``pipeline.person_px`` (``input_scale.density_scale``)."""
-    if scale < 1.0 and not isinstance(model, LandabilityModel):
-        sh, sw = scaled_size(img.shape[:2], scale, model.spec.stride)
-        threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
-        small = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA)
-        return occupancy_map(model(small), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
     if isinstance(model, LandabilityModel):
         spec = model.landability
         unlandable = 1.0 - model(img)[spec.names.index(spec.landable)]
         return surface_free_map(unlandable, img.shape[:2], spec.threshold) == OCCUPIED
     threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
-    return occupancy_map(model(img), img.shape[:2], OccupancyParams(threshold=threshold)) == OCCUPIED
+    return occupancy_map(model(shrunk(img, scale, model.spec.stride)), img.shape[:2],
+                         OccupancyParams(threshold=threshold)) == OCCUPIED
 
 
 def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[float],

@@ -29,11 +29,10 @@ import math
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose, camera_extrinsics
-from companion.pipeline.input_scale import density_scale, scaled_size
+from companion.pipeline.input_scale import density_scale, shrunk
 from companion.pipeline.occupancy import OCCUPIED, OccupancyParams, occupancy_map
 from companion.pipeline.slz import PipelineConfig
 from sim.flights.flight import photo_ground, photo_scene_centre
@@ -119,11 +118,8 @@ def recall_by_angle(camera: str, heights: list[float], seeds: list[int], frames:
                 if person_px > 0 and not K.is_fisheye:  # as SLZPipeline.process shrinks it
                     proj = PlaneProjection.from_pose(K, mount, pose, head_height=PipelineConfig().head_height_m)
                     scale = density_scale(proj, img.shape[:2], person_px)
-                small = img
-                if scale < 1.0:
-                    sh, sw = scaled_size(img.shape[:2], scale, model.spec.stride)
-                    small = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA)
-                occ = occupancy_map(model(small), img.shape[:2], OccupancyParams(threshold=threshold))
+                occ = occupancy_map(model(shrunk(img, scale, model.spec.stride)), img.shape[:2],
+                                    OccupancyParams(threshold=threshold))
                 # A drawn walker's head; a silhouette's centre, where the painter puts it.
                 z_walker = -HEAD_Z if photos is None else -BODY_Z
                 for i, (pos, z_up) in enumerate(((world.positions(), z_walker), (own, 0.0))):

@@ -18,7 +18,7 @@ import pytest
 from companion.config.schema import shipped_model
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.density import DensityModel, DensitySpec
-from companion.pipeline.input_scale import MIN_SCALE, PERSON_M, density_scale, scaled_size, smallest_person_px
+from companion.pipeline.input_scale import MIN_SCALE, PERSON_M, density_scale, scaled_size, shrunk, smallest_person_px
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 
 K = Intrinsics.from_fov(640, 480, 70.0)
@@ -84,6 +84,11 @@ def test_the_scale_keeps_the_smallest_person_at_person_px_above_a_floor() -> Non
     # The shrunk frame: whole stride cells, rounded up (a person never comes out smaller).
     assert scaled_size(HW, 0.41, 4) == (200, 264)
     assert scaled_size(HW, 1.0, 4) == HW and scaled_size((10, 10), 0.01, 4) == (4, 4)
+    frame = np.zeros((480, 640, 3), np.uint8)
+    frame[::2, ::2] = 255  # a one-pixel grain: area interpolation averages it out
+    assert shrunk(frame, 1.0, 4) is frame
+    small = shrunk(frame, 0.5, 4)
+    assert small.shape == (240, 320, 3) and int(small.min()) == int(small.max()) == 64
 
 
 @pytest.mark.parametrize("height_m, shrunk", [(8.0, True), (30.0, False)])

@@ -105,7 +105,7 @@ def test_the_pipeline_gives_the_model_the_shrunk_frame_and_keeps_the_frames_map(
     assert res.occupancy.shape == HW  # the occupancy map is the frame's, whatever the model saw
 
 
-def test_off_without_a_pose_and_through_a_fisheye(model: DensityModel) -> None:
+def test_off_at_zero_and_through_a_fisheye(model: DensityModel) -> None:
     frame = np.full((480, 640, 3), 120, np.uint8)
     off = Recorded(model)
     SLZPipeline(off, PipelineConfig(), intrinsics=K).process(frame, 0.0, Pose(0.0, 0, 0, -8.0, 0, 0, 0))

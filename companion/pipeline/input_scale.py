@@ -8,7 +8,7 @@ as people: on the photo world (docs/photo-world.md) the shipped model marks 11 %
 circle's real paving from 8 m and 8 % from 5 m, where it marks 0.4-0.7 % of the drawn lawns.
 Shrunk so that the smallest person is still ``person_px`` across, the frame keeps every person
 at a size the model is validated on and loses the grain (``python -m sim.evidence.false_positives
---ground photo --set pipeline.person_px=N``).
+--ground photo --person-px N``).
 
 The smallest person is ``PERSON_M`` (0.4 m, a child or a person seen square from above; the
 same figure as ``control.descent.person_trust_height``) on the head plane, where the view

@@ -128,7 +128,7 @@ def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[flo
         img = render_world(empty, pose, K, Mount(), ground)
         proj = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M)
         occ = marked_map(model, img, density_scale(proj, img.shape[:2], person_px))
-        xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M).image_to_plane(pixels)
+        xy = proj.image_to_plane(pixels)
         inside = np.hypot(xy[:, 0] - free.north, xy[:, 1] - free.east) < free.radius
         marked = occ[vv.ravel(), uu.ravel()]
         circle = float(marked[inside].mean()) if inside.any() else float("nan")

@@ -92,6 +92,7 @@ def recall_by_angle(camera: str, heights: list[float], seeds: list[int], frames:
     model = DensityModel(model_path or SHIPPED_MODEL, threads=2)
     threshold = model.spec.occupancy_threshold if model.spec.occupancy_threshold is not None else 0.0
     mount = Mount()
+    head_m = PipelineConfig().head_height_m  # the head plane the service projects frames on
     nbins = int(math.ceil(100.0 / BIN_DEG))
     seen = np.zeros((2, nbins), int)  # walkers, the photos' own people
     found = np.zeros((2, nbins), int)
@@ -116,7 +117,7 @@ def recall_by_angle(camera: str, heights: list[float], seeds: list[int], frames:
                 img = render_world(world, pose, K, mount, ground)
                 scale = 1.0
                 if person_px > 0 and not K.is_fisheye:  # as SLZPipeline.process shrinks it
-                    proj = PlaneProjection.from_pose(K, mount, pose, head_height=PipelineConfig().head_height_m)
+                    proj = PlaneProjection.from_pose(K, mount, pose, head_height=head_m)
                     scale = density_scale(proj, img.shape[:2], person_px)
                 occ = occupancy_map(model(shrunk(img, scale, model.spec.stride)), img.shape[:2],
                                     OccupancyParams(threshold=threshold))

@@ -10,16 +10,16 @@ and that the photos' grain is not, is measured on rendered views in
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
 
 from companion.config.schema import shipped_model
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
-from companion.pipeline.density import DensityModel, DensitySpec
+from companion.pipeline.density import DensityModel
 from companion.pipeline.input_scale import MIN_SCALE, PERSON_M, density_scale, scaled_size, shrunk, smallest_person_px
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
+from tests.companion.pipeline.recorded import Recorded
 
 K = Intrinsics.from_fov(640, 480, 70.0)
 HW = (480, 640)
@@ -29,25 +29,6 @@ HEAD = 1.7
 def nadir(height_m: float, k: Intrinsics = K) -> PlaneProjection:
     return PlaneProjection.from_pose(k, Mount(), Pose(0.0, 5.0, -3.0, -height_m, 0.0, 0.0, 0.4), HEAD)
 
-
-@dataclass
-class Recorded:
-    """The shipped model, and the shapes of the frames it was given."""
-
-    model: DensityModel
-    shapes: list[tuple[int, ...]] = field(default_factory=list)
-
-    @property
-    def spec(self) -> DensitySpec:
-        return self.model.spec
-
-    @property
-    def any_size(self) -> bool:
-        return self.model.any_size
-
-    def __call__(self, frame: np.ndarray) -> np.ndarray:
-        self.shapes.append(frame.shape)
-        return self.model(frame)
 
 
 @pytest.fixture(scope="module")
@@ -63,8 +44,7 @@ def test_the_smallest_person_looking_straight_down_is_the_pinholes_figure() -> N
 
 def test_a_tilted_view_is_judged_where_it_reaches_farthest() -> None:
     # Pitched 30 degrees forward, the top edge sees ground farther than the nadir's: the smallest
-    # person is smaller there than straight down from the same height, and larger than at the
-    # top edge's slant range.
+    # person is smaller there than straight down from the same height.
     tilted = PlaneProjection.from_pose(K, Mount(), Pose(0.0, 0.0, 0.0, -10.0, 0.0, math.radians(-30.0), 0.0), HEAD)
     seen = smallest_person_px(tilted, HW)
     assert 0 < seen < smallest_person_px(nadir(10.0), HW)

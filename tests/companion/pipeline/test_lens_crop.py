@@ -9,41 +9,20 @@ and that nothing is cropped where the model or the lens would not give the same 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 import pytest
 
 from companion import bench
 from companion.config.schema import shipped_model
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
-from companion.pipeline.density import DensityModel, DensitySpec
+from companion.pipeline.density import DensityModel
 from companion.pipeline.headplane import CROP_MARGIN_PX, GridParams, grid_for_view, lens_crop_box, sample_with_view
 from companion.pipeline.occupancy import OccupancyParams
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
+from tests.companion.pipeline.recorded import Recorded
 
 FISHEYE = Intrinsics.from_fov(640, 480, 160.0, "fisheye")
 
-
-@dataclass
-class Recorded:
-    """The shipped model, and the shapes of the frames it was given (the model's own spec and
-    size rule, so the pipeline crops for it as for the model itself)."""
-
-    model: DensityModel
-    shapes: list[tuple[int, ...]] = field(default_factory=list)
-
-    @property
-    def spec(self) -> DensitySpec:
-        return self.model.spec
-
-    @property
-    def any_size(self) -> bool:
-        return self.model.any_size
-
-    def __call__(self, frame: np.ndarray) -> np.ndarray:
-        self.shapes.append(frame.shape)
-        return self.model(frame)
 
 
 @pytest.fixture(scope="module")

@@ -140,6 +140,7 @@ BOUNDS = [
     ("pipeline.proposal_tie_m", [(-0.001, True), (0.0, False), (5.0, False), (5.001, True)]),
     ("pipeline.walk_speed_mps", [(0.099, True), (0.1, False), (15.0, False), (15.001, True)]),
     ("pipeline.calm_margin_m", [(-0.001, True), (0.0, False), (50.0, False), (50.001, True)]),
+    ("pipeline.person_px", [(-0.001, True), (0.0, False), (1000.0, False), (1000.001, True)]),
     ("pipeline.unlandable_threshold", [(-1.001, True), (-1.0, False), (0.999, False), (1.0, True)]),
     ("controller.min_track_age_s", [(-0.001, True), (0.0, False)]),
     ("controller.min_calm_s", [(-0.001, True), (0.0, False), (120.0, False), (120.001, True)]),

@@ -8,10 +8,14 @@ For every row of ``companion sim-scenarios`` (``--out``) whose touchdown had som
 ``sim.flights.flight.build_world``; the crossing world's walkers drawn at the row's trigger with its
 ``crossing_window``) and stepped, alone, to the touchdown's world time (``world_t_trigger`` plus
 ``time_to_touchdown_s``). A world depends on its seed and its clock alone, so this is the flight's
-own crowd. Printed per strike:
+own crowd. A row of the photo world (``"ground": "photo"``) is rebuilt over the photos of
+``--photos`` (default ``../shared/data/semantic_drone/full`` beside the checkout, as
+``sim-scenarios``'s), with the people who stand in the photos beside the walkers. Printed per
+strike:
 
-- the person nearest the touchdown point (the striker), and whether they are one of the crowd or a
-  scripted walker (``crossing``, ``intrusion``);
+- the person nearest the touchdown point (the striker), and whether they are one of the crowd, a
+  scripted walker (``crossing``, ``intrusion``) or a person standing in a photo (``photo``: they
+  do not move);
 - their distance to the point at touchdown, checked against the row's ``clearance_m`` (a
   difference over 0.1 m is flagged: a row from another version of the world);
 - their distance at the trigger and at each ``--before`` seconds before touchdown, their walking
@@ -43,7 +47,9 @@ from sim.evidence.person_halo import parse_floats
 from sim.flights.flight import FlightSpec, build_world
 from sim.flights.results import read_rows
 from sim.flights.scenarios import scenario
+from sim.flights.spec import default_photos
 from sim.world.crowd import TICK_S, World, add_crossing_walkers
+from sim.world.photo_ground import PhotosError, check_photos
 from sim.world.walkers import ScriptedWalkers
 
 #: Worlds rebuilt here (the scenarios' own; DroneCrowd needs ../shared and is not a seed's draw).
@@ -88,10 +94,18 @@ class Strike:
                 f"walking at {self.walking_mps:.2f} m/s, closing at {self.approach_mps:.2f}; within r0 for the last {self.within_r0_for_s:.1f} s{lawn}")
 
 
-def rebuild(row: dict[str, Any]) -> tuple[World, Any, FlightSpec]:
+def rebuild(row: dict[str, Any], photos: str | None = None) -> tuple[World, Any, FlightSpec]:
     """The row's world at its start, its free circle (None without one) and the row's scenario
-    (with its ``crossing_window``; crossing walkers are added by ``trace`` at the trigger)."""
+    (with its ``crossing_window``; crossing walkers are added by ``trace`` at the trigger). A
+    photo row's world is built over ``photos`` (a checked folder; ValueError without one)."""
     spec = scenario(int(row["seed"]), str(row["flavour"]))
+    ground = str(row.get("ground") or "procedural")
+    if ground == "photo":
+        if photos is None:
+            raise ValueError(f"seed {row['seed']} flew over the photo world: give its photos (--photos)")
+        spec = replace(spec, ground="photo", photos=photos)
+    elif ground != "procedural":
+        raise ValueError(f"seed {row['seed']}: unknown ground {ground!r}")
     if spec.world != row["world"]:
         raise ValueError(f"seed {row['seed']} draws a {spec.world} world, the row says {row['world']}")
     window = row.get("crossing_window")
@@ -110,9 +124,10 @@ def _kind(world: World, index: int, name: str) -> str:
     return "crossing" if name == "crossing" else "scripted"
 
 
-def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> Strike:
-    """Trace one strike row on the truth (see the module docstring)."""
-    world, free, spec = rebuild(row)
+def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0, photos: str | None = None) -> Strike:
+    """Trace one strike row on the truth (see the module docstring); ``photos``: the photo
+    world's folder, for a photo row."""
+    world, free, spec = rebuild(row, photos)
     t_trigger = float(row["world_t_trigger"])
     t_td = t_trigger + float(row["time_to_touchdown_s"])
     point = np.asarray(row["touchdown"], float)[:2]
@@ -129,8 +144,18 @@ def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> St
         raise ValueError(f"seed {row['seed']}: touchdown at world time {t_td:.2f} s is not after the start")
     final = history[-1][1]
     d = np.hypot(final[:, 0] - point[0], final[:, 1] - point[1])
-    k = int(np.argmin(d))
+    k = int(np.argmin(d)) if len(d) else -1
     times = np.array([t for t, _ in history])
+    # People standing in the photos (the photo world's, World.fixed_people) never move: one of
+    # them nearer than every walker is the striker, at the same distance all along.
+    fixed = np.empty((0, 2)) if world.fixed_people is None else np.asarray(world.fixed_people, float).reshape(-1, 2)
+    if len(fixed):
+        df = np.hypot(fixed[:, 0] - point[0], fixed[:, 1] - point[1])
+        j = int(np.argmin(df))
+        if k < 0 or df[j] < d[k]:
+            return _standing(row, free, float(df[j]), t_td - t_trigger, before, r0_m)
+    if k < 0:
+        raise ValueError(f"seed {row['seed']}: nobody in the world at touchdown")
 
     def position(dt: float) -> np.ndarray:
         """The striker's position ``dt`` seconds before touchdown (a walker added at the
@@ -150,6 +175,22 @@ def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> St
         within = t_td - t
     approach = (distance(SPEED_WINDOW_S) - float(d[k])) / SPEED_WINDOW_S
     walking = float(np.hypot(*(final[k] - position(SPEED_WINDOW_S)))) / SPEED_WINDOW_S
+    return _strike(row, free, float(d[k]), _kind(world, k, spec.world), distance(t_td - t_trigger),
+                   {f"{b:g}": round(distance(b), 2) for b in before}, walking, approach, within, r0_m)
+
+
+def _standing(row: dict[str, Any], free: Any, dist: float, since_trigger: float, before: Sequence[float],
+              r0_m: float) -> Strike:
+    """The strike of a person standing in a photo ``dist`` m from the touchdown point: there
+    at every instant, within ``r0`` since the trigger when ``dist`` is."""
+    return _strike(row, free, dist, "photo", dist, {f"{b:g}": round(dist, 2) for b in before}, 0.0, 0.0,
+                   since_trigger if dist <= r0_m else 0.0, r0_m)
+
+
+def _strike(row: dict[str, Any], free: Any, dist: float, striker: str, at_trigger: float,
+            before: dict[str, float], walking: float, approach: float, within: float, r0_m: float) -> Strike:
+    """The :class:`Strike` of ``row`` with its striker's figures, placed against the lawn."""
+    point = np.asarray(row["touchdown"], float)[:2]
     lawn_c = lawn_r = None
     on_lawn = None
     if free is not None:
@@ -160,17 +201,18 @@ def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0) -> St
     clearance = float(row.get("clearance_m") or math.nan)
     return Strike(seed=int(row["seed"]), flavour=str(row["flavour"]), world=str(row["world"]),
                   outcome=str(row.get("outcome")), baseline=bool(row.get("baseline")),
-                  clearance_m=clearance, recomputed_m=round(float(d[k]), 3),
-                  mismatch=not (abs(clearance - float(d[k])) <= MISMATCH_M),
-                  striker=_kind(world, k, spec.world), distance_at_trigger_m=round(distance(t_td - t_trigger), 2),
-                  distance_before_m={f"{b:g}": round(distance(b), 2) for b in before},
+                  clearance_m=clearance, recomputed_m=round(dist, 3),
+                  mismatch=not (abs(clearance - dist) <= MISMATCH_M),
+                  striker=striker, distance_at_trigger_m=round(at_trigger, 2), distance_before_m=before,
                   walking_mps=round(walking, 2), approach_mps=round(approach, 2), within_r0_for_s=round(within, 2),
                   lawn_centre_m=None if lawn_c is None else round(lawn_c, 2),
                   lawn_radius_m=None if lawn_r is None else round(lawn_r, 2), on_lawn=on_lawn)
 
 
-def strikes(rows: Sequence[dict[str, Any]], before: Sequence[float]) -> tuple[list[Strike], int]:
-    """Every strike row traced, and how many strike rows were skipped (no world to rebuild)."""
+def strikes(rows: Sequence[dict[str, Any]], before: Sequence[float],
+            photos: str | None = None) -> tuple[list[Strike], int]:
+    """Every strike row traced, and how many strike rows were skipped (no world to rebuild);
+    ``photos``: the checked photos folder for the photo world's rows."""
     out: list[Strike] = []
     skipped = 0
     for row in rows:
@@ -180,7 +222,7 @@ def strikes(rows: Sequence[dict[str, Any]], before: Sequence[float]) -> tuple[li
                 or row.get("time_to_touchdown_s") is None:
             skipped += 1
             continue
-        out.append(trace(row, before, float(row.get("r0_m") or 2.0)))
+        out.append(trace(row, before, float(row.get("r0_m") or 2.0), photos))
     return out, skipped
 
 
@@ -189,6 +231,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("results", type=Path, help="a sim-scenarios results file (--out)")
     parser.add_argument("--before", default="2,4,6,8,10", help="seconds before touchdown (default 2,4,6,8,10)")
     parser.add_argument("--json", action="store_true", help="one JSON object per strike")
+    parser.add_argument("--photos", type=Path, default=None,
+                        help="the photos of the photo world's rows (default ../shared/data/semantic_drone/full "
+                             "beside the checkout)")
     args = parser.parse_args(argv)
     try:
         before = parse_floats(args.before)
@@ -204,8 +249,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     if bad:
         print(f"sim.evidence.strikes: {args.results}: {bad} line(s) could not be read, left out", file=sys.stderr)
+    photos = None
+    if any(r.get("ground") == "photo" and r.get("strike") for r in rows):
+        folder = args.photos or default_photos()
+        try:
+            check_photos(folder)
+        except PhotosError as exc:
+            print(f"sim.evidence.strikes: {exc}", file=sys.stderr)
+            return 2
+        photos = str(folder.resolve())
     try:
-        found, skipped = strikes(rows, before)
+        found, skipped = strikes(rows, before, photos)
     except (KeyError, TypeError, ValueError) as exc:
         print(f"sim.evidence.strikes: {args.results}: a row this cannot trace: {exc}", file=sys.stderr)
         return 2

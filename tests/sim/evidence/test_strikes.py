@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -108,3 +109,62 @@ def test_cli_prints_each_strike_and_exits_2_on_a_missing_file(tmp_path, capsys):
     assert strikes.main([str(tmp_path / "none.jsonl")]) == 2
     assert "no such results file" in capsys.readouterr().err
     assert strikes.main([str(path), "--before", "-1"]) == 2
+
+
+def _photo_world_at(seed: int, photos: str, t: float):
+    spec = replace(scenario(seed, None), ground="photo", photos=photos)
+    world, free, _ = build_world(spec)
+    while world.t < t - 1e-9:
+        world.step(TICK_S)
+    return spec, world, free
+
+
+def test_a_photo_row_is_traced_on_the_photo_world_not_the_drawn_one(photos):
+    """Seed 3 over the photos: its walkers are the photo world's (they keep to walkable ground
+    by the class maps), so the drawn world's would put the striker elsewhere."""
+    spec, world, _ = _photo_world_at(3, photos, T_TRIGGER + TO_TOUCHDOWN)
+    p = world.positions()
+    point = p[0] + np.array([0.7, 0.0])
+    everyone = np.vstack([p, np.asarray(world.fixed_people, float).reshape(-1, 2)])
+    clearance = float(np.min(np.hypot(*(everyone - point).T)))
+    row = _row(spec, point, clearance, ground="photo")
+    [s], skipped = strikes.strikes([row], [2.0], photos)
+    assert skipped == 0 and not s.mismatch and s.striker == "crowd"
+    assert s.recomputed_m == pytest.approx(clearance, abs=1e-3)
+    [drawn], _ = strikes.strikes([dict(row, ground="procedural")], [2.0])
+    assert drawn.mismatch  # the drawn world's crowd is elsewhere
+    with pytest.raises(ValueError, match="photo world"):
+        strikes.strikes([row], [2.0])  # a photo row needs its photos
+
+
+def test_a_person_standing_in_a_photo_is_named_and_never_moves(photos):
+    """A touchdown 0.5 m from one of the people the photos show (``World.fixed_people``): the
+    striker is ``photo``, at the same distance at every instant, within r0 since the trigger."""
+    for seed in range(1, 40):
+        spec, world, _ = _photo_world_at(seed, photos, 0.0)
+        if world.fixed_people is not None and len(world.fixed_people):
+            break
+    else:
+        pytest.fail("no seed of 1-39 shows a person in its photos")
+    fixed = np.asarray(world.fixed_people, float).reshape(-1, 2)
+    spec, world, _ = _photo_world_at(seed, photos, T_TRIGGER + TO_TOUCHDOWN)
+    point = fixed[0] + np.array([0.0, 0.5])
+    everyone = np.vstack([world.positions(), fixed])
+    nearest = float(np.min(np.hypot(*(everyone - point).T)))
+    if nearest < 0.5 - 1e-9:
+        pytest.skip(f"seed {seed}: somebody else stands nearer the point than the photo's person")
+    [s], _ = strikes.strikes([_row(spec, point, 0.5, ground="photo")], [2.0, 4.0], photos)
+    assert s.striker == "photo" and s.recomputed_m == pytest.approx(0.5, abs=1e-3) and not s.mismatch
+    assert s.distance_before_m == {"2": 0.5, "4": 0.5} and s.walking_mps == 0.0
+    assert s.within_r0_for_s == pytest.approx(TO_TOUCHDOWN)
+
+
+def test_cli_exits_2_naming_a_missing_photos_folder(tmp_path, capsys, photos):
+    spec, world, _ = _photo_world_at(3, photos, T_TRIGGER + TO_TOUCHDOWN)
+    path = tmp_path / "rows.jsonl"
+    path.write_text(json.dumps(_row(spec, world.positions()[0], 0.0, ground="photo")) + "\n")
+    missing = tmp_path / "no-photos"
+    assert strikes.main([str(path), "--photos", str(missing)]) == 2
+    assert str(missing) in capsys.readouterr().err
+    assert strikes.main([str(path), "--photos", photos]) == 0
+    assert "1 strike(s) traced of 1" in capsys.readouterr().out

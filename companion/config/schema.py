@@ -179,10 +179,10 @@ class PipelineSettings:
     r0_m: float = _f(2.0, "smallest useful landing-zone radius (m)", min=0.1, max=100.0)
     proposal_tie_m: float = _f(0.3, "a proposal may give up this much radius to sit nearer the ground under "
                                     "the camera (m; 0 = the paper's first largest circle)", max=5.0)
-    person_px: float = _f(12.0, "through a pinhole, shrink each frame before the density model so that the smallest "
-                                "person (0.4 m) still spans this many pixels: low over real ground the full frame "
-                                "shows the model the ground's grain, which it takes for people (px; 0 = always "
-                                "the full frame, as before 2026-12-07)", max=1000.0)
+    person_px: float = _f(12.0, "through a pinhole, shrink each frame before the density model (and the landability "
+                                "model) so that the smallest person (0.4 m) still spans this many pixels: low over "
+                                "real ground the full frame shows the models the ground's grain, which they take for "
+                                "people, roofs and walls (px; 0 = always the full frame, as before 2026-12-07)", max=1000.0)
     walk_speed_mps: float = _f(1.5, "how fast a person may walk (m/s): risk grows this fast from where "
                                     "someone was seen (1.34 m/s is the mean, Weidmann 1993)",
                                min=0.1, max=15.0)

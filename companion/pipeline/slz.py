@@ -97,7 +97,8 @@ class PipelineConfig:
     #: Through a pinhole, shrink the frame before the density model runs so that the smallest
     #: person (``input_scale.PERSON_M``) still spans this many pixels where the view reaches
     #: farthest (``input_scale.density_scale``): low over real ground the full frame shows the
-    #: model the ground's grain, which it takes for people. 0: always the full frame.
+    #: model the ground's grain, which it takes for people. The landability model (``surface``)
+    #: is given the same shrunk frame. 0: always the full frame.
     person_px: float = 0.0
 
     def __post_init__(self) -> None:
@@ -298,16 +299,21 @@ class SLZPipeline:
         if box is None and pose is not None and self.config.person_px > 0 and proj.lens is None \
                 and self._crop_multiple is not None:
             scale = density_scale(proj, (h, w), self.config.person_px)
+        small = None
         if scale < 1.0:
             # The map of the shrunk frame is brought back to the frame's size by the occupancy
             # step, which never shrinks an occupied cell (``resize_keep_occupied``).
-            density = np.asarray(self.density(shrunk(frame, scale, self._crop_multiple or 1)))
+            small = shrunk(frame, scale, self._crop_multiple or 1)
+            density = np.asarray(self.density(small))
         else:
             density = self._density(frame, box)
         t1 = time.perf_counter()
         unlandable = None
         if self.surface is not None:
-            unlandable = np.asarray(self.surface(frame))
+            # The landability model sees the same shrunk frame: close up, the full frame shows it
+            # the paving's grain too, which it calls roof and wall (sim.evidence.landability_threshold
+            # --person-px); its map is brought back to the frame's size the same way.
+            unlandable = np.asarray(self.surface(frame if small is None else small))
         t_surface = time.perf_counter()
         free = occupancy_map(density, (h, w), self.config.occupancy)
         if box is not None:

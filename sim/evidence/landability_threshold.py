@@ -21,7 +21,9 @@ frame (``false_positives.STEP``), summed over the seeds per height and threshold
   unlandable, and ``circles_over_5``: in how many seeds more than 5 % of it.
 
 The model's own threshold (``companion.unlandable_threshold``, what the service uses unless
-``pipeline.unlandable_threshold`` says otherwise) is always among the thresholds.
+``pipeline.unlandable_threshold`` says otherwise) is always among the thresholds. ``--levels``
+sums only the named risk levels, as ``pipeline.unlandable_levels`` makes the service do
+(default: every level but the landable one, the service's default).
 ``--person-px N`` feeds the model the frame shrunk as the density model's is
 (``companion.pipeline.input_scale``); the service does not do that for this model (0, the
 default, is what it does). These seeds' scenes are the photo world's, and the photos are the
@@ -73,11 +75,12 @@ class ThresholdFigure:
 
 
 def threshold_curve(model: LandabilityModel, seeds: Sequence[int], heights_m: Sequence[float],
-                    thresholds: Sequence[float], photos: str, person_px: float = 0.0) -> list[ThresholdFigure]:
+                    thresholds: Sequence[float], photos: str, person_px: float = 0.0,
+                    levels: Sequence[str] | None = None) -> list[ThresholdFigure]:
     """The figures of every height and threshold over ``seeds``' photo scenes (those with a free
-    circle), heights in the order given, thresholds ascending."""
-    spec_l = model.landability
-    landable_level = spec_l.names.index(spec_l.landable)
+    circle), heights in the order given, thresholds ascending; ``levels``: the risk levels summed
+    (None: every level but the landable one); LandabilityModelError naming an unknown one."""
+    unlandable_map = model.unlandable(levels)
     ground = photo_ground(photos)
     thresholds = sorted(set(thresholds))
     vv, uu = np.mgrid[0:K.height:STEP, 0:K.width:STEP]
@@ -96,7 +99,7 @@ def threshold_curve(model: LandabilityModel, seeds: Sequence[int], heights_m: Se
             img = render_world(World(seed=seed), pose, K, Mount(), ground)
             proj = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M)
             scale = density_scale(proj, img.shape[:2], person_px)
-            unlandable = 1.0 - model(shrunk(img, scale, model.spec.input_multiple))[landable_level]
+            unlandable = unlandable_map(shrunk(img, scale, model.spec.input_multiple))
             xy = PlaneProjection.from_pose(K, Mount(), pose, head_height=0.0).image_to_plane(pixels)
             seen = np.isfinite(xy).all(axis=1)
             landable = np.zeros(len(xy), bool)
@@ -137,6 +140,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--person-px", type=float, default=0.0,
                     help="shrink each view as the density model's is for this many pixels a person "
                          "(default 0: the full frame, as the service feeds this model)")
+    ap.add_argument("--levels", default=None,
+                    help="comma-separated risk levels to sum, as pipeline.unlandable_levels (default: every level "
+                         "but the landable one)")
     ap.add_argument("--json", action="store_true", help="one JSON object per height and threshold")
     args = ap.parse_args(argv)
     folder = args.photos or default_photos()
@@ -166,11 +172,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         model = LandabilityModel(args.model, threads=2)
+        levels = None if args.levels is None else [n.strip() for n in args.levels.split(",") if n.strip()]
+        if levels is not None:
+            model.levels_index(levels)  # an unknown level is refused before anything is rendered
     except (ValueError, OSError) as e:  # the runner's errors name the file and what is wrong
         print(f"error: {e}", file=sys.stderr)
         return 2
     own = model.landability.threshold
-    figures = threshold_curve(model, seeds, heights, [*thresholds, own], str(folder.resolve()), args.person_px)
+    figures = threshold_curve(model, seeds, heights, [*thresholds, own], str(folder.resolve()), args.person_px,
+                              levels)
     for f in figures:
         if args.json:
             print(json.dumps(asdict(f)))

@@ -100,3 +100,27 @@ def test_person_px_is_checked() -> None:
     for bad in (-1.0, math.nan, 2000.0):
         with pytest.raises(ValueError, match="person_px"):
             PipelineConfig(person_px=bad)
+
+
+@pytest.mark.parametrize("height_m, shrunk", [(8.0, True), (30.0, False)])
+def test_the_landability_model_sees_the_same_shrunk_frame(model: DensityModel, height_m: float, shrunk: bool) -> None:
+    """Close up the full frame shows the landability model the paving's grain too, which it calls
+    roof and wall (``sim.evidence.landability_threshold --person-px``): it is given the density
+    model's shrunk frame, and its map comes back at the frame's size."""
+    from companion.config.schema import SHIPPED_LANDABILITY
+    from companion.pipeline.landability import LandabilityModel
+
+    surface = LandabilityModel(SHIPPED_LANDABILITY, threads=1).unlandable()
+    seen: list[tuple[int, ...]] = []
+
+    def recorded(frame: np.ndarray) -> np.ndarray:
+        seen.append(frame.shape)
+        return surface(frame)
+
+    rec = Recorded(model)
+    pipe = SLZPipeline(rec, PipelineConfig(person_px=12.0, surface_threshold=0.05), intrinsics=K, surface=recorded)
+    pose = Pose(0.0, 0.0, 0.0, -height_m, 0.0, 0.0, 0.0)
+    res = pipe.process(np.full((480, 640, 3), 120, np.uint8), 0.0, pose)
+    assert seen == rec.shapes and len(seen) == 1
+    assert (seen[0][:2] != HW) is shrunk
+    assert res.surface is not None and res.surface.shape == HW

@@ -44,3 +44,17 @@ def test_cli_prints_the_models_own_threshold_and_refuses_bad_input(photos, tmp_p
     assert str(missing) in capsys.readouterr().err
     assert lt.main(["--photos", photos, "--model", str(tmp_path / "x.onnx")]) == 2
     assert "no model" in capsys.readouterr().err
+
+
+def test_levels_sum_only_the_named_risk_levels(photos, capsys) -> None:
+    """Vegetation alone can call no more ground unlandable than every level together, and an
+    unknown level is refused naming the model's levels."""
+    model = LandabilityModel(SHIPPED_LANDABILITY, threads=2)
+    (every,) = lt.threshold_curve(model, [3], [20.0], [0.05], photos)
+    (veg,) = lt.threshold_curve(model, [3], [20.0], [0.05], photos, levels=["vegetation"])
+    assert veg.landable_marked_pct <= every.landable_marked_pct
+    assert veg.unlandable_left_pct is not None and every.unlandable_left_pct is not None
+    assert veg.unlandable_left_pct >= every.unlandable_left_pct
+    assert lt.main(["--photos", photos, "--levels", "vegetation,lava"]) == 2
+    err = capsys.readouterr().err
+    assert "'lava'" in err and "obstacles" in err

@@ -88,8 +88,9 @@ class Strike:
         lawn = "" if self.on_lawn is None else \
             f"; touchdown {self.lawn_centre_m:.1f} m from the lawn's centre (radius {self.lawn_radius_m:.1f} m): {self.on_lawn}"
         flag = f"  [the row says {self.clearance_m:.2f} m: another world?]" if self.mismatch else ""
+        whom = "person standing in a photo" if self.striker == "photo" else f"{self.striker} walker"
         return (f"seed {self.seed:>4} {self.flavour:<9} {self.world:<12} {who:<8} {self.recomputed_m:.2f} m from a "
-                f"{self.striker} walker{flag}\n"
+                f"{whom}{flag}\n"
                 f"    distance to the point: trigger {self.distance_at_trigger_m:.1f}  {before}  (m); "
                 f"walking at {self.walking_mps:.2f} m/s, closing at {self.approach_mps:.2f}; within r0 for the last {self.within_r0_for_s:.1f} s{lawn}")
 

@@ -157,6 +157,7 @@ def test_a_person_standing_in_a_photo_is_named_and_never_moves(photos):
     assert s.striker == "photo" and s.recomputed_m == pytest.approx(0.5, abs=1e-3) and not s.mismatch
     assert s.distance_before_m == {"2": 0.5, "4": 0.5} and s.walking_mps == 0.0
     assert s.within_r0_for_s == pytest.approx(TO_TOUCHDOWN)
+    assert "0.50 m from a person standing in a photo" in s.text()
 
 
 def test_cli_exits_2_naming_a_missing_photos_folder(tmp_path, capsys, photos):

@@ -78,8 +78,9 @@ SHIPPED_MODEL = shipped_model()
 #: land), beside the density model; ``model.landability`` switches it on.
 SHIPPED_LANDABILITY = _packaged("slz-landability.onnx")
 #: Whether the landability model runs unless the configuration says otherwise: off, because on
-#: the simulator's drawn ground the shipped model errs both ways (companion/models/LANDABILITY_CARD.md,
-#: "On the simulator's ground"; docs/design.md, step 1b).
+#: the simulator's drawn ground the shipped model errs both ways, and on the photo world it costs
+#: clear landings far beyond chance (companion/models/LANDABILITY_CARD.md, "On the simulator's
+#: ground" and "On the photo world"; docs/design.md, step 1b).
 LANDABILITY_DEFAULT = False
 
 FLAVOURS = ("auto", "ardupilot", "px4")

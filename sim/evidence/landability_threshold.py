@@ -50,9 +50,8 @@ from sim.evidence.false_positives import HEAD_M, STEP, K, _landable_at
 from sim.evidence.person_halo import parse_floats
 from sim.flights.flight import build_world, photo_ground
 from sim.flights.scenarios import FlightJob, parse_seeds
-from sim.flights.spec import default_photos
+from sim.flights.spec import photos_folder
 from sim.world.crowd import World
-from sim.world.photo_ground import PhotosError, check_photos
 from sim.world.render import render_world
 
 #: The thresholds printed unless ``--thresholds`` says otherwise (the model's own is added).
@@ -105,13 +104,14 @@ def threshold_curve(model: LandabilityModel, seeds: Sequence[int], heights_m: Se
             landable = np.zeros(len(xy), bool)
             landable[seen] = _landable_at(ground, xy[seen])
             inside = seen & (np.hypot(xy[:, 0] - free.north, xy[:, 1] - free.east) < free.radius)
+            land, unland = landable & seen, ~landable & seen  # the same for every threshold
             for t in thresholds:
                 marked = (surface_free_map(unlandable, img.shape[:2], t) == OCCUPIED)[vv.ravel(), uu.ravel()]
                 s = sums[(h, t)]
-                s[0] += int((marked & landable & seen).sum())
-                s[1] += int((landable & seen).sum())
-                s[2] += int((~marked & ~landable & seen).sum())
-                s[3] += int((~landable & seen).sum())
+                s[0] += int((marked & land).sum())
+                s[1] += int(land.sum())
+                s[2] += int((~marked & unland).sum())
+                s[3] += int(unland.sum())
                 circles[(h, t)].append(float(marked[inside].mean()) if inside.any() else 0.0)
     out = []
     for h in heights_m:
@@ -145,17 +145,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "but the landable one)")
     ap.add_argument("--json", action="store_true", help="one JSON object per height and threshold")
     args = ap.parse_args(argv)
-    folder = args.photos or default_photos()
     try:
-        check_photos(folder)
-    except PhotosError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    try:
+        photos = photos_folder("photo", args.photos)
         seeds = parse_seeds(args.seeds)
         heights = parse_floats(args.heights)
         thresholds = parse_floats(args.thresholds)
-    except ValueError as e:
+    except ValueError as e:  # a photos folder's error names the folder and what is wrong with it
         print(f"error: {e}", file=sys.stderr)
         return 2
     if not all(0.0 <= t < 1.0 for t in thresholds):
@@ -179,7 +174,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     own = model.landability.threshold
-    figures = threshold_curve(model, seeds, heights, [*thresholds, own], str(folder.resolve()), args.person_px,
+    assert photos is not None  # photos_folder gives a photo ground its folder, or raises
+    figures = threshold_curve(model, seeds, heights, [*thresholds, own], photos, args.person_px,
                               levels)
     for f in figures:
         if args.json:

@@ -47,9 +47,8 @@ from sim.evidence.person_halo import parse_floats
 from sim.flights.flight import FlightSpec, build_world
 from sim.flights.results import read_rows
 from sim.flights.scenarios import scenario
-from sim.flights.spec import default_photos
+from sim.flights.spec import photos_folder
 from sim.world.crowd import TICK_S, World, add_crossing_walkers
-from sim.world.photo_ground import PhotosError, check_photos
 from sim.world.walkers import ScriptedWalkers
 
 #: Worlds rebuilt here (the scenarios' own; DroneCrowd needs ../shared and is not a seed's draw).
@@ -252,13 +251,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"sim.evidence.strikes: {args.results}: {bad} line(s) could not be read, left out", file=sys.stderr)
     photos = None
     if any(r.get("ground") == "photo" and r.get("strike") for r in rows):
-        folder = args.photos or default_photos()
         try:
-            check_photos(folder)
-        except PhotosError as exc:
+            photos = photos_folder("photo", args.photos)
+        except ValueError as exc:  # names the folder and what is wrong with it
             print(f"sim.evidence.strikes: {exc}", file=sys.stderr)
             return 2
-        photos = str(folder.resolve())
     try:
         found, skipped = strikes(rows, before, photos)
     except (KeyError, TypeError, ValueError) as exc:

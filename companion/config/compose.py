@@ -74,7 +74,8 @@ OBEDIENCE_KEYS = _keys("controller", tolerance_z_m="controller.obey_tolerance_z_
 DESCENT_KEYS = _keys("controller", "descend_speed_mps", "land_alt_m", "land_speed_mps",
                      walk_speed_mps="pipeline.walk_speed_mps")
 PIPELINE_KEYS = _keys("pipeline", "head_height_m", "r0_m", "proposal_tie_m", "calm_margin_m", "person_px",
-                      surface_threshold="pipeline.unlandable_threshold")
+                      surface_threshold="pipeline.unlandable_threshold",
+                      surface_scope="pipeline.unlandable_scope")
 RISK_KEYS = _keys("pipeline", "walk_speed_mps")
 OCCUPANCY_KEYS = _keys("pipeline", threshold="pipeline.occupancy_threshold")
 LINK_KEYS = _keys("link", "system_id", "component_id", "target_system", "peers")
@@ -170,6 +171,7 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         calm_margin_m=p.calm_margin_m,
         unwalked=planner.prefer_unwalked,
         surface_threshold=None if p.unlandable_threshold < 0 else p.unlandable_threshold,
+        surface_scope=p.unlandable_scope,
         steady_margin_m=planner.steady_margin_m if planner.steady_s > 0 else None,
         risk=_made(RISK_KEYS, RiskMapConfig, walk_speed_mps=p.walk_speed_mps),
     )

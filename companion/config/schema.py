@@ -193,6 +193,10 @@ class PipelineSettings:
                                           "empty = every level but the model's landable one")
     unlandable_threshold: float = _f(-1.0, "probability of the unlandable levels above which a cell is "
                                            "unlandable; -1 = the model's validated value", min=-1.0, max=0.999)
+    unlandable_scope: str = _f("zone", "what unlandable ground keeps off: zone = the whole zone (its radius is the "
+                                       "free ground of people and ground together), landing_point = only the landing "
+                                       "point and 0.5 m around it (the zone's radius is people's alone)",
+                                 choices=("zone", "landing_point"))
 
 
 @dataclass(frozen=True)

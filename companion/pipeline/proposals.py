@@ -80,6 +80,21 @@ class PointDistance:
         return float(np.sqrt(np.min(di * di + dj * dj)))
 
 
+def landing_points(surface_grid: np.ndarray, cell: float, footprint_m: float) -> np.ndarray:
+    """bool grid of the cells the vehicle may touch down on: centres whose disc of ``footprint_m``
+    (m, the vehicle's radius) touches no non-free cell of ``surface_grid`` (the landability
+    model's free grid, ``headplane.sample_to_grid``), measured as ``clearance_at`` measures a
+    zone's radius. Outside the grid counts as non-free. ``cell``: the grid's cell (m)."""
+    if not (math.isfinite(cell) and cell > 0):
+        raise ValueError(f"cell must be > 0 m, got {cell!r}")
+    if not (math.isfinite(footprint_m) and footprint_m >= 0):
+        raise ValueError(f"footprint must be >= 0 m, got {footprint_m!r}")
+    free = surface_grid > 0
+    if footprint_m == 0:
+        return free
+    return free & ((distance_cells(surface_grid) - _HALF_DIAGONAL) * cell >= footprint_m)
+
+
 def clearance_at(dist: np.ndarray | PointDistance, grid: GridSpec, x: float, y: float) -> float:
     """Radius in metres of the largest circle centred at plane point (x, y) that touches no
     non-free cell, from the distance map of ``distance_cells``; 0 outside the grid.
@@ -95,21 +110,29 @@ def clearance_at(dist: np.ndarray | PointDistance, grid: GridSpec, x: float, y: 
 
 def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
             dist: np.ndarray | None = None, prefer: tuple[float, float] | None = None,
-            tie_m: float = TIE_M) -> list[Circle]:
+            tie_m: float = TIE_M, centres: np.ndarray | None = None) -> list[Circle]:
     """Up to ``n_max`` disjoint free circles, largest first, each with radius >= ``r_min`` metres.
 
     free_grid: uint8 grid, > 0 where free (see ``headplane.sample_to_grid``).
     dist: its ``distance_cells`` if already computed (it is not modified).
     prefer: a plane point (m; the ground under the camera): of the centres whose circle is within
     ``tie_m`` metres of the largest, the one nearest it is taken. None: the first largest.
+    centres: bool grid of the cells a circle may be centred on (``landing_points``: where the
+    vehicle may touch down), None: any. The radius is still the free grid's at that centre: the
+    largest circle centred on an allowed cell, not the largest circle of the allowed cells.
     Each circle touches no non-free cell (not even a corner of one).
     """
     if free_grid.shape != grid.shape:
         raise ValueError(f"free grid shape {free_grid.shape} does not match grid {grid.shape}")
+    if centres is not None and centres.shape != grid.shape:
+        raise ValueError(f"centres shape {centres.shape} does not match grid {grid.shape}")
     out: list[Circle] = []
     if n_max <= 0 or free_grid.size == 0:
         return out
     dist = distance_cells(free_grid) if dist is None else dist.copy()
+    # Where a centre may go: the distances at the allowed cells, 0 elsewhere. Kept in step with
+    # ``dist`` below (a minimum keeps the 0s), so the search reads it and the radius ``dist``.
+    sel = dist if centres is None else np.where(centres, dist, np.float32(0.0))
     rows, cols = dist.shape
     pref = None
     if prefer is not None and all(math.isfinite(v) for v in prefer):
@@ -117,12 +140,13 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
         pref = ((prefer[1] - grid.y0) / grid.cell, (prefer[0] - grid.x0) / grid.cell)
     tie = max(0.0, tie_m) / grid.cell
     for _ in range(n_max):
-        flat = int(np.argmax(dist))
+        flat = int(np.argmax(sel))
         i, j = divmod(flat, cols)
-        d = d_max = float(dist[i, j])
+        d = float(sel[i, j])
+        d_max = float(dist.max()) if sel is not dist else d
         if pref is not None and tie > 0 and (d - _HALF_DIAGONAL) * grid.cell >= r_min:
             # Never below r_min for a nearer centre: the largest circle would have qualified.
-            near = np.flatnonzero(dist >= max(d - tie, r_min / grid.cell + _HALF_DIAGONAL))
+            near = np.flatnonzero(sel >= max(d - tie, r_min / grid.cell + _HALF_DIAGONAL))
             if len(near) > 1:
                 ni, nj = np.divmod(near, cols)
                 k = int(np.argmin((ni - pref[0]) ** 2 + (nj - pref[1]) ** 2))
@@ -144,4 +168,7 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
         np.maximum(to_disk, 0.0, out=to_disk)
         window = dist[i0:i1, j0:j1]
         np.minimum(window, to_disk, out=window)
+        if sel is not dist:
+            window = sel[i0:i1, j0:j1]
+            np.minimum(window, to_disk, out=window)
     return out

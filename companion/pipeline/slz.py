@@ -39,7 +39,7 @@ from companion.pipeline.headplane import (
 from companion.pipeline.input_scale import density_scale, shrunk
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
-from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, propose
+from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, landing_points, propose
 from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, RiskMapError, Spot, SpotRequest
 from companion.pipeline.tracker import Track, TrackerParams, ZoneTracker
 
@@ -49,6 +49,8 @@ DensityFn = Callable[[np.ndarray], np.ndarray]
 #: frame -> 2-D per-cell probability that the ground is unlandable (``landability.UnlandableMap``).
 SurfaceFn = Callable[[np.ndarray], np.ndarray]
 
+#: What unlandable ground keeps off (``PipelineConfig.surface_scope``).
+SURFACE_SCOPES = ("zone", "landing_point")
 STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking", "people")
 
 #: ``GroundView.spot``: the risk map's cells are coarsened this many times (0.3 m at the default 0.1 m).
@@ -67,7 +69,11 @@ class PipelineConfig:
     settings, its cell the grid's) measures what frames remember (calm, unwalked ground, where
     people walked).
     surface_threshold: a cell is unlandable where the surface model's probability exceeds this;
-    None = the model's own (``threshold`` of the callable), else 0.5. Unused without one."""
+    None = the model's own (``threshold`` of the callable), else 0.5. Unused without one.
+    surface_scope: what unlandable ground keeps off: ``"zone"``, the whole circle (a zone's radius
+    is the free ground's of people and ground together), or ``"landing_point"``, only the centre
+    and ``footprint_m`` (m) around it (the radius is people's alone; the landing point moves only
+    onto such centres). Unused without a surface model."""
 
     occupancy: OccupancyParams = field(default_factory=OccupancyParams)
     grid: GridParams = field(default_factory=GridParams)
@@ -82,6 +88,8 @@ class PipelineConfig:
     #: not paid for.
     people: PeopleParams | None = None
     surface_threshold: float | None = None
+    surface_scope: str = "zone"
+    footprint_m: float = 0.5
     #: Measure each posed frame's zones' and ground-below's ``calm_s`` over ``r0_m`` plus
     #: ``calm_margin_m`` (m) around their centre (``riskmap.GroundRiskMap.calm_s``); off, they
     #: stay NaN and, without ``unwalked`` either, the map is not run at all (its update is the
@@ -111,6 +119,10 @@ class PipelineConfig:
         surface = self.surface_threshold
         require(surface is None or (math.isfinite(surface) and 0.0 <= surface < 1.0), "pipeline",
                 "surface_threshold", "must be in [0, 1)", surface)
+        require(self.surface_scope in SURFACE_SCOPES, "pipeline", "surface_scope",
+                f"must be one of {', '.join(SURFACE_SCOPES)}", self.surface_scope)
+        require(math.isfinite(self.footprint_m) and 0 <= self.footprint_m <= 10, "pipeline", "footprint_m",
+                "must be >= 0 and <= 10 m", self.footprint_m)
         if abs(self.risk.cell_m - self.grid.cell) > 1e-9:
             raise ValueError(f"the risk map's cell ({self.risk.cell_m} m) must be the grid's ({self.grid.cell} m)")
         require(math.isfinite(self.head_height_m) and 0 <= self.head_height_m < 5, "pipeline", "head_height_m",
@@ -146,11 +158,14 @@ class GroundView:
     """What the decision may ask of the risk map about the frame captured at ``t``: where the
     landing point may go (``spot``, the controller's ``place_lookback_s``). It reads the map as
     that frame left it (``revision``: the map's updates then); once the pipeline has taken another
-    frame it answers None. The service decides on each frame before it processes the next."""
+    frame it answers None. The service decides on each frame before it processes the next.
+    ``landable``: whether the vehicle may touch down at a plane point on this frame (the
+    landability model's ``landing_point`` scope); a spot elsewhere is not offered."""
 
     t: float
     risk: GroundRiskMap | None
     revision: int
+    landable: Callable[[float, float], bool] | None = None
 
     def spot(self, request: SpotRequest) -> Spot | None:
         """The point within ``request.radius_m`` of its centre farthest from the ground people were
@@ -162,11 +177,27 @@ class GroundView:
         if risk is None or risk.stats.updates != self.revision:
             return None
         try:
-            return risk.farthest_from_walkers(request.x, request.y, request.radius_m, self.t, request.lookback_s,
+            spot = risk.farthest_from_walkers(request.x, request.y, request.radius_m, self.t, request.lookback_s,
                                               PLACE_REACH_M, aim=request.aim, factor=SPOT_FACTOR)
         except ValueError as exc:  # a bug, not the vehicle's fault: the point stays where it is
             log.warning("landing point not placed: %s", exc)
             return None
+        if spot is not None and self.landable is not None and not self.landable(spot.x, spot.y):
+            return None  # farther from people, but not ground to land on: the point stays
+        return spot
+
+
+@dataclass(frozen=True)
+class _CellMask:
+    """Plane point (m) -> whether its cell of ``grid`` is set in ``mask``; False off the grid."""
+
+    grid: GridSpec
+    mask: np.ndarray
+
+    def __call__(self, x: float, y: float) -> bool:
+        j = int(round((x - self.grid.x0) / self.grid.cell))
+        i = int(round((y - self.grid.y0) / self.grid.cell))
+        return 0 <= i < self.mask.shape[0] and 0 <= j < self.mask.shape[1] and bool(self.mask[i, j])
 
 
 @dataclass
@@ -177,7 +208,8 @@ class FrameResult:
     surface model runs; it is counted in ``total``, not in ``post_density``).
 
     With a surface model: ``people_free`` and ``surface`` are the image-sized free maps of each alone
-    (``occupancy`` is their minimum), ``unlandable`` the model's map. ``proposal_edges`` says, per
+    (``occupancy`` is their minimum, what is drawn; in the ``landing_point`` scope the zones are
+    measured on people's alone), ``unlandable`` the model's map. ``proposal_edges`` says, per
     proposal, what bounds it (``edges.EDGES``); each track's ``edge`` does the same. Without a
     surface model neither is judged (an empty list, empty strings)."""
 
@@ -322,7 +354,7 @@ class SLZPipeline:
             looked = np.zeros_like(free)
             looked[y0:y1, x0:x1] = free[y0:y1, x0:x1]
             free = looked
-        people_free = surface = None
+        people_free = surface = centres = None
         if unlandable is not None:
             thr = self.config.surface_threshold
             surface = surface_free_map(unlandable, (h, w), 0.5 if thr is None else thr, self.config.occupancy)
@@ -338,7 +370,13 @@ class SLZPipeline:
         grid = grid_for_view(proj, (h, w), self.config.grid)
         free_grid, seen = sample_with_view(free, proj, grid, box)
         people_grid = surface_grid = None
-        if surface is not None:
+        if surface is not None and self.config.surface_scope == "landing_point":
+            # Unlandable ground keeps the landing point off, not the zone: the zone's radius is
+            # people's alone (a roof beside a square does not shrink the square's zones), and
+            # proposals are centred only where the vehicle's footprint is on landable ground.
+            centres = landing_points(sample_to_grid(surface, proj, grid), grid.cell, self.config.footprint_m)
+            free = np.minimum(free, surface)  # drawn as before: unlandable ground shows
+        elif surface is not None:
             # Sampling keeps a cell free only when all its pixels are (erosion, then nearest):
             # that commutes with the pixel-wise minimum, so the grid of the combined map is the
             # minimum of the two grids, and both are at hand for the zones' edges.
@@ -359,7 +397,7 @@ class SLZPipeline:
         dist = distance_cells(free_grid)
         # Near-ties go to the ground under the camera: proposals stay put as the view moves.
         proposals = propose(free_grid, grid, self.config.n_proposals, self.config.r0_m, dist,
-                            prefer=proj.camera_xy, tie_m=self.config.proposal_tie_m)
+                            prefer=proj.camera_xy, tie_m=self.config.proposal_tie_m, centres=centres)
         t5 = time.perf_counter()
         # How far the view reaches is asked at a few points only (the zones' centres).
         clearance = FrameClearance(dist, PointDistance(seen), grid)
@@ -422,7 +460,8 @@ class SLZPipeline:
             timings["landability"] = (t_surface - t1) * 1e3
         timings["post_density"] = (t7 - t_surface) * 1e3
         timings["total"] = (t7 - t0) * 1e3
-        ground = GroundView(t, self.risk, self.risk.stats.updates if self.risk is not None else 0)
+        ground = GroundView(t, self.risk, self.risk.stats.updates if self.risk is not None else 0,
+                            None if centres is None else _CellMask(grid, centres))
         return FrameResult(t, proposals, tracks, timings, proj, free, grid, free_grid,
                            density, below, followed, edges, people_free,
                            surface, unlandable, ground, box)

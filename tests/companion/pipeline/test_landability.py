@@ -4,6 +4,7 @@ unlandable ground, the zones' edges, start-up errors, the drawing, and training 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import sys
 from pathlib import Path
 
@@ -586,3 +587,59 @@ def test_rethreshold_keeps_the_shipped_threshold_and_refuses_other_models(tmp_pa
     assert "threshold re-chosen" in meta["companion.training"]
     assert T.main(["--shared", str(shared_dir), "--rethreshold", str(model_path), "--out", str(out)]) == 2
     assert T.main(["--shared", str(shared_dir), "--rethreshold", str(tmp_path / "none.onnx"), "--out", str(out)]) == 2
+
+
+# ---- the landing-point scope (pipeline.unlandable_scope) ---------------------------------------
+
+def test_in_the_landing_point_scope_unlandable_ground_keeps_the_centre_off_not_the_zone(model_path: Path) -> None:
+    """Nobody in view, the west half unlandable (a roof): in the ``zone`` scope every circle keeps
+    off the roof; in the ``landing_point`` scope circles may span it but each is centred on the
+    landable half, its footprint clear of the roof, and the largest is larger; the roof is drawn."""
+    density = DensityModel(model_path, threads=1)
+    gsd = 0.05
+    proj = PlaneProjection.nadir(gsd)
+    frame = np.full((480, 640, 3), 120, np.uint8)
+
+    def roof_west(f: np.ndarray) -> np.ndarray:
+        p = np.zeros((f.shape[0] // 8, f.shape[1] // 8), np.float32)
+        p[:, : p.shape[1] // 2] = 0.9
+        return p
+
+    cfg = PipelineConfig(surface_threshold=0.5)
+    zone = SLZPipeline(density, cfg, projection=proj, surface=roof_west).process(frame, 0.0)
+    point = SLZPipeline(density, replace(cfg, surface_scope="landing_point"), projection=proj,
+                        surface=roof_west).process(frame, 0.0)
+    edge = 320 * gsd  # the roof's edge (m east of the frame's west side, as x grows)
+    x0 = zone.grid.x0 - zone.grid.cell / 2
+    assert zone.proposals and point.proposals
+    assert all(c.x - c.r >= x0 + edge - 0.05 - 1e-6 for c in zone.proposals)  # grown marks: a cell's slack
+    for c in point.proposals:
+        assert c.x - x0 >= edge + 0.5 - 0.1, f"{c} is centred within the footprint of the roof"
+    assert point.proposals[0].r > zone.proposals[0].r + 1.0
+    assert point.proposal_edges == []  # people and view only bound a zone here: not judged
+    assert (point.occupancy[:, :300] == OCCUPIED).all() and np.array_equal(point.surface, zone.surface)
+    with pytest.raises(ValueError, match="surface_scope"):
+        PipelineConfig(surface_scope="roof")
+    with pytest.raises(ValueError, match="footprint_m"):
+        PipelineConfig(footprint_m=-0.1)
+
+
+def test_the_landing_point_is_not_moved_onto_unlandable_ground() -> None:
+    """The frame's ground view offers the spot farthest from walkers only where the vehicle may
+    touch down (``GroundView.landable``)."""
+    from companion.pipeline.riskmap import GroundRiskMap, RiskMapConfig, SpotRequest
+    from companion.pipeline.slz import GroundView
+
+    risk = GroundRiskMap(RiskMapConfig())
+    cell = risk.config.cell_m
+    grid = GridSpec(x0=-10.0, y0=-10.0, cell=cell, rows=int(20 / cell) + 1, cols=int(20 / cell) + 1)
+    free = np.full(grid.shape, 255, np.uint8)
+    free[:, : grid.shape[1] // 2 - int(3 / cell)] = 0  # people west of x = -3 m
+    risk.update(grid, free, np.full(grid.shape, 255, np.uint8), 1.0, (0.0, 0.0))
+    request = SpotRequest(0.0, 0.0, 3.0, 30.0, aim=(0.0, 0.0))
+    anywhere = GroundView(1.0, risk, risk.stats.updates)
+    spot = anywhere.spot(request)
+    assert spot is not None and spot.x > 1.0  # away from the people, east
+    east_is_water = GroundView(1.0, risk, risk.stats.updates, landable=lambda x, y: x < 0.5)
+    assert east_is_water.spot(request) is None  # it stays where it is
+    assert GroundView(1.0, risk, risk.stats.updates, landable=lambda x, y: True).spot(request) == spot

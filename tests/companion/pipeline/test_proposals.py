@@ -175,3 +175,65 @@ def test_the_distance_read_at_points_equals_the_whole_transform(seed):
     for i in range(h):
         for j in range(w):
             assert points[i, j] == pytest.approx(float(full[i, j]), abs=1e-5)
+
+
+# ---- centres on landable ground (pipeline.unlandable_scope = "landing_point") -------------------
+
+def _centre_cell(circle, grid):
+    return int(round((circle.y - grid.y0) / grid.cell)), int(round((circle.x - grid.x0) / grid.cell))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_allowed_centres_keep_every_guarantee_and_sit_on_allowed_cells(seed):
+    """Random people and a random patch of unlandable cells: each circle is centred on an allowed
+    cell, keeps off people (not off the unlandable cells: its radius is people's), the circles are
+    disjoint, largest first, and the first is the largest circle any allowed centre has."""
+    free = _random_map(seed)
+    rng = np.random.default_rng(100 + seed)
+    centres = np.ones(free.shape, bool)
+    i0, j0 = rng.integers(0, 40), rng.integers(0, 50)
+    centres[i0:i0 + 25, j0:j0 + 35] = False  # a roof
+    grid = GridSpec(x0=3.0, y0=-2.0, cell=0.25, rows=free.shape[0], cols=free.shape[1])
+    for prefer in (None, (10.0, 5.0)):
+        circles = propose(free, grid, n_max=6, r_min=0.3, prefer=prefer, centres=centres)
+        assert circles
+        dist = distance_cells(free)
+        best_allowed = float(np.max(np.where(centres, dist, 0))) - math.sqrt(2) / 2
+        tie = 0.3 if prefer is not None else 0.0
+        assert circles[0].r * (1 / grid.cell) >= best_allowed - tie / grid.cell - 0.01
+        for c in circles:
+            assert centres[_centre_cell(c, grid)], f"{c} is centred on unlandable ground"
+            assert not _touches(c, free, grid) and c.r >= 0.3
+        for a in range(len(circles)):
+            for b in range(a + 1, len(circles)):
+                ca, cb = circles[a], circles[b]
+                assert math.hypot(ca.x - cb.x, ca.y - cb.y) >= ca.r + cb.r - 1e-9
+    # All centres allowed: exactly the unmasked proposals.
+    everywhere = np.ones(free.shape, bool)
+    assert propose(free, grid, 6, 0.3, centres=everywhere) == propose(free, grid, 6, 0.3)
+
+
+def test_no_allowed_centre_gives_no_proposal_and_a_wrong_mask_is_refused():
+    free = np.full((40, 40), 255, np.uint8)
+    grid = GridSpec(0.0, 0.0, 0.1, 40, 40)
+    assert propose(free, grid, 3, 0.2, centres=np.zeros((40, 40), bool)) == []
+    with pytest.raises(ValueError, match="centres shape"):
+        propose(free, grid, 3, 0.2, centres=np.ones((40, 41), bool))
+
+
+def test_landing_points_keep_the_footprint_off_unlandable_ground():
+    from companion.pipeline.proposals import landing_points
+
+    surface = np.full((50, 50), 255, np.uint8)
+    surface[:, :20] = 0  # unlandable west of column 20
+    pts = landing_points(surface, 0.1, 0.5)
+    cols = np.flatnonzero(pts[25])
+    # The last unlandable square ends at column 19.5: column 25 is the first whose disc of 0.5 m
+    # (5 cells) stays off it, with the half diagonal of a cell paid as a zone's radius pays it.
+    assert cols.min() == 25 and not pts[:, :25].any()
+    assert not pts[:5].any() and not pts[-5:].any()  # off the grid counts as unlandable too
+    assert np.array_equal(landing_points(surface, 0.1, 0.0), surface > 0)
+    with pytest.raises(ValueError):
+        landing_points(surface, 0.0, 0.5)
+    with pytest.raises(ValueError):
+        landing_points(surface, 0.1, -1.0)

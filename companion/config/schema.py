@@ -77,11 +77,13 @@ SHIPPED_MODEL = shipped_model()
 #: The shipped landability model (water, vehicles, trees, roofs, ...: ground that is no place to
 #: land), beside the density model; ``model.landability`` switches it on.
 SHIPPED_LANDABILITY = _packaged("slz-landability.onnx")
-#: Whether the landability model runs unless the configuration says otherwise: off, because on
-#: the simulator's drawn ground the shipped model errs both ways, and on the photo world it costs
-#: clear landings far beyond chance (companion/models/LANDABILITY_CARD.md, "On the simulator's
-#: ground" and "On the photo world"; docs/design.md, step 1b).
-LANDABILITY_DEFAULT = False
+#: Whether the landability model runs unless the configuration says otherwise: on since
+#: 2026-12-07, in the landing-point scope with the water, vehicle and obstacle levels
+#: (``pipeline.unlandable_scope``, ``pipeline.unlandable_levels``): on the photo world that keeps
+#: the vehicle off roofs at no cost in clear landings; keeping whole zones off unlandable ground,
+#: or counting trees, cost them far beyond chance (companion/models/LANDABILITY_CARD.md, "On the
+#: photo world"; docs/photo-world.md; docs/design.md, step 1b).
+LANDABILITY_DEFAULT = True
 
 FLAVOURS = ("auto", "ardupilot", "px4")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -164,8 +166,8 @@ class ModelSettings:
                    path=True)
     threads: int = _f(2, "onnxruntime intra-op threads", min=1, max=64)
     overrides: dict[str, Any] = _f({}, "settings that win over the model's metadata (color, scale, ...)")
-    landability: bool = _f(LANDABILITY_DEFAULT, "also keep zones off unlandable ground (water, vehicles, trees, "
-                                                "roofs, ...) with the landability model")
+    landability: bool = _f(LANDABILITY_DEFAULT, "also keep landing points (or zones) off unlandable ground "
+                                                "(water, vehicles, roofs, walls, ...) with the landability model")
     landability_path: str = _f(str(SHIPPED_LANDABILITY), "ONNX landability model file; empty = the model shipped "
                                                          "in the package", path=True)
 
@@ -189,11 +191,12 @@ class PipelineSettings:
                                min=0.1, max=15.0)
     calm_margin_m: float = _f(1.0, "a zone is calm when nobody has been seen within r0 plus this of it while "
                                    "watched (m; controller.min_calm_s)", max=50.0)
-    unlandable_levels: list[str] = _f([], "risk levels of the landability model that keep zones off the ground; "
-                                          "empty = every level but the model's landable one")
+    unlandable_levels: list[str] = _f(["water", "vehicles", "obstacles"],
+                                      "risk levels of the landability model that keep landing points off the ground; "
+                                      "empty = every level but the model's landable one")
     unlandable_threshold: float = _f(-1.0, "probability of the unlandable levels above which a cell is "
                                            "unlandable; -1 = the model's validated value", min=-1.0, max=0.999)
-    unlandable_scope: str = _f("zone", "what unlandable ground keeps off: zone = the whole zone (its radius is the "
+    unlandable_scope: str = _f("landing_point", "what unlandable ground keeps off: zone = the whole zone (its radius is the "
                                        "free ground of people and ground together), landing_point = only the landing "
                                        "point and 0.5 m around it (the zone's radius is people's alone)",
                                  choices=("zone", "landing_point"))
@@ -595,9 +598,11 @@ def all_keys(cls: type = Config, prefix: str = "") -> list[tuple[str, Any, str]]
 #: Settings added after recordings were first made, with the value that flew before each existed
 #: (a recording's ``meta.json`` without the key was flown so): ``controller.land_agl_m``, the
 #: LAND at ``land_alt_m`` whatever the rangefinder said; ``pipeline.person_px``, the density
-#: model on the full frame. Add a row when a new setting changes what flies, so that old
-#: recordings replay as they were flown.
-BEFORE_RECORDED: dict[str, Any] = {"controller.land_agl_m": 0.0, "pipeline.person_px": 0.0}
+#: model on the full frame; ``pipeline.unlandable_scope``, unlandable ground keeping whole zones
+#: off. Add a row when a new setting changes what flies, so that old recordings replay as they
+#: were flown.
+BEFORE_RECORDED: dict[str, Any] = {"controller.land_agl_m": 0.0, "pipeline.person_px": 0.0,
+                                   "pipeline.unlandable_scope": "zone"}
 
 
 #: Removed keys whose recorded value does not change what a replay computes (the link, the

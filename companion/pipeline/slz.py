@@ -208,8 +208,8 @@ class FrameResult:
     surface model runs; it is counted in ``total``, not in ``post_density``).
 
     With a surface model: ``people_free`` and ``surface`` are the image-sized free maps of each alone
-    (``occupancy`` is their minimum, what is drawn; in the ``landing_point`` scope the zones are
-    measured on people's alone), ``unlandable`` the model's map. ``proposal_edges`` says, per
+    (``occupancy``, what the zones are measured on, is their minimum in the ``zone`` scope and
+    people's alone in the ``landing_point`` scope), ``unlandable`` the model's map. ``proposal_edges`` says, per
     proposal, what bounds it (``edges.EDGES``); each track's ``edge`` does the same. Without a
     surface model neither is judged (an empty list, empty strings)."""
 
@@ -375,7 +375,6 @@ class SLZPipeline:
             # people's alone (a roof beside a square does not shrink the square's zones), and
             # proposals are centred only where the vehicle's footprint is on landable ground.
             centres = landing_points(sample_to_grid(surface, proj, grid), grid.cell, self.config.footprint_m)
-            free = np.minimum(free, surface)  # drawn as before: unlandable ground shows
         elif surface is not None:
             # Sampling keeps a cell free only when all its pixels are (erosion, then nearest):
             # that commutes with the pixel-wise minimum, so the grid of the combined map is the

@@ -83,7 +83,11 @@ def overlay_people(frame: np.ndarray, occupancy_free: np.ndarray, alpha: float =
     if surface_free is None or surface_free.shape != occ.shape:
         _tint(out, occ, RED, alpha)
         return out
-    ground = (surface_free == OCCUPIED) & occ
+    # Unlandable ground is drawn wherever the model marks it: in the landing-point scope
+    # (``pipeline.unlandable_scope``) the zones' occupancy is people's alone.
+    ground = surface_free == OCCUPIED
+    if looked_at is not None:
+        ground &= inside
     people = ((people_free == OCCUPIED) & occ) if people_free is not None and people_free.shape == occ.shape \
         else occ & ~ground
     _tint(out, ground & ~people, MAGENTA, alpha)

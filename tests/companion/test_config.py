@@ -371,3 +371,10 @@ def test_a_recording_flown_before_person_px_existed_replays_on_the_full_frame() 
     flown = config.load(None).to_dict()
     assert config.from_recording(flown).pipeline.person_px == 12.0
     assert config.from_recording({}, {"pipeline.person_px": 8.0}).pipeline.person_px == 8.0
+
+
+def test_a_recording_flown_before_unlandable_scope_existed_keeps_zones_off_unlandable_ground() -> None:
+    # Before it, a landability model on kept whole zones off unlandable ground.
+    assert config.from_recording({"model": {"landability": True}}).pipeline.unlandable_scope == "zone"
+    flown = config.load(None, {"pipeline.unlandable_scope": "landing_point"}).to_dict()
+    assert config.from_recording(flown).pipeline.unlandable_scope == "landing_point"

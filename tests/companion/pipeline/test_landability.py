@@ -4,8 +4,8 @@ unlandable ground, the zones' edges, start-up errors, the drawing, and training 
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -488,7 +488,7 @@ def test_the_grouping_covers_every_class_once(shared_dir: Path) -> None:
         level_lut((*SHIPPED, RiskLevel("lava", ("lava",))), classes)
 
 
-def test_replay_with_the_landability_model_on_records_edges_and_the_model(tmp_path: Path, model_path: Path) -> None:
+def test_replay_with_the_landability_model_records_edges_in_the_zone_scope_and_the_model(tmp_path: Path, model_path: Path) -> None:
     from companion.cli import main
 
     frames = tmp_path / "frames"
@@ -499,16 +499,21 @@ def test_replay_with_the_landability_model_on_records_edges_and_the_model(tmp_pa
     summary = tmp_path / "s.json"
     args = ["replay", str(frames), "--fps", "5", "--nadir", "--gsd", "0.05", "--threads", "1",
             "--jsonl", str(out), "--summary-json", str(summary)]
-    assert main([*args, "--set", "model.landability=true"]) == 0
+    assert main([*args, "--set", "pipeline.unlandable_scope=zone"]) == 0
     recs = [json.loads(line) for line in out.read_text().splitlines()]
     edges = [p["edge"] for r in recs for p in r["proposals"]]
     assert len(recs) == 3 and edges and set(edges) <= {PEOPLE, SURFACE, VIEW}
     assert json.loads(summary.read_text())["landability_model"] == str(LANDABILITY)
-    # Off (the default): no model, and no edges judged.
+    # The default: the model on, in the landing-point scope: people and the view bound a zone,
+    # so no edge is judged.
     assert main(args) == 0
+    assert json.loads(summary.read_text())["landability_model"] == str(LANDABILITY)
+    assert all(p["edge"] is None for line in out.read_text().splitlines() for p in json.loads(line)["proposals"])
+    # Off: no model, and no edges judged.
+    assert main([*args, "--set", "model.landability=false"]) == 0
     assert json.loads(summary.read_text())["landability_model"] is None
     assert all(p["edge"] is None for line in out.read_text().splitlines() for p in json.loads(line)["proposals"])
-    bad = ["--set", "model.landability=true", "--set", f"model.landability_path={tmp_path / 'nope.onnx'}"]
+    bad = ["--set", f"model.landability_path={tmp_path / 'nope.onnx'}"]
     assert main([*args, *bad]) == 2
 
 
@@ -617,7 +622,9 @@ def test_in_the_landing_point_scope_unlandable_ground_keeps_the_centre_off_not_t
         assert c.x - x0 >= edge + 0.5 - 0.1, f"{c} is centred within the footprint of the roof"
     assert point.proposals[0].r > zone.proposals[0].r + 1.0
     assert point.proposal_edges == []  # people and view only bound a zone here: not judged
-    assert (point.occupancy[:, :300] == OCCUPIED).all() and np.array_equal(point.surface, zone.surface)
+    # The zones' occupancy is people's alone; the roof is still in the surface map (drawn).
+    assert (point.occupancy == FREE).all() and np.array_equal(point.surface, zone.surface)
+    assert (point.surface[:, :300] == OCCUPIED).all()
     with pytest.raises(ValueError, match="surface_scope"):
         PipelineConfig(surface_scope="roof")
     with pytest.raises(ValueError, match="footprint_m"):

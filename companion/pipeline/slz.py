@@ -5,11 +5,13 @@ model is injected (any callable returning a 2-D map), so the pipeline runs with 
 model, another model, or a synthetic stand-in.
 
 A second callable, ``surface`` (optional), maps the frame to the per-cell probability that the ground
-is unlandable (``companion.pipeline.landability``: water, vehicles, trees, roofs, ...). With it the
-occupancy step marks a pixel not-free where people are OR the ground is unlandable, and that one
-combined map feeds the grid, the risk map, the proposals and the tracks; each zone says which of the
-two (or the end of the view) bounds it (``companion.pipeline.edges``). Without it the pipeline is
-exactly the people-only one.
+is unlandable (``companion.pipeline.landability``: water, vehicles, trees, roofs, ...). What it keeps
+off is ``PipelineConfig.surface_scope``. ``"landing_point"``: the zones are people's alone, and a
+proposal is centred (and the landing point moved) only where the vehicle's footprint is on landable
+ground (``proposals.landing_points``). ``"zone"``: the occupancy step marks a pixel not-free where
+people are OR the ground is unlandable, and that one combined map feeds the grid, the risk map, the
+proposals and the tracks; each zone says which of the two (or the end of the view) bounds it
+(``companion.pipeline.edges``). Without it the pipeline is exactly the people-only one.
 """
 
 from __future__ import annotations

@@ -37,8 +37,7 @@ def edge_reason(x: float, y: float, grid: GridSpec, dist: np.ndarray, free_grid:
     there a moment ago): people.
     """
     rows, cols = free_grid.shape
-    i = int(round((y - grid.y0) / grid.cell))
-    j = int(round((x - grid.x0) / grid.cell))
+    i, j = grid.cell_of(x, y)
     if not (0 <= i < rows and 0 <= j < cols):
         return VIEW
     d = float(dist[i, j])

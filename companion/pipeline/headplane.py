@@ -57,6 +57,11 @@ class GridSpec:
     def to_plane(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.x0 + np.asarray(cols) * self.cell, self.y0 + np.asarray(rows) * self.cell
 
+    def cell_of(self, x: float, y: float) -> tuple[int, int]:
+        """(row, col) of the cell whose centre is nearest plane point (x, y) (m); it may lie
+        off the grid (the caller checks against ``shape``)."""
+        return int(round((y - self.y0) / self.cell)), int(round((x - self.x0) / self.cell))
+
 
 def _footprint_bounds(proj: PlaneProjection, image_hw: tuple[int, int], params: GridParams
                       ) -> tuple[float, float, float, float]:

@@ -89,18 +89,15 @@ def landing_points(surface_grid: np.ndarray, cell: float, footprint_m: float) ->
         raise ValueError(f"cell must be > 0 m, got {cell!r}")
     if not (math.isfinite(footprint_m) and footprint_m >= 0):
         raise ValueError(f"footprint must be >= 0 m, got {footprint_m!r}")
-    free = surface_grid > 0
-    if footprint_m == 0:
-        return free
-    return free & ((distance_cells(surface_grid) - _HALF_DIAGONAL) * cell >= footprint_m)
+    # A non-free cell's distance is 0, so the rule alone keeps it out, footprint 0 included.
+    return (distance_cells(surface_grid) - _HALF_DIAGONAL) * cell >= footprint_m
 
 
 def clearance_at(dist: np.ndarray | PointDistance, grid: GridSpec, x: float, y: float) -> float:
     """Radius in metres of the largest circle centred at plane point (x, y) that touches no
     non-free cell, from the distance map of ``distance_cells``; 0 outside the grid.
     (Given the distance map of the *seen* grid instead, it is how far the view reaches.)"""
-    j = int(round((x - grid.x0) / grid.cell))
-    i = int(round((y - grid.y0) / grid.cell))
+    i, j = grid.cell_of(x, y)
     if not (0 <= i < dist.shape[0] and 0 <= j < dist.shape[1]):
         return 0.0
     # (x, y) is not exactly the cell centre the distance was measured from: pay the offset.
@@ -130,9 +127,10 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
     if n_max <= 0 or free_grid.size == 0:
         return out
     dist = distance_cells(free_grid) if dist is None else dist.copy()
-    # Where a centre may go: the distances at the allowed cells, 0 elsewhere. Kept in step with
-    # ``dist`` below (a minimum keeps the 0s), so the search reads it and the radius ``dist``.
-    sel = dist if centres is None else np.where(centres, dist, np.float32(0.0))
+    if centres is not None:
+        # Only allowed cells are read (a centre and its radius): 0 elsewhere is never a centre,
+        # and the minimum below keeps it 0.
+        dist = np.where(centres, dist, np.float32(0.0))
     rows, cols = dist.shape
     pref = None
     if prefer is not None and all(math.isfinite(v) for v in prefer):
@@ -140,13 +138,12 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
         pref = ((prefer[1] - grid.y0) / grid.cell, (prefer[0] - grid.x0) / grid.cell)
     tie = max(0.0, tie_m) / grid.cell
     for _ in range(n_max):
-        flat = int(np.argmax(sel))
+        flat = int(np.argmax(dist))
         i, j = divmod(flat, cols)
-        d = float(sel[i, j])
-        d_max = float(dist.max()) if sel is not dist else d
+        d = d_max = float(dist[i, j])
         if pref is not None and tie > 0 and (d - _HALF_DIAGONAL) * grid.cell >= r_min:
             # Never below r_min for a nearer centre: the largest circle would have qualified.
-            near = np.flatnonzero(sel >= max(d - tie, r_min / grid.cell + _HALF_DIAGONAL))
+            near = np.flatnonzero(dist >= max(d - tie, r_min / grid.cell + _HALF_DIAGONAL))
             if len(near) > 1:
                 ni, nj = np.divmod(near, cols)
                 k = int(np.argmin((ni - pref[0]) ** 2 + (nj - pref[1]) ** 2))
@@ -168,7 +165,4 @@ def propose(free_grid: np.ndarray, grid: GridSpec, n_max: int, r_min: float,
         np.maximum(to_disk, 0.0, out=to_disk)
         window = dist[i0:i1, j0:j1]
         np.minimum(window, to_disk, out=window)
-        if sel is not dist:
-            window = sel[i0:i1, j0:j1]
-            np.minimum(window, to_disk, out=window)
     return out

@@ -197,8 +197,7 @@ class _CellMask:
     mask: np.ndarray
 
     def __call__(self, x: float, y: float) -> bool:
-        j = int(round((x - self.grid.x0) / self.grid.cell))
-        i = int(round((y - self.grid.y0) / self.grid.cell))
+        i, j = self.grid.cell_of(x, y)
         return 0 <= i < self.mask.shape[0] and 0 <= j < self.mask.shape[1] and bool(self.mask[i, j])
 
 

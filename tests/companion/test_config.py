@@ -378,3 +378,8 @@ def test_a_recording_flown_before_unlandable_scope_existed_keeps_zones_off_unlan
     assert config.from_recording({"model": {"landability": True}}).pipeline.unlandable_scope == "zone"
     flown = config.load(None, {"pipeline.unlandable_scope": "landing_point"}).to_dict()
     assert config.from_recording(flown).pipeline.unlandable_scope == "landing_point"
+
+
+def test_an_unknown_unlandable_scope_is_refused_naming_the_key() -> None:
+    with pytest.raises(ConfigError, match=r"pipeline\.unlandable_scope must be one of 'zone', 'landing_point'"):
+        config.load(None, {"pipeline.unlandable_scope": "roof"})

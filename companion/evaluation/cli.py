@@ -52,6 +52,7 @@ from companion.evaluation.metrics import (
 )
 from companion.pipeline.density import DensityModel, DensityModelError, resolve_threshold
 from companion.pipeline.landability import LandabilityModel
+from companion.pipeline.occupancy import OccupancyParams
 
 REPO = Path(__file__).resolve().parents[2]
 PRESETS: dict[str, dict[str, object]] = {
@@ -100,6 +101,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--limit", type=int, default=0, help="at most N images per set (0: all; for quick checks)")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument("--latency-runs", type=int, default=20, help="timed runs per size (0: skip latency)")
+    parser.add_argument("--min-people", type=float, default=0.0,
+                        help="occupied patches of the density map holding fewer people than this are specks, not "
+                             "occupied (pipeline.occupied_min_people; default 0: every patch, the paper's rule)")
     parser.add_argument("--curve", action="store_true", help="print the recall/free curves as well")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of text")
 
@@ -139,15 +143,20 @@ def _datasets(shared: Path, sets: list[str], mall_step: int, limit: int, synthet
     return out
 
 
-def measure(model: DensityModel, data: dict[str, list[D.Sample]], latency_runs: int) -> dict[str, Any]:
-    """All figures of one model as a JSON-able dict."""
+def measure(model: DensityModel, data: dict[str, list[D.Sample]], latency_runs: int,
+            min_people: float = 0.0) -> dict[str, Any]:
+    """All figures of one model as a JSON-able dict; ``min_people``: occupied patches holding
+    fewer people are specks (``OccupancyParams.min_mass``; the recall and free share at the
+    threshold, not the curve)."""
     thr = resolve_threshold(None, model.spec)
+    params = OccupancyParams(min_mass=min_people / model.spec.count_scale)
     sets: dict[str, SetResult] = {}
     for name, samples in data.items():
         counting = name in ("shanghaitech_b_test", "mall")
-        sets[name] = evaluate_set(name, samples, model, thr, model.count if counting else None)
+        sets[name] = evaluate_set(name, samples, model, thr, model.count if counting else None, params=params)
     out: dict[str, Any] = {
         "model": str(model.path),
+        "min_people": min_people,
         "spec": {k: getattr(model.spec, k) for k in model.spec.__dataclass_fields__},
         "threshold": thr,
         "sets": {k: vars(v) for k, v in sets.items()},
@@ -203,6 +212,9 @@ def run(args: argparse.Namespace) -> int:
     if bad:
         print(f"companion eval: unknown set(s) {', '.join(bad)}; known: {', '.join(SETS)}", file=sys.stderr)
         return 2
+    if not (math.isfinite(args.min_people) and args.min_people >= 0):
+        print(f"companion eval: --min-people must be a finite number >= 0, not {args.min_people}", file=sys.stderr)
+        return 2
     try:
         model = DensityModel(args.model, threads=args.threads, overrides=_overrides(args))
         peer = None
@@ -237,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
             _print_land(doc0["landability"])
         return 0
     # With a peer, latency is timed alternately below (fair ratio on a shared machine).
-    res = measure(model, data, 0 if args.peer else args.latency_runs)
+    res = measure(model, data, 0 if args.peer else args.latency_runs, args.min_people)
     doc: dict[str, Any] = {"shared": str(shared), "mall_step": args.mall_step, "limit": args.limit, "model": res}
     if peer is not None:
         pres = measure(peer, data, 0)

@@ -141,7 +141,7 @@ def evaluate_set(
     errors = []
     sizes: list[np.ndarray] = []
     covered: list[np.ndarray] = []
-    op = OccupancyParams(threshold, params.kernel, params.iterations)
+    op = OccupancyParams(threshold, params.kernel, params.iterations, params.min_mass)
     for s in samples:
         img = s.image()
         hw = img.shape[:2]

@@ -3,6 +3,15 @@
 The paper's rule: a pixel is occupied where ``D - min(D) > threshold`` (threshold 0 by default),
 the map is brought to the image size without shrinking occupied areas, dilated twice with a 5x5
 kernel of ones (over-estimating people on purpose), and inverted so that free = 255.
+
+A rule measured, not used by the service (``OccupancyParams.min_mass``, 0 = off, the paper's
+map): an occupied patch of the density map (8-connected cells above the threshold) whose whole
+mass, the sum of ``D - min(D)`` over it, is below ``min_mass`` would be a speck of the ground's
+texture rather than a person, and be left free. Low over real paving the shipped model leaves a
+few such cells a frame that hold a thousandth of a person, and each of them shrinks a zone and
+breaks its calm watch; but it answers some real people it barely sees the same way, so the rule
+loses them (``companion eval --min-people``; docs/photo-world.md, "What keeps the companion from
+landing clear").
 """
 
 from __future__ import annotations
@@ -28,11 +37,15 @@ class OccupancyParams:
         (``SLZPipeline``), else the paper's 0.
     kernel: side of the square dilation kernel in image pixels (odd, >= 1).
     iterations: how many times the dilation is applied (>= 0).
+    min_mass: an occupied patch (8-connected cells above the threshold, at the density map's
+        resolution) whose sum of ``D - min(D)`` is below this is not occupied (the density map's
+        units: people divided by the model's ``count_scale``); 0 = every patch is (the paper).
     """
 
     threshold: float | None = None
     kernel: int = 5
     iterations: int = 2
+    min_mass: float = 0.0
 
     def __post_init__(self) -> None:
         threshold = self.threshold
@@ -42,6 +55,8 @@ class OccupancyParams:
             raise ValueError(f"occupancy kernel must be an odd integer >= 1, got {self.kernel!r}")
         if int(self.iterations) != self.iterations or self.iterations < 0:
             raise ValueError(f"occupancy iterations must be an integer >= 0, got {self.iterations!r}")
+        require(math.isfinite(self.min_mass) and self.min_mass >= 0, "occupancy", "min_mass",
+                "must be a finite number >= 0", self.min_mass)
 
 
 def occupied_mask(density: np.ndarray, threshold: float = 0.0) -> np.ndarray:
@@ -62,6 +77,29 @@ def occupied_mask(density: np.ndarray, threshold: float = 0.0) -> np.ndarray:
     occ = ~finite
     occ |= np.where(finite, d - dmin > threshold, True)
     return occ
+
+
+def drop_specks(occ: np.ndarray, density: np.ndarray, min_mass: float) -> np.ndarray:
+    """``occ`` (bool, the density map's shape) without its specks: the 8-connected occupied
+    patches whose sum of ``D - min(D)`` is below ``min_mass``. A patch holding a non-finite value
+    is kept whatever its sum (a broken output never opens space); ``min_mass`` 0 keeps all."""
+    if min_mass <= 0 or not occ.any():
+        return occ
+    d = np.asarray(density, np.float32)
+    finite = np.isfinite(d)
+    n, labels = cv2.connectedComponents(occ.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return occ
+    excess = np.zeros(d.shape, np.float64)
+    if finite.any():
+        excess[finite] = d[finite] - float(d[finite].min())
+    mass = np.bincount(labels.ravel(), weights=excess.ravel(), minlength=n)
+    keep = mass >= min_mass
+    if not finite.all():
+        keep[np.unique(labels[~finite])] = True
+    keep[0] = False  # the free cells' label
+    out: np.ndarray = keep[labels]
+    return out
 
 
 def resize_keep_occupied(mask: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
@@ -153,6 +191,7 @@ def occupancy_map(
         # No density at all is no evidence of free ground.
         return np.full((h, w), OCCUPIED, np.uint8)
     occ = occupied_mask(density, 0.0 if params.threshold is None else params.threshold)
+    occ = drop_specks(occ, density, params.min_mass)
     return free_from_occupied(occ, image_hw, params)
 
 

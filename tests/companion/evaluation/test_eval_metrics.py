@@ -30,6 +30,20 @@ def test_level_map_matches_occupancy_map_at_every_threshold(shape, image_hw) -> 
         np.testing.assert_array_equal(occ, lv > t)
 
 
+def test_the_speck_rule_is_measured_where_the_pipeline_applies_it() -> None:
+    """``evaluate_set(params=OccupancyParams(min_mass=...))`` (``companion eval --min-people``):
+    a head covered only by a speck of the map is lost, and the speck's ground becomes free."""
+    d = np.zeros((30, 40), np.float32)
+    d[5:8, 5:8] = 0.5                      # a person's patch: sum 4.5
+    d[20, 30] = 0.02                       # a faint response over a second head
+    sample = D.Sample("s", Path("x"), np.array([[26.0, 26.0], [122.0, 82.0]], np.float32),
+                      pixels=np.zeros((120, 160, 3), np.uint8))
+    paper = evaluate_set("s", [sample], lambda img: d, 0.01)
+    specks = evaluate_set("s", [sample], lambda img: d, 0.01, params=OccupancyParams(min_mass=0.1))
+    assert (paper.recall, specks.recall) == (1.0, 0.5)
+    assert specks.free > paper.free
+
+
 def test_tally_counts_heads_on_occupied_pixels() -> None:
     occ = np.full((10, 10), FREE, np.uint8)
     occ[2:4, 2:4] = 0
@@ -108,6 +122,8 @@ def test_eval_cli_rejects_bad_input(tmp_path: Path, capsys) -> None:
     assert "does not exist" in capsys.readouterr().err
     assert main(["eval", "--sets", "shb,moon", "--shared", str(tmp_path)]) == 2
     assert "unknown set" in capsys.readouterr().err
+    assert main(["eval", "--min-people", "-0.1", "--shared", str(tmp_path)]) == 2
+    assert "--min-people" in capsys.readouterr().err
 
 
 def test_eval_cli_reports_missing_data(model_path: Path, tmp_path: Path, capsys) -> None:

@@ -8,6 +8,7 @@ from companion.pipeline.occupancy import (
     FREE,
     OCCUPIED,
     OccupancyParams,
+    drop_specks,
     free_from_occupied,
     occupancy_map,
     occupied_mask,
@@ -83,8 +84,52 @@ def test_non_finite_density_is_occupied_and_empty_density_is_all_occupied():
     assert (occupancy_map(np.zeros((0, 0)), (48, 64)) == OCCUPIED).all()
 
 
+def _person(d: np.ndarray, row: int, col: int, people: float = 1.0, sigma: float = 1.5) -> None:
+    """Add a Gaussian blob holding ``people`` (its sum) centred on cell (row, col)."""
+    yy, xx = np.mgrid[: d.shape[0], : d.shape[1]]
+    g = np.exp(-((yy - row) ** 2 + (xx - col) ** 2) / (2 * sigma**2))
+    d += (people * g / g.sum()).astype(np.float32)
+
+
+def test_specks_below_min_mass_are_free_and_people_stay_occupied():
+    d = np.zeros((60, 80), np.float32)
+    _person(d, 20, 20)                     # a person: sum 1
+    _person(d, 40, 60, people=0.3)         # a third of a person (the frame's edge, a faint one)
+    d[50, 10] += 0.02                      # a speck: one cell just over the threshold
+    d[10, 70] += 0.02
+    d[11, 71] += 0.02                      # two cells touching diagonally: one patch of 0.04
+    thr = 0.01
+    occ = occupied_mask(d, thr)
+    assert occ[50, 10] and occ[10, 70] and occ[11, 71]
+    kept = drop_specks(occ, d, min_mass=0.05)
+    assert kept[20, 20] and kept[40, 60]
+    assert not kept[50, 10] and not kept[10, 70] and not kept[11, 71]
+    # Only whole patches go: every cell of the person's patch is kept, nothing else changes.
+    assert (kept == (occ & ~np.isin(np.arange(occ.size).reshape(occ.shape),
+                                   [50 * 80 + 10, 10 * 80 + 70, 11 * 80 + 71]))).all()
+    # The same through the whole occupancy step: the speck's pixels are free at image size.
+    free = occupancy_map(d, (240, 320), OccupancyParams(threshold=thr, min_mass=0.05))
+    assert free[50 * 4, 10 * 4] == FREE and free[20 * 4, 20 * 4] == OCCUPIED and free[40 * 4, 60 * 4] == OCCUPIED
+    paper = occupancy_map(d, (240, 320), OccupancyParams(threshold=thr))
+    assert paper[50 * 4, 10 * 4] == OCCUPIED
+    # A patch weighs the density above the frame's minimum: a raised floor adds nothing.
+    assert not drop_specks(occupied_mask(d + 5.0, thr), d + 5.0, 0.05)[50, 10]
+
+
+def test_min_mass_zero_keeps_every_patch_and_non_finite_patches_are_never_specks():
+    d = np.zeros((20, 20), np.float32)
+    d[5, 5] = 0.02
+    occ = occupied_mask(d, 0.01)
+    assert drop_specks(occ, d, 0.0) is occ
+    d[15, 15] = np.nan
+    kept = drop_specks(occupied_mask(d, 0.01), d, 10.0)
+    assert kept[15, 15] and not kept[5, 5]
+    assert drop_specks(occupied_mask(np.full((4, 4), np.nan)), np.full((4, 4), np.nan), 10.0).all()
+
+
 @pytest.mark.parametrize("kw", [dict(threshold=-1.0), dict(threshold=float("nan")),
-                                dict(kernel=4), dict(kernel=0), dict(iterations=-1)])
+                                dict(kernel=4), dict(kernel=0), dict(iterations=-1),
+                                dict(min_mass=-0.1), dict(min_mass=float("inf"))])
 def test_bad_parameters_are_clear_errors(kw):
     with pytest.raises(ValueError, match="occupancy"):
         OccupancyParams(**kw)

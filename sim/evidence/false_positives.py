@@ -32,18 +32,26 @@ are in their pixels). The truth is the class maps'. Each row then also says
 ``free_marked_pct``: the share of the whole frame's free ground (landable, and more than
 ``PERSON_CLEAR_M`` from every person of the photos) that is marked, the frame-wide figure that
 compares a model's false alarms on real texture with the drawn ground's.
+
+A share understates what a few marks cost: one marked cell in the middle of a circle leaves most
+of it free and no zone on it. So each row also says ``zone_r_m``, the radius of the largest
+circle centred in the free circle that holds no mark (on the head plane, capped at the free
+circle's radius): what the zones over the circle can be with nobody there. A zone is flown to
+only from ``r0 + radius_margin`` (4 m by default) and kept only while r0 (2 m) stays free.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from companion.config import SHIPPED_MODEL
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
@@ -90,6 +98,8 @@ class LawnFigure:
     unlandable_left_pct: float | None = None
     ground: str = "procedural"
     free_marked_pct: float | None = None
+    zone_r_m: float | None = None
+    pitch_deg: float = 0.0
 
 
 def marked_map(model: DensityModel, img: np.ndarray, scale: float = 1.0) -> np.ndarray:
@@ -107,11 +117,12 @@ def marked_map(model: DensityModel, img: np.ndarray, scale: float = 1.0) -> np.n
 
 
 def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[float],
-                         photos: str | None = None, person_px: float = 0.0) -> list[LawnFigure]:
+                         photos: str | None = None, person_px: float = 0.0, pitch_deg: float = 0.0) -> list[LawnFigure]:
     """The figures of ``seed`` from each of ``heights_m`` (m above the ground); none for a world
     without a free circle. ``photos``: measure the seed's photo world over that folder's photos
     instead of its drawn world. ``person_px``: the pipeline's setting of that name (the frame
-    shrunk before the density model; 0: the full frame)."""
+    shrunk before the density model; 0: the full frame). ``pitch_deg``: the vehicle pitched by
+    this much over the circle's centre (the camera fixed to it), as it is while it flies and holds."""
     job = FlightJob(seed, "ardupilot") if photos is None else FlightJob(seed, "ardupilot", ground="photo", photos=photos)
     spec = job.spec()  # the scene does not depend on the flavour
     world, free, _start = build_world(spec)
@@ -124,7 +135,7 @@ def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[flo
     pixels = np.stack([uu.ravel(), vv.ravel()], axis=1).astype(float)
     figures = []
     for height_m in heights_m:
-        pose = Pose(0.0, free.north, free.east, -height_m, 0.0, 0.0, 0.0)
+        pose = Pose(0.0, free.north, free.east, -height_m, 0.0, math.radians(pitch_deg), 0.0)
         img = render_world(empty, pose, K, Mount(), ground)
         proj = PlaneProjection.from_pose(K, Mount(), pose, head_height=HEAD_M)
         occ = marked_map(model, img, density_scale(proj, img.shape[:2], person_px))
@@ -136,8 +147,23 @@ def lawn_false_positives(model: DensityModel, seed: int, heights_m: Sequence[flo
         free_pct = None if photos is None else _free_marked(ground, pose, pixels, marked, people)
         figures.append(LawnFigure(seed, spec.world, height_m, round(100 * circle, 2),
                                   round(100 * float(marked.mean()), 2), *truth,
-                                  ground=spec.ground, free_marked_pct=free_pct))
+                                  ground=spec.ground, free_marked_pct=free_pct,
+                                  zone_r_m=_zone_radius(xy, marked, inside, free), pitch_deg=pitch_deg))
     return figures
+
+
+def _zone_radius(xy: np.ndarray, marked: np.ndarray, inside: np.ndarray, free: Circle) -> float | None:
+    """The radius (m) of the largest circle centred on one of the sampled head-plane points
+    ``xy`` inside the free circle (``inside``) that holds no ``marked`` point, capped at the free
+    circle's radius; None when no sampled point lies inside it."""
+    if not inside.any():
+        return None
+    ok = np.isfinite(xy).all(axis=1)
+    hits = xy[ok & marked]
+    if not len(hits):
+        return round(float(free.radius), 2)
+    nearest, _ = cKDTree(hits).query(xy[inside])
+    return round(float(min(np.max(nearest), free.radius)), 2)
 
 
 def _landable_at(ground: ProceduralGround | PhotoGround, xy: np.ndarray) -> np.ndarray:
@@ -210,8 +236,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--person-px", type=float, default=0.0,
                     help="the pipeline's pipeline.person_px: shrink each view so that the smallest person spans this "
                          "many pixels (default 0: the full frame)")
+    ap.add_argument("--pitch", type=float, default=0.0,
+                    help="the vehicle pitched by this many degrees over the circle, the camera fixed to it "
+                         "(0-30; default 0: straight down)")
     ap.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
     args = ap.parse_args(argv)
+    if not (0.0 <= args.pitch <= 30.0):
+        print("error: --pitch must lie between 0 and 30 degrees", file=sys.stderr)
+        return 2
     photos = None
     if args.ground == "photo":
         folder = args.photos or default_photos()
@@ -243,7 +275,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     for seed in seeds:
-        figures = lawn_false_positives(model, seed, heights, photos, args.person_px)
+        figures = lawn_false_positives(model, seed, heights, photos, args.person_px, args.pitch)
         if not figures:
             continue
         if args.json:
@@ -254,6 +286,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                               f"landable ground {_pct(f.landable_marked_pct)}, unlandable {_pct(f.unlandable_pct)} "
                               f"({_pct(f.unlandable_left_pct)} left)"
                               + ("" if f.free_marked_pct is None else f", free ground in frame {_pct(f.free_marked_pct)}")
+                              + ("" if f.zone_r_m is None else f", zone r {f.zone_r_m:.1f} m")
                               for f in figures)
             print(f"seed {seed:>3} {figures[0].world:<13} {cells}", flush=True)
     return 0

@@ -108,10 +108,34 @@ def test_lawn_false_positives_measures_the_lawn_with_nobody_on_it(model, capsys:
     assert main(["--seeds", "18", "--heights", "20", "--model", str(MODEL), "--json"]) == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [(r["seed"], r["height_m"]) for r in rows] == [(18, 20.0)] and rows[0]["circle_pct"] == fig.circle_pct
+    # Nobody and nothing marked on seed 18's lawn: the largest unmarked circle is the lawn itself.
+    assert fig.zone_r_m is not None and 4.0 < fig.zone_r_m <= 9.0 and fig.pitch_deg == 0.0
+    (pitched,) = lawn_false_positives(model, 18, [20.0], pitch_deg=10.0)
+    assert pitched.pitch_deg == 10.0 and pitched.zone_r_m is not None
     assert main(["--seeds", "5-1"]) == 2
+    assert main(["--seeds", "18", "--pitch", "45"]) == 2  # the pitch a multirotor holds: 0-30 degrees
     assert main(["--heights", "1.0"]) == 2  # below the head plane
     assert main(["--model", "/nonexistent.onnx"]) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_the_zone_radius_is_the_largest_unmarked_circle_centred_in_the_lawn() -> None:
+    """``zone_r_m``: one mark in the middle of a lawn leaves no zone there but one beside it; the
+    radius never exceeds the lawn's; nothing marked leaves the whole lawn."""
+    from sim.evidence.false_positives import _zone_radius
+    from sim.world.walkers import Circle
+
+    g = np.mgrid[-10:10.01:0.25, -10:10.01:0.25].reshape(2, -1).T
+    lawn = Circle(0.0, 0.0, 6.0)
+    inside = np.hypot(g[:, 0], g[:, 1]) < lawn.radius
+    marked = np.zeros(len(g), bool)
+    assert _zone_radius(g, marked, inside, lawn) == 6.0
+    marked[np.argmin(np.hypot(g[:, 0], g[:, 1]))] = True  # one mark at the centre
+    r = _zone_radius(g, marked, inside, lawn)
+    assert 5.5 <= r < 6.0  # a circle centred near the lawn's edge, reaching back to the mark
+    marked[:] = np.hypot(g[:, 0], g[:, 1]) > 3.0  # marks all round 3 m out
+    assert _zone_radius(g, marked, inside, lawn) == pytest.approx(3.0, abs=0.25)
+    assert _zone_radius(g, marked, np.zeros(len(g), bool), lawn) is None
 
 
 def test_lawn_false_positives_of_a_landability_model(capsys: pytest.CaptureFixture[str]) -> None:

@@ -74,7 +74,6 @@ OBEDIENCE_KEYS = _keys("controller", tolerance_z_m="controller.obey_tolerance_z_
 DESCENT_KEYS = _keys("controller", "descend_speed_mps", "land_alt_m", "land_speed_mps",
                      walk_speed_mps="pipeline.walk_speed_mps")
 PIPELINE_KEYS = _keys("pipeline", "head_height_m", "r0_m", "proposal_tie_m", "calm_margin_m", "person_px",
-                      "person_px_view",
                       surface_threshold="pipeline.unlandable_threshold",
                       surface_scope="pipeline.unlandable_scope")
 RISK_KEYS = _keys("pipeline", "walk_speed_mps")
@@ -168,7 +167,6 @@ def pipeline_config(cfg: Config, model_spec: DensitySpec | None = None) -> Pipel
         r0_m=p.r0_m,
         proposal_tie_m=p.proposal_tie_m,
         person_px=p.person_px,
-        person_px_view=p.person_px_view,
         calm=cfg.controller.min_calm_s > 0,
         calm_margin_m=p.calm_margin_m,
         unwalked=planner.prefer_unwalked,

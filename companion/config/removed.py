@@ -56,6 +56,7 @@ REMOVED: dict[str, Removed] = {
     "pipeline.occupied_trail_s": _lost(0.0),
     "pipeline.quiet_margin_m": _lost(2.0),
     "pipeline.tracker.motion": _lost("position"),
+    "pipeline.person_px_view": _lost("frame"),
     # Internal tuning: named constants next to the code that uses them, same values.
     "link.target_component": _constant(1, "companion.mavlink.link.LinkConfig.target_component (MAV_COMP_ID_AUTOPILOT1)"),
     "link.heartbeat_timeout_s": _constant(3.0, "companion.mavlink.link.LinkConfig.heartbeat_timeout_s"),

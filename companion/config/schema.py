@@ -186,11 +186,6 @@ class PipelineSettings:
                                 "model) so that the smallest person (0.4 m) still spans this many pixels: low over "
                                 "real ground the full frame shows the models the ground's grain, which they take for "
                                 "people, roofs and walls (px; 0 = always the full frame, as before 2026-12-07)", max=1000.0)
-    person_px_view: str = _f("frame", "whose far edge person_px holds: frame = the frame as the camera sees it, "
-                                      "tilted with the vehicle (a tilted view reaches farther, so it is shrunk "
-                                      "less); level = the same camera levelled at the vehicle's height, the "
-                                      "tilted far edge's people let down to 8 px of 12 (docs/photo-world.md)",
-                             choices=("frame", "level"))
     walk_speed_mps: float = _f(1.5, "how fast a person may walk (m/s): risk grows this fast from where "
                                     "someone was seen (1.34 m/s is the mean, Weidmann 1993)",
                                min=0.1, max=15.0)

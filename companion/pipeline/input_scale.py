@@ -15,15 +15,6 @@ same figure as ``control.descent.person_trust_height``) on the head plane, where
 reaches farthest: the frame's corners and edge midpoints (for a pinhole the ground scale is
 smallest at the frame's border). A view that reaches the horizon has no smallest size: it is
 never shrunk. Pure functions over a :class:`PlaneProjection`; no I/O.
-
-A camera fixed to the vehicle tilts with it, and a tilted view reaches farther on one side: the
-far edge's people look smaller, so the frame is shrunk less and the ground under the vehicle is
-magnified again (pitched 12 degrees over the photo world's circles, 12-19 of 66 scenes keep no
-zone of 4 m where 1-2 do straight down: ``python -m sim.evidence.false_positives --pitch``).
-``level_density_scale`` (``pipeline.person_px_view = "level"``, opt-in) shrinks by the height
-alone, as if the camera were level, and lets the tilted far edge's people go down to
-``LEVEL_EDGE_SHARE`` of ``person_px`` (8 px of 12: the band where the shipped model still finds
-99.2 % of its validation sets' people) before the tilt counts again.
 """
 
 from __future__ import annotations
@@ -75,22 +66,6 @@ def density_scale(proj: PlaneProjection, hw: tuple[int, int], person_px: float, 
     if seen <= person_px:
         return 1.0
     return max(min_scale, person_px / seen)
-
-
-#: ``level_density_scale``: the tilted view's smallest person may shrink to this share of
-#: ``person_px`` (8 of 12 px), no further.
-LEVEL_EDGE_SHARE = 2.0 / 3.0
-
-
-def level_density_scale(proj: PlaneProjection, level: PlaneProjection, hw: tuple[int, int], person_px: float,
-                        person_m: float = PERSON_M, min_scale: float = MIN_SCALE) -> float:
-    """The shrink by the height alone: ``density_scale`` of ``level`` (the same camera at the same
-    place with the vehicle level), but never so far that the smallest person of the frame as
-    seen (``proj``, tilted) spans less than ``LEVEL_EDGE_SHARE * person_px`` pixels."""
-    if person_px <= 0:
-        return 1.0
-    return max(density_scale(level, hw, person_px, person_m, min_scale),
-               density_scale(proj, hw, LEVEL_EDGE_SHARE * person_px, person_m, min_scale))
 
 
 def scaled_size(hw: tuple[int, int], scale: float, multiple: int) -> tuple[int, int]:

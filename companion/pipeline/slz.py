@@ -38,7 +38,7 @@ from companion.pipeline.headplane import (
     sample_to_grid,
     sample_with_view,
 )
-from companion.pipeline.input_scale import density_scale, level_density_scale, shrunk
+from companion.pipeline.input_scale import density_scale, shrunk
 from companion.pipeline.occupancy import OccupancyParams, occupancy_map, surface_free_map
 from companion.pipeline.people import PeopleParams, PeopleTracker, Person, density_peaks, place_people
 from companion.pipeline.proposals import TIE_M, PointDistance, clearance_at, distance_cells, landing_points, propose
@@ -53,8 +53,6 @@ SurfaceFn = Callable[[np.ndarray], np.ndarray]
 
 #: What unlandable ground keeps off (``PipelineConfig.surface_scope``).
 SURFACE_SCOPES = ("zone", "landing_point")
-#: Which view's smallest person ``person_px`` keeps (``PipelineConfig.person_px_view``).
-PERSON_PX_VIEWS = ("frame", "level")
 STAGES = ("density", "occupancy", "projection", "fusion", "proposals", "tracking", "people")
 
 #: ``GroundView.spot``: the risk map's cells are coarsened this many times (0.3 m at the default 0.1 m).
@@ -112,10 +110,6 @@ class PipelineConfig:
     #: model the ground's grain, which it takes for people. The landability model (``surface``)
     #: is given the same shrunk frame. 0: always the full frame.
     person_px: float = 0.0
-    #: Whose far edge ``person_px`` is kept at: ``"frame"``, the frame as the camera sees it
-    #: (tilted with the vehicle), or ``"level"``, the same camera levelled at the vehicle's height
-    #: (the shrink follows the height, not the attitude; ``input_scale.level_density_scale``).
-    person_px_view: str = "frame"
 
     def __post_init__(self) -> None:
         # The one place these rules live (the settings name the key of a field refused here).
@@ -140,8 +134,6 @@ class PipelineConfig:
         require(math.isfinite(self.r0_m) and self.r0_m > 0, "pipeline", "r0_m", "must be > 0", self.r0_m)
         require(math.isfinite(self.person_px) and 0 <= self.person_px <= 1000, "pipeline", "person_px",
                 "must be >= 0 and <= 1000 px", self.person_px)
-        require(self.person_px_view in PERSON_PX_VIEWS, "pipeline", "person_px_view",
-                f"must be one of {', '.join(PERSON_PX_VIEWS)}", self.person_px_view)
 
     @property
     def n_proposals(self) -> int:
@@ -339,11 +331,7 @@ class SLZPipeline:
         scale = 1.0
         if box is None and pose is not None and self.config.person_px > 0 and proj.lens is None \
                 and self._crop_multiple is not None:
-            if self.config.person_px_view == "level":
-                level = self.projection_for(replace(pose, roll=0.0, pitch=0.0))
-                scale = level_density_scale(proj, level, (h, w), self.config.person_px)
-            else:
-                scale = density_scale(proj, (h, w), self.config.person_px)
+            scale = density_scale(proj, (h, w), self.config.person_px)
         small = None
         if scale < 1.0:
             # The map of the shrunk frame is brought back to the frame's size by the occupancy

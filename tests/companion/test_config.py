@@ -338,10 +338,8 @@ def test_removed_keys_are_no_keys_and_the_count_stays_lean() -> None:
     # Issue 58 aims at 80 (136 before). Issue 60 adds camera.model and camera.calibration (a fisheye
     # and its calibration file): 82.
     # Issue 59 adds pipeline.person_px (the frame shrunk low over real ground): 83, and
-    # pipeline.unlandable_scope (unlandable ground keeps the landing point off, not the zone): 84,
-    # and pipeline.person_px_view (the shrink by the height alone, opt-in until the photo
-    # yardstick is flown with it): 85.
-    assert len(keys) <= 85
+    # pipeline.unlandable_scope (unlandable ground keeps the landing point off, not the zone): 84.
+    assert len(keys) <= 84
 
 
 def test_a_recording_with_removed_keys_at_the_values_flown_now_replays() -> None:

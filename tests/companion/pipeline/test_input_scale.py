@@ -17,16 +17,7 @@ import pytest
 from companion.config.schema import shipped_model
 from companion.geometry.camera import Intrinsics, Mount, PlaneProjection, Pose
 from companion.pipeline.density import DensityModel
-from companion.pipeline.input_scale import (
-    LEVEL_EDGE_SHARE,
-    MIN_SCALE,
-    PERSON_M,
-    density_scale,
-    level_density_scale,
-    scaled_size,
-    shrunk,
-    smallest_person_px,
-)
+from companion.pipeline.input_scale import MIN_SCALE, PERSON_M, density_scale, scaled_size, shrunk, smallest_person_px
 from companion.pipeline.slz import PipelineConfig, SLZPipeline
 from tests.companion.pipeline.recorded import Recorded
 
@@ -109,51 +100,6 @@ def test_person_px_is_checked() -> None:
     for bad in (-1.0, math.nan, 2000.0):
         with pytest.raises(ValueError, match="person_px"):
             PipelineConfig(person_px=bad)
-    with pytest.raises(ValueError, match="person_px_view"):
-        PipelineConfig(person_px_view="tilted")
-
-
-def _pitched(height_m: float, deg: float) -> PlaneProjection:
-    return PlaneProjection.from_pose(K, Mount(), Pose(0.0, 0.0, 0.0, -height_m, 0.0, math.radians(deg), 0.0), HEAD)
-
-
-@pytest.mark.parametrize("deg", [6.0, 12.0])
-def test_the_level_view_shrinks_a_tilted_frame_by_its_height(deg: float) -> None:
-    """Pitched, the frame's far edge reaches farther: ``density_scale`` shrinks it less than
-    straight down from the same height (at 10 m pitched 12 degrees, 0.71 of the side against
-    0.55). The level view's shrink is the straight-down one, and the far edge's smallest person
-    still spans at least 8 px (``LEVEL_EDGE_SHARE`` of 12)."""
-    tilted, level = _pitched(10.0, deg), _pitched(10.0, 0.0)
-    frame_rule = density_scale(tilted, HW, 12.0)
-    s = level_density_scale(tilted, level, HW, 12.0)
-    assert s == pytest.approx(density_scale(level, HW, 12.0)) and s < frame_rule
-    assert s * smallest_person_px(tilted, HW) >= LEVEL_EDGE_SHARE * 12.0 - 1e-9
-    assert level_density_scale(tilted, level, HW, 0.0) == 1.0  # person_px 0: the full frame
-
-
-def test_the_level_view_lets_the_far_edge_go_no_smaller_than_8_px() -> None:
-    """Pitched 30 degrees the straight-down shrink would leave the far edge's people 5 px across:
-    the floor takes over there, so they keep 8 px (and the frame is still shrunk more than the
-    frame rule's 12 px)."""
-    tilted, level = _pitched(10.0, 30.0), _pitched(10.0, 0.0)
-    s = level_density_scale(tilted, level, HW, 12.0)
-    assert density_scale(level, HW, 12.0) * smallest_person_px(tilted, HW) < 7.0
-    assert s * smallest_person_px(tilted, HW) == pytest.approx(LEVEL_EDGE_SHARE * 12.0)
-    assert s < density_scale(tilted, HW, 12.0)
-
-
-def test_the_pipeline_shrinks_by_the_height_with_the_level_view(model: DensityModel) -> None:
-    frame = np.full((480, 640, 3), 120, np.uint8)
-    pose = Pose(0.0, 0.0, 0.0, -10.0, math.radians(3.0), math.radians(12.0), 0.0)
-    seen = {}
-    for view in ("frame", "level"):
-        rec = Recorded(model)
-        pipe = SLZPipeline(rec, PipelineConfig(person_px=12.0, person_px_view=view), intrinsics=K)
-        pipe.process(frame, 0.0, pose)
-        seen[view] = rec.shapes[0]
-    level = PlaneProjection.from_pose(K, Mount(), Pose(0.0, 0.0, 0.0, -10.0, 0.0, 0.0, 0.0), HEAD)
-    assert seen["level"] == (*scaled_size(HW, density_scale(level, HW, 12.0), 4), 3)
-    assert seen["level"][0] < seen["frame"][0]
 
 
 @pytest.mark.parametrize("height_m, shrunk", [(8.0, True), (30.0, False)])

@@ -51,10 +51,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from companion import config as settings
-from sim.flights.flight import FOOTPRINT_M, build_world, photo_ground
+from sim.flights.flight import FOOTPRINT_M, add_trigger_crossers, build_world, crossing_walkable, photo_ground
 from sim.flights.scenarios import parse_seeds, scenario
-from sim.flights.spec import photos_folder
-from sim.world.crowd import CROSSING_WINDOW_S, TICK_S, World, add_crossing_walkers
+from sim.flights.spec import FlightSpec, photos_folder
+from sim.world.crowd import CROSSING_WINDOW_S, TICK_S, World
 from sim.world.ground import LANDABLE_SURFACES, SURFACES, ProceduralGround
 from sim.world.photo_ground import PHOTO_CLASSES, PHOTO_LANDABLE
 from sim.world.walkers import Circle
@@ -126,8 +126,9 @@ def judge(dist: np.ndarray, rules: Rules, dt_s: float = DT_S) -> Verdict:
     if last < first:
         return Verdict(False, "none", None, 0.0)
     calm = _min_back(d, w_calm) > rules.r0_m + rules.calm_margin_m
-    large = np.zeros_like(calm)
-    large[w_calm:] = d[:-w_calm] > rules.r0_m + rules.radius_margin_m if w_calm else d > rules.r0_m + rules.radius_margin_m
+    room = d > rules.r0_m + rules.radius_margin_m
+    large = np.zeros_like(room)
+    large[w_calm:] = room[:n - w_calm]  # the zone's room when its calm watch began
     judged = (calm & large)[first:last + 1]
     # Nobody within r0 from the judging to the LAND, and nobody there at touchdown.
     descent = _min_back(d[::-1], w_desc)[::-1][first:last + 1] > rules.r0_m
@@ -174,14 +175,14 @@ def candidate_points(ground: str, seed: int, centre: tuple[float, float], reach_
     return pts[landable[rows, cols] > 0]
 
 
-def distances(world: World, free: Circle, points: np.ndarray, seconds: float, crossing: bool, seed: int,
-              window: tuple[float, float], trigger_t: float = TRIGGER_T_S, dt_s: float = DT_S) -> np.ndarray:
+def distances(world: World, free: Circle, points: np.ndarray, seconds: float, spec: FlightSpec,
+              trigger_t: float = TRIGGER_T_S, dt_s: float = DT_S) -> np.ndarray:
     """(T, P) distance (m) from each point to the nearest person, every ``dt_s`` from the trigger
     for ``seconds`` (the crossing world's walkers drawn at the trigger, as its flights do)."""
     while world.t < trigger_t - 1e-9:
         world.step(TICK_S)
-    if crossing:
-        add_crossing_walkers(world, free, world.t, seed, window=window)
+    if spec.world == "crossing":
+        add_trigger_crossers(world, free, spec, crossing_walkable(spec, free))
     fixed = np.empty((0, 2)) if world.fixed_people is None else np.asarray(world.fixed_people, float).reshape(-1, 2)
     n = int(round(seconds / dt_s)) + 1
     out = np.full((n, len(points)), np.inf, np.float32)
@@ -221,7 +222,7 @@ def oracle(seed: int, flavour: str, ground: str, photos: str | None, reach_m: fl
     if free is None:
         return None
     pts = candidate_points(ground, seed, (free.north, free.east), reach_m, photos)
-    d = distances(world, free, pts, rules.max_takeover_s, spec.world == "crossing", seed, window)
+    d = distances(world, free, pts, rules.max_takeover_s, spec)
     v = judge(d, rules)
     return WorldVerdict(seed, flavour, ground, spec.world, round(free.radius, 2), len(pts), v.foresight, v.earliest,
                         v.earliest_touchdown_s, round(v.judgeable, 4))

@@ -6,7 +6,8 @@ For every row of ``companion sim-scenarios`` (``--out``) whose touchdown had som
 ``r0`` (``strike``: an unsafe companion landing, or the autopilot's LAND after a handback or in a
 ``--baseline`` flight), the seed's world is built again (``sim.flights.scenarios.scenario`` and
 ``sim.flights.flight.build_world``; the crossing world's walkers drawn at the row's trigger with its
-``crossing_window``) and stepped, alone, to the touchdown's world time (``world_t_trigger`` plus
+``crossing_window`` and ``runners``, on the ground people walk on, by the flight's own
+``add_trigger_crossers``) and stepped, alone, to the touchdown's world time (``world_t_trigger`` plus
 ``time_to_touchdown_s``). A world depends on its seed and its clock alone, so this is the flight's
 own crowd. A row of the photo world (``"ground": "photo"``) is rebuilt over the photos of
 ``--photos`` (default ``../shared/data/semantic_drone/full`` beside the checkout, as
@@ -44,11 +45,11 @@ from typing import Any
 import numpy as np
 
 from sim.evidence.person_halo import parse_floats
-from sim.flights.flight import FlightSpec, build_world
+from sim.flights.flight import FlightSpec, add_trigger_crossers, build_world, crossing_walkable
 from sim.flights.results import read_rows
 from sim.flights.scenarios import scenario
 from sim.flights.spec import photos_folder
-from sim.world.crowd import TICK_S, World, add_crossing_walkers
+from sim.world.crowd import TICK_S, World
 from sim.world.walkers import ScriptedWalkers
 
 #: Worlds rebuilt here (the scenarios' own; DroneCrowd needs ../shared and is not a seed's draw).
@@ -111,6 +112,8 @@ def rebuild(row: dict[str, Any], photos: str | None = None) -> tuple[World, Any,
     window = row.get("crossing_window")
     if window is not None:
         spec = replace(spec, crossing_window=(float(window[0]), float(window[1])))
+    if row.get("runners"):  # recorded only when not 0
+        spec = replace(spec, runners=float(row["runners"]))
     world, free, _ = build_world(spec)
     return world, free, spec
 
@@ -137,7 +140,7 @@ def trace(row: dict[str, Any], before: Sequence[float], r0_m: float = 2.0, photo
         if not added and world.t >= t_trigger - 1e-9:
             added = True
             if spec.world == "crossing" and free is not None:
-                add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window)
+                add_trigger_crossers(world, free, spec, crossing_walkable(spec, free))
         world.step(TICK_S)
         history.append((world.t, world.positions().copy()))
     if not history:

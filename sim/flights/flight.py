@@ -319,6 +319,16 @@ def crossing_walkable(spec: FlightSpec, free: Circle) -> Walkable | None:
     return _walkable(spec, (free.north, free.east), free.radius + 8.0)
 
 
+def add_trigger_crossers(world: World, free: Circle, spec: FlightSpec, walkable: Walkable | None) -> None:
+    """The crossing world's walkers, drawn at the trigger (``world.t``) as its flight draws them:
+    ``spec``'s crossing window and share of runners, on ``walkable`` (``crossing_walkable``; a
+    flight makes it before the trigger, where reading the class maps would stall its loop). The
+    one draw every rebuilder of a flight's world uses (``sim.evidence.strikes``,
+    ``sim.evidence.clear_oracle``), so that theirs is the flight's crowd."""
+    add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window, runners=spec.runners,
+                         walkable=walkable)
+
+
 def _build_world(spec: FlightSpec) -> tuple[World, Circle | None, tuple[float, float]]:
     cn, ce = photo_scene_centre(spec) if spec.ground == "photo" else scene_centre(spec)
     start = (cn + spec.start_offset_m[0], ce + spec.start_offset_m[1])
@@ -645,8 +655,7 @@ async def _fly(spec: FlightSpec, link_port: int, cam_port: int, observe: Observe
                                 speed=1.4)
         elif spec.world == "crossing" and free is not None:
             # Walkers cross the free circle (the zone the companion lands in) during the descent.
-            add_crossing_walkers(world, free, world.t, spec.seed, window=spec.crossing_window, runners=spec.runners,
-                                 walkable=cross_walkable)
+            add_trigger_crossers(world, free, spec, cross_walkable)
         end = t_trigger + spec.timeout_s
         while not touchdown and time.monotonic() < end:
             if service is not None and not service.running:

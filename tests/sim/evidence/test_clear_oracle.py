@@ -100,6 +100,30 @@ def test_photo_world_seed_7_could_land_clear(photos: str) -> None:
     assert v is not None and v.foresight and v.earliest == "clear"
 
 
+def test_the_photo_crossing_worlds_crossers_are_the_flights(photos: str) -> None:
+    """Photo seed 2's crossers, drawn anywhere, leave the ground people walk on
+    (tests/sim/world/test_photo_world.py); its flight draws them on it. The oracle's crowd is the
+    flight's: after 20 s it stands where a world with the flight's draw stands."""
+    from dataclasses import replace
+
+    from sim.evidence.clear_oracle import TRIGGER_T_S, distances
+    from sim.flights.flight import build_world, crossing_walkable
+    from sim.flights.scenarios import scenario
+    from sim.world.crowd import TICK_S, add_crossing_walkers
+
+    spec = replace(scenario(2, "px4"), ground="photo", photos=photos)
+    assert spec.world == "crossing"
+    world, free, _ = build_world(spec)
+    distances(world, free, np.zeros((1, 2)), 20.0, spec)
+    flown, free2, _ = build_world(spec)
+    while flown.t < TRIGGER_T_S - 1e-9:
+        flown.step(TICK_S)
+    add_crossing_walkers(flown, free2, flown.t, 2, window=spec.crossing_window, walkable=crossing_walkable(spec, free2))
+    for _ in range(100):
+        flown.step(DT_S)
+    np.testing.assert_array_equal(world.positions(), flown.positions())
+
+
 def test_cli_prints_a_summary_and_refuses_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--seeds", "3", "--reach", "2", "--json"]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]

@@ -103,7 +103,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latency-runs", type=int, default=20, help="timed runs per size (0: skip latency)")
     parser.add_argument("--min-people", type=float, default=0.0,
                         help="occupied patches of the density map holding fewer people than this are specks, not "
-                             "occupied (pipeline.occupied_min_people; default 0: every patch, the paper's rule)")
+                             "occupied (OccupancyParams.min_mass, a rule measured, not flown; default 0: every patch, "
+                             "the paper's rule)")
     parser.add_argument("--curve", action="store_true", help="print the recall/free curves as well")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of text")
 

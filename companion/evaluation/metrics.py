@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -141,7 +141,7 @@ def evaluate_set(
     errors = []
     sizes: list[np.ndarray] = []
     covered: list[np.ndarray] = []
-    op = OccupancyParams(threshold, params.kernel, params.iterations, params.min_mass)
+    op = replace(params, threshold=threshold)
     for s in samples:
         img = s.image()
         hw = img.shape[:2]

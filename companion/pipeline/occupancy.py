@@ -88,8 +88,6 @@ def drop_specks(occ: np.ndarray, density: np.ndarray, min_mass: float) -> np.nda
     d = np.asarray(density, np.float32)
     finite = np.isfinite(d)
     n, labels = cv2.connectedComponents(occ.astype(np.uint8), connectivity=8)
-    if n <= 1:
-        return occ
     excess = np.zeros(d.shape, np.float64)
     if finite.any():
         excess[finite] = d[finite] - float(d[finite].min())
